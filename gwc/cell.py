@@ -1,0 +1,286 @@
+"""Cell start, stop and status: the successor of Listing 4's start.csh and Listing 5's stop.csh.
+
+`start_cell` starts the embedded database (if used), applies the schema, then each configured
+module as its own detached process with a pid file, in etc/cell.toml's order, and returns when each
+has said it is up: a server by completing a STARTUP conversation, a machine's WC by appearing on the
+bus (machines then wait, Shutdown, for the operator's `gwc machine start`). `stop_cell` stops
+everything in reverse order, SIGTERM first, SIGKILL after a grace period, and removes every pid file,
+message queue and pty link so that the next start finds a clean state. Both are idempotent.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+from gwc import db
+from gwc.config import Config
+from gwc.errors import GwcError, ModuleError
+from gwc.ipc.bus import BlockingBus
+from gwc.ipc.catalogue import message
+from gwc.ipc.codes import AckCode
+from gwc.log import log_file_name
+from gwc.module import module_name
+
+GRACE = 5.0
+UP_TIMEOUT = 20.0
+
+
+@dataclass(frozen=True)
+class Proc:
+    """One process of the cell: what to run and what to call it."""
+
+    kind: str
+    machine: str | None = None
+
+    @property
+    def name(self) -> str:
+        return module_name(self.kind, self.machine)
+
+    @property
+    def argv(self) -> list[str]:
+        args = [sys.executable, "-m", "gwc", "run", self.kind]
+        return args + (["--machine", self.machine] if self.machine else [])
+
+
+def machine_procs(cfg: Config, machine_id: str) -> list[Proc]:
+    """The processes of one machine in start order: simulator (if any), ME, then WC."""
+    spec = cfg.machine(machine_id)
+    procs = []
+    if spec.kind == "cmm" and spec.options.get("serial", {}).get("port") == "sim":
+        procs.append(Proc("cmmsim", spec.id))
+    return procs + [Proc("me", spec.id), Proc("wc", spec.id)]
+
+
+def cell_procs(cfg: Config) -> list[Proc]:
+    """Every process of the cell in start order."""
+    procs = [Proc(m.name) for m in cfg.modules]
+    for m in cfg.machines:
+        procs += machine_procs(cfg, m.id)
+    return procs
+
+
+def pid_file(cfg: Config, name: str) -> Path:
+    return cfg.run_dir / (log_file_name(name)[: -len(".log")] + ".pid")
+
+
+def _proc_start_ticks(pid: int) -> int | None:
+    """The kernel's start time of pid (field 22 of /proc/pid/stat): tells a reused pid from ours."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return int(stat.rsplit(")", 1)[1].split()[19])
+
+
+def _zombie(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+@dataclass(frozen=True)
+class ProcStatus:
+    name: str
+    pid: int | None
+    alive: bool
+    since: str | None
+
+
+def read_pid(cfg: Config, name: str) -> ProcStatus:
+    path = pid_file(cfg, name)
+    try:
+        info = json.loads(path.read_text())
+        pid = int(info["pid"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return ProcStatus(name, None, False, None)
+    alive = _proc_start_ticks(pid) == info.get("ticks") and not _zombie(pid)
+    return ProcStatus(name, pid, alive, info.get("since"))
+
+
+def spawn(cfg: Config, proc: Proc, extra_env: dict[str, str] | None = None) -> int:
+    """Start one module detached from us, with its pid file; output before its log opens goes to .out."""
+    cfg.run_dir.mkdir(parents=True, exist_ok=True)
+    cfg.log_dir.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ, GWC_CONFIG=str(cfg.path.resolve()), GWC_VAR=str(cfg.var.resolve()), PYTHONUNBUFFERED="1")
+    if cfg.database_url:
+        env["GWC_DATABASE_URL"] = cfg.database_url
+    env.update(extra_env or {})
+    out = open(cfg.log_dir / (log_file_name(proc.name)[:-4] + ".out"), "ab")
+    with out:
+        child = subprocess.Popen(proc.argv, env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
+                                 start_new_session=True, cwd=str(cfg.var.resolve()))
+    info = {"pid": child.pid, "ticks": _proc_start_ticks(child.pid), "since": datetime.now().isoformat(" ", "seconds"),
+            "argv": proc.argv}
+    tmp = pid_file(cfg, proc.name).with_suffix(".tmp")
+    tmp.write_text(json.dumps(info))
+    tmp.replace(pid_file(cfg, proc.name))
+    return child.pid
+
+
+def _out_tail(cfg: Config, name: str, lines: int = 5) -> str:
+    try:
+        text = (cfg.log_dir / (log_file_name(name)[:-4] + ".out")).read_text(errors="replace")
+    except OSError:
+        return ""
+    return " | ".join(text.strip().splitlines()[-lines:])
+
+
+def wait_on_bus(cfg: Config, bus: BlockingBus, name: str, timeout: float = UP_TIMEOUT) -> None:
+    """Wait until module `name` says hello on the bus, failing early if its process died."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if name in bus.peers():
+            return
+        st = read_pid(cfg, name)
+        if st.pid is not None and not st.alive:
+            raise ModuleError(f"{name} died at start: {_out_tail(cfg, name) or 'see ' + str(cfg.log_dir)}")
+        time.sleep(0.05)
+    raise ModuleError(f"{name} did not appear on the bus within {timeout:.0f}s (see {cfg.log_dir})")
+
+
+def startup(bus: BlockingBus, name: str, cls: str = "STARTUP", timeout: float = UP_TIMEOUT) -> str:
+    """Hold a STARTUP (or ME_START) conversation with one module; return how it ended."""
+    conv, batch = bus.request(cls, message("Startup_Request", module=name), to=name, timeout=timeout)
+    try:
+        ack = batch.first
+        if ack.ack_code == AckCode.NOTNOW:
+            return "already started"
+        if ack.ack_code != AckCode.ACK_OK:
+            raise ModuleError(f"{name} refused startup: {ack.ack_code} {ack.note or ''}".strip())
+        while True:
+            done = conv.next_message(timeout).first
+            if done.name in ("Startup_Complete", "ME_Ready"):
+                if done.ack_code != AckCode.ACK_OK:
+                    raise ModuleError(f"{name} startup failed: {done.ack_code} {done.note or ''}".strip())
+                return "started"
+    finally:
+        conv.end()
+
+
+def shutdown(bus: BlockingBus, name: str, cls: str = "SHUTDOWN", timeout: float = UP_TIMEOUT) -> str:
+    conv, batch = bus.request(cls, message("Shutdown_Request", module=name), to=name, timeout=timeout)
+    try:
+        ack = batch.first
+        if ack.ack_code == AckCode.NOTNOW:
+            return "already shut down"
+        if ack.ack_code != AckCode.ACK_OK:
+            raise ModuleError(f"{name} refused shutdown: {ack.ack_code} {ack.note or ''}".strip())
+        while True:
+            done = conv.next_message(timeout).first
+            if done.name in ("Shutdown_Complete", "ME_Stopped"):
+                return "shut down" if done.ack_code == AckCode.ACK_OK else f"shut down with {done.ack_code}"
+    finally:
+        conv.end()
+
+
+def hi_bus(cfg: Config, log: logging.Logger, interest: tuple[str, ...] = ()) -> BlockingBus:
+    """The bus attachment of one Human Interface command (a unique name per process)."""
+    return BlockingBus(f"hi.{os.getpid()}", cfg.bus, log, interest)
+
+
+def start_procs(cfg: Config, procs: list[Proc], bus: BlockingBus, say: Callable[[str], None]) -> None:
+    """Spawn what is not running, then bring each up in order (servers through STARTUP)."""
+    for proc in procs:
+        st = read_pid(cfg, proc.name)
+        if st.alive:
+            say(f"{proc.name}: already running (pid {st.pid})")
+        else:
+            pid = spawn(cfg, proc)
+            say(f"{proc.name}: spawned (pid {pid})")
+        if proc.kind in ("me", "cmmsim"):
+            continue  # off the bus: their WC proves them
+        wait_on_bus(cfg, bus, proc.name)
+        if proc.kind == "wc":
+            say(f"{proc.name}: on the bus (machine Shutdown until `gwc machine start {proc.machine}`)")
+        else:
+            say(f"{proc.name}: {startup(bus, proc.name)}")
+
+
+def start_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = print) -> None:
+    if cfg.embedded:
+        db.cluster_start(cfg, log)
+        say("database: embedded cluster running")
+    db.init_schema(cfg, log)
+    with hi_bus(cfg, log) as bus:
+        start_procs(cfg, cell_procs(cfg), bus, say)
+
+
+def stop_proc(cfg: Config, name: str, grace: float = GRACE) -> str:
+    """SIGTERM, wait, SIGKILL; remove the pid file. Returns what happened."""
+    st = read_pid(cfg, name)
+    path = pid_file(cfg, name)
+    if st.pid is None:
+        path.unlink(missing_ok=True)
+        return "not running"
+    if not st.alive:
+        path.unlink(missing_ok=True)
+        return "was dead"
+    how = "stopped"
+    try:
+        os.killpg(st.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        pass
+    deadline = time.monotonic() + grace
+    while time.monotonic() < deadline and read_pid(cfg, name).alive:
+        time.sleep(0.05)
+    if read_pid(cfg, name).alive:
+        how = "killed"
+        try:
+            os.killpg(st.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        deadline = time.monotonic() + grace
+        while time.monotonic() < deadline and read_pid(cfg, name).alive:
+            time.sleep(0.05)
+    path.unlink(missing_ok=True)
+    return how
+
+
+def clean_machine_state(cfg: Config, machine_ids: list[str]) -> list[str]:
+    """Remove the queues and pty links of these machines (they outlive their processes by design)."""
+    from gwc.ipc.mq import remove_queues
+
+    removed = remove_queues(cfg.ipc_prefix, machine_ids)
+    for mid in machine_ids:
+        pty = cfg.run_dir / f"cmm-{mid}.pty"
+        if pty.exists():
+            pty.unlink()
+            removed.append(str(pty))
+    return removed
+
+
+def stop_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = print, database: bool = True) -> None:
+    for proc in reversed(cell_procs(cfg)):
+        what = stop_proc(cfg, proc.name)
+        if what != "not running":
+            say(f"{proc.name}: {what}")
+    # Pid files of processes no longer in the configuration (or started by hand) go too.
+    if cfg.run_dir.exists():
+        for path in cfg.run_dir.glob("*.pid"):
+            name = path.stem.replace("-", ":", 1)
+            say(f"{name}: {stop_proc(cfg, name)}")
+    for item in clean_machine_state(cfg, [m.id for m in cfg.machines]):
+        log.info("removed %s", item)
+    if database and cfg.embedded:
+        db.cluster_stop(cfg, log)
+        say("database: stopped")
+
+
+def cell_status(cfg: Config) -> list[ProcStatus]:
+    return [read_pid(cfg, p.name) for p in cell_procs(cfg)]
+
+
+def check_alive(cfg: Config, name: str) -> None:
+    if not read_pid(cfg, name).alive:
+        raise GwcError(f"{name} is not running (start it with `gwc start`)")

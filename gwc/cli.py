@@ -1,0 +1,54 @@
+"""The `gwc` command: the Human Interface and the cell's tools, one click group.
+
+Every command turns a GwcError into one line on stderr and the error's exit code: never a traceback.
+Command groups live in gwc/hi/ and are added here, so this file stays an index.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from typing import Any
+
+import click
+
+from gwc.errors import GwcError
+
+# Each module exposes `commands`, a list of click commands added to the top-level group.
+COMMAND_MODULES = [
+    "gwc.hi.cell",
+    "gwc.hi.check",
+]
+
+
+class GwcGroup(click.Group):
+    """A group that reports GwcError as one line and its exit code."""
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except GwcError as e:
+            click.echo(f"gwc: {e}", err=True)
+            ctx.exit(e.exit_code)
+        except KeyboardInterrupt:
+            click.echo("gwc: interrupted", err=True)
+            ctx.exit(130)
+
+
+@click.group(cls=GwcGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="gwc")
+def cli() -> None:
+    """GWC, the Generic WorkCell: run and operate a factory cell.
+
+    Configuration is etc/cell.toml (or $GWC_CONFIG); state is var/ (or $GWC_VAR); the database is
+    the embedded PostgreSQL cluster under var/pg unless $GWC_DATABASE_URL names another.
+    """
+
+
+for _name in COMMAND_MODULES:
+    for _cmd in importlib.import_module(_name).commands:
+        cli.add_command(_cmd)
+
+
+def main() -> None:
+    sys.exit(cli.main(prog_name="gwc", standalone_mode=True))

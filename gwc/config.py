@@ -1,0 +1,206 @@
+"""The cell's configuration: etc/cell.toml, with the few environment overrides tests and operators need.
+
+Configuration lives in etc/, state in var/ (GUIDE 4). Overrides, in order of strength:
+GWC_CONFIG (the file), GWC_VAR (the state folder), GWC_DATABASE_URL (use that server, not the
+embedded cluster).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gwc.errors import ConfigError
+
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
+SERVER_MODULES = ("cas", "ers", "ms", "ls", "sls", "msched")
+LEVELS = ("trace", "note", "warning", "error")
+
+
+@dataclass(frozen=True)
+class Faults:
+    """The bus fault injector: rates in [0, 1] applied to every datagram a module receives."""
+
+    drop: float = 0.0
+    duplicate: float = 0.0
+    reorder: float = 0.0
+    seed: int | None = None
+
+    @property
+    def active(self) -> bool:
+        return bool(self.drop or self.duplicate or self.reorder)
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    name: str = "CELL"
+    group: str = "239.255.71.1"
+    port: int = 47100
+    interface: str = "127.0.0.1"
+    heartbeat: float = 0.25
+    peer_timeout: float = 1.5
+    ack_timeout: float = 0.02
+    retry_deadline: float = 5.0
+    reply_timeout: float = 10.0
+    faults: Faults = field(default_factory=Faults)
+
+
+@dataclass(frozen=True)
+class MachineSpec:
+    """One machine: its WC and ME processes, and for a CMM its serial line."""
+
+    id: str
+    kind: str = "dummy"  # dummy | cmm
+    liveness: float = 3.0  # the Machine Server marks it Shutdown after this much WC silence
+    level: str = "note"
+    options: dict[str, Any] = field(default_factory=dict)  # kind-specific: run_time, serial, sim, ...
+
+
+@dataclass(frozen=True)
+class ModuleSpec:
+    name: str
+    level: str = "note"
+
+
+@dataclass(frozen=True)
+class Config:
+    path: Path
+    var: Path
+    cell_name: str
+    policy: str
+    bus: BusConfig
+    database_url: str | None
+    modules: tuple[ModuleSpec, ...]
+    machines: tuple[MachineSpec, ...]
+    raw: dict[str, Any]
+
+    @property
+    def log_dir(self) -> Path:
+        return self.var / "log"
+
+    @property
+    def run_dir(self) -> Path:
+        """Pid files, the embedded cluster's unix socket, pty links."""
+        return self.var / "run"
+
+    @property
+    def pg_dir(self) -> Path:
+        return self.var / "pg"
+
+    @property
+    def results_dir(self) -> Path:
+        """Where ME processes write run results files for their WC to load."""
+        return self.var / "results"
+
+    @property
+    def ipc_prefix(self) -> str:
+        """Prefix of this cell's POSIX queue names, unique per var/ so two cells never share a queue."""
+        digest = hashlib.sha1(str(self.var.resolve()).encode()).hexdigest()[:8]
+        return f"/gwc.{digest}"
+
+    @property
+    def embedded(self) -> bool:
+        return self.database_url is None
+
+    def machine(self, machine_id: str) -> MachineSpec:
+        for m in self.machines:
+            if m.id == machine_id:
+                return m
+        known = ", ".join(m.id for m in self.machines) or "none"
+        raise ConfigError(f"unknown machine {machine_id!r} in {self.path} (known: {known})")
+
+    def level_of(self, module: str) -> str:
+        """The log level a module starts with (Listing 4 set it per module in its start script)."""
+        for m in self.modules:
+            if m.name == module:
+                return m.level
+        kind, _, mid = module.partition(":")
+        if mid:
+            for m in self.machines:
+                if m.id == mid:
+                    return m.level
+        return str(self.raw.get("log", {}).get("level", "note"))
+
+
+def _check_level(level: str, where: str) -> str:
+    if level not in LEVELS:
+        raise ConfigError(f"{where}: log level {level!r} is not one of {', '.join(LEVELS)}")
+    return level
+
+
+def default_config_path() -> Path:
+    return Path(os.environ.get("GWC_CONFIG") or PROJECT_ROOT / "etc" / "cell.toml")
+
+
+def load_config(path: Path | str | None = None) -> Config:
+    """Read the cell configuration, raising ConfigError with the file and the key that is wrong."""
+    cfg_path = Path(path) if path else default_config_path()
+    try:
+        raw = tomllib.loads(cfg_path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"no cell configuration at {cfg_path} (set GWC_CONFIG or create etc/cell.toml)") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{cfg_path}: {e}") from None
+    try:
+        return _build(cfg_path, raw)
+    except (TypeError, ValueError, KeyError) as e:
+        raise ConfigError(f"{cfg_path}: {e}") from None
+
+
+def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
+    cell = raw.get("cell", {})
+    var = Path(os.environ.get("GWC_VAR") or cell.get("var") or PROJECT_ROOT / "var")
+    if not var.is_absolute():
+        var = cfg_path.parent.parent / var
+    bus_raw = dict(raw.get("bus", {}))
+    faults = Faults(**bus_raw.pop("faults", {}))
+    bus = BusConfig(**bus_raw, faults=faults)
+    for rate in (faults.drop, faults.duplicate, faults.reorder):
+        if not 0.0 <= rate < 1.0:
+            raise ValueError(f"bus.faults rates must be in [0, 1), got {rate}")
+    url = os.environ.get("GWC_DATABASE_URL") or raw.get("database", {}).get("url") or None
+    default_level = _check_level(raw.get("log", {}).get("level", "note"), "log.level")
+    modules = tuple(
+        ModuleSpec(name=m["name"], level=_check_level(m.get("level", default_level), f"module {m['name']}"))
+        for m in raw.get("module", [])
+    )
+    for m in modules:
+        if m.name not in SERVER_MODULES:
+            raise ValueError(f"module {m.name!r} is not one of {', '.join(SERVER_MODULES)}")
+    machines = []
+    for m in raw.get("machine", []):
+        m = dict(m)
+        mid = m.pop("id")
+        kind = m.pop("kind", "dummy")
+        if kind not in ("dummy", "cmm"):
+            raise ValueError(f"machine {mid}: kind {kind!r} is not dummy or cmm")
+        machines.append(
+            MachineSpec(
+                id=mid,
+                kind=kind,
+                liveness=float(m.pop("liveness", 3.0)),
+                level=_check_level(m.pop("level", default_level), f"machine {mid}"),
+                options=m,
+            )
+        )
+    ids = [m.id for m in machines]
+    if len(set(ids)) != len(ids):
+        raise ValueError("machine ids must be unique")
+    policy = cell.get("policy", "fifo")
+    if policy not in ("fifo", "priority"):
+        raise ValueError(f"cell.policy {policy!r} is not fifo or priority")
+    return Config(
+        path=cfg_path,
+        var=var,
+        cell_name=cell.get("name", "GWC"),
+        policy=policy,
+        bus=bus,
+        database_url=url,
+        modules=modules,
+        machines=tuple(machines),
+        raw=raw,
+    )

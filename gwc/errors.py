@@ -1,0 +1,63 @@
+"""One exception hierarchy for the whole cell; the CLI turns each into one line and an exit code."""
+
+from __future__ import annotations
+
+
+class GwcError(Exception):
+    """Base of every error the cell raises on purpose. Its message says what to do."""
+
+    exit_code = 1
+
+
+class ConfigError(GwcError):
+    """etc/cell.toml (or an override) is missing or wrong."""
+
+    exit_code = 2
+
+
+class DatabaseError(GwcError):
+    """The cell database cannot be reached or refused a statement."""
+
+    exit_code = 3
+
+
+class DatabaseUnavailable(DatabaseError):
+    """No connection could be made after the retries 3.2.2 asks for."""
+
+
+class BusError(GwcError):
+    """The conversation bus could not send or receive."""
+
+    exit_code = 4
+
+
+class ConversationTimeout(BusError, TimeoutError):
+    """The answer to a conversation did not come in time (thesis 3.2.3)."""
+
+
+class MessageError(BusError, ValueError):
+    """A message does not fit its class in the catalogue, or a datagram is malformed."""
+
+
+class QueueError(GwcError):
+    """The WC<->ME message-queue channel failed (full queue, garbled message, oversize field)."""
+
+    exit_code = 5
+
+
+class QueueTimeout(QueueError, TimeoutError):
+    """Nothing arrived on a WC<->ME queue before the deadline."""
+
+
+class ModuleError(GwcError):
+    """A cell module could not be started, stopped or found."""
+
+    exit_code = 6
+
+
+class Refused(GwcError):
+    """A conversation was answered with an ack code other than ACK_OK."""
+
+    def __init__(self, ack_code: str, detail: str = "") -> None:
+        self.ack_code = ack_code
+        super().__init__(f"refused with {ack_code}" + (f": {detail}" if detail else ""))

@@ -1,0 +1,268 @@
+"""The Conversation Tool: every conversation class and message class the cell speaks, in one place.
+
+A new conversation is one entry here, not new plumbing: the bus validates every message it sends
+and receives against these declarations, and the monitor and docs/conversations.md read them.
+
+Field types are written as strings: "str", "int", "float", "bool", "list", "dict"; a trailing
+"?" makes the field nullable (it may be absent or null). Every other field is required.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from gwc.errors import MessageError
+
+_TYPES: dict[str, tuple[type, ...]] = {
+    "str": (str,),
+    "int": (int,),
+    "float": (float, int),
+    "bool": (bool,),
+    "list": (list,),
+    "dict": (dict,),
+}
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    name: str
+    type: str
+    nullable: bool
+
+
+@dataclass(frozen=True)
+class MessageClass:
+    name: str
+    fields: tuple[FieldSpec, ...]
+    doc: str = ""
+
+    def check(self, values: dict[str, Any]) -> None:
+        """Raise MessageError unless values fit this class exactly."""
+        known = {f.name for f in self.fields}
+        extra = set(values) - known
+        if extra:
+            raise MessageError(f"{self.name}: unknown field(s) {', '.join(sorted(extra))}")
+        for f in self.fields:
+            v = values.get(f.name)
+            if v is None:
+                if not f.nullable:
+                    raise MessageError(f"{self.name}: field {f.name} ({f.type}) is required")
+                continue
+            types = _TYPES[f.type]
+            if not isinstance(v, types) or (f.type in ("int", "float") and isinstance(v, bool)):
+                raise MessageError(f"{self.name}: field {f.name} must be {f.type}, got {type(v).__name__}")
+
+
+@dataclass(frozen=True)
+class ConversationClass:
+    name: str
+    doc: str
+    answered_by: str  # who handles it: a module name, "wc" (the addressed machine), or "any"
+    messages: tuple[str, ...]  # the message classes that may appear in it
+
+
+def _msg(name: str, doc: str = "", **fields: str) -> MessageClass:
+    specs = []
+    for fname, ftype in fields.items():
+        nullable = ftype.endswith("?")
+        base = ftype.rstrip("?")
+        if base not in _TYPES:
+            raise ValueError(f"catalogue: {name}.{fname} has unknown type {ftype}")
+        specs.append(FieldSpec(fname, base, nullable))
+    return MessageClass(name, tuple(specs), doc)
+
+
+ACK = {"ack_code": "str", "note": "str?"}
+
+MESSAGE_CLASSES: dict[str, MessageClass] = {
+    m.name: m
+    for m in (
+        # --- module lifecycle (every server, MSCHED, every WC) ---
+        _msg("Startup_Request", "ask a module (or a machine's WC) to start", module="str"),
+        _msg("Startup_Ack", "startup accepted (ACK_OK) or refused (Notnow, Start_Fail)", **ACK),
+        _msg("Startup_Complete", "the module is up and listening", **ACK),
+        _msg("Shutdown_Request", "ask a module to shut down", module="str"),
+        _msg("Shutdown_Ack", **ACK),
+        _msg("Shutdown_Complete", **ACK),
+        _msg("ME_Ready", "the machine is homed, Idle and accepts all operations", machine_id="str", **ACK),
+        _msg("ME_Stopped", "the machine is Shutdown", machine_id="str", **ACK),
+        # --- MSCHED ---
+        _msg(
+            "Machine_Request",
+            "first of 1+N: N Machine_Entry follow",
+            entity_id="int",
+            op_type="str",
+            num_machines="int",
+            priority="int?",
+        ),
+        _msg("Machine_Entry", "one machine of a request (AND)", machine_id="str"),
+        _msg("Machine_Req_Ack", "request queued", request_key="int?", **ACK),
+        _msg(
+            "Machine_Req_Comp",
+            "the request ended: ACK_OK (bound; N Reserved_Machine follow), NO_MACHINE, REQ_CANCEL",
+            entity_id="int",
+            machine_run_id="int?",
+            request_key="int?",
+            num_machines="int",
+            **ACK,
+        ),
+        _msg("Reserved_Machine", "one machine bound to the entity", machine_id="str"),
+        _msg("Request_Comp_Ack", "the entity got its Machine_Req_Comp", entity_id="int", **ACK),
+        _msg("Cancel_Request", "cancel one request (or all of an entity's when request_key is null)",
+             request_key="int?", entity_id="int?", by="str?"),
+        _msg("Cancel_Req_Ack", "ACK_OK or REQ_KEY_U (nothing to cancel)", cancelled="int?", **ACK),
+        _msg("Update_ME_Status", "a machine's status changed (broadcast by the Machine Server)",
+             machine_id="str", status="str", previous="str?", machine_run_id="int?", note="str?"),
+        _msg("Chg_Accept_Type", "set the op types a machine accepts (null/empty = none, ['*'] = all)",
+             machine_id="str", op_types="list"),
+        _msg("Chg_Accept_Type_Ack", **ACK),
+        _msg("Unreserve_Me", "free machines reserved by an entity (all of them if machine_id is null)",
+             entity_id="int", machine_id="str?", by="str?"),
+        _msg("Unreserve_Me_Ack", freed="int?", **ACK),
+        # --- WC (addressed to one machine) ---
+        _msg("Setup_Run", "download a recipe and set the machine up for a run",
+             machine_id="str", recipe_id="str", op_type="str", machine_run_id="int", entity_id="int?"),
+        _msg("Setup_Run_Ack", **ACK),
+        _msg("Start_Run", "start the run that was set up", machine_id="str", machine_run_id="int"),
+        _msg("Start_Run_Ack", **ACK),
+        _msg("Run_Complete", "a run ended; results are in MACHINE_RUN_RESULT",
+             machine_id="str", machine_run_id="int?", **ACK),
+        _msg("Download_Me", "send a recipe to the machine", machine_id="str", recipe_id="str"),
+        _msg("Download_Ack", **ACK),
+        _msg("Upload_Me", "bring the machine's recipe back to the cell", machine_id="str", recipe_id="str"),
+        _msg("Upload_Ack", version="int?", **ACK),
+        # --- alarms (Cell Alarm Server) ---
+        _msg("Alarm_Send", "raise an alarm", alarm_id="str", alarm_text="str?", machine_id="str?", raised_by="str"),
+        _msg("Alarm_Ack", alarm_no="int?", known="bool?", **ACK),
+        _msg("Alarm_Clear", "an alarm was cleared by the operator (broadcast)",
+             alarm_no="int", alarm_id="str?", machine_id="str?", cleared_by="str"),
+        _msg("Alarm_Clear_Request", "the operator clears an alarm", alarm_no="int", cleared_by="str"),
+        _msg("Alarm_Clear_Ack", **ACK),
+        # --- Machine Server ---
+        _msg("Change_Status", "set a machine's status", machine_id="str", status="str",
+             recipe_id="str?", machine_run_id="int?", note="str?", expect="list?"),
+        _msg("Change_Status_Ack", status="str?", previous="str?", **ACK),
+        _msg("Get_Status", machine_id="str"),
+        _msg("Status_Reply", machine_id="str", status="str?", recipe_id="str?", machine_run_id="int?", **ACK),
+        # --- Lot Server ---
+        _msg("Create_Lot_Entity", lot_type="str?", lot_id="int?", product_id="str", quantity="int",
+             priority="int?", owner="str?", result_params="list?", script_id="str?", work_order_id="int?"),
+        _msg("Create_Lot_Ack", lot_id="int?", entity_ids="list?", **ACK),
+        _msg("Entity_Request", "an entity asks (import, export, completed, failed, state)",
+             entity_id="int", action="str", reason="str?", script_pid="int?"),
+        _msg("Entity_Ack", lot_id="int?", state="str?", **ACK),
+        _msg("Lot_Decision", "the operator imports or exports an entity", entity_id="int", action="str", by="str?"),
+        _msg("Lot_Decision_Ack", lot_id="int?", **ACK),
+        _msg("Lot_Moved", "broadcast: an entity was imported or exported", entity_id="int", action="str",
+             lot_id="int?"),
+        _msg("Divide_Merge", entity_id="int", action="str", other_entity_id="int?", quantity="int?"),
+        _msg("Divide_Merge_Ack", entity_ids="list?", **ACK),
+        # --- Equipment Recipe Server ---
+        _msg("Recipe_Fetch", "ask for the approved version of a recipe for a machine",
+             recipe_id="str", machine_id="str?"),
+        _msg("Recipe_Reply", recipe_id="str?", version="int?", checksum="str?", content="str?", **ACK),
+        _msg("Recipe_Store", "store content as a new version", recipe_id="str", content="str", by="str?"),
+        _msg("Recipe_Store_Ack", version="int?", checksum="str?", **ACK),
+        # --- Status Line Server ---
+        _msg("Status_Line_Get"),
+        _msg("Status_Line", text="str", imports="int?", exports="int?", alarms="int?", last_event="str?"),
+        _msg("Cell_Event", "a cell event worth the status line", text="str", source="str?"),
+        # --- generic ---
+        _msg("Ack", **ACK),
+        _msg("Ping", "bus test traffic", n="int", payload="str?"),
+        _msg("Pong", n="int", payload="str?"),
+    )
+}
+
+
+def _conv(name: str, doc: str, answered_by: str, *messages: str) -> ConversationClass:
+    for m in messages:
+        if m not in MESSAGE_CLASSES:
+            raise ValueError(f"catalogue: conversation {name} names unknown message {m}")
+    return ConversationClass(name, doc, answered_by, messages)
+
+
+_LIFE_START = ("Startup_Request", "Startup_Ack", "Startup_Complete")
+_LIFE_STOP = ("Shutdown_Request", "Shutdown_Ack", "Shutdown_Complete")
+
+CONVERSATION_CLASSES: dict[str, ConversationClass] = {
+    c.name: c
+    for c in (
+        _conv("STARTUP", "start a server module", "any", *_LIFE_START),
+        _conv("SHUTDOWN", "shut a server module down", "any", *_LIFE_STOP),
+        _conv("ME_START", "start a machine (its WC and ME)", "wc", *_LIFE_START, "ME_Ready"),
+        _conv("ME_SHUT", "shut a machine down", "wc", *_LIFE_STOP, "ME_Stopped"),
+        _conv("MACH_REQ", "an entity asks MSCHED for machines", "msched",
+              "Machine_Request", "Machine_Entry", "Machine_Req_Ack", "Machine_Req_Comp",
+              "Reserved_Machine", "Request_Comp_Ack"),
+        _conv("CANCEL_RE", "cancel a machine request", "msched", "Cancel_Request", "Cancel_Req_Ack"),
+        _conv("UPD_ME_ST", "a machine's status changed (broadcast)", "any", "Update_ME_Status"),
+        _conv("ACC_TYP_C", "change the op types a machine accepts", "msched", "Chg_Accept_Type",
+              "Chg_Accept_Type_Ack"),
+        _conv("UNRESERVE", "free reserved machines", "msched", "Unreserve_Me", "Unreserve_Me_Ack"),
+        _conv("SETUP_RUN", "set a machine up for a run", "wc", "Setup_Run", "Setup_Run_Ack"),
+        _conv("START_RUN", "start a set-up run", "wc", "Start_Run", "Start_Run_Ack"),
+        _conv("RUN_COMPL", "a run completed (broadcast by the WC)", "any", "Run_Complete"),
+        _conv("DNLD_ME", "download a recipe to a machine", "wc", "Download_Me", "Download_Ack"),
+        _conv("UPLD_ME", "upload a recipe from a machine", "wc", "Upload_Me", "Upload_Ack"),
+        _conv("ALARM_SEND", "raise an alarm", "cas", "Alarm_Send", "Alarm_Ack"),
+        _conv("ALARM_CLE", "an alarm was cleared (broadcast by CAS)", "any", "Alarm_Clear"),
+        _conv("ALARM_CLR_REQ", "the operator clears an alarm", "cas", "Alarm_Clear_Request", "Alarm_Clear_Ack"),
+        _conv("CHG_STATUS", "change a machine's status", "ms", "Change_Status", "Change_Status_Ack"),
+        _conv("GET_STATUS", "read a machine's status", "ms", "Get_Status", "Status_Reply"),
+        _conv("CREATE_LOT", "create a lot entity", "ls", "Create_Lot_Entity", "Create_Lot_Ack"),
+        _conv("ENTITY_REQ", "an entity asks the Lot Server for import, export, completion",
+              "ls", "Entity_Request", "Entity_Ack"),
+        _conv("IMPORT_LOT", "the operator imports an entity", "ls", "Lot_Decision", "Lot_Decision_Ack"),
+        _conv("EXPORT_LOT", "the operator exports an entity", "ls", "Lot_Decision", "Lot_Decision_Ack"),
+        _conv("LOT_MOVED", "an entity was imported or exported (broadcast)", "any", "Lot_Moved"),
+        _conv("DIV_MERGE", "divide or merge entities", "ls", "Divide_Merge", "Divide_Merge_Ack"),
+        _conv("RECIPE_GET", "fetch an approved recipe", "ers", "Recipe_Fetch", "Recipe_Reply"),
+        _conv("RECIPE_PUT", "store a recipe version", "ers", "Recipe_Store", "Recipe_Store_Ack"),
+        _conv("STATUS_LN", "read the status line", "sls", "Status_Line_Get", "Status_Line"),
+        _conv("CELL_EVENT", "a cell event for the status line (broadcast)", "any", "Cell_Event"),
+        _conv("PING", "bus test and benchmark traffic", "any", "Ping", "Pong"),
+    )
+}
+
+
+@dataclass(frozen=True)
+class Message:
+    """One message of a conversation: its class name and its field values (validated)."""
+
+    name: str
+    fields: dict[str, Any]
+
+    def __getattr__(self, item: str) -> Any:
+        # Fields read as attributes (msg.entity_id); declared-but-absent nullable fields read as None.
+        if item.startswith("__"):
+            raise AttributeError(item)
+        fields = object.__getattribute__(self, "fields")
+        if item in fields:
+            return fields[item]
+        mc = MESSAGE_CLASSES.get(object.__getattribute__(self, "name"))
+        if mc and any(f.name == item for f in mc.fields):
+            return None
+        raise AttributeError(f"{self.name} has no field {item}")
+
+
+def message(name: str, **fields: Any) -> Message:
+    """Build a message, checked against the catalogue (None values are left out)."""
+    mc = MESSAGE_CLASSES.get(name)
+    if mc is None:
+        raise MessageError(f"unknown message class {name!r}")
+    values = {k: v for k, v in fields.items() if v is not None}
+    mc.check(values)
+    return Message(name, values)
+
+
+def check(cls: str, msg: str, fields: dict[str, Any]) -> Message:
+    """Validate a received (cls, msg, fields) triple; raise MessageError on any mismatch."""
+    cc = CONVERSATION_CLASSES.get(cls)
+    if cc is None:
+        raise MessageError(f"unknown conversation class {cls!r}")
+    if msg not in cc.messages:
+        raise MessageError(f"message {msg!r} does not belong to conversation {cls}")
+    MESSAGE_CLASSES[msg].check(fields)
+    return Message(msg, fields)

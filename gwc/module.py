@@ -1,0 +1,348 @@
+"""The module runtime: one lifecycle for every cell module (GUIDE 3), written once.
+
+A module signs on to the bus and listens only for its start class (STARTUP, or ME_START for a
+machine's WC). On a Startup_Request it answers Startup_Ack, does its startup work, widens its
+interest to the classes it serves, and sends Startup_Complete. On a Shutdown_Request it answers
+Shutdown_Ack, does its shutdown work, narrows its interest back and sends Shutdown_Complete.
+
+Subclasses declare only their handlers, `{"MACH_REQ": self.machine_request, ...}` (the switch of
+Listing 2's main loop without its repetition), and the two hooks. Each incoming conversation runs
+as its own asyncio task, so a handler waiting for an answer never stops other conversations from
+being served. Rule for handlers: check and change shared state with no `await` in between.
+
+The start class stays in the interest set while running, so a second Startup_Request is answered
+Notnow rather than left to time out (6.3.2.1 has the WC answer a failed startup the same way).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import importlib
+import logging
+import os
+import signal
+import sys
+import threading
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import psycopg
+
+from gwc import db
+from gwc.config import Config, load_config
+from gwc.errors import DatabaseError, DatabaseUnavailable, GwcError
+from gwc.ipc import catalogue
+from gwc.ipc.bus import Bus, Conversation
+from gwc.ipc.catalogue import message
+from gwc.ipc.codes import AckCode
+from gwc.log import conversation, open_log
+
+Handler = Callable[[Conversation], Awaitable[None]]
+
+# Bus modules: name -> "module:Class". Machine halves take --machine and are named kind:ID.
+BUS_MODULES = {
+    "msched": "gwc.msched.server:Msched",
+    "ms": "gwc.servers.machine:MachineServer",
+    "ls": "gwc.servers.lot:LotServer",
+    "cas": "gwc.servers.alarm:AlarmServer",
+    "ers": "gwc.servers.recipe:RecipeServer",
+    "sls": "gwc.servers.status_line:StatusLineServer",
+    "wc": "gwc.wc.wc:WC",
+}
+# Processes off the bus, each `main(cfg, machine_id, log, stop) -> int`.
+MACHINE_PROCESSES = {
+    "me": "gwc.me:main",
+    "cmmsim": "gwc.me.cmm_sim:main",
+}
+MACHINE_KINDS = ("wc", "me", "cmmsim")
+
+
+def module_name(kind: str, machine: str | None = None) -> str:
+    """The bus and log name of a module: 'msched', or 'wc:cmm_wc' for a machine half."""
+    return f"{kind}:{machine}" if machine else kind
+
+
+def _load(path: str) -> Any:
+    mod, _, attr = path.partition(":")
+    return getattr(importlib.import_module(mod), attr)
+
+
+class Module:
+    """Base of every bus module. Subclasses set `role` (their database role) and override hooks."""
+
+    role: str | None = None  # database role (gwc_<role>), None if the module does not use the database
+    start_class = "STARTUP"
+    stop_class = "SHUTDOWN"
+    always: tuple[str, ...] = ()  # classes listened to even when not started
+
+    def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
+        self.cfg = cfg
+        self.name = name
+        self.log = log
+        self.bus = Bus(name, cfg.bus, log, interest=self.idle_interest())
+        self.started = False
+        self.exit_code = 0
+        self._stop = asyncio.Event()
+        self._conn: psycopg.Connection | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    # ----------------------------------------------------------------- what subclasses declare
+
+    def handlers(self) -> dict[str, Handler]:
+        """The conversations served while started, by class."""
+        return {}
+
+    async def on_startup(self) -> str:
+        """Startup work; return an ack code (ACK_OK to go on)."""
+        return AckCode.ACK_OK
+
+    async def on_shutdown(self) -> str | None:
+        """Shutdown work: finish or refuse what is pending. May return a note for Shutdown_Complete."""
+        return None
+
+    async def on_bus(self) -> None:
+        """Called once signed on to the bus, before the first conversation is served."""
+
+    async def on_idle(self) -> None:
+        """Called about every heartbeat while the module runs (timers, liveness checks)."""
+
+    def serves(self, cls: str) -> bool:
+        """Whether a conversation of this class is served now (started, or listened to always)."""
+        return self.started or cls in self.always
+
+    def startup_complete(self, code: str) -> catalogue.Message:
+        return message("Startup_Complete", ack_code=code)
+
+    def shutdown_complete(self, note: str | None) -> catalogue.Message:
+        return message("Shutdown_Complete", ack_code=AckCode.ACK_OK, note=note)
+
+    async def ask(self, cls: str, first: catalogue.Message, to: str | None, timeout: float | None = None,
+                  *more: catalogue.Message) -> catalogue.Message:
+        """Hold a one-question conversation with another module and return its answer.
+
+        Raises ConversationTimeout (logged) if nobody answers. The caller reads the answer's ack_code.
+        """
+        conv, batch = await self.bus.request(cls, first, *more, to=to, timeout=timeout)
+        conv.end()
+        return batch.first
+
+    def idle_interest(self) -> set[str]:
+        return {self.start_class, *self.always}
+
+    def busy_interest(self) -> set[str]:
+        return {self.start_class, self.stop_class, *self.always, *self.handlers()}
+
+    # ----------------------------------------------------------------- database
+
+    def db(self) -> psycopg.Connection:
+        """This module's connection, made on first use and remade after a failure (3.2.2)."""
+        if self._conn is None or self._conn.closed:
+            self._conn = db.connect(self.cfg, role=self.role, log=self.log)
+        return self._conn
+
+    def transaction(self, fn: Callable[[psycopg.Cursor[Any]], Any]) -> Any:
+        """Run one step's database work as one transaction, retried on transient failures."""
+        return db.transaction(self.db, fn, log=self.log)
+
+    # ----------------------------------------------------------------- running
+
+    def stop(self, code: int = 0) -> None:
+        self.exit_code = self.exit_code or code
+        self._stop.set()
+
+    async def run(self, start: bool = False) -> int:
+        await self.bus.sign_on()
+        await self.on_bus()
+        self.log.info("Starting: listening for %s", ", ".join(sorted(self.bus.interests)))
+        if start:
+            await self._start()
+        idle = asyncio.get_running_loop().create_task(self._idle_loop())
+        try:
+            while not self._stop.is_set():
+                getter = asyncio.ensure_future(self.bus.first_message())
+                stopper = asyncio.ensure_future(self._stop.wait())
+                done, _ = await asyncio.wait({getter, stopper}, return_when=asyncio.FIRST_COMPLETED)
+                stopper.cancel()
+                if getter in done:
+                    conv = getter.result()
+                    if conv is not None:
+                        task = asyncio.get_running_loop().create_task(self._serve(conv))
+                        self._tasks.add(task)
+                        task.add_done_callback(self._tasks.discard)
+                else:
+                    getter.cancel()
+        finally:
+            idle.cancel()
+            if self.started:
+                await self._shutdown_work()
+            for t in list(self._tasks):
+                t.cancel()
+            await self.bus.close()
+            if self._conn is not None:
+                self._conn.close()
+            self.log.info("Stopped (exit %d)", self.exit_code)
+        return self.exit_code
+
+    async def _idle_loop(self) -> None:
+        while True:
+            await asyncio.sleep(self.cfg.bus.heartbeat)
+            try:
+                await self.on_idle()
+            except DatabaseUnavailable as e:
+                self._fatal(e)
+            except Exception:
+                self.log.exception("idle work failed")
+
+    def _fatal(self, e: Exception) -> None:
+        self.log.error("fatal: %s; stopping cleanly", e)
+        self.stop(3)
+
+    async def _serve(self, conv: Conversation) -> None:
+        with conversation(conv.id, conv.cls):
+            assert conv.first is not None
+            head = conv.first.first
+            opener = catalogue.CONVERSATION_CLASSES[conv.cls].messages[0]
+            try:
+                if head.name != opener:
+                    self.log.info("ignored %s from %s: not the opening of a conversation here", head.name,
+                                  conv.first.sender)
+                elif conv.cls == self.start_class:
+                    await self._startup(conv)
+                elif conv.cls == self.stop_class:
+                    await self._shutdown(conv)
+                else:
+                    handler = self.handlers().get(conv.cls)
+                    if handler is None or not self.serves(conv.cls):
+                        self.log.info("ignored %s from %s: not served now", head.name, conv.first.sender)
+                        await self._refuse(conv, AckCode.NOTNOW, "module not started")
+                    else:
+                        await handler(conv)
+            except asyncio.CancelledError:
+                raise
+            except DatabaseUnavailable as e:
+                await self._refuse(conv, AckCode.DB_BADREA, str(e))
+                self._fatal(e)
+            except DatabaseError as e:
+                self.log.error("%s failed: %s", head.name, e)
+                await self._refuse(conv, AckCode.DB_BADUPD, str(e))
+            except GwcError as e:
+                self.log.error("%s failed: %s", head.name, e)
+                await self._refuse(conv, AckCode.BAD_MESSAGE, str(e))
+            except Exception as e:
+                self.log.exception("%s failed unexpectedly", head.name)
+                await self._refuse(conv, AckCode.BAD_MESSAGE, f"internal error: {e}")
+            finally:
+                conv.end()
+
+    async def _refuse(self, conv: Conversation, code: str, note: str) -> None:
+        """Answer a conversation nobody answered yet with its class's ack message and `code`."""
+        if conv._idx or conv.first is None:
+            return
+        answer = _ack_message_of(conv.cls)
+        if answer is None:
+            return
+        try:
+            await conv.send(answer(code, note))
+        except GwcError as e:
+            self.log.warning("could not refuse %s: %s", conv.cls, e)
+
+    async def _start(self) -> str:
+        code = await self.on_startup()
+        if code == AckCode.ACK_OK:
+            self.started = True
+            self.bus.set_interest(self.busy_interest())
+            self.log.info("started: listening for %s", ", ".join(sorted(self.bus.interests)))
+        return code
+
+    async def _startup(self, conv: Conversation) -> None:
+        assert conv.first is not None
+        req = conv.first.first
+        if req.module != self.name:
+            self.log.info("ignored Startup_Request for %s", req.module)
+            return
+        if self.started:
+            await conv.send(message("Startup_Ack", ack_code=AckCode.NOTNOW, note=f"{self.name} is already started"))
+            return
+        await conv.send(message("Startup_Ack", ack_code=AckCode.ACK_OK))
+        code = await self._start()
+        await conv.send(self.startup_complete(code))
+
+    async def _shutdown(self, conv: Conversation) -> None:
+        assert conv.first is not None
+        req = conv.first.first
+        if req.module != self.name:
+            self.log.info("ignored Shutdown_Request for %s", req.module)
+            return
+        if not self.started:
+            await conv.send(message("Shutdown_Ack", ack_code=AckCode.NOTNOW, note=f"{self.name} is not started"))
+            return
+        await conv.send(message("Shutdown_Ack", ack_code=AckCode.ACK_OK))
+        note = await self._shutdown_work()
+        await conv.send(self.shutdown_complete(note))
+
+    async def _shutdown_work(self) -> str | None:
+        self.started = False
+        self.bus.set_interest(self.idle_interest())
+        note = None
+        try:
+            note = await self.on_shutdown()
+        except Exception:
+            self.log.exception("shutdown work failed")
+        self.log.info("shut down: listening for %s", ", ".join(sorted(self.bus.interests)))
+        return note
+
+
+def _ack_message_of(cls: str) -> Callable[[str, str], catalogue.Message] | None:
+    """The first answer message of a conversation class, if it can carry just an ack code."""
+    for name in catalogue.CONVERSATION_CLASSES[cls].messages[1:]:
+        mc = catalogue.MESSAGE_CLASSES[name]
+        names = {f.name for f in mc.fields}
+        required = {f.name for f in mc.fields if not f.nullable}
+        if "ack_code" in names and required <= {"ack_code"}:
+            return lambda code, note, _n=name, _has_note="note" in names: message(
+                _n, ack_code=code, **({"note": note[:500]} if _has_note else {})
+            )
+    return None
+
+
+def run_module(kind: str, machine: str | None = None, start: bool = False, cfg: Config | None = None,
+               options: dict[str, Any] | None = None) -> int:
+    """Run one module as this process until SIGTERM; returns the exit code (3 = database fatal)."""
+    cfg = cfg or load_config()
+    if kind in MACHINE_KINDS and not machine:
+        raise GwcError(f"{kind} needs --machine ID (one of: {', '.join(m.id for m in cfg.machines)})")
+    if machine:
+        cfg.machine(machine)  # unknown machine: ConfigError before anything starts
+    name = module_name(kind, machine)
+    log = open_log(name, cfg.log_dir, cfg.level_of(name))
+    log.info("Starting %s (pid %d)", name, os.getpid())
+    if kind in MACHINE_PROCESSES:
+        stop = threading.Event()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: stop.set())
+        try:
+            code = _load(MACHINE_PROCESSES[kind])(cfg, machine, log, stop)
+        except GwcError as e:
+            log.error("fatal: %s", e)
+            code = e.exit_code
+        log.info("Stopped %s (exit %d)", name, code)
+        return int(code)
+    if kind not in BUS_MODULES:
+        known = ", ".join([*BUS_MODULES, *MACHINE_PROCESSES])
+        raise GwcError(f"unknown module {kind!r} (known: {known})")
+    cls = _load(BUS_MODULES[kind])
+
+    async def main() -> int:
+        module = cls(cfg, name, log, **(options or {})) if machine is None else cls(cfg, name, log, machine,
+                                                                                      **(options or {}))
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, module.stop)
+        return await module.run(start=start)
+
+    try:
+        return asyncio.run(main())
+    except GwcError as e:
+        log.error("fatal: %s", e)
+        print(f"gwc: {name}: {e}", file=sys.stderr)
+        return e.exit_code
