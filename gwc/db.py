@@ -1,0 +1,479 @@
+"""The cell database: the embedded PostgreSQL cluster, connections with retry, one-transaction steps.
+
+The thesis (3.2.2) asks every module to retry a failed database request and, when the failure is
+fatal, to die cleanly; `connect` and `transaction` are those two rules, written once. The embedded
+cluster is private to one cell: it lives in var/pg, listens only on a unix socket in var/run, and
+trusts local connections, so nothing outside the machine can reach it.
+
+Every module connects as the superuser of the cluster and then `SET ROLE gwc_<module>`, so the
+table-ownership rule (thesis 5.1, GUIDE 4) is enforced by the server, not by convention.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import grp
+import logging
+import os
+import pwd
+import random
+import re
+import shutil
+import stat
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, TypeVar
+from urllib.parse import quote, urlsplit, urlunsplit
+
+import psycopg
+from psycopg import sql
+
+from gwc.config import PROJECT_ROOT, Config
+from gwc.errors import DatabaseError, DatabaseUnavailable
+
+T = TypeVar("T")
+
+SQL_DIR = PROJECT_ROOT / "sql"
+DB_NAME = "gwc"
+SUPERUSER = "gwc"
+PG_OS_USER = "postgres"  # who runs initdb/postgres when we are root: Debian's package creates it
+SOCKET_MAX = 107  # sun_path limit on Linux, including the terminating NUL
+INSTALL_HINT = "install the PostgreSQL server (Debian/Ubuntu: `apt-get install postgresql`)"
+
+# Settings of the embedded cluster. Durability stays at PostgreSQL's defaults; the cell's many
+# module processes each hold a connection, hence max_connections. etc/cell.toml [database.settings]
+# adds to or overrides these (tests turn fsync off there).
+DEFAULT_SETTINGS: dict[str, Any] = {
+    "max_connections": 200,
+    "shared_buffers": "64MB",
+    "unix_socket_permissions": "0700",
+}
+
+_log = logging.getLogger("gwc.db")
+
+
+# ----------------------------------------------------------------------------- binaries
+
+
+def find_pg_bin(name: str) -> Path:
+    """Find a PostgreSQL program: PATH, then `pg_config --bindir`, then the newest /usr/lib/postgresql."""
+    found = shutil.which(name)
+    if found:
+        return Path(found)
+    candidates: list[Path] = []
+    pg_config = shutil.which("pg_config")
+    if pg_config:
+        with contextlib.suppress(OSError, subprocess.SubprocessError):
+            out = subprocess.run([pg_config, "--bindir"], capture_output=True, text=True, timeout=10)
+            if out.returncode == 0 and out.stdout.strip():
+                candidates.append(Path(out.stdout.strip()))
+    versions = []
+    with contextlib.suppress(OSError):
+        for d in Path("/usr/lib/postgresql").iterdir():
+            if d.name.replace(".", "").isdigit():
+                versions.append(d)
+    versions.sort(key=lambda d: [int(x) for x in d.name.split(".")], reverse=True)
+    candidates += [d / "bin" for d in versions]
+    for bindir in candidates:
+        path = bindir / name
+        if os.access(path, os.X_OK):
+            return path
+    raise DatabaseError(f"PostgreSQL program {name!r} not found on PATH, via pg_config or in "
+                        f"/usr/lib/postgresql/*/bin: {INSTALL_HINT}")
+
+
+# ----------------------------------------------------------------------------- embedded cluster
+
+
+def _as_root() -> bool:
+    return os.geteuid() == 0
+
+
+def _pg_user() -> pwd.struct_passwd:
+    try:
+        return pwd.getpwnam(PG_OS_USER)
+    except KeyError:
+        raise DatabaseError(f"running as root, the embedded cluster must run as the {PG_OS_USER!r} OS user, "
+                            f"which does not exist: {INSTALL_HINT} (it creates that user)") from None
+
+
+def _run_pg(argv: list[str], timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    """Run a PostgreSQL program, as the postgres OS user when we are root (initdb/postgres refuse root)."""
+    if _as_root():
+        _pg_user()
+        runuser = shutil.which("runuser") or "/usr/sbin/runuser"
+        argv = [runuser, "-u", PG_OS_USER, "--", *argv]
+    try:
+        return subprocess.run(argv, capture_output=True, text=True, timeout=timeout, cwd="/")
+    except subprocess.TimeoutExpired:
+        raise DatabaseError(f"{Path(argv[0]).name} did not finish in {timeout:.0f}s: {' '.join(argv)}") from None
+    except OSError as e:
+        raise DatabaseError(f"cannot run {argv[0]}: {e}") from None
+
+
+def _traversable_by(path: Path, user: pwd.struct_passwd) -> bool:
+    """Whether `user` may search (x) directory `path`, by its mode bits."""
+    st = path.stat()
+    gids = {user.pw_gid} | {g.gr_gid for g in grp.getgrall() if user.pw_name in g.gr_mem}
+    if st.st_uid == user.pw_uid:
+        return bool(st.st_mode & stat.S_IXUSR)
+    if st.st_gid in gids:
+        return bool(st.st_mode & stat.S_IXGRP)
+    return bool(st.st_mode & stat.S_IXOTH)
+
+
+def _check_traversable(path: Path, user: pwd.struct_passwd) -> None:
+    for parent in reversed(path.resolve().parents):
+        if not _traversable_by(parent, user):
+            raise DatabaseError(
+                f"the embedded cluster runs as OS user {user.pw_name!r} (we are root), which cannot enter "
+                f"{parent} (mode {stat.filemode(parent.stat().st_mode)}): put var/ somewhere it can reach "
+                f"(GWC_VAR=/var/tmp/...), or chmod o+x {parent}")
+
+
+def _socket_path(cfg: Config) -> Path:
+    return cfg.run_dir / f".s.PGSQL.{_port(cfg)}"
+
+
+def _port(cfg: Config) -> int:
+    return int(cfg.raw.get("database", {}).get("port", 5432))
+
+
+def _postmaster_pid(cfg: Config) -> int | None:
+    try:
+        first = (cfg.pg_dir / "postmaster.pid").read_text().split("\n", 1)[0]
+        return int(first)
+    except (OSError, ValueError):
+        return None
+
+
+def cluster_running(cfg: Config) -> bool:
+    """Whether the embedded cluster's postmaster is alive (by its pid file; a stale file is ignored)."""
+    pid = _postmaster_pid(cfg)
+    if pid is None:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    with contextlib.suppress(OSError):
+        comm = Path(f"/proc/{pid}/comm").read_text().strip()
+        return comm in ("postgres", "postmaster")
+    return True
+
+
+@contextlib.contextmanager
+def _cluster_lock(cfg: Config) -> Iterator[None]:
+    """Serialise start/stop of one cluster between processes (two `gwc start` at once)."""
+    cfg.run_dir.mkdir(parents=True, exist_ok=True)
+    with open(cfg.run_dir / "pg.lock", "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _conf_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "on" if v else "off"
+    if isinstance(v, (int, float)):
+        return str(v)
+    return "'" + str(v).replace("'", "''") + "'"
+
+
+def _write_settings(cfg: Config, owner: pwd.struct_passwd | None) -> None:
+    settings = {**DEFAULT_SETTINGS, **cfg.raw.get("database", {}).get("settings", {})}
+    settings.update(listen_addresses="", unix_socket_directories=str(cfg.run_dir), port=_port(cfg))
+    lines = ["# Written by gwc.db at every start; edit etc/cell.toml [database.settings] instead."]
+    lines += [f"{k} = {_conf_value(v)}" for k, v in settings.items()]
+    conf = cfg.pg_dir / "gwc.conf"
+    conf.write_text("\n".join(lines) + "\n")
+    main = cfg.pg_dir / "postgresql.conf"
+    if "include_if_exists = 'gwc.conf'" not in main.read_text():
+        with main.open("a") as f:
+            f.write("\ninclude_if_exists = 'gwc.conf'\n")
+    if owner is not None:
+        os.chown(conf, owner.pw_uid, owner.pw_gid)
+
+
+def _log_tail(path: Path, lines: int = 15) -> str:
+    try:
+        return " | ".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return "(no server log)"
+
+
+def _prepare_dirs(cfg: Config) -> pwd.struct_passwd | None:
+    """Make var/pg and var/run usable by whoever runs the server; return that user when we are root."""
+    cfg.run_dir.mkdir(parents=True, exist_ok=True)
+    cfg.pg_dir.mkdir(parents=True, exist_ok=True)
+    if len(str(_socket_path(cfg))) >= SOCKET_MAX:
+        raise DatabaseError(f"unix socket path {_socket_path(cfg)} is longer than {SOCKET_MAX - 1} bytes: "
+                            f"use a shorter var/ (GWC_VAR)")
+    if not _as_root():
+        cfg.pg_dir.chmod(0o700)
+        return None
+    user = _pg_user()
+    _check_traversable(cfg.pg_dir, user)
+    _check_traversable(cfg.run_dir, user)
+    cfg.run_dir.chmod(0o1777)  # postgres writes its socket and lock file here; others their pid files
+    if not (cfg.pg_dir / "PG_VERSION").exists():
+        for root, dirs, files in os.walk(cfg.pg_dir):
+            for name in dirs + files:
+                os.lchown(os.path.join(root, name), user.pw_uid, user.pw_gid)
+    os.chown(cfg.pg_dir, user.pw_uid, user.pw_gid)
+    cfg.pg_dir.chmod(0o700)
+    return user
+
+
+def _admin_conninfo(cfg: Config, dbname: str) -> str:
+    return psycopg.conninfo.make_conninfo(host=str(cfg.run_dir), port=_port(cfg), user=SUPERUSER, dbname=dbname)
+
+
+def _ensure_database(cfg: Config, log: logging.Logger) -> None:
+    with psycopg.connect(_admin_conninfo(cfg, "postgres"), autocommit=True) as conn:
+        if conn.execute("select 1 from pg_database where datname = %s", (DB_NAME,)).fetchone():
+            return
+        try:
+            conn.execute(sql.SQL("create database {}").format(sql.Identifier(DB_NAME)))
+            log.info("created database %s", DB_NAME)
+        except psycopg.errors.DuplicateDatabase:
+            pass
+
+
+def cluster_start(cfg: Config, log: logging.Logger | None = None) -> None:
+    """Create (first time: initdb) and start the embedded cluster, and make sure database gwc exists.
+
+    A no-op apart from that check when it already runs. Returns once it accepts connections.
+    """
+    log = log or _log
+    with _cluster_lock(cfg):
+        if not cluster_running(cfg):
+            owner = _prepare_dirs(cfg)
+            if not (cfg.pg_dir / "PG_VERSION").exists():
+                log.info("initdb: creating the embedded cluster in %s", cfg.pg_dir)
+                r = _run_pg([str(find_pg_bin("initdb")), "-D", str(cfg.pg_dir), "-U", SUPERUSER,
+                             "--auth=trust", "--encoding=UTF8", "--locale=C"])
+                if r.returncode != 0:
+                    raise DatabaseError(f"initdb failed in {cfg.pg_dir}: {(r.stderr or r.stdout).strip()[-800:]}")
+            _write_settings(cfg, owner)
+            logfile = cfg.pg_dir / "server.log"
+            r = _run_pg([str(find_pg_bin("pg_ctl")), "start", "-w", "-t", "60", "-s",
+                         "-D", str(cfg.pg_dir), "-l", str(logfile)])
+            if r.returncode != 0 or not cluster_running(cfg):
+                raise DatabaseError(f"the embedded cluster in {cfg.pg_dir} did not start: "
+                                    f"{(r.stderr or r.stdout).strip()[-400:]} | server log: {_log_tail(logfile)}")
+            log.info("embedded cluster started (socket in %s)", cfg.run_dir)
+        _ensure_database(cfg, log)
+
+
+def cluster_stop(cfg: Config, log: logging.Logger | None = None) -> None:
+    """Stop the embedded cluster (fast shutdown: open transactions roll back). No-op if stopped."""
+    log = log or _log
+    with _cluster_lock(cfg):
+        if not cluster_running(cfg):
+            return
+        r = _run_pg([str(find_pg_bin("pg_ctl")), "stop", "-w", "-t", "60", "-s", "-m", "fast", "-D", str(cfg.pg_dir)])
+        if r.returncode != 0 and cluster_running(cfg):
+            raise DatabaseError(f"the embedded cluster in {cfg.pg_dir} did not stop: "
+                                f"{(r.stderr or r.stdout).strip()[-400:]} | server log: "
+                                f"{_log_tail(cfg.pg_dir / 'server.log')}")
+        log.info("embedded cluster stopped")
+
+
+# ----------------------------------------------------------------------------- connections
+
+
+def database_url(cfg: Config) -> str:
+    """The URL the cell uses: GWC_DATABASE_URL / [database] url, else the embedded cluster's socket."""
+    if cfg.database_url:
+        return cfg.database_url
+    port = _port(cfg)
+    return f"postgresql://{SUPERUSER}@/{DB_NAME}?host={quote(str(cfg.run_dir), safe='')}" + (
+        f"&port={port}" if port != 5432 else "")
+
+
+def _redact(url: str) -> str:
+    """The URL without its password, for messages and logs."""
+    with contextlib.suppress(ValueError):
+        parts = urlsplit(url)
+        if parts.password:
+            netloc = parts.netloc.replace(f":{parts.password}@", ":***@")
+            return urlunsplit(parts._replace(netloc=netloc))
+    return re.sub(r"password=\S+", "password=***", url)
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split()) or type(e).__name__
+
+
+_ROLE = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+def connect(cfg: Config, role: str | None = None, log: logging.Logger | None = None,
+            attempts: int = 5) -> psycopg.Connection[Any]:
+    """Connect (autocommit off) as role gwc_<role>, retrying with backoff (thesis 3.2.2).
+
+    Raises DatabaseUnavailable after the last try; DatabaseError at once if the role is unknown
+    (that is not transient: the schema has not been applied).
+    """
+    log = log or _log
+    url = database_url(cfg)
+    if role is not None and not _ROLE.match(role):
+        raise DatabaseError(f"bad database role name {role!r}")
+    error: Exception | None = None
+    for attempt in range(1, max(1, attempts) + 1):
+        try:
+            conn = psycopg.connect(url, autocommit=False, connect_timeout=5,
+                                   application_name=f"gwc_{role}" if role else "gwc")
+        except psycopg.OperationalError as e:
+            error = e
+            log.warning("database connect failed (try %d of %d) to %s: %s", attempt, attempts, _redact(url),
+                        _one_line(e))
+            if attempt < attempts:
+                time.sleep(min(0.1 * 2 ** (attempt - 1), 2.0) * random.uniform(0.8, 1.2))
+            continue
+        if role is not None:
+            try:
+                conn.execute(sql.SQL("set role {}").format(sql.Identifier(f"gwc_{role}")))
+                conn.commit()
+            except psycopg.Error as e:
+                conn.close()
+                raise DatabaseError(f"cannot act as database role gwc_{role}: {_one_line(e)} "
+                                    f"(has the schema been applied? try `gwc db init`)") from e
+        return conn
+    raise DatabaseUnavailable(
+        f"cannot connect to the cell database at {_redact(url)} after {attempts} tries "
+        f"({_one_line(error) if error else 'no attempt'}): is the cell database running? try `gwc db start`"
+    ) from error
+
+
+ConnectionSource = psycopg.Connection[Any] | Callable[[], psycopg.Connection[Any]]
+
+
+def transaction(conn: ConnectionSource, fn: Callable[[psycopg.Cursor[Any]], T], *, attempts: int = 3,
+                log: logging.Logger | None = None) -> T:
+    """Run fn(cursor) as one transaction and commit; retry the whole step on transient failures.
+
+    `conn` is a connection or, better, a function returning one (like Module.db): a broken
+    connection is closed and the function is called again for a fresh one. Anything left
+    uncommitted on the connection beforehand is rolled back first. Transient failures
+    (OperationalError: serialization failure, deadlock, lost connection, admin shutdown) are
+    retried; after the last try, or at once for any other database error (constraint
+    violation, bad SQL), DatabaseError is raised with the psycopg error as __cause__. An
+    exception of fn's own that is not a database error rolls back and propagates unchanged.
+
+    fn may run more than once: it must not have side effects outside the database. A commit
+    lost with its connection may in fact have happened, so a step should be idempotent
+    (ON CONFLICT, "where not exists") when it can be retried after a lost connection.
+    """
+    log = log or _log
+    attempts = max(1, attempts)
+    for attempt in range(1, attempts + 1):
+        c = conn() if callable(conn) else conn
+        try:
+            if c.info.transaction_status != psycopg.pq.TransactionStatus.IDLE:
+                c.rollback()
+            with c.cursor() as cur:
+                result = fn(cur)
+            c.commit()
+            return result
+        except psycopg.OperationalError as e:
+            _safe_rollback(c)
+            broken = c.broken or c.closed
+            if broken:
+                c.close()
+            last = attempt == attempts or (broken and not callable(conn))
+            log.warning("database transaction failed (try %d of %d)%s: %s", attempt, attempts,
+                        ", connection lost" if broken else "", _one_line(e))
+            if last:
+                raise DatabaseError(f"database step failed after {attempt} tries: {_one_line(e)}"
+                                    + (" (connection lost)" if broken else "")) from e
+            time.sleep(min(0.05 * 2 ** (attempt - 1), 1.0) * random.uniform(0.5, 1.5))
+        except psycopg.Error as e:
+            _safe_rollback(c)
+            raise DatabaseError(f"database step refused: {_one_line(e)}") from e
+        except BaseException:
+            _safe_rollback(c)
+            raise
+    raise AssertionError("unreachable")
+
+
+def _safe_rollback(conn: psycopg.Connection[Any]) -> None:
+    with contextlib.suppress(psycopg.Error):
+        if not conn.closed:
+            conn.rollback()
+
+
+# ----------------------------------------------------------------------------- schema
+
+
+def sql_files() -> list[Path]:
+    return sorted(SQL_DIR.glob("*.sql"))
+
+
+def init_schema(cfg: Config, log: logging.Logger | None = None) -> None:
+    """Apply sql/*.sql in name order (all idempotent), then register the machines of cell.toml.
+
+    One transaction under an advisory lock, so two processes initialising at once take turns and a
+    failure leaves the database as it was. Machines in cell.toml that the seed does not know get a
+    me_config row, a 'Shutdown' machine_status row and, by kind, the seed's recipes.
+    """
+    log = log or _log
+    files = sql_files()
+    if not files:
+        raise DatabaseError(f"no schema files in {SQL_DIR}: the checkout is incomplete")
+    with connect(cfg, log=log) as conn:
+        try:
+            with conn.transaction(), conn.cursor() as cur:
+                cur.execute("select pg_advisory_xact_lock(hashtext('gwc.init_schema'))")
+                for path in files:
+                    log.debug("applying %s", path.name)
+                    try:
+                        cur.execute(path.read_text())
+                    except psycopg.Error as e:
+                        raise DatabaseError(f"{path.name}: {_one_line(e)}") from e
+                _register_machines(cur, cfg)
+        except psycopg.Error as e:
+            raise DatabaseError(f"applying the schema failed: {_one_line(e)}") from e
+    log.info("schema applied (%s)", ", ".join(p.name for p in files))
+
+
+# What a machine of each kind can do out of the box, as the seed gives the NJIT cell's machines.
+KIND_RECIPES = {
+    "cmm": [("alum_chess_set", "alum_chess")],
+    "dummy": [("mill_pawn", "mill_chess"), ("dummy_recipe", "dummy_op"), ("dummy_recipe", "measure")],
+}
+
+
+def _register_machines(cur: psycopg.Cursor[Any], cfg: Config) -> None:
+    for m in cfg.machines:
+        cur.execute(
+            "insert into me_config (machine_id, kind, liveness_s) values (%s, %s, %s) "
+            "on conflict (machine_id) do update set kind = excluded.kind, liveness_s = excluded.liveness_s",
+            (m.id, m.kind, m.liveness))
+        cur.execute("insert into machine_status (machine_id, status) values (%s, 'Shutdown') "
+                    "on conflict do nothing", (m.id,))
+        for recipe_id, op_type in KIND_RECIPES.get(m.kind, []):
+            cur.execute(
+                "insert into op_machine_recipe (machine_id, recipe_id, op_type) "
+                "select %s, %s, %s where exists (select 1 from recipes where recipe_id = %s) "
+                "and exists (select 1 from op_types where op_type = %s) on conflict do nothing",
+                (m.id, recipe_id, op_type, recipe_id, op_type))
+
+
+def get_new_max_value(cur_or_conn: psycopg.Cursor[Any] | psycopg.Connection[Any], type: str) -> int:
+    """The next id of a kind (MACH_R_KEY, MACH_R_ID, ENTITY_ID, LOT_ID, WORK_ORDER, ALARM_NO).
+
+    Strictly increasing per type and transactional: the counter row stays locked until the caller
+    commits, so call it late in short transactions.
+    """
+    row = cur_or_conn.execute("select get_new_max_value(%s)", (type,)).fetchone()
+    assert row is not None
+    return int(row[0])

@@ -1,0 +1,208 @@
+-- The cell's tables, named as the thesis names them (lowercase). Idempotent: safe to run again.
+-- Statuses and states are spelled exactly as gwc/ipc/codes.py (MachineStatus, LotState) spells them.
+-- Owners (who may write) are set in 030_roles.sql; docs/schema.md describes every table.
+
+-- Machines ------------------------------------------------------------------------------------
+
+create table if not exists me_config (
+    machine_id  text primary key check (machine_id <> ''),
+    kind        text not null check (kind in ('dummy', 'cmm')),
+    description text,
+    liveness_s  real not null default 3 check (liveness_s > 0)
+);
+
+create table if not exists op_types (
+    op_type     text primary key check (op_type <> ''),
+    description text
+);
+
+create table if not exists machine_status (
+    machine_id             text primary key references me_config,
+    status                 text not null check (status in ('Shutdown', 'Idle', 'Setup', 'Running',
+                                                           'Setup_Shut', 'Run_Shut')),
+    recipe_id              text,
+    machine_run_id         bigint,
+    start_time             timestamptz,
+    end_time               timestamptz,
+    note                   text,
+    updated_at             timestamptz not null default now(),
+    runs_since_maintenance int not null default 0 check (runs_since_maintenance >= 0),
+    scrap_count            int not null default 0 check (scrap_count >= 0),
+    maintenance_every      int check (maintenance_every > 0)
+);
+
+-- What each machine accepts right now (its WC tells MSCHED; MSCHED writes it).
+create table if not exists accept_types (
+    machine_id text not null references me_config,
+    op_type    text not null references op_types,
+    primary key (machine_id, op_type)
+);
+
+-- Recipes -------------------------------------------------------------------------------------
+
+create table if not exists recipes (
+    recipe_id   text primary key check (recipe_id <> ''),
+    description text
+);
+
+create table if not exists recipe_versions (
+    recipe_id  text not null references recipes,
+    version    int not null check (version > 0),
+    content    bytea not null,
+    checksum   text not null check (checksum ~ '^[0-9a-f]{64}$'),  -- sha256 of content, hex
+    approved   boolean not null default false,
+    created_at timestamptz not null default now(),
+    created_by text,
+    note       text,
+    primary key (recipe_id, version)
+);
+-- At most one approved version per recipe.
+create unique index if not exists recipe_versions_one_approved on recipe_versions (recipe_id) where approved;
+
+create table if not exists op_machine_recipe (
+    machine_id text not null references me_config,
+    recipe_id  text not null references recipes,
+    op_type    text not null references op_types,
+    primary key (machine_id, recipe_id, op_type)
+);
+
+-- Orders and lots -----------------------------------------------------------------------------
+
+create table if not exists customers (
+    customer_id text primary key check (customer_id <> ''),
+    name        text
+);
+
+create table if not exists lot_scripts (
+    script_id   text primary key check (script_id <> ''),
+    path        text not null check (path <> ''),
+    description text
+);
+
+create table if not exists products (
+    product_id  text primary key check (product_id <> ''),
+    description text,
+    script_id   text references lot_scripts,
+    lot_type    text
+);
+
+create table if not exists work_orders (
+    work_order_id bigint primary key,
+    customer_id   text references customers,
+    created_at    timestamptz not null default now(),
+    note          text
+);
+
+create table if not exists work_order_items (
+    work_order_id bigint not null references work_orders,
+    product_id    text not null references products,
+    quantity      int not null check (quantity > 0),
+    primary key (work_order_id, product_id)
+);
+
+create table if not exists lots (
+    lot_id        bigint primary key,
+    lot_type      text,
+    work_order_id bigint references work_orders,
+    product_id    text references products,
+    quantity      int not null default 1 check (quantity > 0),
+    priority      int not null default 20,
+    owner         text,
+    script_id     text references lot_scripts,
+    result_params text[],
+    created_at    timestamptz not null default now()
+);
+
+create table if not exists lot_entities (
+    entity_id        bigint primary key,
+    lot_id           bigint not null references lots,
+    unit             int check (unit > 0),
+    parent_entity_id bigint references lot_entities check (parent_entity_id <> entity_id),
+    created_at       timestamptz not null default now(),
+    destroyed_at     timestamptz,
+    unique (entity_id, lot_id)  -- target of lot_status's consistency key
+);
+create index if not exists lot_entities_lot on lot_entities (lot_id);
+
+create table if not exists lot_status (
+    entity_id  bigint primary key,
+    lot_id     bigint not null,
+    state      text not null check (state in ('created', 'waiting_import', 'imported', 'waiting_machine',
+                                              'running', 'completed', 'waiting_export', 'exported', 'failed')),
+    reason     text,
+    script_pid int check (script_pid > 0),
+    updated_at timestamptz not null default now(),
+    -- the entity exists and belongs to this lot
+    foreign key (entity_id, lot_id) references lot_entities (entity_id, lot_id)
+);
+create index if not exists lot_status_lot on lot_status (lot_id);
+
+-- Scheduling ----------------------------------------------------------------------------------
+
+-- One row per machine a request asks for; seq is the arrival order FIFO scheduling follows.
+create table if not exists request_machines (
+    request_key  bigint not null,
+    entity_id    bigint not null references lot_entities,
+    machine_id   text not null references me_config,
+    op_type      text not null references op_types,
+    priority     int not null default 20,
+    requested_at timestamptz not null default clock_timestamp(),
+    seq          bigserial,
+    reply_to     text,   -- the bus module to answer when the request is filled
+    reply_conv   text,   -- the bus conversation to answer in
+    primary key (request_key, machine_id)
+);
+create index if not exists request_machines_seq on request_machines (seq);
+create index if not exists request_machines_machine on request_machines (machine_id);
+create index if not exists request_machines_entity on request_machines (entity_id);
+
+-- machine_id is the key: a machine can never be reserved twice.
+create table if not exists reserved_machines (
+    machine_id     text primary key references me_config,
+    entity_id      bigint not null references lot_entities,
+    machine_run_id bigint not null,
+    request_key    bigint not null,
+    reserved_at    timestamptz not null default now()
+);
+create index if not exists reserved_machines_entity on reserved_machines (entity_id);
+
+create table if not exists machine_run_result (
+    machine_run_id bigint not null,
+    machine_id     text not null references me_config,
+    param          text not null,
+    value          text,
+    recorded_at    timestamptz not null default now(),
+    primary key (machine_run_id, machine_id, param)
+);
+
+-- Alarms --------------------------------------------------------------------------------------
+
+create table if not exists alarm_description (
+    alarm_id   text primary key check (alarm_id <> ''),
+    alarm_text text not null,
+    severity   text not null default 'warning' check (severity in ('note', 'warning', 'error'))
+);
+
+-- The alarm history; pending = cleared_at is null. alarm_id is not a foreign key: alarms the
+-- ALARM_DESCRIPTION table does not know are recorded too (known = false).
+create table if not exists alarms (
+    alarm_no   bigint primary key,
+    alarm_id   text,
+    known      boolean not null,
+    machine_id text,
+    alarm_text text not null,
+    raised_by  text not null,
+    raised_at  timestamptz not null default now(),
+    cleared_by text,
+    cleared_at timestamptz,
+    check ((cleared_at is null) = (cleared_by is null)),
+    check (not known or alarm_id is not null)
+);
+create index if not exists alarms_pending on alarms (alarm_no) where cleared_at is null;
+
+-- Ids -----------------------------------------------------------------------------------------
+
+create table if not exists max_values (
+    type  text primary key,
+    value bigint not null
+);
