@@ -16,8 +16,16 @@ from gwc.errors import GwcError
 
 # Each module exposes `commands`, a list of click commands added to the top-level group.
 COMMAND_MODULES = [
-    "gwc.hi.cell",
-    "gwc.hi.check",
+    "gwc.hi.cell",  # db, start, stop, status, run (STRT)
+    "gwc.hi.machine",  # machine start/stop/status (MSTT)
+    "gwc.hi.requests",  # machine requests and cancel (MREQ, Listing 8)
+    "gwc.hi.orders",  # work orders (WOEN, WOSU), dispatch list, import/export (DISP, IMPL), lots
+    "gwc.hi.alarm",  # alarms and their clearing, the status line
+    "gwc.hi.recipe",  # the recipe library (ERS)
+    "gwc.hi.monitor",  # the conversation monitor
+    "gwc.hi.check",  # cell invariants
+    "gwc.hi.demo",  # section 7's demonstration
+    "gwc.hi.bench",  # benchmarks
 ]
 
 

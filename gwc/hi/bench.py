@@ -1,0 +1,24 @@
+"""`gwc bench ...`: the benchmarks. Each lives in gwc/bench/<name>.py and exposes `command`.
+
+Benchmarks report medians and p99 and, where there is one, the bare floor measured in the same run
+(these machines are shared and noisy, so only side-by-side figures compare).
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import click
+
+BENCH_MODULES = ["gwc.bench.bus", "gwc.bench.mq", "gwc.bench.sched", "gwc.bench.cell"]
+
+
+@click.group("bench")
+def bench() -> None:
+    """Measure the cell: the bus, the WC<->ME queues, the scheduler, the whole cell."""
+
+
+for _name in BENCH_MODULES:
+    bench.add_command(importlib.import_module(_name).command)
+
+commands = [bench]
