@@ -1,0 +1,96 @@
+"""What the five cell servers share: answering with an ack code, broadcasting, raising alarms.
+
+Each server is a Module (gwc/module.py) and keeps the one lifecycle; this adds the few habits
+every server has: a refusal is logged with its reason and answered with its ack code, a change
+others must hear of is broadcast as its own one-message conversation, and an alarm goes to the
+Cell Alarm Server without ever holding up the conversation that found it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Coroutine
+from typing import Any
+
+from gwc.config import Config
+from gwc.errors import GwcError
+from gwc.ipc.bus import Conversation
+from gwc.ipc.catalogue import Message, message
+from gwc.ipc.codes import AckCode
+
+SERVER_TIMEOUT = 5.0  # longest one server waits for another's answer
+
+
+class Server:
+    """Mixin for a Module: the helpers above. Put it first in the bases: `class X(Server, Module)`."""
+
+    name: str
+    log: logging.Logger
+    cfg: Config
+    bus: Any
+    _tasks: set[asyncio.Task[None]]
+
+    @staticmethod
+    def request(conv: Conversation) -> Message:
+        """The message that opened an incoming conversation."""
+        assert conv.first is not None
+        return conv.first.first
+
+    async def answer(self, conv: Conversation, name: str, code: str = AckCode.ACK_OK, note: str | None = None,
+                     **fields: Any) -> None:
+        """Answer a conversation; a refusal (any code but ACK_OK) is logged with its reason first."""
+        if code != AckCode.ACK_OK:
+            self.log.info("refused %s from %s: %s (%s)", conv.cls, conv.peer, code, note or "-")
+        await conv.send(message(name, ack_code=code, note=note[:500] if note else None, **fields))
+
+    async def broadcast(self, cls: str, msg: Message) -> None:
+        """Tell every module listening to `cls` (a one-message conversation nobody answers)."""
+        conv = await self.bus.start(cls, msg)
+        conv.end()
+
+    async def event(self, text: str) -> None:
+        """A cell event for the status line (7.4)."""
+        await self.broadcast("CELL_EVENT", message("Cell_Event", text=text[:500], source=self.name))
+
+    def spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        """Run work in the background, owned by the module (cancelled when it stops)."""
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def raise_alarm(self, alarm_id: str, text: str, machine_id: str | None = None) -> int | None:
+        """Send an alarm to the CAS (ALARM_SEND); its alarm_no, or None (logged) if it was not taken."""
+        try:
+            conv, batch = await self.bus.request(
+                "ALARM_SEND", message("Alarm_Send", alarm_id=alarm_id, alarm_text=text[:500], machine_id=machine_id,
+                                      raised_by=self.name), to="cas", timeout=SERVER_TIMEOUT)
+            conv.end()
+        except GwcError as e:  # ConversationTimeout among them
+            self.log.error("alarm %s (%s) not taken by the Cell Alarm Server: %s", alarm_id, text, e)
+            return None
+        ack = batch.first
+        if ack.ack_code != AckCode.ACK_OK:
+            self.log.error("Cell Alarm Server refused alarm %s: %s %s", alarm_id, ack.ack_code, ack.note or "")
+            return None
+        self.log.info("alarm %s raised as number %s", alarm_id, ack.alarm_no)
+        return int(ack.alarm_no) if ack.alarm_no is not None else None
+
+    def refusal(self, cls: str, req: Message, code: str, note: str) -> Message | None:
+        """The refusal of a class whose answer needs more than an ack code (override per server)."""
+        return None
+
+    async def _refuse(self, conv: Conversation, code: str, note: str) -> None:
+        # Module._refuse answers only classes whose answer needs nothing but ack_code; a server's
+        # other answers (Status_Reply, Status_Line) are built by refusal() so no client is left to
+        # time out when, say, the database fails.
+        if conv._idx or conv.first is None:
+            return
+        reply = self.refusal(conv.cls, conv.first.first, code, note)
+        if reply is None:
+            await super()._refuse(conv, code, note)  # type: ignore[misc]
+            return
+        try:
+            await conv.send(reply)
+        except GwcError as e:
+            self.log.warning("could not refuse %s: %s", conv.cls, e)

@@ -1,0 +1,333 @@
+"""The Lot Server (thesis 1.4.4, 6.1.1): the one writer of LOTS, LOT_ENTITIES and LOT_STATUS.
+
+It creates lot entities (one per unit of a lot's quantity), divides, merges and destroys them, and
+keeps in LOT_STATUS where each entity is: created, waiting_import, imported, waiting_machine,
+running, completed, waiting_export, exported or failed. An entity asks (ENTITY_REQ) to be imported
+or exported; the operator decides (IMPORT_LOT / EXPORT_LOT) and LOT_MOVED tells the entity. An
+entity that was exported and asks to come back is a new lot (6.1.1): it gets a new lot_id then.
+
+It also reaps: a lot script announces itself (action attach) and is watched as bus peer
+lot:<entity>; when that peer leaves (killed, crashed) while its entity is still at work, the
+entity is marked failed and MSCHED is asked to cancel its requests and free its machines, so a
+dead script leaves nothing reserved behind.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+from gwc import db
+from gwc.config import Config
+from gwc.errors import GwcError
+from gwc.ipc.bus import Conversation, Peer
+from gwc.ipc.catalogue import message
+from gwc.ipc.codes import AckCode, LotState
+from gwc.module import Handler, Module
+from gwc.servers.common import SERVER_TIMEOUT, Server
+
+L = LotState
+MAX_QUANTITY = 1000
+IN_CELL = frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING, L.COMPLETED})
+# An entity in one of these needs no script any more: its death is no failure (CONTRACTS.md).
+FINISHED = frozenset({L.EXPORTED, L.FAILED, L.COMPLETED, L.WAITING_EXPORT})
+# ENTITY_REQ action -> (the state it moves the entity to, or None; the states it may come from).
+ACTIONS: dict[str, tuple[LotState | None, frozenset[LotState]]] = {
+    "import": (L.WAITING_IMPORT, frozenset({L.CREATED, L.EXPORTED, L.WAITING_IMPORT})),
+    "export": (L.WAITING_EXPORT, IN_CELL | {L.WAITING_EXPORT}),
+    "waiting_machine": (L.WAITING_MACHINE, frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING})),
+    "running": (L.RUNNING, frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING})),
+    "completed": (L.COMPLETED, IN_CELL),
+    "failed": (L.FAILED, frozenset(L) - {L.EXPORTED}),
+    "attach": (None, frozenset(L) - {L.EXPORTED, L.FAILED}),
+    "state": (None, frozenset(L)),
+    "destroy": (None, frozenset({L.CREATED, L.EXPORTED, L.FAILED})),
+}
+DECISIONS = {"IMPORT_LOT": ("import", L.WAITING_IMPORT, L.IMPORTED),
+             "EXPORT_LOT": ("export", L.WAITING_EXPORT, L.EXPORTED)}
+
+
+def _new_lot_for(cur: Any, entity_id: int, old_lot: int) -> int:
+    """Move an entity into a new lot, a copy of its old one (6.1.1: re-imported, a new lot_id)."""
+    lot_id = db.get_new_max_value(cur, "LOT_ID")
+    cur.execute("insert into lots (lot_id, lot_type, work_order_id, product_id, quantity, priority, owner, "
+                "script_id, result_params) select %s, lot_type, work_order_id, product_id, 1, priority, owner, "
+                "script_id, result_params from lots where lot_id = %s", (lot_id, old_lot))
+    # lot_status names (entity, lot) of lot_entities: out, move the entity, back in, in this one transaction.
+    st = cur.execute("delete from lot_status where entity_id = %s returning state, reason, script_pid",
+                     (entity_id,)).fetchone()
+    cur.execute("update lot_entities set lot_id = %s, unit = 1 where entity_id = %s", (lot_id, entity_id))
+    cur.execute("insert into lot_status (entity_id, lot_id, state, reason, script_pid) values (%s, %s, %s, %s, %s)",
+                (entity_id, lot_id, *st))
+    return lot_id
+
+
+class LotServer(Server, Module):
+    role = "ls"
+
+    def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
+        super().__init__(cfg, name, log)
+        self.watched: dict[int, float] = {}  # entity -> when its script was last seen on the bus
+        self.grace = max(3.0, 2 * cfg.bus.peer_timeout)
+
+    def handlers(self) -> dict[str, Handler]:
+        return {
+            "CREATE_LOT": self.create_lot,
+            "ENTITY_REQ": self.entity_request,
+            "IMPORT_LOT": self.decision,
+            "EXPORT_LOT": self.decision,
+            "DIV_MERGE": self.divide_merge,
+        }
+
+    # ----------------------------------------------------------------- lifecycle and the reaper
+
+    async def on_bus(self) -> None:
+        self.bus.peer_listeners.append(self._peer_changed)
+
+    async def on_startup(self) -> str:
+        """Watch the scripts of entities at work (they had a script when we were last up)."""
+        def attached(cur: Any) -> list[int]:
+            return [r[0] for r in cur.execute(
+                "select s.entity_id from lot_status s join lot_entities e using (entity_id) "
+                "where s.script_pid is not null and e.destroyed_at is null and s.state <> all(%s)",
+                ([str(s) for s in FINISHED],)).fetchall()]
+
+        now = time.monotonic()
+        self.watched = {e: now for e in self.transaction(attached)}
+        self.log.info("watching the scripts of %d entities", len(self.watched))
+        return AckCode.ACK_OK
+
+    def _peer_changed(self, name: str, peer: Peer | None) -> None:
+        """A watched script's peer left the bus (silence or bye): reap at once."""
+        kind, _, ent = name.partition(":")
+        if peer is None and kind == "lot" and ent.isdigit() and int(ent) in self.watched and self.started:
+            self.watched.pop(int(ent), None)
+            self.spawn(self.reap(int(ent), f"bus peer {name} left"))
+
+    async def on_idle(self) -> None:
+        if not self.started:
+            return
+        now = time.monotonic()
+        peers = self.bus.peers()
+        for ent, seen in list(self.watched.items()):
+            if f"lot:{ent}" in peers:
+                self.watched[ent] = now
+            elif now - seen > self.grace:
+                self.watched.pop(ent, None)
+                self.spawn(self.reap(ent, f"bus peer lot:{ent} not seen for {now - seen:.1f}s"))
+
+    async def reap(self, entity_id: int, why: str) -> None:
+        """A lot script died: its entity, if still at work, fails; MSCHED frees what it held."""
+        reason = f"lot script died ({why})"
+
+        def fail(cur: Any) -> bool:
+            row = cur.execute("select s.state from lot_status s join lot_entities e using (entity_id) "
+                              "where s.entity_id = %s and e.destroyed_at is null for update of s",
+                              (entity_id,)).fetchone()
+            if row is None or L(row[0]) in FINISHED:
+                return False
+            cur.execute("update lot_status set state = 'failed', reason = %s, updated_at = now() "
+                        "where entity_id = %s", (reason, entity_id))
+            return True
+
+        if not self.transaction(fail):
+            return
+        self.log.warning("entity %d failed: %s; asking msched to cancel and unreserve", entity_id, reason)
+        await self.event(f"entity {entity_id} failed: {reason}")
+        for cls, msg in (("CANCEL_RE", message("Cancel_Request", entity_id=entity_id, by=self.name)),
+                         ("UNRESERVE", message("Unreserve_Me", entity_id=entity_id, by=self.name))):
+            try:
+                answer = await self.ask(cls, msg, "msched", SERVER_TIMEOUT)
+                self.log.info("%s for entity %d: %s %s", cls, entity_id, answer.ack_code, answer.note or "")
+            except GwcError as e:  # ConversationTimeout among them
+                self.log.error("%s for dead entity %d not done: %s", cls, entity_id, e)
+
+    # ----------------------------------------------------------------- conversations
+
+    async def create_lot(self, conv: Conversation) -> None:
+        """CREATE_LOT (create_lot_entity): a lot (or more of an existing one), one entity per unit."""
+        req = self.request(conv)
+        ack = "Create_Lot_Ack"
+        if not 0 < req.quantity <= MAX_QUANTITY:
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
+        params = [str(p) for p in req.result_params or []]
+
+        def create(cur: Any) -> tuple[int, list[int]] | str:
+            product = cur.execute("select script_id, lot_type from products where product_id = %s",
+                                  (req.product_id,)).fetchone()
+            if product is None:
+                return f"no product {req.product_id!r}"
+            script_id = req.script_id or product[0]
+            if req.script_id and not cur.execute("select 1 from lot_scripts where script_id = %s",
+                                                 (req.script_id,)).fetchone():
+                return f"no lot script {req.script_id!r}"
+            if req.work_order_id is not None and not cur.execute(
+                    "select 1 from work_orders where work_order_id = %s", (req.work_order_id,)).fetchone():
+                return f"no work order {req.work_order_id}"
+            if req.lot_id is not None:
+                lot = cur.execute("select lot_id from lots where lot_id = %s for update", (req.lot_id,)).fetchone()
+                if lot is None:
+                    return f"no lot {req.lot_id}"
+                lot_id = req.lot_id
+                first = cur.execute("select coalesce(max(unit), 0) + 1 from lot_entities where lot_id = %s",
+                                    (lot_id,)).fetchone()[0]
+                cur.execute("update lots set quantity = quantity + %s where lot_id = %s", (req.quantity, lot_id))
+            else:
+                lot_id, first = db.get_new_max_value(cur, "LOT_ID"), 1
+                cur.execute("insert into lots (lot_id, lot_type, work_order_id, product_id, quantity, priority, "
+                            "owner, script_id, result_params) values (%s, %s, %s, %s, %s, coalesce(%s, 20), %s, "
+                            "%s, %s)", (lot_id, req.lot_type or product[1], req.work_order_id, req.product_id,
+                                        req.quantity, req.priority, req.owner, script_id, params))
+            ids = []
+            for unit in range(first, first + req.quantity):
+                eid = db.get_new_max_value(cur, "ENTITY_ID")
+                cur.execute("insert into lot_entities (entity_id, lot_id, unit) values (%s, %s, %s)",
+                            (eid, lot_id, unit))
+                cur.execute("insert into lot_status (entity_id, lot_id, state) values (%s, %s, 'created')",
+                            (eid, lot_id))
+                ids.append(eid)
+            return lot_id, ids
+
+        result = self.transaction(create)
+        if isinstance(result, str):
+            return await self.answer(conv, ack, AckCode.UNKNOWN, result)
+        lot_id, ids = result
+        self.log.info("lot %d: %d entit%s created (%s) for %s", lot_id, len(ids), "y" if len(ids) == 1 else "ies",
+                      ", ".join(map(str, ids)), req.owner or conv.peer)
+        await self.answer(conv, ack, AckCode.ACK_OK, lot_id=lot_id, entity_ids=ids)
+
+    async def entity_request(self, conv: Conversation) -> None:
+        """ENTITY_REQ: an entity moves itself (import, export, waiting_machine, running, completed,
+        failed), attaches its script, reads its state or is destroyed; Notnow if its state forbids it."""
+        req = self.request(conv)
+        ack = "Entity_Ack"
+        if req.action not in ACTIONS:
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE,
+                                     f"action {req.action!r} is not one of {', '.join(ACTIONS)}")
+        if req.action == "failed" and not (req.reason or "").strip():
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "failed needs a reason")
+        if req.action == "attach" and not (req.script_pid or 0) > 0:
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "attach needs the script's pid")
+        target, allowed = ACTIONS[req.action]
+
+        def step(cur: Any) -> tuple[str, int | None, LotState | None, str | None]:
+            row = cur.execute("select s.lot_id, s.state, e.destroyed_at from lot_status s "
+                              "join lot_entities e using (entity_id) where s.entity_id = %s for update of s",
+                              (req.entity_id,)).fetchone()
+            if row is None or (row[2] is not None and req.action != "state"):
+                return AckCode.UNKNOWN, None, None, f"no entity {req.entity_id}" + (" (destroyed)" if row else "")
+            lot_id, state = row[0], L(row[1])
+            if state not in allowed:
+                return AckCode.NOTNOW, lot_id, state, f"entity {req.entity_id} is {state}: cannot {req.action}"
+            note = "destroyed" if row[2] is not None else None
+            if req.action == "attach":
+                cur.execute("update lot_status set script_pid = %s, updated_at = now() where entity_id = %s",
+                            (req.script_pid, req.entity_id))
+            elif req.action == "destroy":
+                cur.execute("update lot_entities set destroyed_at = now() where entity_id = %s", (req.entity_id,))
+                note = "destroyed"
+            elif target is not None and target != state:
+                if state == L.EXPORTED:  # back after an export: a new lot (6.1.1)
+                    old, lot_id = lot_id, _new_lot_for(cur, req.entity_id, lot_id)
+                    note = f"re-imported entity: lot {old} -> lot {lot_id}"
+                cur.execute("update lot_status set state = %s, reason = %s, updated_at = now() where entity_id = %s",
+                            (target.value, req.reason, req.entity_id))
+                state = target
+            return AckCode.ACK_OK, lot_id, state, note
+
+        code, lot_id, state, note = self.transaction(step)
+        if code == AckCode.ACK_OK:
+            self._after(req.entity_id, req.action, state, conv)
+            if req.action not in ("state", "attach"):
+                self.log.info("entity %d: %s -> %s%s", req.entity_id, req.action, state, f" ({note})" if note else "")
+        await self.answer(conv, ack, code, note, lot_id=lot_id, state=state.value if state else None)
+        if code == AckCode.ACK_OK and req.action in ("import", "export"):
+            await self.event(f"entity {req.entity_id} (lot {lot_id}) waits to be {req.action}ed")
+
+    def _after(self, entity_id: int, action: str, state: LotState | None, conv: Conversation) -> None:
+        """Keep the reaper's watch in step with the entity."""
+        if action == "attach" and state not in FINISHED:
+            self.watched[entity_id] = time.monotonic()
+            self.log.info("entity %d: lot script attached (bus peer %s)", entity_id, conv.peer)
+        elif state in FINISHED or action == "destroy":
+            self.watched.pop(entity_id, None)
+
+    async def decision(self, conv: Conversation) -> None:
+        """IMPORT_LOT / EXPORT_LOT: the operator lets a waiting entity in or out; LOT_MOVED tells it."""
+        req = self.request(conv)
+        ack = "Lot_Decision_Ack"
+        action, waiting, moved = DECISIONS[conv.cls]
+        if req.action != action:
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"{conv.cls} decides {action}, not {req.action!r}")
+
+        def step(cur: Any) -> tuple[str, int | None, str | None]:
+            row = cur.execute("select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
+                              "where s.entity_id = %s and e.destroyed_at is null for update of s",
+                              (req.entity_id,)).fetchone()
+            if row is None:
+                return AckCode.UNKNOWN, None, f"no entity {req.entity_id}"
+            if row[1] != waiting:
+                return AckCode.NOTNOW, row[0], f"entity {req.entity_id} is {row[1]}, not {waiting}"
+            cur.execute("update lot_status set state = %s, updated_at = now() where entity_id = %s",
+                        (moved.value, req.entity_id))
+            return AckCode.ACK_OK, row[0], None
+
+        code, lot_id, note = self.transaction(step)
+        await self.answer(conv, ack, code, note, lot_id=lot_id)
+        if code != AckCode.ACK_OK:
+            return
+        if moved in FINISHED:
+            self.watched.pop(req.entity_id, None)
+        self.log.info("entity %d (lot %s) %sed by %s", req.entity_id, lot_id, action, req.by or conv.peer)
+        await self.broadcast("LOT_MOVED", message("Lot_Moved", entity_id=req.entity_id, action=action, lot_id=lot_id))
+        await self.event(f"entity {req.entity_id} (lot {lot_id}) {action}ed by {req.by or conv.peer}")
+
+    async def divide_merge(self, conv: Conversation) -> None:
+        """DIV_MERGE: divide splits `quantity` new entities off one (same lot and state, parent set);
+        merge folds other_entity_id into entity_id (the other is destroyed). Only before work starts."""
+        req = self.request(conv)
+        ack = "Divide_Merge_Ack"
+        still = (L.CREATED, L.IMPORTED)
+        if req.action not in ("divide", "merge"):
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"action {req.action!r} is not divide or merge")
+        n = 1 if req.quantity is None else req.quantity
+        if req.action == "divide" and not 0 < n <= MAX_QUANTITY:
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
+        if req.action == "merge" and (req.other_entity_id is None or req.other_entity_id == req.entity_id):
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "merge needs another entity (other_entity_id)")
+
+        def lookup(cur: Any, eid: int) -> tuple[int, str] | None:
+            return cur.execute("select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
+                               "where s.entity_id = %s and e.destroyed_at is null for update of s",
+                               (eid,)).fetchone()
+
+        def step(cur: Any) -> tuple[str, list[int] | None, str | None]:
+            me = lookup(cur, req.entity_id)
+            other = lookup(cur, req.other_entity_id) if req.action == "merge" else None
+            if me is None or (req.action == "merge" and other is None):
+                missing = req.entity_id if me is None else req.other_entity_id
+                return AckCode.UNKNOWN, None, f"no entity {missing}"
+            for eid, (lot, state) in ((req.entity_id, me), (req.other_entity_id, other or me)):
+                if state not in still:
+                    return AckCode.NOTNOW, None, f"entity {eid} is {state}: only created or imported ones"
+            if req.action == "merge":
+                if other[0] != me[0] or other[1] != me[1]:  # type: ignore[index]
+                    return AckCode.NOTNOW, None, "only entities of one lot and one state merge"
+                cur.execute("update lot_entities set destroyed_at = now() where entity_id = %s",
+                            (req.other_entity_id,))
+                return AckCode.ACK_OK, [req.entity_id], f"entity {req.other_entity_id} merged into {req.entity_id}"
+            ids = [req.entity_id]
+            for _ in range(n):
+                eid = db.get_new_max_value(cur, "ENTITY_ID")
+                cur.execute("insert into lot_entities (entity_id, lot_id, parent_entity_id) values (%s, %s, %s)",
+                            (eid, me[0], req.entity_id))
+                cur.execute("insert into lot_status (entity_id, lot_id, state) values (%s, %s, %s)",
+                            (eid, me[0], me[1]))
+                ids.append(eid)
+            return AckCode.ACK_OK, ids, None
+
+        code, ids, note = self.transaction(step)
+        if code == AckCode.ACK_OK:
+            self.log.info("%s of entity %d: %s", req.action, req.entity_id, note or ids)
+        await self.answer(conv, ack, code, note, entity_ids=ids)

@@ -1,0 +1,268 @@
+"""The Machine Server (thesis 1.4.2): the one writer of MACHINE_STATUS.
+
+It keeps every machine's status (Shutdown, Idle, Setup, Running, Setup_Shut, Run_Shut) with its
+recipe, machine_run_id, start and end time and note; it changes a status only when asked
+(CHG_STATUS), only along the transitions of 6.3.2 and only if the status is still the one the
+asker expects, so two askers can never both win a race; and it broadcasts every change as
+Update_ME_Status, so MSCHED and the operator learn of it without polling.
+
+It also watches that each machine's WC is alive: a WC beats on the bus every heartbeat; one silent
+longer than its machine's me_config.liveness_s while the machine is not Shutdown has died with its
+machine (a kill -9 of the pair says nothing), so the machine is set Shutdown, the change broadcast
+(MSCHED then routes around it) and alarm WC_SILENT raised. Only MSCHED touches reservations.
+
+And it keeps the machines' books (1.4.2): every Run_Complete counts a run since maintenance, a
+failed one a scrap too; when the runs reach the machine's maintenance_every (cell.toml
+`maintenance_every`), alarm MAINT_DUE. MAINT_DONE, the operator's word that the machine was
+maintained, starts the count again.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from gwc.config import Config
+from gwc.ipc.bus import Conversation
+from gwc.ipc.catalogue import Message, message
+from gwc.ipc.codes import AckCode, MachineStatus
+from gwc.module import Handler, Module
+from gwc.servers.common import Server
+
+S = MachineStatus
+# 6.3.2: where each status may go. Shutdown is always reachable (operator, ME death, liveness).
+TRANSITIONS: dict[MachineStatus, frozenset[MachineStatus]] = {
+    S.SHUTDOWN: frozenset({S.SHUTDOWN, S.IDLE}),
+    S.IDLE: frozenset({S.IDLE, S.SETUP, S.SHUTDOWN}),
+    S.SETUP: frozenset({S.SETUP, S.IDLE, S.RUNNING, S.SETUP_SHUT, S.SHUTDOWN}),
+    S.SETUP_SHUT: frozenset({S.SETUP_SHUT, S.RUN_SHUT, S.SHUTDOWN}),
+    S.RUNNING: frozenset({S.RUNNING, S.IDLE, S.RUN_SHUT, S.SHUTDOWN}),
+    S.RUN_SHUT: frozenset({S.RUN_SHUT, S.SHUTDOWN}),
+}
+RUNNING = (S.RUNNING, S.RUN_SHUT)
+
+_UPDATE = """
+update machine_status set
+    status = %(status)s,
+    recipe_id = coalesce(%(recipe_id)s, recipe_id),
+    machine_run_id = coalesce(%(run)s, machine_run_id),
+    start_time = case when %(status)s in ('Running', 'Run_Shut') and status not in ('Running', 'Run_Shut')
+                          then now()
+                      when %(status)s = 'Setup' and status <> 'Setup' then null
+                      else start_time end,
+    end_time = case when %(status)s in ('Idle', 'Shutdown') and status in ('Running', 'Run_Shut') then now()
+                    when %(status)s in ('Setup', 'Running', 'Run_Shut') and status not in ('Running', 'Run_Shut')
+                        then null
+                    else end_time end,
+    note = %(note)s,
+    updated_at = now()
+where machine_id = %(machine_id)s
+returning machine_run_id
+"""
+
+
+@dataclass
+class _Watch:
+    """What the liveness watch knows of one machine."""
+
+    status: MachineStatus
+    liveness: float
+    last_seen: float  # monotonic time its WC was last heard (or the watch began)
+
+
+class MachineServer(Server, Module):
+    role = "ms"
+
+    def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
+        super().__init__(cfg, name, log)
+        self.machines: dict[str, _Watch] = {}
+
+    def handlers(self) -> dict[str, Handler]:
+        return {
+            "CHG_STATUS": self.change_status,
+            "GET_STATUS": self.get_status,
+            "RUN_COMPL": self.run_complete,
+            "MAINT_DONE": self.maintenance_done,
+        }
+
+    def refusal(self, cls: str, req: Message, code: str, note: str) -> Message | None:
+        if cls == "GET_STATUS":
+            return message("Status_Reply", machine_id=req.machine_id, ack_code=code, note=note[:500])
+        return None
+
+    # ----------------------------------------------------------------- lifecycle
+
+    async def on_startup(self) -> str:
+        """Load every machine (rows for configured machines that lack one) and start watching them."""
+        every = {}
+        for m in self.cfg.machines:
+            n = m.options.get("maintenance_every")
+            if isinstance(n, int) and not isinstance(n, bool) and n > 0:
+                every[m.id] = n
+            elif n is not None:
+                self.log.error("machine %s: maintenance_every = %r is not a positive whole number: ignored", m.id, n)
+
+        def load(cur: Any) -> list[tuple[str, str, float]]:
+            cur.execute("insert into machine_status (machine_id, status) select machine_id, 'Shutdown' "
+                        "from me_config on conflict do nothing")
+            for mid, n in every.items():
+                cur.execute("update machine_status set maintenance_every = %s where machine_id = %s", (n, mid))
+            return cur.execute("select s.machine_id, s.status, c.liveness_s from machine_status s "
+                               "join me_config c using (machine_id)").fetchall()
+
+        now = time.monotonic()
+        self.machines = {mid: _Watch(S(status), float(live), now) for mid, status, live in self.transaction(load)}
+        up = sorted(m for m, w in self.machines.items() if w.status != S.SHUTDOWN)
+        self.log.info("watching %d machines%s", len(self.machines), f" ({', '.join(up)} up)" if up else "")
+        return AckCode.ACK_OK
+
+    # ----------------------------------------------------------------- liveness
+
+    async def on_idle(self) -> None:
+        if not self.started:
+            return
+        now = time.monotonic()
+        peers = self.bus.peers()
+        for mid, w in list(self.machines.items()):
+            peer = peers.get(f"wc:{mid}")
+            if peer is not None:
+                w.last_seen = max(w.last_seen, peer.last_seen)
+            silent = now - w.last_seen
+            if w.status != S.SHUTDOWN and silent > w.liveness:
+                await self.machine_silent(mid, silent)
+
+    async def machine_silent(self, machine_id: str, silent: float) -> None:
+        """The WC of a machine that is up fell silent: the machine is Shutdown; tell the cell."""
+        w = self.machines[machine_id]
+        note = f"WC wc:{machine_id} silent for {silent:.1f}s (liveness {w.liveness:g}s): machine Shutdown"
+        self.log.error("%s", note)
+
+        def shut(cur: Any) -> tuple[str, int | None] | None:
+            row = cur.execute("select status from machine_status where machine_id = %s for update",
+                              (machine_id,)).fetchone()
+            if row is None or row[0] == S.SHUTDOWN:
+                return None
+            run = cur.execute(_UPDATE, {"status": S.SHUTDOWN.value, "recipe_id": None, "run": None, "note": note,
+                                        "machine_id": machine_id}).fetchone()
+            return row[0], run[0]
+
+        changed = self.transaction(shut)
+        w.status = S.SHUTDOWN
+        if changed is None:
+            return
+        previous, run = changed
+        await self.broadcast("UPD_ME_ST", message("Update_ME_Status", machine_id=machine_id, status=S.SHUTDOWN.value,
+                                                  previous=previous, machine_run_id=run, note=note))
+        self.spawn(self._alarm("WC_SILENT", note, machine_id))
+
+    async def _alarm(self, alarm_id: str, text: str, machine_id: str) -> None:
+        await self.raise_alarm(alarm_id, text, machine_id)
+
+    # ----------------------------------------------------------------- conversations
+
+    async def change_status(self, conv: Conversation) -> None:
+        """CHG_STATUS: one checked change, broadcast; Notnow (with the status now) if it does not fit."""
+        req = self.request(conv)
+        ack = "Change_Status_Ack"
+        try:
+            status = S(req.status)
+            expect = None if req.expect is None else {S(s) for s in req.expect}
+        except (ValueError, TypeError):
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE,
+                                     f"status {req.status!r} or expect {req.expect!r} is not a machine status "
+                                     f"({', '.join(S)})")
+
+        def step(cur: Any) -> tuple[str, str | None, int | None] | None:
+            row = cur.execute("select status from machine_status where machine_id = %s for update",
+                              (req.machine_id,)).fetchone()
+            if row is None:
+                return None
+            current = S(row[0])
+            if expect and current not in expect:
+                return current, f"machine {req.machine_id} is {current}, not {' or '.join(sorted(expect))}", None
+            if status not in TRANSITIONS[current]:
+                return current, f"machine {req.machine_id} cannot go from {current} to {status}", None
+            run = cur.execute(_UPDATE, {"status": status.value, "recipe_id": req.recipe_id, "run": req.machine_run_id,
+                                        "note": req.note, "machine_id": req.machine_id}).fetchone()
+            return current, None, run[0]
+
+        result = self.transaction(step)
+        if result is None:
+            return await self.answer(conv, ack, AckCode.UNKNOWN, f"no machine {req.machine_id!r}")
+        previous, why, run = result
+        if why:
+            return await self.answer(conv, ack, AckCode.NOTNOW, why, status=previous.value)
+        w = self.machines.get(req.machine_id)
+        if w is None:  # a machine registered after we started
+            w = self.machines[req.machine_id] = _Watch(status, self._liveness(req.machine_id), time.monotonic())
+        if previous == S.SHUTDOWN or conv.peer == f"wc:{req.machine_id}":
+            w.last_seen = time.monotonic()  # the watch starts (again) now
+        w.status = status
+        self.log.info("%s: %s -> %s%s", req.machine_id, previous, status, f" ({req.note})" if req.note else "")
+        await self.answer(conv, ack, AckCode.ACK_OK, status=status.value, previous=previous.value)
+        if status != previous:
+            await self.broadcast("UPD_ME_ST", message(
+                "Update_ME_Status", machine_id=req.machine_id, status=status.value, previous=previous.value,
+                machine_run_id=run, note=req.note))
+
+    def _liveness(self, machine_id: str) -> float:
+        def read(cur: Any) -> float:
+            row = cur.execute("select liveness_s from me_config where machine_id = %s", (machine_id,)).fetchone()
+            return float(row[0]) if row else 3.0
+
+        return self.transaction(read)
+
+    async def get_status(self, conv: Conversation) -> None:
+        req = self.request(conv)
+
+        def read(cur: Any) -> tuple[Any, ...] | None:
+            return cur.execute("select status, recipe_id, machine_run_id, note from machine_status "
+                               "where machine_id = %s", (req.machine_id,)).fetchone()
+
+        row = self.transaction(read)
+        if row is None:
+            return await self.answer(conv, "Status_Reply", AckCode.UNKNOWN, f"no machine {req.machine_id!r}",
+                                     machine_id=req.machine_id)
+        await self.answer(conv, "Status_Reply", AckCode.ACK_OK, row[3], machine_id=req.machine_id, status=row[0],
+                          recipe_id=row[1], machine_run_id=row[2])
+
+    async def run_complete(self, conv: Conversation) -> None:
+        """RUN_COMPL (broadcast by a WC): count the run, a failed one as scrap; maintenance due?"""
+        done = self.request(conv)
+        failed = done.ack_code != AckCode.ACK_OK
+
+        def count(cur: Any) -> tuple[int, int | None] | None:
+            return cur.execute(
+                "update machine_status set runs_since_maintenance = runs_since_maintenance + 1, "
+                "scrap_count = scrap_count + %s where machine_id = %s "
+                "returning runs_since_maintenance, maintenance_every",
+                (1 if failed else 0, done.machine_id)).fetchone()
+
+        row = self.transaction(count)
+        if row is None:
+            self.log.warning("Run_Complete for unknown machine %s ignored", done.machine_id)
+            return
+        runs, every = row
+        self.log.info("%s: run %s %s; %d runs since maintenance", done.machine_id, done.machine_run_id,
+                      "failed (scrap)" if failed else "complete", runs)
+        if every is not None and runs == every:
+            self.spawn(self._alarm("MAINT_DUE", f"{done.machine_id}: maintenance is due ({runs} runs since the last)",
+                                   done.machine_id))
+
+    async def maintenance_done(self, conv: Conversation) -> None:
+        """MAINT_DONE: the operator maintained a machine; the run count starts again."""
+        req = self.request(conv)
+
+        def reset(cur: Any) -> tuple[int] | None:
+            return cur.execute(
+                "update machine_status m set runs_since_maintenance = 0, updated_at = now() "
+                "from machine_status old where m.machine_id = %s and old.machine_id = m.machine_id "
+                "returning old.runs_since_maintenance", (req.machine_id,)).fetchone()
+
+        row = self.transaction(reset)
+        if row is None:
+            return await self.answer(conv, "Maint_Done_Ack", AckCode.UNKNOWN, f"no machine {req.machine_id!r}")
+        self.log.info("%s maintained by %s after %d runs", req.machine_id, req.by or "?", row[0])
+        await self.answer(conv, "Maint_Done_Ack", AckCode.ACK_OK, runs=row[0])

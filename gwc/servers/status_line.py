@@ -1,0 +1,93 @@
+"""The Status Line Server (thesis 7.4): the one line every operator screen shows.
+
+The line says what waits for the operator: lot entities waiting to be imported or exported (the
+Lot Server's LOT_STATUS), pending alarms (the Cell Alarm Server's ALARMS), and the last cell event
+heard on the bus (a Cell_Event, a machine status change, an alarm cleared, a lot moved, a run
+completed). The counts are read from the owners' tables at every STATUS_LN, so the line is never
+stale; the server writes nothing (role gwc_sls reads only) and keeps only the last event in memory.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+from gwc.config import Config
+from gwc.ipc.bus import Conversation
+from gwc.ipc.catalogue import Message, message
+from gwc.ipc.codes import AckCode
+from gwc.module import Handler, Module
+from gwc.servers.common import Server
+
+SHOW = 5  # entity ids named on the line before "..."
+
+
+def _ids(ids: list[int]) -> str:
+    return ", ".join(map(str, ids[:SHOW])) + (", ..." if len(ids) > SHOW else "")
+
+
+def _describe(cls: str, msg: Message) -> str:
+    """A bus event in the words of the status line."""
+    if cls == "UPD_ME_ST":
+        return f"{msg.machine_id} {msg.previous or '?'} -> {msg.status}" + (f" ({msg.note})" if msg.note else "")
+    if cls == "ALARM_CLE":
+        return f"alarm {msg.alarm_no} {msg.alarm_id or ''} cleared by {msg.cleared_by}".replace("  ", " ")
+    if cls == "LOT_MOVED":
+        return f"entity {msg.entity_id} (lot {msg.lot_id}) {msg.action}ed"
+    if cls == "RUN_COMPL":
+        return f"{msg.machine_id} run {msg.machine_run_id} " + ("complete" if msg.ack_code == AckCode.ACK_OK
+                                                                 else f"failed ({msg.ack_code})")
+    return str(msg.text)
+
+
+class StatusLineServer(Server, Module):
+    role = "sls"
+
+    def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
+        super().__init__(cfg, name, log)
+        self.last_event = "status line server started"
+
+    def handlers(self) -> dict[str, Handler]:
+        events = dict.fromkeys(("CELL_EVENT", "UPD_ME_ST", "ALARM_CLE", "LOT_MOVED", "RUN_COMPL"), self.heard)
+        return {"STATUS_LN": self.status_line, **events}
+
+    def refusal(self, cls: str, req: Message, code: str, note: str) -> Message | None:
+        if cls == "STATUS_LN":
+            return message("Status_Line", text=f"status line unavailable: {code} {note}"[:500])
+        return None
+
+    async def heard(self, conv: Conversation) -> None:
+        self.last_event = f"{time.strftime('%H:%M:%S')} {_describe(conv.cls, self.request(conv))}"[:200]
+
+    def read(self) -> dict[str, Any]:
+        """What waits for the operator, from the owners' tables."""
+        def q(cur: Any) -> dict[str, Any]:
+            waiting = dict(cur.execute(
+                "select s.state, array_agg(s.entity_id order by s.entity_id) from lot_status s "
+                "join lot_entities e using (entity_id) where e.destroyed_at is null "
+                "and s.state in ('waiting_import', 'waiting_export') group by s.state").fetchall())
+            pending = cur.execute("select count(*) from alarms where cleared_at is null").fetchone()[0]
+            newest = cur.execute("select alarm_no, alarm_text, known from alarms where cleared_at is null "
+                                 "order by alarm_no desc limit 1").fetchone()
+            return {"imports": list(waiting.get("waiting_import", [])),
+                    "exports": list(waiting.get("waiting_export", [])), "alarms": int(pending), "newest": newest}
+
+        return self.transaction(q)
+
+    def line(self, r: dict[str, Any]) -> str:
+        parts = []
+        if r["imports"]:
+            parts.append(f"IMPORT {len(r['imports'])} waiting ({_ids(r['imports'])})")
+        if r["exports"]:
+            parts.append(f"EXPORT {len(r['exports'])} waiting ({_ids(r['exports'])})")
+        if r["alarms"]:
+            no, text, known = r["newest"]
+            parts.append(f"ALARMS {r['alarms']} pending, newest #{no}{'' if known else ' (unknown)'}: {text}")
+        parts.append(f"LAST {self.last_event}")
+        return " | ".join(parts)[:500]
+
+    async def status_line(self, conv: Conversation) -> None:
+        r = self.read()
+        await conv.send(message("Status_Line", text=self.line(r), imports=len(r["imports"]),
+                                exports=len(r["exports"]), alarms=r["alarms"], last_event=self.last_event))
