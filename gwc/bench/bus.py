@@ -1,11 +1,357 @@
-"""Placeholder: filled in by its issue."""
+"""`gwc bench bus`: request->reply round trips over the bus, beside the bare multicast floor.
+
+Real processes: this one (the client) and one `python -m gwc.bench.bus --serve MODE ...` per mode
+(the servers); the client interleaves the modes in rounds. `bus` mode holds PING conversations through gwc.ipc.bus (one asyncio loop a side,
+reliability, ordering, membership all on); `bare` mode bounces datagrams on a plain multicast
+socket, blocking, nothing else: the floor no bus on this medium can beat; `asyncio` mode is the bare
+ping-pong through one asyncio loop a side, to show what asyncio alone costs. All run in the same
+invocation on private groups, so the ratios compare like with like on a shared, noisy machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import os
+import random
+import socket
+import subprocess
+import sys
+import time
+from typing import Any
 
 import click
 
+from gwc.bench import summary
+from gwc.config import BusConfig
 from gwc.errors import GwcError
+from gwc.ipc.bus import Bus, open_socket
+from gwc.ipc.catalogue import message
+
+SERVER = "bench.srv"
+MODES = ("bare", "asyncio", "bus")  # the floor, the floor plus one asyncio loop a side, the bus
+
+
+def _cfg(group: str, port: int) -> BusConfig:
+    return BusConfig(group=group, port=port, reply_timeout=10.0)
+
+
+# ----------------------------------------------------------------------------- servers
+
+
+async def _serve_bus(cfg: BusConfig) -> None:
+    bus = Bus(SERVER, cfg, logging.getLogger("gwc.bench"), ["PING"])
+    await bus.sign_on(settle=0)
+    while True:
+        conv = await bus.first_message()
+        if conv is None:
+            return
+        assert conv.first is not None
+        first = conv.first.first
+        if first.payload == "stop":
+            conv.end()
+            await bus.close()
+            return
+        await conv.send(message("Pong", n=first.n))
+        conv.end()
+
+
+def _serve_bare(cfg: BusConfig) -> None:
+    sock = open_socket(cfg)
+    sock.setblocking(True)
+    me = os.getpid().to_bytes(4, "big")
+    while True:
+        data = sock.recv(2048)
+        if data[:1] == b"Q":  # a ping from the client: answer with R + the same payload
+            sock.sendto(b"R" + me + data[5:], (cfg.group, cfg.port))
+        elif data[:1] == b"X":
+            return
+
+
+class _Datagrams(asyncio.DatagramProtocol):
+    def __init__(self, on_datagram: Any) -> None:
+        self.on_datagram = on_datagram
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        self.on_datagram(data)
+
+
+async def _serve_asyncio(cfg: BusConfig) -> None:
+    """The bare ping-pong with one asyncio loop a side and nothing else: what asyncio alone costs."""
+    loop = asyncio.get_running_loop()
+    done = loop.create_future()
+    dest = (cfg.group, cfg.port)
+
+    def on_datagram(data: bytes) -> None:
+        if data[:1] == b"Q":
+            transport.sendto(b"R" + data[1:], dest)
+        elif data[:1] == b"X" and not done.done():
+            done.set_result(None)
+
+    transport, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(on_datagram), sock=open_socket(cfg))
+    try:
+        await done
+    finally:
+        transport.close()
+
+
+# ----------------------------------------------------------------------------- clients
+# Each client: ready() (wait for its server), ping(i) (one round trip), stop(), close(). The run
+# interleaves them in rounds, so a load change on a shared machine hits all three alike.
+
+
+class _BareClient:
+    def __init__(self, cfg: BusConfig) -> None:
+        self.sock = open_socket(cfg)
+        self.sock.setblocking(True)
+        self.sock.settimeout(2.0)
+        self.dest = (cfg.group, cfg.port)
+
+    def _ping(self, i: int) -> None:
+        self.sock.sendto(b"Q\0\0\0\0" + i.to_bytes(8, "big"), self.dest)
+
+    def _pong(self) -> int:
+        while True:  # our own pings loop back to us: skip them
+            data = self.sock.recv(2048)
+            if data[:1] == b"R":
+                return int.from_bytes(data[5:13], "big")
+
+    async def ready(self) -> None:
+        deadline = time.monotonic() + 20
+        while True:
+            try:
+                self._ping(0)
+                self._pong()
+                return
+            except socket.timeout:
+                if time.monotonic() > deadline:
+                    raise GwcError("bare bench server did not answer within 20s") from None
+
+    async def ping(self, i: int) -> None:
+        self._ping(i)
+        got = self._pong()
+        if got != i:
+            raise GwcError(f"bare bench: answer {got} to ping {i} (a datagram was lost)")
+
+    async def rate(self, n: int, window: int) -> float:
+        t0 = time.perf_counter()
+        sent = min(window, n)
+        for i in range(sent):
+            self._ping(i)
+        for _ in range(n):
+            self._pong()
+            if sent < n:
+                self._ping(sent)
+                sent += 1
+        return n / (time.perf_counter() - t0)
+
+    async def stop(self) -> None:
+        self.sock.sendto(b"X", self.dest)
+
+    async def close(self) -> None:
+        self.sock.close()
+
+
+class _AsyncioClient:
+    def __init__(self, cfg: BusConfig) -> None:
+        self.cfg = cfg
+        self.dest = (cfg.group, cfg.port)
+        self.waiting: dict[int, asyncio.Future[None]] = {}
+        self.transport: asyncio.DatagramTransport | None = None
+
+    def _on_datagram(self, data: bytes) -> None:
+        if data[:1] == b"R":
+            fut = self.waiting.pop(int.from_bytes(data[5:13], "big"), None)
+            if fut is not None and not fut.done():
+                fut.set_result(None)
+
+    async def ready(self) -> None:
+        loop = asyncio.get_running_loop()
+        self.transport, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self._on_datagram),
+                                                                sock=open_socket(self.cfg))
+        deadline = time.monotonic() + 20
+        while True:
+            try:
+                await self.ping(0, 0.5)
+                return
+            except asyncio.TimeoutError:
+                if time.monotonic() > deadline:
+                    raise GwcError("asyncio bench server did not answer within 20s") from None
+
+    async def ping(self, i: int, timeout: float = 2.0) -> None:
+        fut = self.waiting[i] = asyncio.get_running_loop().create_future()
+        assert self.transport is not None
+        self.transport.sendto(b"Q\0\0\0\0" + i.to_bytes(8, "big"), self.dest)
+        await asyncio.wait_for(fut, timeout)
+
+    async def rate(self, n: int, window: int) -> float:
+        return await _windowed(self.ping, n, window)
+
+    async def stop(self) -> None:
+        if self.transport is not None:
+            self.transport.sendto(b"X", self.dest)
+
+    async def close(self) -> None:
+        if self.transport is not None:
+            self.transport.close()
+
+
+class _BusClient:
+    def __init__(self, cfg: BusConfig) -> None:
+        self.bus = Bus(f"bench.cli.{os.getpid()}", cfg, logging.getLogger("gwc.bench"), [])
+
+    async def ready(self) -> None:
+        await self.bus.sign_on(settle=0)
+        deadline = time.monotonic() + 20
+        while SERVER not in self.bus.peers():
+            if time.monotonic() > deadline:
+                raise GwcError("bench server did not appear on the bus within 20s")
+            await asyncio.sleep(0.01)
+
+    async def ping(self, i: int) -> None:
+        conv, batch = await self.bus.request("PING", message("Ping", n=i), to=SERVER)
+        conv.end()
+        if batch.first.n != i:
+            raise GwcError(f"bench: answer {batch.first.n} to request {i}")
+
+    async def rate(self, n: int, window: int) -> float:
+        return await _windowed(self.ping, n, window)
+
+    async def stop(self) -> None:
+        await self.bus.start("PING", message("Ping", n=0, payload="stop"), to=SERVER)
+
+    async def close(self) -> None:
+        await self.bus.close()
+
+
+async def _windowed(ping: Any, n: int, window: int) -> float:
+    """Conversations per second with `window` of them in flight."""
+    todo = iter(range(n))
+
+    async def worker() -> None:
+        for i in todo:
+            await ping(i)
+
+    t0 = time.perf_counter()
+    await asyncio.gather(*(worker() for _ in range(window)))
+    return n / (time.perf_counter() - t0)
+
+
+CLIENTS = {"bare": _BareClient, "asyncio": _AsyncioClient, "bus": _BusClient}
+ROUNDS = 10
+
+
+async def _measure(cfgs: dict[str, BusConfig], n: int, window: int) -> dict[str, dict[str, Any]]:
+    clients = {mode: CLIENTS[mode](cfgs[mode]) for mode in MODES}  # type: ignore[abstract]
+    rtt: dict[str, list[float]] = {mode: [] for mode in MODES}
+    rates: dict[str, float] = {}
+    try:
+        for c in clients.values():
+            await c.ready()
+            for i in range(200):  # warm up
+                await c.ping(i)
+        per_round = max(1, n // ROUNDS)
+        for r in range(ROUNDS):
+            for mode, c in clients.items():
+                for i in range(r * per_round, (r + 1) * per_round):
+                    t0 = time.perf_counter()
+                    await c.ping(i)
+                    rtt[mode].append((time.perf_counter() - t0) * 1e6)
+        for mode, c in clients.items():
+            rates[mode] = await c.rate(n, window)
+            await c.stop()
+    finally:
+        for c in clients.values():
+            await c.close()
+    return {mode: {"rtt": rtt[mode], "rate": rates.get(mode, 0.0)} for mode in MODES}
+
+
+def _pin(which: int) -> None:
+    """Keep client and server on different CPUs (when there are two), for both modes alike: otherwise
+    the kernel often wakes the server on the client's CPU and every round trip pays a context switch."""
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) >= 2:
+        os.sched_setaffinity(0, {cpus[which % len(cpus)]})
+
+
+def _spawn(mode: str, cfg: BusConfig, pin: bool) -> subprocess.Popen[bytes]:
+    return subprocess.Popen([sys.executable, "-m", "gwc.bench.bus", "--serve", mode, "--group", cfg.group,
+                             "--port", str(cfg.port), *(["--pin"] if pin else [])], stdin=subprocess.DEVNULL)
+
+
+def _private_cfg() -> BusConfig:
+    rnd = random.Random()
+    return _cfg(f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}", rnd.randrange(20000, 60000))
+
+
+def run(n: int = 5000, window: int = 16, pin: bool = True) -> dict[str, Any]:
+    """All three measurements, each against its own server process; figures in microseconds."""
+    cfgs = {mode: _private_cfg() for mode in MODES}
+    mask = os.sched_getaffinity(0)
+    servers = [_spawn(mode, cfgs[mode], pin) for mode in MODES]
+    if pin:
+        _pin(0)
+    try:
+        raw = asyncio.run(_measure(cfgs, n, window))
+        for server in servers:
+            server.wait(10)
+    finally:
+        os.sched_setaffinity(0, mask)
+        for server in servers:
+            if server.poll() is None:
+                server.kill()
+                server.wait()
+    results: dict[str, Any] = {}
+    for mode in MODES:
+        s = summary(raw[mode]["rtt"])
+        results[mode] = {"median_us": round(s["median"], 1), "p99_us": round(s["p99"], 1),
+                         "mean_us": round(s["mean"], 1), "n": s["n"], "conversations_per_s": round(raw[mode]["rate"]),
+                         "window": window}
+    results["ratio_median"] = round(results["bus"]["median_us"] / results["bare"]["median_us"], 2)
+    results["ratio_p99"] = round(results["bus"]["p99_us"] / results["bare"]["p99_us"], 2)
+    results["asyncio_ratio_median"] = round(results["asyncio"]["median_us"] / results["bare"]["median_us"], 2)
+    return results
 
 
 @click.command("bus")
-def command() -> None:
-    """Not built yet."""
-    raise GwcError("gwc bench bus is not built yet")
+@click.option("-n", "count", default=5000, show_default=True, help="Round trips measured (after 200 warm-up).")
+@click.option("--window", default=16, show_default=True, help="Conversations in flight for the rate measurement.")
+@click.option("--pin/--no-pin", default=True, show_default=True,
+              help="Put client and server on different CPUs (both modes alike).")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON for machines.")
+def command(count: int, window: int, pin: bool, as_json: bool) -> None:
+    """Bus request->reply round trip (median, p99) and conversations/s, beside bare multicast UDP."""
+    r = run(count, window, pin)
+    if as_json:
+        click.echo(json.dumps(r, indent=1))
+        return
+    click.echo(f"{'':7} {'median us':>10} {'p99 us':>10} {'conv/s':>10}")
+    for mode in MODES:
+        m = r[mode]
+        click.echo(f"{mode:7} {m['median_us']:>10.1f} {m['p99_us']:>10.1f} {m['conversations_per_s']:>10}")
+    click.echo(f"bus/bare: median x{r['ratio_median']}, p99 x{r['ratio_p99']} (target: median within x3); "
+               f"asyncio alone/bare: median x{r['asyncio_ratio_median']}")
+
+
+def _main() -> None:
+    ap = argparse.ArgumentParser(description="gwc bench bus server process")
+    ap.add_argument("--serve", choices=MODES, required=True)
+    ap.add_argument("--group", required=True)
+    ap.add_argument("--port", type=int, required=True)
+    ap.add_argument("--pin", action="store_true")
+    args = ap.parse_args()
+    cfg = _cfg(args.group, args.port)
+    if args.pin:
+        _pin(1)
+    if args.serve == "bus":
+        asyncio.run(_serve_bus(cfg))
+    elif args.serve == "asyncio":
+        asyncio.run(_serve_asyncio(cfg))
+    else:
+        _serve_bare(cfg)
+
+
+if __name__ == "__main__":
+    _main()

@@ -1,3 +1,208 @@
-"""Placeholder: filled in by its issue."""
+"""`gwc monitor`: the Conversation Monitor (CMON). Every conversation on the bus, live and decoded.
 
-commands: list = []
+The monitor joins the cell's multicast group but never speaks: it sends no hello, no ack, so the
+modules do not count it and it changes nothing it watches. It decodes every datagram with the same
+wire module as the bus, shows each message once (retransmissions and duplicates are recognised by
+(sender, incarnation, seq)), and notes which modules acknowledged it. `--record FILE` appends one
+JSON object per line for each message shown, for later study or for tests.
+"""
+
+from __future__ import annotations
+
+import json
+import select
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from datetime import datetime
+from typing import Any, TextIO
+
+import click
+
+from gwc.config import BusConfig
+from gwc.errors import GwcError, MessageError
+from gwc.hi import context
+from gwc.ipc import catalogue, wire
+from gwc.ipc.bus import _initiator, open_socket
+
+SEEN_MAX = 100_000
+
+
+def record_of(env: wire.Envelope, bus: str, now: float) -> dict[str, Any]:
+    """What the monitor shows and records of one msg datagram."""
+    return {
+        "time": datetime.fromtimestamp(now).isoformat(" ", "milliseconds"),
+        "bus": bus,
+        "class": env.cls,
+        "conv": env.conv,
+        "initiator": _initiator(env.conv),
+        "from": env.src,
+        "to": env.to,
+        "message": env.msg,
+        "idx": env.idx,
+        "more": env.more,
+        "fields": env.fields,
+        "ack_code": env.fields.get("ack_code"),
+        "seq": env.seq,
+    }
+
+
+def matches(rec: dict[str, Any], classes: tuple[str, ...], modules: tuple[str, ...], machines: tuple[str, ...],
+            machine_convs: set[str] | None = None) -> bool:
+    """The filters: any of the classes, any of the modules (sender, addressee or initiator), any machine.
+
+    A message about a machine (its machine_id, or its WC as a party) matches, and so does every later
+    message of a conversation that did (pass the same `machine_convs` set each time).
+    """
+    if classes and rec["class"] not in classes:
+        return False
+    if modules and not {rec["from"], rec["to"], rec["initiator"]} & set(modules):
+        return False
+    if machines:
+        involved = {rec["fields"].get("machine_id")} | {m[3:] for m in (rec["from"], rec["to"], rec["initiator"])
+                                                        if m and m.startswith("wc:")}
+        if involved & set(machines):
+            if machine_convs is not None:
+                machine_convs.add(rec["conv"])
+        elif machine_convs is None or rec["conv"] not in machine_convs:
+            return False
+    return True
+
+
+def line_of(rec: dict[str, Any]) -> str:
+    fields = " ".join(f"{k}={v}" for k, v in rec["fields"].items() if k != "ack_code")
+    code = f" [{rec['ack_code']}]" if rec["ack_code"] else ""
+    more = f" (+{rec['more']})" if rec["more"] else ""
+    return (f"{rec['time'][11:]} {rec['bus']} {rec['class']:<13} {rec['conv']:<28} {rec['from']} -> "
+            f"{rec['to'] or '*'}  {rec['message']}{more}{code} {fields}").rstrip()
+
+
+def watch(cfg: BusConfig, emit: Callable[[dict[str, Any]], None], stop: Callable[[], bool],
+          show_acks: bool = False, ready: Callable[[], None] = lambda: None) -> dict[str, int]:
+    """Listen to the group until stop() says so; emit each new msg once (and acks, if asked)."""
+    sock = open_socket(cfg)
+    ready()
+    seen: OrderedDict[tuple[str, int, int], dict[str, Any]] = OrderedDict()
+    counts = {"datagrams": 0, "messages": 0, "malformed": 0}
+    try:
+        while not stop():
+            ready, _, _ = select.select([sock], [], [], 0.1)
+            if not ready:
+                continue
+            try:
+                data = sock.recv(65536)
+            except BlockingIOError:
+                continue
+            counts["datagrams"] += 1
+            try:
+                env = wire.decode(data)
+            except MessageError as e:
+                counts["malformed"] += 1
+                emit({"time": datetime.now().isoformat(" ", "milliseconds"), "bus": cfg.name, "malformed": str(e)})
+                continue
+            if env.kind == "ack" or env.acks:
+                for seq in env.acks:
+                    rec = seen.get((env.to or "", env.to_inc, seq))
+                    if rec is not None and env.src not in rec["acked_by"]:
+                        rec["acked_by"].append(env.src)
+                        if show_acks:
+                            emit({"time": datetime.now().isoformat(" ", "milliseconds"), "bus": cfg.name,
+                                  "ack": seq, "of": rec["message"], "conv": rec["conv"], "by": env.src})
+            if env.kind != "msg":
+                continue
+            key = (env.src, env.inc, env.seq)
+            if key in seen:
+                continue  # a retransmission or a duplicate: shown once
+            rec = record_of(env, cfg.name, time.time())
+            rec["acked_by"] = []
+            seen[key] = rec
+            while len(seen) > SEEN_MAX:
+                seen.popitem(last=False)
+            counts["messages"] += 1
+            emit(rec)
+    finally:
+        sock.close()
+    return counts
+
+
+def render_catalogue() -> str:
+    """docs/conversations.md, generated from the catalogue so that the two cannot drift apart."""
+    out = ["# Conversations", "",
+           "Generated from `gwc/ipc/catalogue.py` by `gwc monitor --catalogue` (a test checks this file matches):",
+           "edit the catalogue, then regenerate this file; never edit it by hand.", "",
+           "A conversation is opened by its first listed message; the others may follow in it, in either direction.",
+           "Field types: `str`, `int`, `float`, `bool`, `list`, `dict`; `?` marks a nullable field (absent or null).",
+           "", "## Conversation classes", "", "| Class | Answered by | Messages | What it is for |", "|---|---|---|---|"]
+    for c in catalogue.CONVERSATION_CLASSES.values():
+        out.append(f"| `{c.name}` | {c.answered_by} | {', '.join(c.messages)} | {c.doc} |")
+    out += ["", "## Message classes", "", "| Message | Fields | What it says |", "|---|---|---|"]
+    for m in catalogue.MESSAGE_CLASSES.values():
+        fields = ", ".join(f"`{f.name}: {f.type}{'?' if f.nullable else ''}`" for f in m.fields) or "(none)"
+        out.append(f"| `{m.name}` | {fields} | {m.doc} |")
+    from gwc.ipc.codes import AckCode
+
+    out += ["", "## Ack codes", "", "Carried in `ack_code` by every acknowledgement.", "", "| Code | Python |",
+            "|---|---|"]
+    out += [f"| `{a.value}` | `AckCode.{a.name}` |" for a in AckCode]
+    return "\n".join(out) + "\n"
+
+
+@click.command("monitor")
+@click.option("--class", "classes", multiple=True, help="Only these conversation classes (repeatable).")
+@click.option("--module", "modules", multiple=True, help="Only conversations this module sends, receives or opened.")
+@click.option("--machine", "machines", multiple=True,
+              help="Only conversations about this machine (from the first message naming it or its WC).")
+@click.option("--record", "record", type=click.File("a"), help="Also append each message as a JSON line to FILE.")
+@click.option("--acks", "show_acks", is_flag=True, help="Also show each transport acknowledgement as it comes.")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON lines instead of text.")
+@click.option("--count", type=int, help="Stop after this many messages.")
+@click.option("--duration", type=float, help="Stop after this many seconds.")
+@click.option("--catalogue", "show_catalogue", is_flag=True, help="Print the conversation catalogue (markdown) and exit.")
+def monitor(classes: tuple[str, ...], modules: tuple[str, ...], machines: tuple[str, ...], record: TextIO | None,
+            show_acks: bool, as_json: bool, count: int | None, duration: float | None, show_catalogue: bool) -> None:
+    """Watch every conversation on the cell bus, live and decoded (the Conversation Monitor)."""
+    if show_catalogue:
+        click.echo(render_catalogue(), nl=False)
+        return
+    unknown = set(classes) - set(catalogue.CONVERSATION_CLASSES)
+    if unknown:
+        raise GwcError(f"unknown conversation class(es): {', '.join(sorted(unknown))}")
+    cfg, _ = context()
+    deadline = time.monotonic() + duration if duration is not None else None
+    shown = 0
+    machine_convs: set[str] = set()
+
+    def emit(rec: dict[str, Any]) -> None:
+        nonlocal shown
+        if "message" in rec and not matches(rec, classes, modules, machines, machine_convs):
+            return
+        if "message" not in rec and (classes or modules or machines):
+            return
+        text = json.dumps(rec, default=str)
+        if record is not None:
+            record.write(text + "\n")
+            record.flush()
+        if as_json:
+            click.echo(text)
+        elif "message" in rec:
+            click.echo(line_of(rec))
+        elif "ack" in rec:
+            click.echo(f"{rec['time'][11:]} {rec['bus']}   ack {rec['of']} in {rec['conv']} by {rec['by']}")
+        else:
+            click.echo(f"{rec['time'][11:]} {rec['bus']}   malformed datagram: {rec['malformed']}")
+        if "message" in rec:
+            shown += 1
+
+    def stop() -> bool:
+        return (count is not None and shown >= count) or (deadline is not None and time.monotonic() > deadline)
+
+    def ready() -> None:
+        click.echo(f"monitoring bus {cfg.bus.name} ({cfg.bus.group}:{cfg.bus.port}); Ctrl-C stops", err=True)
+
+    try:
+        watch(cfg.bus, emit, stop, show_acks, ready)
+    except KeyboardInterrupt:
+        pass
+
+
+commands = [monitor]

@@ -4,12 +4,16 @@ Every module joins one multicast group. A conversation is started by one module 
 every module interested in its class (or addressed to one module); answers travel in the same
 conversation, addressed to the other side. On top of lossy UDP the bus gives:
 
-* reliability: every msg datagram is acknowledged by each module it is meant for; unacknowledged
-  datagrams are retransmitted (exponential backoff) until acked or `retry_deadline` passes;
+* reliability: every msg datagram is acknowledged by each module it is meant for (acks are gathered
+  per peer, or ride on the next msg to it); unacknowledged datagrams are retransmitted (exponential
+  backoff) until acked or `retry_deadline` passes;
 * exactly-once delivery: duplicates are recognised by (sender, incarnation, seq), re-acked, not
   delivered again, so a repeated request never causes a second action;
 * order: each sender's messages in a conversation are delivered in the order sent; a batch (a first
-  message saying `more` follow, e.g. Machine_Request + N x Machine_Entry) is delivered whole;
+  message saying `more` follow, e.g. Machine_Request + N x Machine_Entry) is delivered whole; each
+  message's `base` says what before it is settled, so a receiver that restarted, or a conversation
+  resumed long after, finds its place (see docs/protocol.md);
+* late answers: a msg for a conversation this module ended is acknowledged, logged and dropped;
 * membership: modules announce themselves (hello) every `heartbeat`, answer a newcomer's query at
   once, say bye on a clean close, and are dropped after `peer_timeout` of silence;
 * no collisions: the bus is one asyncio event loop; receiving, acknowledging and retransmitting
@@ -28,10 +32,11 @@ import logging
 import random
 import socket
 import struct
+import sys
 import threading
 import time
 from collections.abc import Callable, Coroutine, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, TypeVar
 
 from gwc.config import BusConfig
@@ -39,11 +44,15 @@ from gwc.errors import BusError, ConversationTimeout, MessageError
 from gwc.ipc import catalogue, wire
 from gwc.ipc.catalogue import Message
 from gwc.ipc.wire import Envelope
+from gwc.log import TRACE
 
 T = TypeVar("T")
 _DEFAULT: Any = object()
 RCVBUF = 4 * 1024 * 1024
-MAX_RTO = 0.5
+IP_MULTICAST_ALL = 49  # Linux's value, for Pythons whose socket module does not name it
+MAX_RTO = 0.5  # retransmission backoff stops growing here
+MAX_PIGGYBACK = 32  # acks riding on a msg at most; the rest go in ack datagrams
+MAX_REMEMBERED = 65_536  # ended conversations (and our idx counters) remembered, newest first
 
 
 def open_socket(cfg: BusConfig) -> socket.socket:
@@ -60,6 +69,10 @@ def open_socket(cfg: BusConfig) -> socket.socket:
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, iface)
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, struct.pack("b", 1))
+        if sys.platform.startswith("linux"):
+            # Only the groups this socket joined: without it Linux hands us every group joined on the
+            # host at this port, and two cells on one port but different groups would hear each other.
+            sock.setsockopt(socket.IPPROTO_IP, getattr(socket, "IP_MULTICAST_ALL", IP_MULTICAST_ALL), 0)
         sock.setblocking(False)
     except OSError as e:
         sock.close()
@@ -69,31 +82,52 @@ def open_socket(cfg: BusConfig) -> socket.socket:
 
 @dataclass
 class Peer:
+    """A module seen on the bus: its name, its incarnation (a new one per process start), its interest."""
+
     name: str
     inc: int
     interest: frozenset[str]
     last_seen: float
 
 
-@dataclass
+@dataclass(slots=True)
 class _Pending:
-    data: bytes
+    """A msg datagram not yet acknowledged by every module it is meant for."""
+
     env: Envelope
+    data: bytes
     waiting: set[str]
     first_sent: float
     rto: float
+    batch: list[Any]  # the _Outgoing.unsettled entry [start_idx, seqs] this datagram belongs to
     timer: asyncio.TimerHandle | None = None
 
 
 @dataclass
+class _Outgoing:
+    """What this module sent in one conversation: the next idx, and its batches not yet settled.
+
+    Outlives the Conversation object (bounded), so a conversation ended and later resumed in the same
+    incarnation goes on numbering where it stopped, and its receivers can tell settled from missing.
+    """
+
+    next_idx: int = 0
+    unsettled: collections.deque[list[Any]] = field(default_factory=collections.deque)
+
+    @property
+    def base(self) -> int:
+        return self.unsettled[0][0] if self.unsettled else self.next_idx
+
+
+@dataclass(slots=True)
 class _Stream:
     """Per (conversation, sender, incarnation): reorder buffer and the batch being assembled."""
 
     next_idx: int = 0
     buffer: dict[int, tuple[Envelope, Message | None]] = field(default_factory=dict)
     batch: list[tuple[Envelope, Message | None]] = field(default_factory=list)
-    remaining: int = 0
     touched: float = 0.0
+    gap_since: float = 0.0  # when the buffer last became non-empty (a message is missing)
 
 
 @dataclass(frozen=True)
@@ -108,6 +142,14 @@ class Batch:
         return self.messages[0]
 
 
+_CLOSED: Any = object()  # put in inboxes when the bus closes, so every waiter fails at once
+
+
+def _expire_waiter(waiter: asyncio.Future[Any]) -> None:
+    if not waiter.done():
+        waiter.set_exception(asyncio.TimeoutError())
+
+
 class Conversation:
     """One conversation as seen by one module: send into it, wait for the other side's messages."""
 
@@ -118,8 +160,9 @@ class Conversation:
         self.initiator = initiator
         self.first = first  # for an incoming conversation: the batch that opened it
         self.peer: str | None = first.sender if first else None
-        self._inbox: asyncio.Queue[Batch] = asyncio.Queue()
-        self._idx = 0
+        self._inbox: collections.deque[Batch] = collections.deque()
+        self._waiter: asyncio.Future[Batch] | None = None
+        self._idx = 0  # messages this module has sent in the conversation so far
         self.ended = False
 
     @property
@@ -132,20 +175,43 @@ class Conversation:
     async def send(self, *messages: Message, to: str | None = _DEFAULT) -> None:
         """Send a batch into this conversation; by default to the other side (or to all, if unknown)."""
         target = self.peer if to is _DEFAULT else to
-        self._idx = self.bus._send_batch(self, list(messages), target, self._idx)
+        self._idx = self.bus._send_batch(self, list(messages), target)
 
     async def next_message(self, timeout: float | None = None) -> Batch:
         """The next batch the other side sends; ConversationTimeout (logged) if none comes in time."""
-        t = self.bus.cfg.reply_timeout if timeout is None else timeout
-        try:
-            batch = await asyncio.wait_for(self._inbox.get(), t)
-        except asyncio.TimeoutError:
-            who = self.peer or f"any module listening to {self.cls}"
-            err = ConversationTimeout(f"{self.cls} conversation {self.id}: no answer from {who} within {t:.1f}s")
-            self.bus.log.error("%s", err, extra={"conv": f"{self.id} {self.cls}"})
-            raise err from None
+        if self.ended:
+            raise BusError(f"{self.cls} conversation {self.id} has ended")
+        if self._inbox:
+            batch = self._inbox.popleft()
+        else:
+            # A bare future and one timer: no Queue, no wait_for task (this is the bus's hot path).
+            t = self.bus.cfg.reply_timeout if timeout is None else timeout
+            loop = asyncio.get_running_loop()
+            waiter = self._waiter = loop.create_future()
+            timer = loop.call_later(t, _expire_waiter, waiter)
+            try:
+                batch = await waiter
+            except asyncio.TimeoutError:
+                who = self.peer or f"any module listening to {self.cls}"
+                err = ConversationTimeout(f"{self.cls} conversation {self.id}: no answer from {who} within {t:.1f}s")
+                self.bus.stats["timeouts"] += 1
+                self.bus.log.error("%s", err, extra={"conv": f"{self.id} {self.cls}"})
+                raise err from None
+            finally:
+                timer.cancel()
+                self._waiter = None
+        if batch is _CLOSED:
+            self._inbox.appendleft(batch)
+            raise BusError(f"{self.cls} conversation {self.id}: the bus was closed while waiting")
         self.peer = batch.sender
         return batch
+
+    def _put(self, batch: Batch) -> None:
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(batch)
+        else:
+            self._inbox.append(batch)
 
     async def expect(self, *names: str, timeout: float | None = None) -> Batch:
         """next_message(), checked to be one of the named message classes."""
@@ -157,10 +223,10 @@ class Conversation:
         return batch
 
     def end(self) -> None:
-        """Stop routing messages to this conversation (late ones are logged and dropped)."""
+        """Stop routing messages to this conversation (late ones are acknowledged, logged and dropped)."""
         if not self.ended:
             self.ended = True
-            self.bus._convs.pop(self.id, None)
+            self.bus._end(self)
 
 
 class Bus:
@@ -173,6 +239,8 @@ class Bus:
         log: logging.Logger,
         interest: Iterable[str] = (),
     ) -> None:
+        if not name or len(name) > wire.MAX_NAME - 30:
+            raise BusError(f"bad bus module name {name!r}")
         self.name = name
         self.cfg = cfg
         self.log = log
@@ -182,18 +250,26 @@ class Bus:
         self._seq = 0
         self._conv_n = 0
         self._sock: socket.socket | None = None
-        self._transport: asyncio.DatagramTransport | None = None
+        self._dest = (cfg.group, cfg.port)
+        self._buf = bytearray(65_536)  # one receive buffer, reused: no 256 KiB allocation per datagram
+        self._view = memoryview(self._buf)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._peers: dict[str, Peer] = {}
         self._pending: dict[int, _Pending] = {}
+        self._out: collections.OrderedDict[str, _Outgoing] = collections.OrderedDict()
         self._seen: dict[tuple[str, int], tuple[set[int], collections.deque[tuple[float, int]]]] = {}
         self._streams: dict[tuple[str, str, int], _Stream] = {}
         self._convs: dict[str, Conversation] = {}
+        self._ended: collections.OrderedDict[str, None] = collections.OrderedDict()
+        self._acks_due: dict[tuple[str, int], list[int]] = {}
+        self._ack_timer: asyncio.TimerHandle | None = None
         self._incoming: asyncio.Queue[Conversation] = asyncio.Queue()
         self._heartbeat: asyncio.Task[None] | None = None
         self._faults = cfg.faults
-        self._rng = random.Random(cfg.faults.seed)
+        seed = cfg.faults.seed
+        self._rng = random.Random(None if seed is None else f"{seed}:{name}")
         self._held: bytes | None = None
+        self._own = wire.own_prefix(name, self.inc)
         self._flushed: asyncio.Event | None = None  # created on sign_on, inside the loop
         self.peer_listeners: list[Callable[[str, Peer | None], None]] = []
         self.stats = collections.Counter[str]()
@@ -207,8 +283,7 @@ class Bus:
         self._sock = open_socket(self.cfg)
         self._flushed = asyncio.Event()
         self._flushed.set()
-        transport, _ = await self._loop.create_datagram_endpoint(lambda: _Protocol(self), sock=self._sock)
-        self._transport = transport  # type: ignore[assignment]
+        self._loop.add_reader(self._sock.fileno(), self._readable)
         self._hello(query=True)
         self._heartbeat = self._loop.create_task(self._beat())
         self.log.info("signed on to bus %s as %s (incarnation %x)", self.cfg.name, self.name, self.inc)
@@ -216,10 +291,11 @@ class Bus:
             await asyncio.sleep(settle)
 
     async def close(self, flush: float = 1.0) -> None:
-        """Wait up to `flush` s for outstanding acks, say bye, leave. Safe to call twice."""
+        """Wait up to `flush` s for outstanding acks, say bye, leave; every waiter fails. Safe to call twice."""
         if self.closed:
             return
         self.closed = True
+        self._flush_acks()
         if flush and self._pending and self._flushed is not None:
             try:
                 await asyncio.wait_for(self._flushed.wait(), flush)
@@ -227,13 +303,21 @@ class Bus:
                 self.log.warning("closing with %d datagram(s) unacknowledged", len(self._pending))
         if self._heartbeat:
             self._heartbeat.cancel()
+        if self._ack_timer:
+            self._ack_timer.cancel()
         for p in self._pending.values():
             if p.timer:
                 p.timer.cancel()
         self._pending.clear()
-        if self._transport:
+        if self._sock is not None:
             self._raw_send(Envelope(kind="bye", src=self.name, inc=self.inc))
-            self._transport.close()
+            if self._loop is not None:
+                self._loop.remove_reader(self._sock.fileno())
+            self._sock.close()
+            self._sock = None
+        for conv in self._convs.values():
+            conv._put(_CLOSED)
+        self._incoming.put_nowait(_CLOSED)
         self.log.info("signed off bus %s", self.cfg.name)
 
     # ----------------------------------------------------------------- interest filters
@@ -249,7 +333,7 @@ class Bus:
         if unknown:
             raise MessageError(f"unknown conversation class(es): {', '.join(sorted(unknown))}")
         self._interest = new
-        if announce and self._transport:
+        if announce and self._sock is not None:
             self._hello()
 
     def interest(self, *classes: str) -> None:
@@ -275,6 +359,7 @@ class Bus:
         if cls not in catalogue.CONVERSATION_CLASSES:
             raise MessageError(f"unknown conversation class {cls!r}")
         conv = Conversation(self, self._new_conv_id(), cls, self.name)
+        conv.peer = to
         self._convs[conv.id] = conv
         try:
             await conv.send(*messages, to=to)
@@ -296,63 +381,136 @@ class Bus:
 
     def resume(self, conv_id: str, cls: str, peer: str) -> Conversation:
         """Reopen a conversation known from elsewhere (the database) to answer in it after a restart."""
+        if cls not in catalogue.CONVERSATION_CLASSES:
+            raise MessageError(f"unknown conversation class {cls!r}")
         conv = self._convs.get(conv_id)
         if conv is None:
-            conv = Conversation(self, conv_id, cls, peer)
+            conv = Conversation(self, conv_id, cls, _initiator(conv_id) or peer)
             conv.peer = peer
+            out = self._out.get(conv_id)
+            conv._idx = out.next_idx if out else 0
             self._convs[conv_id] = conv
+            self._ended.pop(conv_id, None)
         return conv
 
     async def first_message(self, timeout: float | None = None) -> Conversation | None:
-        """The next conversation another module opened with us; None after timeout."""
-        try:
-            return await asyncio.wait_for(self._incoming.get(), timeout)
-        except asyncio.TimeoutError:
+        """The next conversation another module opened with us; None after timeout (or once closed)."""
+        if self.closed:
             return None
+        if not self._incoming.empty():
+            conv = self._incoming.get_nowait()
+        elif timeout is None:
+            conv = await self._incoming.get()
+        else:
+            try:
+                conv = await asyncio.wait_for(self._incoming.get(), timeout)
+            except asyncio.TimeoutError:
+                return None
+        if conv is _CLOSED:
+            self._incoming.put_nowait(conv)
+            return None
+        return conv
+
+    def _end(self, conv: Conversation) -> None:
+        if self._convs.get(conv.id) is conv:
+            del self._convs[conv.id]
+        self._ended[conv.id] = None
+        while len(self._ended) > MAX_REMEMBERED:
+            self._ended.popitem(last=False)
+
+    def _is_ended(self, conv_id: str) -> bool:
+        """A conversation we took part in and ended, or one opened by us (now or in an earlier incarnation)."""
+        return conv_id in self._ended or _initiator(conv_id) == self.name
 
     # ----------------------------------------------------------------- sending
 
-    def _send_batch(self, conv: Conversation, messages: list[Message], to: str | None, idx: int) -> int:
+    def _send_batch(self, conv: Conversation, messages: list[Message], to: str | None) -> int:
+        """Number, encode (all or nothing), transmit and track one batch; returns the conversation's next idx."""
         if not messages:
             raise MessageError("a send needs at least one message")
+        if self._sock is None or self.closed:
+            raise BusError(f"{self.name} is not signed on to the bus")
         cc = catalogue.CONVERSATION_CLASSES[conv.cls]
-        envs = []
-        for i, m in enumerate(messages):
+        for m in messages:  # fields were checked when message() built m; receivers check them again
             if m.name not in cc.messages:
                 raise MessageError(f"message {m.name} does not belong to conversation {conv.cls}")
-            self._seq += 1
-            envs.append(
-                Envelope(
-                    kind="msg", src=self.name, inc=self.inc, seq=self._seq, conv=conv.id, cls=conv.cls,
-                    idx=idx + i, more=len(messages) - 1 if i == 0 else 0, to=to, msg=m.name, fields=m.fields,
-                )
-            )
+        out = self._out.get(conv.id)
+        if out is None:
+            out = self._out[conv.id] = _Outgoing(next_idx=conv._idx)
+        else:
+            self._out.move_to_end(conv.id)
+        while len(self._out) > MAX_REMEMBERED:
+            self._out.popitem(last=False)
+        start = out.next_idx
+        batch: list[Any] = [start, set()]
+        base = out.unsettled[0][0] if out.unsettled else start
+        peer = self._peers.get(to) if to is not None else None
+        acks: tuple[int, ...] = ()
+        if peer is not None:
+            due = self._acks_due.get((to, peer.inc))  # type: ignore[arg-type]
+            if due and len(due) <= MAX_PIGGYBACK:  # more wait for their own ack datagram
+                acks = tuple(self._acks_due.pop((to, peer.inc)))  # type: ignore[arg-type]
+        n = len(messages)
+        envs = []
+        seq = self._seq
+        for i, m in enumerate(messages):
+            seq += 1
+            envs.append(Envelope(
+                kind="msg", src=self.name, inc=self.inc, seq=seq, conv=conv.id, cls=conv.cls, idx=start + i,
+                more=n - 1 if i == 0 else 0, part=i, base=base, to=to, msg=m.name, fields=m.fields,
+                acks=acks if i == 0 else (), to_inc=peer.inc if acks and i == 0 and peer else 0,
+            ))
         # Encode everything before sending anything: an oversize batch fails whole, at the sender.
-        datas = [wire.encode(e) for e in envs]
+        try:
+            datas = [wire.encode(e) for e in envs]
+        except MessageError:
+            if acks and peer is not None:
+                self._acks_due.setdefault((to, peer.inc), []).extend(acks)  # type: ignore[arg-type]
+            raise
+        self._seq = seq
+        out.next_idx = start + n
         waiting = {to} if to is not None else set(self.listeners_of(conv.cls))
         now = time.monotonic()
+        rto = self.cfg.ack_timeout
+        loop = self._loop
+        assert loop is not None
+        if waiting:
+            out.unsettled.append(batch)
+            if self._flushed is not None:
+                self._flushed.clear()
+        elif to is None:
+            self.log.log(TRACE, "%s: nobody listens to %s yet", conv.cls, envs[0].msg,
+                         extra={"conv": f"{conv.id} {conv.cls}"})
         for env, data in zip(envs, datas):
             self._transmit(data)
-            self.stats["sent"] += 1
             if waiting:
-                p = _Pending(data, env, set(waiting), now, self.cfg.ack_timeout)
+                batch[1].add(env.seq)
+                p = _Pending(env, data, set(waiting), now, rto, batch)
+                p.timer = loop.call_later(rto, self._retransmit, env.seq)
                 self._pending[env.seq] = p
-                assert self._loop is not None
-                p.timer = self._loop.call_later(p.rto, self._retransmit, env.seq)
-                if self._flushed:
-                    self._flushed.clear()
-            self.log.log(5, "sent %s to %s", env.msg, to or "all", extra={"conv": f"{conv.id} {conv.cls}"})
-        return idx + len(messages)
+        self.stats["sent"] += n
+        if self.log.isEnabledFor(TRACE):
+            self.log.log(TRACE, "sent %s to %s", ", ".join(e.msg for e in envs), to or "all",
+                         extra={"conv": f"{conv.id} {conv.cls}"})
+        return out.next_idx
 
     def _transmit(self, data: bytes) -> None:
-        if self._transport is None:
+        """Send one datagram now. A full socket buffer loses it, like the medium would: the
+        retransmission (msgs) or the next beat (hellos) makes up for it."""
+        if self._sock is None:
             raise BusError(f"{self.name} is not signed on to the bus")
-        self._transport.sendto(data, (self.cfg.group, self.cfg.port))
+        try:
+            self._sock.sendto(data, self._dest)
+        except (BlockingIOError, InterruptedError):
+            self.stats["send_lost"] += 1
+        except OSError as e:
+            self.stats["send_lost"] += 1
+            self.log.warning("bus send failed (%s): counted as lost", e)
 
     def _raw_send(self, env: Envelope) -> None:
         try:
             self._transmit(wire.encode(env))
-        except OSError as e:  # a full socket buffer loses this one; retransmission or the next beat covers it
+        except BusError as e:  # not signed on (closing): lost like a dropped datagram
             self.log.warning("send of %s failed: %s", env.kind, e)
 
     def _retransmit(self, seq: int) -> None:
@@ -360,6 +518,7 @@ class Bus:
         if p is None:
             return
         if time.monotonic() - p.first_sent > self.cfg.retry_deadline:
+            self.stats["gave_up"] += 1
             self.log.warning(
                 "gave up on %s seq %d: no ack from %s within %.1fs",
                 p.env.msg, seq, ", ".join(sorted(p.waiting)), self.cfg.retry_deadline,
@@ -368,20 +527,48 @@ class Bus:
             self._done(seq)
             return
         self.stats["retransmitted"] += 1
-        try:
-            self._transmit(p.data)
-        except OSError:
-            pass
+        # Sent with the conversation's base as it is now, so a receiver that has no state for this stream
+        # (it restarted) never waits for messages that are settled and will not come again.
+        out = self._out.get(p.env.conv)
+        if out is not None and out.base != p.env.base:
+            p.env = replace(p.env, base=out.base)
+            p.data = wire.encode(p.env)
+        self._transmit(p.data)
         p.rto = min(p.rto * 2, MAX_RTO)
         assert self._loop is not None
         p.timer = self._loop.call_later(p.rto, self._retransmit, seq)
 
     def _done(self, seq: int) -> None:
         p = self._pending.pop(seq, None)
-        if p and p.timer:
+        if p is None:
+            return
+        if p.timer:
             p.timer.cancel()
+        p.batch[1].discard(seq)
+        out = self._out.get(p.env.conv)
+        if out is not None:
+            while out.unsettled and not out.unsettled[0][1]:
+                out.unsettled.popleft()
         if not self._pending and self._flushed:
             self._flushed.set()
+
+    def _ack(self, src: str, inc: int, seq: int) -> None:
+        """Acknowledge soon: acks due to one peer go out together, or ride on our next msg to it."""
+        due = self._acks_due.get((src, inc))
+        if due is None:
+            self._acks_due[(src, inc)] = [seq]
+        else:
+            due.append(seq)
+        if self._ack_timer is None and self._loop is not None:
+            self._ack_timer = self._loop.call_later(self.cfg.ack_timeout / 4, self._flush_acks)
+
+    def _flush_acks(self) -> None:
+        self._ack_timer = None
+        due, self._acks_due = self._acks_due, {}
+        for (src, inc), seqs in due.items():
+            for i in range(0, len(seqs), 1000):
+                self._raw_send(Envelope(kind="ack", src=self.name, inc=self.inc, to=src, to_inc=inc,
+                                        acks=tuple(seqs[i:i + 1000])))
 
     def _hello(self, query: bool = False) -> None:
         self._raw_send(Envelope(kind="hello", src=self.name, inc=self.inc, interest=tuple(sorted(self._interest)),
@@ -391,13 +578,17 @@ class Bus:
         while True:
             await asyncio.sleep(self.cfg.heartbeat)
             self._hello()
-            self._expire()
+            try:
+                self._expire()
+            except Exception:  # a bug here must not stop the heartbeat
+                self.log.exception("bus housekeeping failed")
 
     def _expire(self) -> None:
         now = time.monotonic()
         for name, peer in list(self._peers.items()):
             if now - peer.last_seen > self.cfg.peer_timeout:
                 self._peer_left(name, "silent for %.1fs" % (now - peer.last_seen))
+        # A sender retransmits for at most retry_deadline after the first send: twice that is safe.
         horizon = now - 2 * self.cfg.retry_deadline
         for key, (seen, order) in list(self._seen.items()):
             while order and order[0][0] < horizon:
@@ -405,7 +596,10 @@ class Bus:
             if not order:
                 del self._seen[key]
         for key, st in list(self._streams.items()):
-            if st.touched < horizon and not st.buffer and not st.batch:
+            if st.buffer and now - st.gap_since > self.cfg.retry_deadline + self.cfg.heartbeat:
+                # The sender has given up on what is missing: deliver what came after it.
+                self._advance(st, key, upto=min(st.buffer))
+            if st.touched < horizon and not st.buffer and key[0] not in self._convs:
                 del self._streams[key]
 
     def _peer_left(self, name: str, why: str, clean: bool = False) -> None:
@@ -413,16 +607,39 @@ class Bus:
         if peer is None:
             return
         self.log.info("%s left the bus (%s)", name, why)
-        for seq, p in list(self._pending.items()):
-            # A silent peer may be restarting: directed sends keep trying until their deadline.
-            if p.env.to is None or clean:
-                p.waiting.discard(name)
-                if not p.waiting:
-                    self._done(seq)
+        self._forget_waiting(name, directed_too=clean)
         for cb in self.peer_listeners:
             cb(name, None)
 
+    def _forget_waiting(self, name: str, directed_too: bool, unless_cls: frozenset[str] | None = None) -> None:
+        """Stop waiting for acks from `name` (broadcasts; directed sends too when it left for good)."""
+        for seq, p in list(self._pending.items()):
+            if name not in p.waiting or (p.env.to is not None and not directed_too):
+                continue
+            if unless_cls is not None and (p.env.to is not None or p.env.cls in unless_cls):
+                continue
+            p.waiting.discard(name)
+            if not p.waiting:
+                self._done(seq)
+
     # ----------------------------------------------------------------- receiving
+
+    def _readable(self) -> None:
+        """The socket has datagrams: take up to 64 (then let timers and tasks run), skip our own."""
+        sock, buf, own = self._sock, self._buf, self._own
+        if sock is None:
+            return
+        for _ in range(64):
+            try:
+                n = sock.recv_into(buf)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as e:
+                self.log.warning("bus socket error: %s", e)
+                return
+            if n >= len(own) and buf.startswith(own):
+                continue  # our own datagram, looped back by the group
+            self._received(bytes(self._view[:n]))
 
     def _received(self, data: bytes) -> None:
         """Entry point for every datagram; applies the fault injector when configured."""
@@ -461,31 +678,39 @@ class Bus:
         if env.src == self.name and env.inc == self.inc:
             return
         try:
+            peer = self._peers.get(env.src)
+            if peer is not None and peer.inc == env.inc:
+                peer.last_seen = time.monotonic()  # any datagram proves life, not only hellos
             if env.kind == "msg":
                 self._on_msg(env)
             elif env.kind == "ack":
                 self._on_ack(env)
             elif env.kind == "hello":
-                self._on_hello(env)
-            else:
+                self._on_hello(env, peer)
+            elif peer is not None and peer.inc == env.inc:
                 self._peer_left(env.src, "said bye", clean=True)
         except Exception:  # a bug must not take the receive path down with it
             self.log.exception("error handling %s from %s", env.kind, env.src)
 
-    def _on_hello(self, env: Envelope) -> None:
+    def _on_hello(self, env: Envelope, peer: Peer | None) -> None:
         now = time.monotonic()
-        peer = self._peers.get(env.src)
+        interest = frozenset(env.interest)
         if peer is None or peer.inc != env.inc:
             if peer is not None:
+                # The old process is gone. Listeners get the new Peer (its inc differs from the one they
+                # knew); msgs still waiting for the old one are acked by the new one and dropped as late.
                 self.log.info("%s restarted (incarnation %x -> %x)", env.src, peer.inc, env.inc)
             else:
                 self.log.info("%s joined the bus", env.src)
-            peer = Peer(env.src, env.inc, frozenset(env.interest), now)
+            peer = Peer(env.src, env.inc, interest, now)
             self._peers[env.src] = peer
             for cb in self.peer_listeners:
                 cb(env.src, peer)
         else:
-            peer.interest = frozenset(env.interest)
+            if interest != peer.interest:
+                peer.interest = interest
+                # It no longer listens to some classes: it will not ack broadcasts of them.
+                self._forget_waiting(env.src, directed_too=False, unless_cls=interest)
             peer.last_seen = now
         if env.query:
             self._hello()
@@ -493,27 +718,42 @@ class Bus:
     def _on_ack(self, env: Envelope) -> None:
         if env.to != self.name or env.to_inc != self.inc:
             return
-        for seq in env.acks:
-            p = self._pending.get(seq)
+        self._acked(env.src, env.acks)
+
+    def _acked(self, src: str, seqs: Iterable[int]) -> None:
+        pending = self._pending
+        for seq in seqs:
+            p = pending.get(seq)
             if p is not None:
-                p.waiting.discard(env.src)
+                p.waiting.discard(src)
                 if not p.waiting:
                     self._done(seq)
 
     def _on_msg(self, env: Envelope) -> None:
+        if env.acks and env.to == self.name and env.to_inc == self.inc:
+            self._acked(env.src, env.acks)
         if env.to is not None and env.to != self.name:
             return
-        if env.to is None and env.cls not in self._interest and env.conv not in self._convs:
+        conv_open = env.conv in self._convs
+        if env.to is None and not conv_open and env.cls not in self._interest:
             return  # not for us: no ack, the sender does not count us
-        self._raw_send(Envelope(kind="ack", src=self.name, inc=self.inc, to=env.src, to_inc=env.inc, acks=(env.seq,)))
+        self._ack(env.src, env.inc, env.seq)
         key = (env.src, env.inc)
-        seen, order = self._seen.setdefault(key, (set(), collections.deque()))
+        seen_order = self._seen.get(key)
+        if seen_order is None:
+            seen_order = self._seen[key] = (set(), collections.deque())
+        seen, order = seen_order
         if env.seq in seen:
             self.stats["duplicates"] += 1
             return
         seen.add(env.seq)
         now = time.monotonic()
         order.append((now, env.seq))
+        if not conv_open and self._is_ended(env.conv):
+            self.stats["late"] += 1
+            self.log.warning("late %s from %s in ended conversation: dropped", env.msg, env.src,
+                             extra={"conv": f"{env.conv} {env.cls}"})
+            return
         try:
             msg: Message | None = catalogue.check(env.cls, env.msg, env.fields)
         except MessageError as e:
@@ -522,50 +762,85 @@ class Bus:
             self.log.warning("dropped invalid %s from %s: %s", env.msg, env.src, e,
                              extra={"conv": f"{env.conv} {env.cls}"})
             msg = None
-        st = self._streams.setdefault((env.conv, env.src, env.inc), _Stream())
+        skey = (env.conv, env.src, env.inc)
+        st = self._streams.get(skey)
+        if st is None:
+            # No state for this stream (first contact, or we restarted): what is below base is settled.
+            st = self._streams[skey] = _Stream(next_idx=env.base)
         st.touched = now
-        if env.idx < st.next_idx:
+        if env.idx < st.next_idx:  # a new seq for a place already passed: never sent by a well-behaved peer
+            self.log.warning("dropped %s from %s: idx %d is behind the stream (%d)", env.msg, env.src, env.idx,
+                             st.next_idx, extra={"conv": f"{env.conv} {env.cls}"})
             return
+        if env.idx == st.next_idx and not env.more and not env.part and not st.buffer and not st.batch:
+            st.next_idx += 1  # the usual case: a one-message batch, in order, nothing waiting
+            self._deliver([(env, msg)])
+            return
+        if not st.buffer:
+            st.gap_since = now
         st.buffer[env.idx] = (env, msg)
-        while st.next_idx in st.buffer:
-            item = st.buffer.pop(st.next_idx)
+        self._advance(st, skey, upto=env.base)
+
+    def _advance(self, st: _Stream, skey: tuple[str, str, int], upto: int = 0) -> None:
+        """Deliver what is in order; a message missing below `upto` is settled elsewhere: skip it."""
+        lost = 0
+        while True:
+            item = st.buffer.pop(st.next_idx, None)
+            if item is None:
+                if st.next_idx >= upto:
+                    break
+                target = min(min(st.buffer, default=upto), upto)
+                lost += target - st.next_idx
+                st.next_idx = target
+                st.batch = []  # a batch with a hole in it is never delivered
+                continue
             st.next_idx += 1
-            if not st.batch:
-                st.remaining = item[0].more
+            env = item[0]
+            if env.part == 0:
+                lost += len(st.batch)
+                st.batch = [item]
+            elif st.batch and env.part == len(st.batch):
+                st.batch.append(item)
             else:
-                st.remaining -= 1
-            st.batch.append(item)
-            if st.remaining <= 0:
+                lost += 1  # the rest of a batch whose beginning was lost
+                continue
+            if len(st.batch) == st.batch[0][0].more + 1:
                 batch, st.batch = st.batch, []
                 self._deliver(batch)
+        if lost:
+            self.stats["gaps"] += 1
+            self.log.warning("%d message(s) from %s never arrived (the sender gave up on them); going on",
+                             lost, skey[1], extra={"conv": skey[0]})
 
     def _deliver(self, items: list[tuple[Envelope, Message | None]]) -> None:
         head = items[0][0]
-        msgs = tuple(m for _, m in items if m is not None)
-        if not msgs:
+        if any(m is None for _, m in items):
+            self.log.warning("dropped a batch of %d from %s: it holds an invalid message", len(items), head.src,
+                             extra={"conv": f"{head.conv} {head.cls}"})
             return
+        msgs = tuple(m for _, m in items)  # type: ignore[misc]
         self.stats["delivered"] += 1
-        batch = Batch(head.src, msgs)
+        batch = Batch(head.src, msgs)  # type: ignore[arg-type]
         conv = self._convs.get(head.conv)
         if conv is not None:
-            conv._inbox.put_nowait(batch)
+            conv._put(batch)
             return
         if head.to is None and head.cls not in self._interest:
+            return
+        if head.msg != catalogue.CONVERSATION_CLASSES[head.cls].messages[0]:
+            self.stats["stray"] += 1
+            self.log.warning("stray %s from %s: not the opening of %s and no such conversation here", head.msg,
+                             head.src, head.cls, extra={"conv": f"{head.conv} {head.cls}"})
             return
         conv = Conversation(self, head.conv, head.cls, head.src, first=batch)
         self._convs[conv.id] = conv
         self._incoming.put_nowait(conv)
 
 
-class _Protocol(asyncio.DatagramProtocol):
-    def __init__(self, bus: Bus) -> None:
-        self.bus = bus
-
-    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
-        self.bus._received(data)
-
-    def error_received(self, exc: Exception) -> None:
-        self.bus.log.warning("bus socket error: %s", exc)
+def _initiator(conv_id: str) -> str | None:
+    """The module that opened a conversation, from its id '<initiator>.<inc hex>.<n>'."""
+    parts = conv_id.rsplit(".", 2)
+    return parts[0] if len(parts) == 3 else None
 
 
 class BlockingBus:
@@ -614,7 +889,11 @@ class BlockingBus:
         return BlockingConversation(self, conv) if conv else None
 
     def set_interest(self, classes: Iterable[str]) -> None:
-        self._loop.call_soon_threadsafe(self.bus.set_interest, list(classes))
+        """Change the interest filter; returns once it applies (unknown classes raise here)."""
+        async def _set() -> None:
+            self.bus.set_interest(list(classes))
+
+        self._call(_set())
 
     def peers(self) -> dict[str, Peer]:
         async def _peers() -> dict[str, Peer]:

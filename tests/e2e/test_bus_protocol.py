@@ -1,0 +1,277 @@
+"""The bus's delivery rules at their edges, with several Bus objects in this process on a real
+multicast group: resumed conversations, restarts, late replies, interest changes, dedup, close.
+(The multi-process behaviour is in test_bus.py.)"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import random
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import pytest
+
+from gwc.config import BusConfig, Faults
+from gwc.errors import BusError
+from gwc.ipc import wire
+from gwc.ipc.bus import Bus
+from gwc.ipc.catalogue import message
+
+Make = Callable[..., Awaitable[Bus]]
+
+
+def private_cfg(**kw: Any) -> BusConfig:
+    rnd = random.Random()
+    return BusConfig(group=f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
+                     port=rnd.randrange(20000, 60000), heartbeat=0.1, peer_timeout=1.0, **kw)
+
+
+async def until(predicate: Callable[[], Any], what: str, timeout: float = 10.0) -> None:
+    deadline = asyncio.get_running_loop().time() + timeout
+    while not predicate():
+        if asyncio.get_running_loop().time() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.01)
+
+
+def run(test: Callable[[Make, BusConfig], Awaitable[None]], **cfg: Any) -> None:
+    """Run an async test with a factory of signed-on buses, all closed afterwards."""
+    config = private_cfg(**cfg)
+
+    async def main() -> None:
+        buses: list[Bus] = []
+
+        async def make(name: str, interest: tuple[str, ...] = ("PING",), c: BusConfig = config) -> Bus:
+            bus = Bus(name, c, logging.getLogger(f"gwc.test.{name}"), interest)
+            await bus.sign_on()
+            buses.append(bus)
+            return bus
+
+        try:
+            await asyncio.wait_for(test(make, config), 60)
+        finally:
+            for b in buses:
+                await b.close(flush=0.2)
+
+    asyncio.run(main())
+
+
+async def known(a: Bus, *others: Bus) -> None:
+    await until(lambda: all(o.name in a.peers() for o in others) and all(a.name in o.peers() for o in others),
+                "peers to see each other")
+
+
+def test_a_conversation_ended_and_resumed_in_the_same_incarnation_goes_on() -> None:
+    """MSCHED's pattern: answer Machine_Req_Ack, end; later resume and send Machine_Req_Comp."""
+    async def t(make: Make, cfg: BusConfig) -> None:
+        lot, sched = await make("lot:1"), await make("msched", ("MACH_REQ",))
+        await known(lot, sched)
+        conv = await lot.start("MACH_REQ", message("Machine_Request", entity_id=1, op_type="x", num_machines=1),
+                               message("Machine_Entry", machine_id="wc1"), to="msched")
+        inc = await sched.first_message(5)
+        assert inc is not None and [m.name for m in inc.first.messages] == ["Machine_Request", "Machine_Entry"]
+        await inc.send(message("Machine_Req_Ack", ack_code="ACK_OK", request_key=5))
+        inc.end()
+        assert (await conv.next_message(5)).first.request_key == 5
+        again = sched.resume(conv.id, "MACH_REQ", "lot:1")
+        await again.send(message("Machine_Req_Comp", ack_code="ACK_OK", entity_id=1, num_machines=1),
+                         message("Reserved_Machine", machine_id="wc1"))
+        comp = await conv.next_message(5)
+        assert [m.name for m in comp.messages] == ["Machine_Req_Comp", "Reserved_Machine"]
+        await conv.send(message("Request_Comp_Ack", entity_id=1, ack_code="ACK_OK"))
+        assert (await again.next_message(5)).first.name == "Request_Comp_Ack"
+
+    run(t)
+
+
+def test_a_restarted_module_resumes_a_conversation_and_both_sides_go_on() -> None:
+    async def t(make: Make, cfg: BusConfig) -> None:
+        lot, sched = await make("lot:2"), await make("msched", ("MACH_REQ",))
+        await known(lot, sched)
+        conv = await lot.start("MACH_REQ", message("Machine_Request", entity_id=2, op_type="x", num_machines=1),
+                               message("Machine_Entry", machine_id="wc1"), to="msched")
+        inc = await sched.first_message(5)
+        await inc.send(message("Machine_Req_Ack", ack_code="ACK_OK", request_key=9))
+        await conv.next_message(5)
+        await sched.close()  # MSCHED dies ...
+        joined: list[tuple[str, bool]] = []
+        lot.peer_listeners.append(lambda name, peer: joined.append((name, peer is not None)))
+        sched2 = await make("msched", ("MACH_REQ",))  # ... and comes back as a new incarnation
+        await known(lot, sched2)
+        again = sched2.resume(conv.id, "MACH_REQ", "lot:2")
+        await again.send(message("Machine_Req_Comp", ack_code="NO_MACHINE", entity_id=2, num_machines=0))
+        assert (await conv.next_message(5)).first.ack_code == "NO_MACHINE"
+        await conv.send(message("Request_Comp_Ack", entity_id=2, ack_code="ACK_OK"))
+        # The lot's idx is 2 by now; the new incarnation has no state for it, and `base` tells it 0-1 are settled.
+        assert (await again.next_message(5)).first.name == "Request_Comp_Ack"
+        assert ("msched", True) in joined
+
+    run(t)
+
+
+def test_a_late_reply_to_an_ended_conversation_is_logged_and_dropped(caplog: Any) -> None:
+    async def t(make: Make, cfg: BusConfig) -> None:
+        a, b = await make("a", ()), await make("b")
+        await known(a, b)
+        conv = await a.start("PING", message("Ping", n=1), to="b")
+        inc = await b.first_message(5)
+        conv.end()  # the initiator gave up (say, it timed out)
+        await inc.send(message("Pong", n=1))
+        await until(lambda: a.stats["late"] == 1, "the late reply to be noticed")
+        assert await a.first_message(0.2) is None, "a late reply never opens a new conversation"
+        await until(lambda: not b._pending, "the late reply to be acknowledged all the same")
+
+    with caplog.at_level(logging.WARNING):
+        run(t)
+    assert "late Pong from b in ended conversation" in caplog.text
+
+
+def test_a_module_that_drops_an_interest_is_not_waited_for() -> None:
+    async def t(make: Make, cfg: BusConfig) -> None:
+        a, b = await make("a", ()), await make("b", ("UPD_ME_ST",))
+        await known(a, b)
+        b.set_interest(())
+        await until(lambda: "UPD_ME_ST" not in a.peers()["b"].interest, "a to hear b's new interest")
+        conv = await a.start("UPD_ME_ST", message("Update_ME_Status", machine_id="x", status="Idle"))
+        conv.end()
+        assert not a._pending, "nobody listens: nothing to wait for"
+        b.set_interest(("UPD_ME_ST",))
+        await until(lambda: "UPD_ME_ST" in a.peers()["b"].interest, "a to hear b listens again")
+        await a.start("UPD_ME_ST", message("Update_ME_Status", machine_id="y", status="Idle"))
+        b.set_interest(())  # b loses interest before it could ack (its hello tells a)
+        await until(lambda: not a._pending, "a to stop waiting for b")
+
+    run(t)
+
+
+def test_a_repeated_datagram_is_acknowledged_again_but_delivered_once() -> None:
+    async def t(make: Make, cfg: BusConfig) -> None:
+        a, b = await make("a", ()), await make("b")
+        await known(a, b)
+        sent: list[bytes] = []
+        orig = a._transmit
+        a._transmit = lambda data: (sent.append(data), orig(data))[1]  # type: ignore[method-assign]
+        conv = await a.start("PING", message("Ping", n=7), to="b")
+        for _ in range(3):
+            orig(sent[0])
+        inc = await b.first_message(5)
+        assert inc is not None and inc.first.first.n == 7
+        assert await b.first_message(0.3) is None
+        assert b.stats["duplicates"] == 3
+        conv.end()
+
+    run(t)
+
+
+def test_many_messages_received_then_one_sent_back_still_fits_a_datagram() -> None:
+    """Acks due ride on the next msg only up to a limit; the rest go in ack datagrams."""
+    async def t(make: Make, cfg: BusConfig) -> None:
+        a, b = await make("a", ()), await make("b")
+        await known(a, b)
+        convs = [await a.start("PING", message("Ping", n=i), to="b") for i in range(300)]
+        incoming = [await b.first_message(5) for _ in range(300)]
+        await incoming[0].send(message("Pong", n=0))
+        assert (await convs[0].next_message(5)).first.n == 0
+        await until(lambda: not a._pending, "all 300 to be acknowledged")
+
+    run(t, ack_timeout=0.2)  # acks pile up before the flush
+
+
+def test_a_restart_is_reported_with_the_new_incarnation_and_an_old_bye_is_ignored() -> None:
+    async def t(make: Make, cfg: BusConfig) -> None:
+        a, b = await make("a", ()), await make("b")
+        await known(a, b)
+        events: list[tuple[str, int | None]] = []
+        a.peer_listeners.append(lambda name, peer: events.append((name, peer.inc if peer else None)))
+        old_inc = b.inc
+        b2 = Bus("b", cfg, logging.getLogger("gwc.test.b2"), ("PING",))
+        await b2.sign_on()
+        try:
+            await until(lambda: a.peers()["b"].inc == b2.inc, "a to see the new incarnation")
+            assert events[:1] == [("b", b2.inc)]
+            b._loop.remove_reader(b._sock.fileno())  # the old one dies without a word ...
+            b._sock.close()
+            b._sock = None
+            old_bye = wire.encode(wire.Envelope(kind="bye", src="b", inc=old_inc))
+            a._handle(old_bye)  # ... and a stray bye of the old incarnation changes nothing
+            assert "b" in a.peers()
+        finally:
+            await b2.close()
+        await until(lambda: "b" not in a.peers(), "the clean bye of the new incarnation")
+
+    run(t)
+
+
+def test_closing_the_bus_fails_every_waiter_at_once() -> None:
+    async def t(make: Make, cfg: BusConfig) -> None:
+        a = await make("a", ())
+        conv = await a.start("PING", message("Ping", n=1))
+        waiter = asyncio.ensure_future(conv.next_message(30))
+        getter = asyncio.ensure_future(a.first_message())
+        await asyncio.sleep(0.05)
+        await a.close(flush=0)
+        with pytest.raises(BusError, match="closed"):
+            await asyncio.wait_for(waiter, 2)
+        assert await asyncio.wait_for(getter, 2) is None
+
+    run(t)
+
+
+def test_liveness_survives_lost_hellos_when_other_traffic_flows() -> None:
+    """Under the fault injector a peer's hellos can all be lost; any datagram from it proves life."""
+    async def t(make: Make, cfg: BusConfig) -> None:
+        a, b = await make("a", ()), await make("b")
+        await known(a, b)
+        left: list[str] = []
+        a.peer_listeners.append(lambda name, peer: peer is None and left.append(name))
+        b._hello = lambda query=False: None  # type: ignore[method-assign]  # b's hellos never arrive
+        loop = asyncio.get_running_loop()
+        end = loop.time() + 2 * cfg.peer_timeout
+        n = 0
+        while loop.time() < end:
+            inc_task = asyncio.ensure_future(b.first_message(5))
+            conv, _ = await asyncio.gather(a.start("PING", message("Ping", n=n), to="b"), inc_task)
+            await inc_task.result().send(message("Pong", n=n))
+            await conv.next_message(5)
+            conv.end()
+            n += 1
+            await asyncio.sleep(0.05)
+        assert left == []
+
+    run(t)
+
+
+def test_invalid_message_in_a_batch_drops_the_batch_not_the_stream(caplog: Any) -> None:
+    async def t(make: Make, cfg: BusConfig) -> None:
+        a, b = await make("a", ()), await make("b")
+        await known(a, b)
+        conv = await a.start("PING", message("Ping", n=1), to="b")
+        inc = await b.first_message(5)
+        assert inc is not None
+        # A follower that does not fit its class (as from a buggy or older sender), then a good batch.
+        bad = wire.Envelope(kind="msg", src="a", inc=a.inc, seq=a._seq + 1, conv=conv.id, cls="PING", idx=1,
+                            more=1, to="b", msg="Ping", fields={"n": 2})
+        bad2 = wire.Envelope(kind="msg", src="a", inc=a.inc, seq=a._seq + 2, conv=conv.id, cls="PING", idx=2,
+                             part=1, to="b", msg="Ping", fields={"n": "three"})
+        a._seq += 2
+        a._out[conv.id].next_idx = 3
+        a._transmit(wire.encode(bad))
+        a._transmit(wire.encode(bad2))
+        await conv.send(message("Ping", n=4))
+        assert (await inc.next_message(5)).first.n == 4
+        assert b.stats["invalid"] == 1
+
+    with caplog.at_level(logging.WARNING):
+        run(t)
+    assert "holds an invalid message" in caplog.text
+
+
+def test_faults_config_is_deterministic_per_module_with_a_seed() -> None:
+    cfg = private_cfg(faults=Faults(drop=0.5, seed=3))
+    a1 = Bus("a", cfg, logging.getLogger("x"))
+    a2 = Bus("a", cfg, logging.getLogger("x"))
+    b = Bus("b", cfg, logging.getLogger("x"))
+    seq = [a1._rng.random() for _ in range(5)]
+    assert seq == [a2._rng.random() for _ in range(5)]
+    assert seq != [b._rng.random() for _ in range(5)]
