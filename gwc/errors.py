@@ -49,6 +49,16 @@ class QueueTimeout(QueueError, TimeoutError):
     """Nothing arrived on a WC<->ME queue before the deadline."""
 
 
+class QueueFull(QueueError):
+    """A WC<->ME queue is full: the other half is not reading (down, or stuck)."""
+
+
+class LineError(GwcError):
+    """The RS-232 line to a machine failed: port gone, no answer in time, or a garbled record."""
+
+    exit_code = 7
+
+
 class ModuleError(GwcError):
     """A cell module could not be started, stopped or found."""
 

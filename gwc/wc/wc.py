@@ -3,13 +3,21 @@
 The WC is the machine's voice on the bus. It serves ME_START, ME_SHUT, SETUP_RUN, START_RUN,
 DNLD_ME and UPLD_ME, and carries what its ME reports (alarms, run completions) to the cell. It talks
 to its ME over the machine's queue pair (gwc.ipc.mq), one request at a time, each answered by an
-ack. It never writes another module's tables: status changes go to the Machine Server (CHG_STATUS),
-accept types to MSCHED (ACC_TYP_C), alarms to the Cell Alarm Server (ALARM_SEND), recipes come from
-the Equipment Recipe Server (RECIPE_GET). It writes only MACHINE_RUN_RESULT rows of its own runs.
+ack carrying the request's sequence number. It never writes another module's tables: status changes
+go to the Machine Server (CHG_STATUS), accept types to MSCHED (ACC_TYP_C), alarms to the Cell Alarm
+Server (ALARM_SEND), recipes come from the Equipment Recipe Server (RECIPE_GET). It writes only
+MACHINE_RUN_RESULT rows of its own runs.
 
-Its ME is watched: the WC pings it over the queues when it has heard nothing for `ME_PING` seconds;
-an ME that does not answer within `ME_DEADLINE` is dead: alarm ME_DIED, machine Shutdown, and the
-WC waits for the operator's next ME_START (6.3.2.1) once the ME has been restarted.
+The steps that move the machine from one status to another (setup, start, run completion,
+shutdown) take turns on one lock, so a run that completes before its START_RUN has been recorded,
+or a shutdown that arrives in the middle of a setup, waits for the step in progress and then finds
+the status that step left.
+
+Its ME is watched: the WC pings it (NO_MESSAGE) when it has heard nothing for `ME_PING` seconds;
+an ME that does not answer within `ME_DEADLINE`, or answers that it is shut down while the machine
+is up (it was restarted and lost its state), is dead: alarm ME_DIED, a run in progress ends with
+Run_Complete(Run_Fail), the machine goes Shutdown, and the WC waits for the operator's next
+ME_START (6.3.2.1) once the ME has been restarted.
 """
 
 from __future__ import annotations
@@ -17,30 +25,29 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import logging
-import threading
 import time
+from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any
 
+import psycopg
+
 from gwc.config import Config
-from gwc.errors import ConversationTimeout, GwcError, QueueError, QueueTimeout
+from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, QueueError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.mq import Channel, MeMessage, MessageId
 from gwc.me.results import read_results
 from gwc.module import Handler, Module
+from gwc.wc.link import MeDied, MeLink
 
-ME_PING = 1.0  # ping the ME after this long without hearing from it
-ME_DEADLINE = 2.0  # an ME silent this long after a ping is dead
+ME_PING = 0.5  # ping the ME after this long without hearing from it
+ME_DEADLINE = 1.5  # an ME silent this long after a ping is dead
 ME_ANSWER = 10.0  # longest an ME may take to acknowledge a request (not counting operator alarms)
 SERVER_TIMEOUT = 5.0  # longest a server may take to answer the WC
 ALL_OPERATIONS = ["*"]
 S = MachineStatus
-
-
-class MeDied(GwcError):
-    """The ME stopped answering."""
 
 
 class WC(Module):
@@ -50,21 +57,20 @@ class WC(Module):
     always = ("ALARM_CLE",)
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger, machine_id: str) -> None:
+        # Before the base's __init__: it asks idle_interest(), which depends on the status.
+        self.status = S.SHUTDOWN  # our copy of MACHINE_STATUS.status; the Machine Server holds the truth
         super().__init__(cfg, name, log)
         self.machine_id = machine_id
-        self.spec = cfg.machine(machine_id)
-        self.status = S.SHUTDOWN  # our copy of MACHINE_STATUS.status; the Machine Server holds the truth
         self.machine_run_id: int | None = None
-        self.busy = False  # a SETUP_RUN/START_RUN/DNLD/UPLD is between its check and its change
-        self.channel = Channel(cfg.ipc_prefix, machine_id, "wc", log)
+        self.recipe_id: str | None = None
+        self.me = MeLink(Channel(cfg.ipc_prefix, machine_id, "wc", log), log, self._from_me)
         self.recipe_dir = cfg.var / "recipes" / machine_id
-        self._me_lock = asyncio.Lock()
-        self._me_answer: asyncio.Future[MeMessage] | None = None
-        self._me_heard = time.monotonic()
+        self.results_dir = cfg.results_dir / machine_id
+        self._state_lock = asyncio.Lock()  # one status-changing step at a time
         self._alarm_waits: dict[int, asyncio.Future[None]] = {}
+        self._cleared: set[int] = set()  # alarm numbers seen cleared (a clear may beat our wait for it)
         self._alarm_pending = 0  # alarms of ours waiting for the operator: ME answers may take that long
-        self._reader: threading.Thread | None = None
-        self._reader_stop = threading.Event()
+        self._start_note: str | None = None  # why the last ME_START failed, for ME_Ready's note
 
     # ----------------------------------------------------------------- module hooks
 
@@ -86,7 +92,7 @@ class WC(Module):
         return super().idle_interest() | extra
 
     def startup_complete(self, code: str) -> Message:
-        return message("ME_Ready", machine_id=self.machine_id, ack_code=code)
+        return message("ME_Ready", machine_id=self.machine_id, ack_code=code, note=self._start_note)
 
     def shutdown_complete(self, note: str | None) -> Message:
         return message("ME_Stopped", machine_id=self.machine_id, ack_code=AckCode.ACK_OK, note=note)
@@ -95,89 +101,81 @@ class WC(Module):
         try:
             return await super().run(start)
         finally:
-            self._reader_stop.set()
-            if self._reader:
-                self._reader.join(2)
-            self.channel.close()
+            self.me.stop()
 
     async def on_bus(self) -> None:
-        self.channel.open()
-        self._reader = threading.Thread(target=self._read_me, name="me-reader", daemon=True)
-        self._reader.start()
-        self.status, self.machine_run_id = self._read_status()
+        self.status, self.machine_run_id, self.recipe_id = self._read_status()
         if self.status != S.SHUTDOWN:
-            # A WC restarted while its machine was up resumes it (the ME kept its queue); the ME
-            # watch below finds out soon enough if the ME did not survive.
+            # A WC restarted while its machine was up resumes it (the ME kept its queue, and what the
+            # ME sent meanwhile is still in it); the ME watch finds out soon enough if the ME is gone.
             self.log.warning("machine %s is %s (run %s): resuming it", self.machine_id, self.status,
                              self.machine_run_id)
             self.started = self.status not in (S.SETUP_SHUT, S.RUN_SHUT)
             self.bus.set_interest(self.busy_interest() if self.started else self.idle_interest())
-            self._me_heard = 0.0
+            self.me.heard = 0.0
+        self.me.start(self._loop)
 
     async def on_startup(self) -> str:
-        """6.3.2.1: ME_START to the ME (homing alarm passed on and cleared), all operations, Idle."""
+        """6.3.2.1: ME_START to the ME (homing alarm passed on and cleared), Idle, all operations."""
+        code, self._start_note = await self._startup_machine()
+        if code != AckCode.ACK_OK:
+            self.log.error("machine %s not started: %s (%s)", self.machine_id, code, self._start_note)
+        return code
+
+    async def _startup_machine(self) -> tuple[str, str | None]:
         if self.status != S.SHUTDOWN:
-            return AckCode.NOTNOW
-        self.channel.drain()
+            return AckCode.NOTNOW, f"the machine is {self.status}, not Shutdown"
+        self.log.info("starting machine %s: ME_START to the ME", self.machine_id)
         try:
             answer = await self.me_request(MeMessage(MessageId.ME_START))
         except (MeDied, QueueError) as e:
-            self.log.error("ME did not start: %s", e)
-            return AckCode.START_FAIL
+            await self.raise_alarm("ME_DIED", f"machine side of {self.machine_id} did not answer ME_START: {e}",
+                                   wait=False)
+            return AckCode.START_FAIL, f"the ME did not start: {e}"
         if answer.ack_code != AckCode.ACK_OK:
-            self.log.error("ME refused ME_START: %s %s", answer.ack_code, answer.alarm_text)
-            return AckCode.START_FAIL
+            return AckCode.START_FAIL, f"the ME refused ME_START: {answer.ack_code} {answer.alarm_text}"
         if not await self.change_status(S.IDLE, expect=[S.SHUTDOWN]):
-            return AckCode.START_FAIL
+            return AckCode.START_FAIL, "the Machine Server refused the change to Idle"
         if not await self.set_accept_types(ALL_OPERATIONS):
-            await self.change_status(S.SHUTDOWN)
-            return AckCode.START_FAIL
-        self._me_heard = time.monotonic()
-        return AckCode.ACK_OK
+            await self.change_status(S.SHUTDOWN, note="MSCHED did not take the accept types")
+            return AckCode.START_FAIL, "MSCHED did not take the accept types"
+        self.me.heard = time.monotonic()
+        self.log.info("machine %s is Idle and accepts all its operations", self.machine_id)
+        return AckCode.ACK_OK, None
 
     async def on_shutdown(self) -> str | None:
         """6.3.2.2: Idle shuts down at once; Setup and Running shut down when their run is over."""
-        await self.set_accept_types([])
-        if self.status == S.SETUP:
-            await self.change_status(S.SETUP_SHUT, expect=[S.SETUP])
-            self.bus.set_interest(self.idle_interest())
-            return "shutdown pending: the machine is set up; it shuts down after its run"
-        if self.status == S.RUNNING:
-            await self.change_status(S.RUN_SHUT, expect=[S.RUNNING])
-            return "shutdown pending: the machine shuts down when its run completes"
-        if self.status in (S.SETUP_SHUT, S.RUN_SHUT):
-            return "shutdown already pending"
-        await self._go_shutdown("operator shutdown")
-        return None
+        async with self._state_lock:
+            await self.set_accept_types([])
+            if self.status == S.SETUP:
+                await self.change_status(S.SETUP_SHUT, expect=[S.SETUP])
+                self.bus.set_interest(self.idle_interest())
+                self.log.info("shutdown pending: the machine is set up; it shuts down after its run")
+                return "shutdown pending: the machine is set up; it shuts down after its run"
+            if self.status == S.RUNNING:
+                await self.change_status(S.RUN_SHUT, expect=[S.RUNNING])
+                self.log.info("shutdown pending: the machine shuts down when its run completes")
+                return "shutdown pending: the machine shuts down when its run completes"
+            if self.status in (S.SETUP_SHUT, S.RUN_SHUT):
+                return "shutdown already pending"
+            await self._go_shutdown("operator shutdown")
+            return None
 
     async def on_idle(self) -> None:
         """Watch the ME: ping it when quiet; declare it dead when a ping goes unanswered."""
-        if self.status == S.SHUTDOWN or self._me_lock.locked():
-            if self._me_lock.locked() and not self._alarm_pending and \
-                    time.monotonic() - self._me_heard > ME_ANSWER + ME_DEADLINE:
-                self.log.error("ME has not answered for %.1fs", time.monotonic() - self._me_heard)
-            return
-        if time.monotonic() - self._me_heard < ME_PING:
+        if self.status == S.SHUTDOWN or self.me.busy or time.monotonic() - self.me.heard < ME_PING:
             return
         try:
-            await self.me_request(MeMessage(MessageId.NO_MESSAGE), timeout=ME_DEADLINE)
+            answer = await self.me_request(MeMessage(MessageId.NO_MESSAGE), timeout=ME_DEADLINE)
         except (MeDied, QueueError) as e:
-            await self.me_died(str(e))
+            if self.status != S.SHUTDOWN:
+                await self.me_died(str(e))
+            return
+        if answer.ack_code != AckCode.ACK_OK and self.status != S.SHUTDOWN:
+            await self.me_died(f"the ME answers that it is shut down ({answer.alarm_text or answer.ack_code}): "
+                               "it was restarted and lost the machine's state")
 
     # ----------------------------------------------------------------- the ME side
-
-    def _read_me(self) -> None:
-        """Thread: block on the ME's queue and hand every message to the event loop."""
-        loop = self._loop
-        while not self._reader_stop.is_set():
-            try:
-                msg = self.channel.receive(timeout=0.2)
-            except QueueTimeout:
-                continue
-            except QueueError as e:
-                loop.call_soon_threadsafe(self.log.warning, "garbled message from ME dropped: %s", e)
-                continue
-            loop.call_soon_threadsafe(self._from_me, msg)
 
     @property
     def _loop(self) -> asyncio.AbstractEventLoop:
@@ -186,65 +184,76 @@ class WC(Module):
         return loop
 
     def _from_me(self, msg: MeMessage) -> None:
-        self._me_heard = time.monotonic()
+        """What the ME sends on its own: an alarm, or the end of a run."""
         if msg.message_id == MessageId.CELL_ALAR:
             self._spawn(self.alarm_action(msg))
-        elif msg.message_id == MessageId.RUN_COMPL:
-            self._spawn(self.run_complete(msg))
-        elif self._me_answer is not None and not self._me_answer.done():
-            self._me_answer.set_result(msg)
         else:
-            self.log.warning("unexpected %s from ME dropped", msg.message_id.name)
+            self._spawn(self.run_complete(msg))
 
-    def _spawn(self, coro: Any) -> None:
-        task = self._loop.create_task(coro)
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = self._loop.create_task(self._guard(coro))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
+    async def _guard(self, coro: Coroutine[Any, Any, None]) -> None:
+        """Run work the ME started: log its failure, never lose it silently."""
+        try:
+            await coro
+        except asyncio.CancelledError:
+            raise
+        except DatabaseUnavailable as e:
+            self._fatal(e)
+        except Exception:
+            self.log.exception("work on a message from the ME failed")
+
     async def me_request(self, msg: MeMessage, timeout: float = ME_ANSWER) -> MeMessage:
-        """Send one request to the ME and wait for its answer (one at a time, as the queue protocol is)."""
-        async with self._me_lock:
-            self._me_answer = self._loop.create_future()
-            try:
-                self.channel.send(msg)
-                while True:
-                    try:
-                        return await asyncio.wait_for(asyncio.shield(self._me_answer), timeout)
-                    except asyncio.TimeoutError:
-                        if not self._alarm_pending:  # an operator alarm may hold the ME up: wait for it
-                            raise MeDied(f"ME did not answer {msg.message_id.name} within {timeout:.1f}s") from None
-            finally:
-                self._me_answer = None
+        """One request to the ME; the wait stays open while an alarm of ours waits for the operator."""
+        return await self.me.request(msg, timeout, hold_open=lambda: self._alarm_pending > 0)
 
     async def me_died(self, why: str) -> None:
+        """6.3's ME is gone: alarm, a run in progress failed, machine Shutdown until the next ME_START."""
         self.log.error("ME of %s is dead (%s): alarm, machine Shutdown", self.machine_id, why)
+        run_id = self.machine_run_id if self.status in (S.RUNNING, S.RUN_SHUT) else None
         await self.raise_alarm("ME_DIED", f"machine side of {self.machine_id} stopped answering: {why}", wait=False)
-        if self.started:
-            self.started = False
         await self._go_shutdown(f"ME died: {why}", tell_me=False)
+        if run_id is not None:
+            await self._announce_run(run_id, AckCode.RUN_FAIL, "the ME died during the run")
 
     async def _go_shutdown(self, note: str, tell_me: bool = True) -> None:
         """Machine to Shutdown: no operations accepted, status Shutdown, ME told (6.3.2.2)."""
         self.started = False
-        self.busy = False
         await self.set_accept_types([])
         await self.change_status(S.SHUTDOWN, note=note)
+        self.status = S.SHUTDOWN  # even if the Machine Server did not answer: we serve nothing now
+        self.machine_run_id = self.recipe_id = None
         self.bus.set_interest(self.idle_interest())
+        self.log.info("machine %s is Shutdown (%s)", self.machine_id, note)
         if tell_me:
             try:
                 answer = await self.me_request(MeMessage(MessageId.ME_SHUT))
-                if answer.ack_code != AckCode.ACK_OK:
-                    self.log.warning("ME answered ME_SHUT with %s", answer.ack_code)
+                if answer.message_id != MessageId.ME_SHUT_C or answer.ack_code != AckCode.ACK_OK:
+                    self.log.warning("ME answered ME_SHUT with %s", answer.describe())
             except (MeDied, QueueError) as e:
                 self.log.warning("ME did not acknowledge ME_SHUT: %s", e)
 
     # ----------------------------------------------------------------- asking the servers
 
-    def _read_status(self) -> tuple[MachineStatus, int | None]:
-        row = self.db().execute("SELECT status, machine_run_id FROM machine_status WHERE machine_id = %s",
-                                (self.machine_id,)).fetchone()
-        self.db().rollback()
-        return (MachineStatus(row[0]), row[1]) if row else (S.SHUTDOWN, None)
+    def _read_status(self) -> tuple[MachineStatus, int | None, str | None]:
+        row = self._read("SELECT status, machine_run_id, recipe_id FROM machine_status WHERE machine_id = %s",
+                         (self.machine_id,))
+        return (MachineStatus(row[0]), row[1], row[2]) if row else (S.SHUTDOWN, None, None)
+
+    def _read(self, sql: str, params: tuple[Any, ...]) -> tuple[Any, ...] | None:
+        """One row read; DatabaseError (answered DB_Badrea by the callers) if the database fails."""
+        try:
+            conn = self.db()
+            row = conn.execute(sql, params).fetchone()
+            conn.rollback()
+            return row
+        except psycopg.Error as e:
+            if self._conn is not None and (self._conn.broken or self._conn.closed):
+                self._conn.close()
+            raise DatabaseError(f"database read failed: {' '.join(str(e).split())}") from e
 
     async def change_status(self, status: MachineStatus, expect: list[MachineStatus] | None = None,
                             **fields: Any) -> bool:
@@ -261,6 +270,7 @@ class WC(Module):
             if answer.status:
                 self.status = MachineStatus(answer.status)
             return False
+        self.log.info("status %s -> %s", self.status, status)
         self.status = status
         return True
 
@@ -274,6 +284,7 @@ class WC(Module):
         if answer.ack_code != AckCode.ACK_OK:
             self.log.error("MSCHED refused accept types %s: %s", op_types, answer.ack_code)
             return False
+        self.log.info("accept types: %s", "all operations" if op_types == ALL_OPERATIONS else op_types or "none")
         return True
 
     async def raise_alarm(self, alarm_id: str, text: str, wait: bool) -> bool:
@@ -292,7 +303,10 @@ class WC(Module):
         if answer.ack_code != AckCode.ACK_OK or answer.alarm_no is None:
             self.log.error("Cell Alarm Server refused alarm %s: %s", alarm_id, answer.ack_code)
             return False
+        self.log.info("alarm %d (%s) raised: %s", answer.alarm_no, alarm_id, text)
         if not wait:
+            return True
+        if answer.alarm_no in self._cleared:
             return True
         cleared = self._loop.create_future()
         self._alarm_waits[answer.alarm_no] = cleared
@@ -307,29 +321,35 @@ class WC(Module):
     async def alarm_cleared(self, conv: Conversation) -> None:
         assert conv.first is not None
         clear = conv.first.first
+        if clear.machine_id not in (None, self.machine_id):
+            return
+        self._cleared.add(clear.alarm_no)
         waiter = self._alarm_waits.get(clear.alarm_no)
         if waiter is not None and not waiter.done():
             waiter.set_result(None)
 
     async def alarm_action(self, msg: MeMessage) -> None:
-        """An alarm from the ME: to the CAS, wait for the operator, then let the ME continue."""
+        """An alarm from the ME: to the CAS, wait for the operator, then let the ME continue (ME_START_WAIT)."""
         self._alarm_pending += 1
         try:
             alarm_id = msg.alarm_text or "UNKNOWN"
+            self.log.info("the ME raises alarm %s", alarm_id)
             text = self._alarm_text(alarm_id)
             cleared = await self.raise_alarm(alarm_id, text, wait=True)
-            self.channel.send(MeMessage(MessageId.ALARM_CLEAR, alarm_text=alarm_id,
-                                        ack_code=AckCode.ACK_OK if cleared else AckCode.START_FAIL))
+            self.me.send(MeMessage(MessageId.ME_START_WAIT, alarm_text=alarm_id, seq=msg.seq,
+                                   ack_code=AckCode.ACK_OK if cleared else AckCode.START_FAIL))
         except QueueError as e:
             self.log.error("could not tell the ME its alarm was cleared: %s", e)
         finally:
             self._alarm_pending -= 1
-            self._me_heard = time.monotonic()
+            self.me.heard = time.monotonic()
 
     def _alarm_text(self, alarm_id: str) -> str:
-        row = self.db().execute("SELECT alarm_text FROM alarm_description WHERE alarm_id = %s",
-                                (alarm_id,)).fetchone()
-        self.db().rollback()
+        try:
+            row = self._read("SELECT alarm_text FROM alarm_description WHERE alarm_id = %s", (alarm_id,))
+        except DatabaseError as e:
+            self.log.error("cannot check alarm %s in ALARM_DESCRIPTION: %s", alarm_id, e)
+            row = None
         if row is None:
             self.log.warning("alarm %s is not in ALARM_DESCRIPTION: passing it on as unknown", alarm_id)
             return f"unknown alarm {alarm_id} from {self.machine_id}"
@@ -339,40 +359,38 @@ class WC(Module):
 
     async def _refuse_now(self, conv: Conversation, ack: str, code: str, note: str) -> None:
         self.log.info("refused %s: %s (%s)", conv.cls, code, note)
-        await conv.send(message(ack, ack_code=code, note=note))
+        await conv.send(message(ack, ack_code=code, note=note[:500]))
 
-    def _claim(self, conv: Conversation, allowed: tuple[MachineStatus, ...]) -> str | None:
-        """Check the machine may do this now and mark it busy, with no await in between."""
-        assert conv.first is not None
-        req = conv.first.first
+    def _check(self, req: Message, allowed: tuple[MachineStatus, ...]) -> tuple[str, str] | None:
+        """Why this request cannot be served now, as (ack code, note); None if it can."""
         if req.machine_id != self.machine_id:
-            return f"this is the WC of {self.machine_id}, not {req.machine_id}"
-        if self.busy or self.status not in allowed:
-            return f"machine is {self.status}" + (" and busy" if self.busy else "")
-        self.busy = True
+            return AckCode.BAD_MESSAGE, f"this is the WC of {self.machine_id}, not of {req.machine_id}"
+        if self.status not in allowed:
+            return AckCode.NOTNOW, f"machine is {self.status}, not {' or '.join(allowed)}"
         return None
 
     async def setup_run(self, conv: Conversation) -> None:
         """6.3.2.3: Idle only; recipe and op type checked; the approved recipe to the ME; status Setup."""
         assert conv.first is not None
         req = conv.first.first
-        why = self._claim(conv, (S.IDLE,))
-        if why:
-            return await self._refuse_now(conv, "Setup_Run_Ack", AckCode.NOTNOW, why)
-        try:
-            code, note = await self._setup(req)
-        finally:
-            self.busy = False
-        if code != AckCode.ACK_OK:
-            return await self._refuse_now(conv, "Setup_Run_Ack", code, note)
+        self.log.info("SETUP_RUN run %d recipe %s op %s", req.machine_run_id, req.recipe_id, req.op_type)
+        async with self._state_lock:
+            refusal = self._check(req, (S.IDLE,))
+            if refusal is None:
+                refusal = await self._setup(req)
+        if refusal is not None:
+            return await self._refuse_now(conv, "Setup_Run_Ack", *refusal)
         self.log.info("set up run %d with recipe %s", req.machine_run_id, req.recipe_id)
         await conv.send(message("Setup_Run_Ack", ack_code=AckCode.ACK_OK))
 
-    async def _setup(self, req: Message) -> tuple[str, str]:
-        ok = self.db().execute(
-            "SELECT 1 FROM op_machine_recipe WHERE machine_id = %s AND recipe_id = %s AND op_type = %s",
-            (self.machine_id, req.recipe_id, req.op_type)).fetchone()
-        self.db().rollback()
+    async def _setup(self, req: Message) -> tuple[str, str] | None:
+        try:
+            ok = self._read("SELECT 1 FROM op_machine_recipe WHERE machine_id = %s AND recipe_id = %s AND op_type = %s",
+                            (self.machine_id, req.recipe_id, req.op_type))
+        except DatabaseUnavailable:
+            raise  # fatal (3.2.2): the module answers DB_Badrea and stops cleanly
+        except DatabaseError as e:
+            return AckCode.DB_BADREA, str(e)
         if not ok:
             return AckCode.REC_INVAL, f"recipe {req.recipe_id} is not for op type {req.op_type} on {self.machine_id}"
         path, why = await self.fetch_recipe(req.recipe_id)
@@ -381,16 +399,22 @@ class WC(Module):
             return AckCode.REC_INVAL, why
         try:
             answer = await self.me_request(MeMessage(MessageId.SETUP_RUN, file_name=str(path), recipe_id=req.recipe_id))
-        except (MeDied, QueueError) as e:
+        except MeDied as e:
             await self.me_died(str(e))
             return AckCode.START_FAIL, f"ME failed: {e}"
+        except QueueError as e:
+            return AckCode.START_FAIL, str(e)
         if answer.ack_code != AckCode.ACK_OK:
             return answer.ack_code or AckCode.START_FAIL, f"ME refused the setup: {answer.alarm_text}"
+        # Listing 3: a machine set up for a run accepts no other operation until the run is over.
+        if not await self.set_accept_types([]):
+            return AckCode.DB_BADUPD, "MSCHED did not take the accept types"
         if not await self.change_status(S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id,
                                         machine_run_id=req.machine_run_id):
+            await self.set_accept_types(ALL_OPERATIONS)
             return AckCode.DB_BADUPD, "the Machine Server refused the change to Setup"
-        self.machine_run_id = req.machine_run_id
-        return AckCode.ACK_OK, ""
+        self.machine_run_id, self.recipe_id = req.machine_run_id, req.recipe_id
+        return None
 
     async def fetch_recipe(self, recipe_id: str) -> tuple[Path | None, str]:
         """The approved version from the ERS, checksum verified, written where the ME can read it."""
@@ -406,116 +430,159 @@ class WC(Module):
             return None, f"recipe {recipe_id} v{reply.version} checksum mismatch: the recipe was modified"
         self.recipe_dir.mkdir(parents=True, exist_ok=True)
         path = self.recipe_dir / f"{recipe_id}.v{reply.version}"
-        tmp = path.with_suffix(".tmp")
+        tmp = path.with_name(path.name + ".tmp")
         tmp.write_text(reply.content)
         tmp.replace(path)
         return path, ""
 
     async def start_run(self, conv: Conversation) -> None:
-        """6.3.2.4: Setup or Setup_Shut only; the ME starts; Running (or Run_Shut) with its start time."""
+        """6.3.2.4: Setup or Setup_Shut only; the ME starts; Running (or Run_Shut)."""
         assert conv.first is not None
         req = conv.first.first
-        why = self._claim(conv, (S.SETUP, S.SETUP_SHUT))
-        if why:
-            return await self._refuse_now(conv, "Start_Run_Ack", AckCode.NOTNOW, why)
-        try:
-            if req.machine_run_id != self.machine_run_id:
-                return await self._refuse_now(conv, "Start_Run_Ack", AckCode.START_FAIL,
-                                              f"set up for run {self.machine_run_id}, not {req.machine_run_id}")
-            shutting = self.status == S.SETUP_SHUT
-            try:
-                answer = await self.me_request(MeMessage(MessageId.START_RUN, recipe_id=str(req.machine_run_id)))
-            except (MeDied, QueueError) as e:
-                await self.me_died(str(e))
-                return await self._refuse_now(conv, "Start_Run_Ack", AckCode.START_FAIL, f"ME failed: {e}")
-            if answer.ack_code != AckCode.ACK_OK:
-                return await self._refuse_now(conv, "Start_Run_Ack", AckCode.START_FAIL,
-                                              f"ME refused to start: {answer.ack_code} {answer.alarm_text}")
-            target = S.RUN_SHUT if shutting else S.RUNNING
-            if not await self.change_status(target, expect=[S.SETUP_SHUT if shutting else S.SETUP],
-                                            machine_run_id=req.machine_run_id):
-                return await self._refuse_now(conv, "Start_Run_Ack", AckCode.DB_BADUPD,
-                                              f"the Machine Server refused the change to {target}")
-        finally:
-            self.busy = False
+        self.log.info("START_RUN run %d", req.machine_run_id)
+        async with self._state_lock:
+            refusal = self._check(req, (S.SETUP, S.SETUP_SHUT))
+            if refusal is None:
+                refusal = await self._run_on_me(req)
+        if refusal is not None:
+            return await self._refuse_now(conv, "Start_Run_Ack", *refusal)
         self.log.info("run %d started", req.machine_run_id)
         await conv.send(message("Start_Run_Ack", ack_code=AckCode.ACK_OK))
 
+    async def _run_on_me(self, req: Message) -> tuple[str, str] | None:
+        if req.machine_run_id != self.machine_run_id:
+            return AckCode.START_FAIL, f"set up for run {self.machine_run_id}, not {req.machine_run_id}"
+        results = self.results_dir / f"run-{req.machine_run_id}.txt"
+        try:
+            answer = await self.me_request(MeMessage(MessageId.START_RUN, file_name=str(results),
+                                                     recipe_id=self.recipe_id or ""))
+        except MeDied as e:
+            await self.me_died(str(e))
+            return AckCode.START_FAIL, f"ME failed: {e}"
+        except QueueError as e:
+            return AckCode.START_FAIL, str(e)
+        if answer.ack_code != AckCode.ACK_OK:
+            return AckCode.START_FAIL, f"ME refused to start: {answer.ack_code} {answer.alarm_text}"
+        # The status now, not at the check: a shutdown may have come while the ME was starting.
+        target = S.RUN_SHUT if self.status == S.SETUP_SHUT else S.RUNNING
+        if not await self.change_status(target, expect=[self.status], machine_run_id=req.machine_run_id,
+                                        recipe_id=self.recipe_id):
+            return AckCode.DB_BADUPD, f"the Machine Server refused the change to {target}"
+        return None
+
     async def run_complete(self, msg: MeMessage) -> None:
         """6.3.2.7: results into MACHINE_RUN_RESULT, file removed, Run_Complete on the bus, Idle again."""
-        run_id = self.machine_run_id
-        if self.status not in (S.RUNNING, S.RUN_SHUT) or run_id is None:
-            self.log.warning("RUN_COMPL from ME while %s: ignored", self.status)
-            return
-        code = msg.ack_code or AckCode.ACK_OK
-        path = Path(msg.file_name)
-        try:
-            results = read_results(path) if msg.file_name else {}
-        except (OSError, ValueError) as e:
-            self.log.error("results file %s unreadable: %s", path, e)
-            results, code = {}, AckCode.RUN_FAIL
+        async with self._state_lock:
+            run_id = self.machine_run_id
+            if self.status not in (S.RUNNING, S.RUN_SHUT) or run_id is None:
+                self.log.warning("RUN_COMPL from the ME while %s: ignored (results file %s kept)", self.status,
+                                 msg.file_name or "none")
+                return
+            code = msg.ack_code or AckCode.ACK_OK
+            path = Path(msg.file_name)
+            try:
+                results = read_results(path) if msg.file_name else {}
+            except (OSError, ValueError) as e:
+                self.log.error("results file %s unreadable: %s", path, e)
+                results, code = {}, AckCode.RUN_FAIL
 
-        def store(cur: Any) -> None:
-            for param, value in results.items():
-                cur.execute(
-                    "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) VALUES (%s, %s, %s, %s)"
-                    " ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value",
-                    (run_id, self.machine_id, param, value))
+            def store(cur: Any) -> None:
+                for param, value in results.items():
+                    cur.execute(
+                        "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) "
+                        "VALUES (%s, %s, %s, %s) "
+                        "ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value",
+                        (run_id, self.machine_id, param, value))
 
-        self.transaction(store)
-        if msg.file_name:
-            path.unlink(missing_ok=True)
-        shutting = self.status == S.RUN_SHUT
-        self.machine_run_id = None
-        note = "run failed" if code != AckCode.ACK_OK else None
-        if shutting:
-            await self._go_shutdown("shutdown after run")
-        else:
-            await self.change_status(S.IDLE, note=note)
-        self.log.info("run %d complete (%s, %d results)", run_id, code, len(results))
+            try:
+                self.transaction(store)
+            except DatabaseError as e:
+                self.log.error("results of run %d not stored: %s (file %s kept)", run_id, e, path)
+                code = AckCode.DB_BADUPD
+            else:
+                self.log.info("run %d: %d results stored in MACHINE_RUN_RESULT", run_id, len(results))
+                if msg.file_name:
+                    path.unlink(missing_ok=True)
+            if code != AckCode.ACK_OK:
+                await self.raise_alarm("RUN_FAIL", f"{self.machine_id}: run {run_id} failed ({code}"
+                                       f"{': ' + msg.alarm_text if msg.alarm_text else ''})", wait=False)
+            shutting = self.status == S.RUN_SHUT
+            self.machine_run_id = self.recipe_id = None
+            if shutting:
+                await self._go_shutdown("shutdown after run")
+            else:
+                await self.change_status(S.IDLE, note=None if code == AckCode.ACK_OK else f"run {run_id}: {code}")
+            await self._announce_run(run_id, code, msg.alarm_text or None)
+            if not shutting:
+                await self.set_accept_types(ALL_OPERATIONS)
+
+    async def _announce_run(self, run_id: int, code: str, note: str | None) -> None:
+        self.log.info("run %d complete (%s)%s", run_id, code, f": {note}" if note else "")
         conv = await self.bus.start("RUN_COMPL", message("Run_Complete", machine_id=self.machine_id,
-                                                         machine_run_id=run_id, ack_code=code))
+                                                         machine_run_id=run_id, ack_code=code, note=note))
         conv.end()
-        if not shutting:
-            await self.set_accept_types(ALL_OPERATIONS)
 
     async def download(self, conv: Conversation) -> None:
-        """6.3.2.6 (the thesis's names are crossed): a recipe from the cell to the machine. Idle only."""
+        """DNLD_ME (5.1.3): a recipe from the cell to the machine. Idle only."""
         assert conv.first is not None
         req = conv.first.first
-        why = self._claim(conv, (S.IDLE,))
-        if why:
-            return await self._refuse_now(conv, "Download_Ack", AckCode.NOTNOW, why)
+        async with self._state_lock:
+            refusal = self._check(req, (S.IDLE,))
+            if refusal is None:
+                refusal = await self._download(req)
+        if refusal is not None:
+            return await self._refuse_now(conv, "Download_Ack", *refusal)
+        self.log.info("recipe %s downloaded to %s", req.recipe_id, self.machine_id)
+        await conv.send(message("Download_Ack", ack_code=AckCode.ACK_OK))
+
+    async def _download(self, req: Message) -> tuple[str, str] | None:
+        path, why = await self.fetch_recipe(req.recipe_id)
+        if path is None:
+            return AckCode.REC_INVAL, why
         try:
-            path, why = await self.fetch_recipe(req.recipe_id)
-            if path is None:
-                return await self._refuse_now(conv, "Download_Ack", AckCode.REC_INVAL, why)
             answer = await self.me_request(MeMessage(MessageId.DNLD_ME, file_name=str(path), recipe_id=req.recipe_id))
-        except (MeDied, QueueError) as e:
+        except MeDied as e:
             await self.me_died(str(e))
-            return await self._refuse_now(conv, "Download_Ack", AckCode.START_FAIL, f"ME failed: {e}")
-        finally:
-            self.busy = False
-        await conv.send(message("Download_Ack", ack_code=answer.ack_code or AckCode.ACK_OK))
+            return AckCode.START_FAIL, f"ME failed: {e}"
+        except QueueError as e:
+            return AckCode.START_FAIL, str(e)
+        if answer.ack_code != AckCode.ACK_OK:
+            return answer.ack_code or AckCode.START_FAIL, f"ME refused the download: {answer.alarm_text}"
+        return None
 
     async def upload(self, conv: Conversation) -> None:
-        """6.3.2.5: the machine's recipe back to the cell, stored by the ERS as a new version. Idle only."""
+        """UPLD_ME (5.1.3): the machine's recipe back to the cell, stored by the ERS as a new version."""
         assert conv.first is not None
         req = conv.first.first
-        why = self._claim(conv, (S.IDLE,))
-        if why:
-            return await self._refuse_now(conv, "Upload_Ack", AckCode.NOTNOW, why)
+        async with self._state_lock:
+            refusal = self._check(req, (S.IDLE,))
+            content: str | None = None
+            if refusal is None:
+                refusal, content = await self._upload(req)
+        if refusal is not None:
+            return await self._refuse_now(conv, "Upload_Ack", *refusal)
+        assert content is not None
+        try:
+            stored = await self.ask("RECIPE_PUT", message("Recipe_Store", recipe_id=req.recipe_id, content=content,
+                                                          by=self.name), "ers", SERVER_TIMEOUT)
+        except ConversationTimeout:
+            return await self._refuse_now(conv, "Upload_Ack", AckCode.TIMEOUT,
+                                          "the Equipment Recipe Server did not answer")
+        self.log.info("recipe %s uploaded from %s: ERS says %s, version %s", req.recipe_id, self.machine_id,
+                      stored.ack_code, stored.version)
+        await conv.send(message("Upload_Ack", ack_code=stored.ack_code, version=stored.version, note=stored.note))
+
+    async def _upload(self, req: Message) -> tuple[tuple[str, str] | None, str | None]:
         try:
             answer = await self.me_request(MeMessage(MessageId.UPLD_ME, recipe_id=req.recipe_id))
-        except (MeDied, QueueError) as e:
+        except MeDied as e:
             await self.me_died(str(e))
-            return await self._refuse_now(conv, "Upload_Ack", AckCode.START_FAIL, f"ME failed: {e}")
-        finally:
-            self.busy = False
+            return (AckCode.START_FAIL, f"ME failed: {e}"), None
+        except QueueError as e:
+            return (AckCode.START_FAIL, str(e)), None
         if answer.ack_code != AckCode.ACK_OK or not answer.file_name:
-            return await self._refuse_now(conv, "Upload_Ack", answer.ack_code or AckCode.START_FAIL,
-                                          "the ME returned no recipe")
-        content = Path(answer.file_name).read_text()
-        stored = await self.ask("RECIPE_PUT", message("Recipe_Store", recipe_id=req.recipe_id, content=content,
-                                                      by=self.name), "ers", SERVER_TIMEOUT)
-        await conv.send(message("Upload_Ack", ack_code=stored.ack_code, version=stored.version))
+            return (answer.ack_code or AckCode.START_FAIL, f"the ME returned no recipe: {answer.alarm_text}"), None
+        try:
+            return None, Path(answer.file_name).read_text()
+        except (OSError, UnicodeDecodeError) as e:
+            return (AckCode.REC_INVAL, f"the ME's recipe file {answer.file_name} is unreadable: {e}"), None

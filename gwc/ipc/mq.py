@@ -1,0 +1,311 @@
+"""The WC<->ME channel: a pair of POSIX message queues per machine carrying the thesis's struct (5.2).
+
+The thesis's WC and ME shared one System V queue and told the directions apart by message type
+(TO_ME, FROM_ME). We give each direction its own POSIX queue, named after the cell and the machine:
+
+    <prefix>.<machine>.to_me     written by the WC, read by the ME
+    <prefix>.<machine>.from_me   written by the ME, read by the WC
+
+Each queue carries one fixed-size record: the thesis's file_name, recipe_id, message_id, ack_code
+and alarm_text, plus a sequence number (an answer carries its request's, so a late answer is never
+taken for the answer to the next request) and a CRC32 (so a garbled record is refused, not acted
+on). The byte layout is in docs/machine-interface.md and in `LAYOUT` below.
+
+Either half may start first: both open the queues with O_CREAT and the same attributes, so the
+queues outlive the restart of either half, and a request sent while the other half is down waits
+in its queue. Only `gwc stop` (remove_queues) deletes them. Nothing is ever truncated: a field too
+long for its slot, a full queue or a garbled record is a QueueError that says which.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import zlib
+from dataclasses import dataclass, replace
+from enum import IntEnum
+from typing import Literal
+
+import posix_ipc
+
+from gwc.errors import QueueError, QueueFull, QueueTimeout
+from gwc.ipc.codes import AckCode
+
+MAGIC = b"GWME"
+VERSION = 1
+FILE_NAME_SIZE = 256
+RECIPE_ID_SIZE = 32
+ACK_CODE_SIZE = 12
+ALARM_TEXT_SIZE = 80
+TRACE = 5  # gwc.log's Trace level: every record sent and received
+MAX_MESSAGES = 10  # Linux's default per-queue limit (/proc/sys/fs/mqueue/msg_max) for ordinary users
+
+# Big-endian, no padding: magic, version, message_id, seq, ack_code, recipe_id, file_name, alarm_text.
+_BODY = struct.Struct(f"!4sHHI{ACK_CODE_SIZE}s{RECIPE_ID_SIZE}s{FILE_NAME_SIZE}s{ALARM_TEXT_SIZE}s")
+_CRC = struct.Struct("!I")
+LAYOUT_SIZE = _BODY.size + _CRC.size  # 396 bytes
+
+Side = Literal["wc", "me"]
+
+
+class MessageId(IntEnum):
+    """message_id of the queue record: the ids of Listings 3, 6 and 7."""
+
+    NO_MESSAGE = 0  # "are you there?" from the WC; the ME answers it in kind (our liveness ping)
+    ME_START = 1  # WC -> ME: home and get ready; answered ME_START with the ack code
+    ME_SHUT = 2  # WC -> ME: shut down
+    ME_SHUT_C = 3  # ME -> WC: the answer to ME_SHUT (shutdown complete)
+    SETUP_RUN = 4  # WC -> ME: load the recipe in file_name, id recipe_id; answered SETUP_RUN
+    START_RUN = 5  # WC -> ME: start the run set up; file_name = where to write the results
+    DNLD_ME = 6  # WC -> ME: download the recipe in file_name to the machine
+    UPLD_ME = 7  # WC -> ME: upload recipe_id from the machine; the answer's file_name holds it
+    RUN_COMPL = 8  # ME -> WC: the run ended; file_name = its results file, ack_code ACK_OK or Run_Fail
+    CELL_ALAR = 9  # ME -> WC: raise alarm alarm_text (an ALARM_DESCRIPTION id) and tell me when cleared
+    ME_START_WAIT = 10  # WC -> ME: the alarm was cleared (ack ACK_OK) or could not be raised: go on
+
+
+@dataclass(frozen=True)
+class MeMessage:
+    """One record of the queue. Empty strings stand for the listings' "NULL"."""
+
+    message_id: MessageId
+    file_name: str = ""
+    recipe_id: str = ""
+    ack_code: AckCode | None = None
+    alarm_text: str = ""
+    seq: int = 0
+
+    def reply(self, ack_code: AckCode | None = AckCode.ACK_OK, message_id: MessageId | None = None,
+              **fields: str) -> MeMessage:
+        """The answer to this request: same seq, same id unless told otherwise (Listing 7)."""
+        return replace(self, message_id=message_id if message_id is not None else self.message_id,
+                       ack_code=ack_code, **fields)
+
+    def describe(self) -> str:
+        parts = [self.message_id.name, f"seq {self.seq}"]
+        if self.ack_code:
+            parts.append(str(self.ack_code))
+        for name in ("recipe_id", "file_name", "alarm_text"):
+            value = getattr(self, name)
+            if value:
+                parts.append(f"{name}={value}")
+        return " ".join(parts)
+
+
+# Lookup tables: packing and unpacking a record is on every round trip, so no enum calls there.
+_IDS = {m.value: m for m in MessageId}
+_ACK_OUT: dict[object, bytes] = {None: b"", **{c: c.value.encode("ascii") for c in AckCode}}
+_ACK_IN: dict[bytes, AckCode | None] = {b"\0" * ACK_CODE_SIZE: None,
+                                        **{c.value.encode("ascii").ljust(ACK_CODE_SIZE, b"\0"): c for c in AckCode}}
+
+
+def _field(name: str, value: str, size: int) -> bytes:
+    if not isinstance(value, str):
+        raise QueueError(f"queue field {name} must be text, got {type(value).__name__}")
+    data = value.encode("utf-8")
+    if len(data) > size:
+        raise QueueError(f"queue field {name} is {len(data)} bytes, its slot holds {size}: refused "
+                         f"(nothing is truncated): {value[:60]!r}...")
+    if b"\0" in data:
+        raise QueueError(f"queue field {name} contains a NUL byte: refused")
+    return data
+
+
+def pack(msg: MeMessage) -> bytes:
+    """The record's bytes (LAYOUT_SIZE of them); QueueError if a field does not fit."""
+    mid = _IDS.get(msg.message_id)
+    if mid is None:
+        raise QueueError(f"unknown message id {msg.message_id!r}")
+    ack = _ACK_OUT.get(msg.ack_code)
+    if ack is None:
+        raise QueueError(f"unknown ack code {msg.ack_code!r}")
+    if not 0 <= msg.seq < 2**32:
+        raise QueueError(f"sequence number {msg.seq} does not fit 32 bits")
+    body = _BODY.pack(MAGIC, VERSION, mid, msg.seq, ack,
+                      _field("recipe_id", msg.recipe_id, RECIPE_ID_SIZE) if msg.recipe_id else b"",
+                      _field("file_name", msg.file_name, FILE_NAME_SIZE) if msg.file_name else b"",
+                      _field("alarm_text", msg.alarm_text, ALARM_TEXT_SIZE) if msg.alarm_text else b"")
+    return body + _CRC.pack(zlib.crc32(body))
+
+
+def _text(name: str, raw: bytes) -> str:
+    data = raw.rstrip(b"\0")
+    if not data:
+        return ""
+    if b"\0" in data:
+        raise QueueError(f"garbled record: field {name} has a NUL inside its text")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise QueueError(f"garbled record: field {name} is not UTF-8") from None
+
+
+def unpack(data: bytes) -> MeMessage:
+    """A record back from its bytes; QueueError naming what is wrong with a garbled one."""
+    if len(data) != LAYOUT_SIZE:
+        raise QueueError(f"garbled record: {len(data)} bytes, expected {LAYOUT_SIZE}")
+    body, (crc,) = data[: _BODY.size], _CRC.unpack(data[_BODY.size:])
+    magic, version, mid, seq, ack, recipe, file_name, alarm = _BODY.unpack(body)
+    if magic != MAGIC:
+        raise QueueError(f"garbled record: magic {magic!r}, expected {MAGIC!r}")
+    if version != VERSION:
+        raise QueueError(f"record of layout version {version}, this program speaks {VERSION}: "
+                         "run the same GWC version on both halves")
+    if zlib.crc32(body) != crc:
+        raise QueueError("garbled record: CRC mismatch")
+    message_id = _IDS.get(mid)
+    if message_id is None:
+        raise QueueError(f"garbled record: unknown message id {mid}")
+    if ack not in _ACK_IN:
+        raise QueueError(f"garbled record: unknown ack code {ack.rstrip(bytes(1))!r}")
+    return MeMessage(message_id, _text("file_name", file_name), _text("recipe_id", recipe), _ACK_IN[ack],
+                     _text("alarm_text", alarm), seq)
+
+
+def queue_names(prefix: str, machine_id: str) -> tuple[str, str]:
+    """(to_me, from_me): the POSIX names of one machine's queues."""
+    if not machine_id or "/" in machine_id or "\0" in machine_id:
+        raise QueueError(f"machine id {machine_id!r} cannot name a queue")
+    return f"{prefix}.{machine_id}.to_me", f"{prefix}.{machine_id}.from_me"
+
+
+def remove_queues(prefix: str, machine_ids: list[str]) -> list[str]:
+    """Unlink the queues of these machines (gwc stop); returns the names that existed."""
+    removed = []
+    for mid in machine_ids:
+        for name in queue_names(prefix, mid):
+            try:
+                posix_ipc.unlink_message_queue(name)
+                removed.append(name)
+            except posix_ipc.ExistentialError:
+                pass
+    return removed
+
+
+def open_queue(name: str, max_messages: int = MAX_MESSAGES) -> posix_ipc.MessageQueue:
+    """Create the queue or open the one the other half created; refuse one of another layout."""
+    try:
+        q = posix_ipc.MessageQueue(name, posix_ipc.O_CREAT, mode=0o600, max_messages=max_messages,
+                                   max_message_size=LAYOUT_SIZE)
+    except (posix_ipc.Error, OSError, ValueError) as e:
+        raise QueueError(f"cannot open message queue {name}: {e} (queue limits: /proc/sys/fs/mqueue)") from e
+    if q.max_message_size != LAYOUT_SIZE:
+        size = q.max_message_size
+        q.close()
+        raise QueueError(f"message queue {name} exists with messages of {size} bytes, not {LAYOUT_SIZE}: "
+                         "left by another GWC version; remove it with `gwc stop`")
+    return q
+
+
+class Channel:
+    """One half's end of a machine's queue pair: send to the other half, receive from it.
+
+    `side` is "wc" or "me". Safe to use from two threads at once when one only sends and the
+    other only receives (the WC's reader thread does exactly that).
+    """
+
+    def __init__(self, prefix: str, machine_id: str, side: Side, log: logging.Logger,
+                 max_messages: int = MAX_MESSAGES) -> None:
+        if side not in ("wc", "me"):
+            raise QueueError(f"a channel side is 'wc' or 'me', not {side!r}")
+        self.machine_id = machine_id
+        self.side = side
+        self.log = log
+        self.max_messages = max_messages
+        to_me, from_me = queue_names(prefix, machine_id)
+        self.out_name, self.in_name = (to_me, from_me) if side == "wc" else (from_me, to_me)
+        self._out: posix_ipc.MessageQueue | None = None
+        self._in: posix_ipc.MessageQueue | None = None
+        self._peer = "ME" if side == "wc" else "WC"
+
+    def open(self) -> Channel:
+        """Open (creating if needed) both queues. Safe to call twice."""
+        if self._out is None:
+            self._out = open_queue(self.out_name, self.max_messages)
+        if self._in is None:
+            try:
+                self._in = open_queue(self.in_name, self.max_messages)
+            except QueueError:
+                self.close()
+                raise
+        return self
+
+    def close(self) -> None:
+        """Close our descriptors; the queues themselves stay for the other half. Safe to call twice."""
+        for q in (self._out, self._in):
+            if q is not None:
+                try:
+                    q.close()
+                except posix_ipc.Error:
+                    pass
+        self._out = self._in = None
+
+    def __enter__(self) -> Channel:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _queue(self, q: posix_ipc.MessageQueue | None) -> posix_ipc.MessageQueue:
+        if q is None:
+            raise QueueError(f"the {self.side} channel of {self.machine_id} is not open")
+        return q
+
+    def send(self, msg: MeMessage, timeout: float = 0.0) -> None:
+        """Queue one record for the other half; QueueError if it is refused or the queue stays full."""
+        data = pack(msg)
+        q = self._queue(self._out)
+        try:
+            q.send(data, timeout=max(0.0, timeout))
+        except posix_ipc.BusyError:
+            raise QueueFull(f"queue {self.out_name} is full ({q.max_messages} records waiting): "
+                             f"the {self._peer} is not reading; {msg.message_id.name} not sent") from None
+        except posix_ipc.Error as e:
+            raise QueueError(f"sending {msg.message_id.name} on {self.out_name} failed: {e}") from e
+        if self.log.isEnabledFor(TRACE):
+            self.log.log(TRACE, "to %s: %s", self._peer, msg.describe())
+
+    def receive(self, timeout: float | None = None) -> MeMessage:
+        """The next record from the other half, waiting up to `timeout` s (None: for ever, 0: not at all).
+
+        QueueTimeout if none came (or a signal interrupted the wait); QueueError if it is garbled.
+        """
+        q = self._queue(self._in)
+        try:
+            data, _ = q.receive(timeout=None if timeout is None else max(0.0, timeout))
+        except posix_ipc.BusyError:
+            raise QueueTimeout(f"nothing from the {self._peer} on {self.in_name} within {timeout}s") from None
+        except posix_ipc.SignalError:
+            raise QueueTimeout(f"wait on {self.in_name} interrupted by a signal") from None
+        except posix_ipc.Error as e:
+            raise QueueError(f"receiving on {self.in_name} failed: {e}") from e
+        msg = unpack(data)
+        if self.log.isEnabledFor(TRACE):
+            self.log.log(TRACE, "from %s: %s", self._peer, msg.describe())
+        return msg
+
+    def poll(self) -> MeMessage | None:
+        """The next record if one is waiting, else None (the listings' mq_read_nowait)."""
+        try:
+            return self.receive(timeout=0)
+        except QueueTimeout:
+            return None
+
+    def drain(self) -> int:
+        """Throw away every record waiting for us (stale ones from before a restart); how many."""
+        n = 0
+        while True:
+            try:
+                if self.poll() is None:
+                    return n
+            except QueueError as e:
+                self.log.warning("dropped a garbled record while draining: %s", e)
+            n += 1
+
+    def fileno(self) -> int:
+        """The descriptor of the queue we read: on Linux a queue is a file that select/epoll can watch."""
+        return int(self._queue(self._in).mqd)
+
+    def pending(self) -> tuple[int, int]:
+        """(records waiting for the other half, records waiting for us)."""
+        return self._queue(self._out).current_messages, self._queue(self._in).current_messages

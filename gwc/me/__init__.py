@@ -1,0 +1,34 @@
+"""ME, the machine side of a machine interface (thesis 6.3): one process per machine, off the bus.
+
+`gwc run me --machine ID` runs the ME of machine ID; its kind in etc/cell.toml picks the machine:
+a dummy (gwc.me.dummy, the thesis's MEN) or the CMM over RS-232 (gwc.me.cmm, Listing 9's line
+protocol). The ME talks only to its WC, over the machine's queue pair (gwc.ipc.mq).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+from gwc.config import Config
+from gwc.errors import ConfigError
+from gwc.me.machine import MachineSide
+
+
+def make_machine(cfg: Config, machine_id: str, log: logging.Logger) -> MachineSide:
+    """The machine side for this machine's kind."""
+    spec = cfg.machine(machine_id)
+    if spec.kind == "dummy":
+        from gwc.me.dummy import DummyMachine
+
+        return DummyMachine(cfg, spec, log)
+    if spec.kind == "cmm":
+        from gwc.me.cmm import CmmMachine
+
+        return CmmMachine(cfg, spec, log)
+    raise ConfigError(f"machine {machine_id}: no ME for kind {spec.kind!r}")
+
+
+def main(cfg: Config, machine_id: str, log: logging.Logger, stop: threading.Event) -> int:
+    """Run the ME of `machine_id` until `stop` is set (SIGTERM); returns the exit code."""
+    return make_machine(cfg, machine_id, log).serve(stop)

@@ -1,0 +1,64 @@
+"""The dummy machine: the thesis's MEN (Listing 7), N of them, each a configurable stand-in.
+
+Section 7.4 built it to show that the cell runs any number of machines through one interface. It
+acknowledges every request, takes `run_time` seconds per run and writes a results file of
+param/value pairs. Unlike Listing 7 it can be told, in its [[machine]] entry of etc/cell.toml, to
+behave like a real machine that needs an operator or goes wrong:
+
+    run_time = 0.2              # seconds a run takes (default 1.0)
+    setup_time = 0.0            # seconds SETUP_RUN takes before it is acknowledged
+    homing_alarm = true         # raise HOME_CMM at ME_START, as the CMM does (or name another alarm id)
+    fail_runs = [2]             # these runs (1 = the first run of this ME process) end Run_Fail;
+                                # true: every run fails
+    fail_start = true           # refuse ME_START (homing fails): the WC answers Start_Fail
+    results = { DIAMETER = "25.02" }   # extra param/value pairs in every results file
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+from gwc.config import Config, MachineSpec
+from gwc.errors import ConfigError
+from gwc.ipc.codes import AckCode
+from gwc.me.machine import MachineSide, Refusal, RunOutcome
+
+
+class DummyMachine(MachineSide):
+    kind = "dummy"
+
+    def __init__(self, cfg: Config, spec: MachineSpec, log: logging.Logger) -> None:
+        super().__init__(cfg, spec, log)
+        self.run_time = self.options.get("run_time", float, 1.0)
+        self.setup_time = self.options.get("setup_time", float, 0.0)
+        self.fail_start = self.options.get("fail_start", bool, False)
+        fail = self.options.get("fail_runs", (bool, list), [])
+        if isinstance(fail, list) and not all(isinstance(n, int) and not isinstance(n, bool) for n in fail):
+            raise ConfigError(f"machine {spec.id}: fail_runs must be a list of run numbers or true")
+        self.fail_runs: bool | set[int] = fail if isinstance(fail, bool) else set(fail)
+        self.extra = {str(k): str(v) for k, v in self.options.get("results", dict, {}).items()}
+        self._ends_at = 0.0
+
+    def home(self) -> None:
+        if self.fail_start:
+            raise Refusal(AckCode.START_FAIL, "the machine failed to home (fail_start)")
+
+    def load(self, recipe_id: str, path: Path) -> None:
+        if self.setup_time:
+            time.sleep(self.setup_time)
+
+    def begin(self) -> None:
+        self._ends_at = time.monotonic() + self.run_time
+
+    def progress(self) -> RunOutcome | None:
+        if time.monotonic() < self._ends_at:
+            return None
+        fails = self.fail_runs is True or (isinstance(self.fail_runs, set) and self.run_no in self.fail_runs)
+        if fails:
+            return RunOutcome(AckCode.RUN_FAIL, {"RESULT": "FAIL", **self.extra}, note="configured to fail")
+        return RunOutcome(AckCode.ACK_OK, {"RESULT": "PASS", "PARTS": "1", **self.extra})
+
+    def abort(self, why: str) -> None:
+        self.log.warning("run %d abandoned: %s", self.run_no, why)

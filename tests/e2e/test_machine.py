@@ -1,0 +1,374 @@
+"""The machine interface end to end (issue 4): WC and ME processes on real queues, the real bus, the
+real database, and the servers they talk to (CAS, ERS, MS, MSCHED).
+
+Every test drives the WC through its own conversations, as a lot entity and the operator do, and
+clears alarms the operator's way (ALARM_CLR_REQ to the Cell Alarm Server).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import time
+from typing import Any
+
+import pytest
+
+from gwc.ipc.bus import BlockingBus, BlockingConversation
+from gwc.ipc.catalogue import Message, message
+from gwc.ipc.codes import AckCode
+from gwc.log import log_file_name
+from tests.harness import CellHarness, wait_for
+
+OK = AckCode.ACK_OK
+T = 20.0  # generous deadlines: the machines are shared
+SERVERS = ("cas", "ers", "ms", "msched")
+CMM = {"id": "cmm_wc", "kind": "cmm", "serial": {"port": "sim", "baudrate": 9600, "timeout": 5.0}}
+
+
+class Ear:
+    """A bus attachment of the test's own that hears broadcasts (RUN_COMPL) as they come."""
+
+    def __init__(self, cell: CellHarness, *classes: str) -> None:
+        self.bus = BlockingBus(f"ear.{cell.tag}", cell.cfg.bus, cell.log, classes)
+        self.heard: list[Message] = []
+
+    def wait(self, what: str, match: Any, timeout: float = T) -> Message:
+        deadline = time.monotonic() + timeout
+        while True:
+            for m in self.heard:
+                if match(m):
+                    self.heard.remove(m)
+                    return m
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise AssertionError(f"timed out after {timeout:.0f}s waiting for {what} (heard {self.heard})")
+            conv = self.bus.first_message(timeout=min(left, 0.5))
+            if conv is not None:
+                assert conv.first is not None
+                self.heard.extend(conv.first.messages)
+                conv.end()
+
+
+@pytest.fixture
+def machine_cell(make_cell: Any) -> Any:
+    """machine_cell(*machines): servers up, each machine's processes up (machines Shutdown), an Ear."""
+    ears: list[Ear] = []
+
+    def make(*machines: dict[str, Any], prepare: str | None = None) -> tuple[CellHarness, Ear]:
+        cell = make_cell(machines=list(machines))
+        if prepare:  # test data the servers read at their start
+            cell.query(prepare + " returning 1")
+        cell.start_servers(*SERVERS)
+        for m in machines:
+            cell.start_machine_processes(m["id"])
+        ears.append(Ear(cell, "RUN_COMPL"))
+        return cell, ears[-1]
+
+    yield make
+    for e in ears:
+        e.bus.close()
+
+
+def ask(cell: CellHarness, cls: str, msg: Message, to: str) -> Message:
+    conv, batch = cell.bus.request(cls, msg, to=to, timeout=T)
+    conv.end()
+    return batch.first
+
+
+def status(cell: CellHarness, machine: str) -> tuple[Any, ...]:
+    return cell.query("select status, recipe_id, machine_run_id, start_time, end_time from machine_status "
+                      "where machine_id = %s", machine)[0]
+
+
+def accepts(cell: CellHarness, machine: str) -> list[str]:
+    return [r[0] for r in cell.query("select op_type from accept_types where machine_id = %s order by 1", machine)]
+
+
+def pending_alarm(cell: CellHarness, alarm_id: str, machine: str) -> int:
+    rows = wait_for(lambda: cell.query("select alarm_no from alarms where alarm_id = %s and machine_id = %s "
+                                       "and cleared_at is null", alarm_id, machine), T, f"alarm {alarm_id} pending")
+    return int(rows[0][0])
+
+
+def clear(cell: CellHarness, alarm_no: int) -> None:
+    ack = ask(cell, "ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=alarm_no, cleared_by="test operator"),
+              "cas")
+    assert ack.ack_code == OK, ack
+
+
+def me_start(cell: CellHarness, machine: str) -> BlockingConversation:
+    """Open ME_START; the WC acknowledges at once and answers ME_Ready when the machine is up."""
+    conv, batch = cell.bus.request("ME_START", message("Startup_Request", module=f"wc:{machine}"),
+                                   to=f"wc:{machine}", timeout=T)
+    assert batch.first.name == "Startup_Ack"
+    if batch.first.ack_code != OK:
+        conv.end()
+        raise AssertionError(f"ME_START refused: {batch.first}")
+    return conv
+
+
+def ready(conv: BlockingConversation) -> Message:
+    try:
+        return conv.expect("ME_Ready", timeout=T).first
+    finally:
+        conv.end()
+
+
+def start_machine(cell: CellHarness, machine: str, homing: bool) -> None:
+    conv = me_start(cell, machine)
+    if homing:
+        clear(cell, pending_alarm(cell, "HOME_CMM", machine))
+    done = ready(conv)
+    assert done.ack_code == OK, done
+    assert status(cell, machine)[0] == "Idle"
+
+
+def setup_run(cell: CellHarness, machine: str, run_id: int, recipe: str = "dummy_recipe", op: str = "dummy_op",
+              machine_id: str | None = None) -> Message:
+    return ask(cell, "SETUP_RUN", message("Setup_Run", machine_id=machine_id or machine, recipe_id=recipe, op_type=op,
+                                          machine_run_id=run_id, entity_id=1), f"wc:{machine}")
+
+
+def start_run(cell: CellHarness, machine: str, run_id: int) -> Message:
+    return ask(cell, "START_RUN", message("Start_Run", machine_id=machine, machine_run_id=run_id), f"wc:{machine}")
+
+
+def results(cell: CellHarness, machine: str, run_id: int) -> dict[str, str]:
+    return dict(cell.query("select param, value from machine_run_result where machine_id = %s and machine_run_id = %s",
+                           machine, run_id))
+
+
+def story(cell: CellHarness, name: str, *steps: str) -> None:
+    """The log of `name` tells these steps in this order."""
+    text = cell.log_text(name)
+    at = 0
+    for step in steps:
+        found = re.search(step, text[at:])
+        assert found, f"{log_file_name(name)} does not say {step!r} after position {at}"
+        at += found.end()
+
+
+def gwc(cell: CellHarness, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "gwc", *args], env=cell.env(), capture_output=True, text=True,
+                          timeout=timeout)
+
+
+# ----------------------------------------------------------------------------- the happy paths
+
+
+def test_dummy_machine_homes_sets_up_runs_and_stores_its_results(machine_cell: Any) -> None:
+    cell, ear = machine_cell({"id": "wc3", "kind": "dummy", "run_time": 0.3, "homing_alarm": True,
+                              "results": {"DIAMETER": "25.02"}})
+    assert status(cell, "wc3")[0] == "Shutdown"
+    conv = me_start(cell, "wc3")
+    alarm = pending_alarm(cell, "HOME_CMM", "wc3")
+    assert status(cell, "wc3")[0] == "Shutdown"  # the WC holds its startup until the operator clears it
+    clear(cell, alarm)
+    assert ready(conv).ack_code == OK
+    assert status(cell, "wc3")[0] == "Idle"
+    wait_for(lambda: accepts(cell, "wc3") == ["dummy_op", "measure", "mill_chess"], T, "accept types: all")
+
+    assert setup_run(cell, "wc3", 9001).ack_code == OK
+    assert status(cell, "wc3")[:3] == ("Setup", "dummy_recipe", 9001)
+    assert accepts(cell, "wc3") == []  # set up for a run: no other operation (Listing 3)
+    assert start_run(cell, "wc3", 9001).ack_code == OK
+    running = status(cell, "wc3")
+    assert running[0] == "Running" and running[3] is not None  # start time
+
+    done = ear.wait("Run_Complete of run 9001", lambda m: m.machine_run_id == 9001)
+    assert (done.machine_id, done.ack_code) == ("wc3", OK)
+    got = results(cell, "wc3", 9001)  # in the table before Run_Complete was sent
+    assert got["RESULT"] == "PASS" and got["RECIPE"] == "dummy_recipe" and got["DIAMETER"] == "25.02"
+    assert float(got["RUN_TIME"]) >= 0.3
+    wait_for(lambda: status(cell, "wc3")[0] == "Idle", T, "Idle again")
+    assert status(cell, "wc3")[4] is not None  # end time
+    wait_for(lambda: accepts(cell, "wc3") == ["dummy_op", "measure", "mill_chess"], T, "all operations again")
+    assert not list((cell.cfg.results_dir / "wc3").glob("*")), "the results file is removed once loaded"
+
+    story(cell, "wc:wc3", "ME_START to the ME", "the ME raises alarm HOME_CMM", rf"alarm {alarm} cleared",
+          "Shutdown -> Idle", "accepts all its operations", "SETUP_RUN run 9001", "accept types: none",
+          "Idle -> Setup", "set up run 9001", "START_RUN run 9001", "Setup -> Running", "run 9001 started",
+          "9001: 6 results stored", "Running -> Idle", r"run 9001 complete \(ACK_OK\)", "accept types: all")
+    story(cell, "me:wc3", "homing: alarm HOME_CMM", "homing alarm cleared", r"machine ready \(Idle\)",
+          "set up with recipe dummy_recipe", "run 1 started", "run 1 complete: ACK_OK")
+    shown = json.loads(gwc(cell, "machine", "status", "--json").stdout)
+    assert {r["machine_id"]: (r["status"], r["wc"]) for r in shown} == {"wc3": ("Idle", "on bus")}
+
+
+def test_cmm_over_a_pseudo_terminal_measures_a_pass_and_a_fail_part(machine_cell: Any) -> None:
+    cell, ear = machine_cell({**CMM, "sim": {"measure_time": 0.2, "pattern": "PF"}})
+    start_machine(cell, "cmm_wc", homing=True)  # the CMM always asks the operator to push its start button
+    verdicts = []
+    for run_id in (7001, 7002):
+        assert setup_run(cell, "cmm_wc", run_id, "alum_chess_set", "alum_chess").ack_code == OK
+        assert start_run(cell, "cmm_wc", run_id).ack_code == OK
+        done = ear.wait(f"Run_Complete of run {run_id}", lambda m, r=run_id: m.machine_run_id == r)
+        assert done.ack_code == OK  # a FAIL part is a run that worked: the verdict is in the results
+        verdicts.append(results(cell, "cmm_wc", run_id)["RESULT"])
+        wait_for(lambda: status(cell, "cmm_wc")[0] == "Idle", T, "Idle again")
+    assert verdicts == ["PASS", "FAIL"]
+    assert results(cell, "cmm_wc", 7001)["PART"] == "alum_chess_set"
+    story(cell, "cmmsim:cmm_wc", "serial end published", "' DOWNLD !'", "part program alum_chess_set received",
+          "'SETUP RUN !'", "part name: alum_chess_set", "'START RUN !'", "measured: PASS!", "'START RUN !'",
+          "measured: FAIL!")
+    story(cell, "me:cmm_wc", "serial line to the CMM open", "the CMM answered PASS!", "the CMM answered FAIL!")
+
+
+# ----------------------------------------------------------------------------- the refusals
+
+
+def test_requests_out_of_turn_get_the_thesis_answers_and_leave_the_machine_as_it_was(machine_cell: Any) -> None:
+    cell, ear = machine_cell({"id": "wc1", "kind": "dummy", "run_time": 0.2})
+    assert setup_run(cell, "wc1", 1).ack_code == AckCode.NOTNOW  # Shutdown: not started
+    start_machine(cell, "wc1", homing=False)
+    again = cell.bus.request("ME_START", message("Startup_Request", module="wc:wc1"), to="wc:wc1", timeout=T)
+    again[0].end()
+    assert again[1].first.ack_code == AckCode.NOTNOW  # only from Shutdown
+    assert start_run(cell, "wc1", 1).ack_code == AckCode.NOTNOW  # not set up
+    assert setup_run(cell, "wc1", 1, recipe="no_such_recipe").ack_code == AckCode.REC_INVAL
+    assert setup_run(cell, "wc1", 1, op="alum_chess").ack_code == AckCode.REC_INVAL  # not this machine's op type
+    assert setup_run(cell, "wc1", 1, machine_id="wc2").ack_code == AckCode.BAD_MESSAGE
+    assert status(cell, "wc1")[0] == "Idle"
+
+    down = ask(cell, "DNLD_ME", message("Download_Me", machine_id="wc1", recipe_id="dummy_recipe"), "wc:wc1")
+    assert down.ack_code == OK
+    up = ask(cell, "UPLD_ME", message("Upload_Me", machine_id="wc1", recipe_id="dummy_recipe"), "wc:wc1")
+    assert up.ack_code == OK and up.version == 1  # the machine's copy is the approved version itself
+
+    assert setup_run(cell, "wc1", 2).ack_code == OK
+    assert setup_run(cell, "wc1", 3).ack_code == AckCode.NOTNOW  # Idle only
+    assert ask(cell, "UPLD_ME", message("Upload_Me", machine_id="wc1", recipe_id="dummy_recipe"),
+               "wc:wc1").ack_code == AckCode.NOTNOW
+    assert start_run(cell, "wc1", 3).ack_code == AckCode.START_FAIL  # set up for run 2, not 3
+    assert status(cell, "wc1")[:3] == ("Setup", "dummy_recipe", 2)
+    assert start_run(cell, "wc1", 2).ack_code == OK
+    ear.wait("Run_Complete of run 2", lambda m: m.machine_run_id == 2)
+    wait_for(lambda: status(cell, "wc1")[0] == "Idle", T, "Idle again")
+
+
+def test_failed_run_is_reported_run_fail_with_an_alarm_and_the_operator_stops_the_machine(machine_cell: Any) -> None:
+    cell, ear = machine_cell({"id": "wc2", "kind": "dummy", "run_time": 0.1, "fail_runs": [1]})
+    start_machine(cell, "wc2", homing=False)
+    assert setup_run(cell, "wc2", 11).ack_code == OK
+    assert start_run(cell, "wc2", 11).ack_code == OK
+    assert ear.wait("Run_Complete of run 11", lambda m: m.machine_run_id == 11).ack_code == AckCode.RUN_FAIL
+    assert results(cell, "wc2", 11)["RESULT"] == "FAIL"
+    pending_alarm(cell, "RUN_FAIL", "wc2")
+    wait_for(lambda: status(cell, "wc2")[0] == "Idle", T, "Idle again")
+    assert setup_run(cell, "wc2", 12).ack_code == OK
+    assert start_run(cell, "wc2", 12).ack_code == OK
+    assert ear.wait("Run_Complete of run 12", lambda m: m.machine_run_id == 12).ack_code == OK
+
+    # the operator takes the machine out of the cell from the command line
+    wait_for(lambda: status(cell, "wc2")[0] == "Idle", T, "Idle again")
+    stop = gwc(cell, "machine", "stop", "wc2")
+    assert stop.returncode == 0 and "wc:wc2: shut down" in stop.stdout, stop.stderr
+    assert status(cell, "wc2")[0] == "Shutdown" and accepts(cell, "wc2") == []
+    table = gwc(cell, "machine", "status")
+    assert re.search(r"^wc2\s+dummy\s+Shutdown\s", table.stdout, re.M), table.stdout
+    unknown = gwc(cell, "machine", "start", "nope")
+    assert unknown.returncode == 2 and "unknown machine 'nope'" in unknown.stderr, unknown.stderr
+
+
+def test_shutdown_during_setup_and_during_a_run_waits_for_the_run(machine_cell: Any) -> None:
+    cell, ear = machine_cell({"id": "wc4", "kind": "dummy", "run_time": 1.0})
+
+    def shut() -> Message:
+        conv, batch = cell.bus.request("ME_SHUT", message("Shutdown_Request", module="wc:wc4"), to="wc:wc4",
+                                       timeout=T)
+        try:
+            assert batch.first.ack_code == OK, batch.first
+            return conv.expect("ME_Stopped", timeout=T).first
+        finally:
+            conv.end()
+
+    # Running -> Run_Shut -> (run completes) -> Shutdown
+    start_machine(cell, "wc4", homing=False)
+    assert setup_run(cell, "wc4", 21).ack_code == OK
+    assert start_run(cell, "wc4", 21).ack_code == OK
+    stopped = shut()
+    assert "when its run completes" in (stopped.note or "")
+    assert status(cell, "wc4")[0] == "Run_Shut" and accepts(cell, "wc4") == []
+    assert ear.wait("Run_Complete of run 21", lambda m: m.machine_run_id == 21).ack_code == OK
+    wait_for(lambda: status(cell, "wc4")[0] == "Shutdown", T, "Shutdown after the run")
+    assert results(cell, "wc4", 21)["RESULT"] == "PASS"
+    story(cell, "me:wc4", "run 1 complete", "machine shut down")
+
+    # Setup -> Setup_Shut; its run may still start (Run_Shut) and then the machine shuts down
+    start_machine(cell, "wc4", homing=False)
+    assert setup_run(cell, "wc4", 22).ack_code == OK
+    assert "after its run" in (shut().note or "")
+    assert status(cell, "wc4")[0] == "Setup_Shut"
+    assert setup_run(cell, "wc4", 23).ack_code == AckCode.NOTNOW
+    assert start_run(cell, "wc4", 22).ack_code == OK
+    assert status(cell, "wc4")[0] == "Run_Shut"
+    ear.wait("Run_Complete of run 22", lambda m: m.machine_run_id == 22)
+    wait_for(lambda: status(cell, "wc4")[0] == "Shutdown", T, "Shutdown after the run")
+
+
+# ----------------------------------------------------------------------------- death of a half
+
+
+def test_kill_9_of_the_me_during_a_run_is_reported_and_the_pair_rejoins_with_gwc_machine_start(
+        machine_cell: Any) -> None:
+    cell, ear = machine_cell({"id": "wc5", "kind": "dummy", "run_time": 2.0})
+    start_machine(cell, "wc5", homing=False)
+    assert setup_run(cell, "wc5", 31).ack_code == OK
+    assert start_run(cell, "wc5", 31).ack_code == OK
+    killed = time.monotonic()
+    cell.kill("me", "wc5")
+    wait_for(lambda: status(cell, "wc5")[0] == "Shutdown", 10, "the machine to be Shutdown")
+    assert time.monotonic() - killed < 5.0, f"seen after {time.monotonic() - killed:.1f}s"
+    pending_alarm(cell, "ME_DIED", "wc5")
+    assert ear.wait("Run_Complete(Run_Fail) of run 31", lambda m: m.machine_run_id == 31).ack_code == AckCode.RUN_FAIL
+    assert accepts(cell, "wc5") == []
+    story(cell, "wc:wc5", "ME of wc5 is dead", r"alarm \d+ \(ME_DIED\) raised", "Running -> Shutdown",
+          r"run 31 complete \(Run_Fail\)")
+
+    cell.kill("wc", "wc5")  # the pair is restarted; nothing else is
+    cell.start("me", "wc5")
+    cell.start("wc", "wc5", start=False)
+    started = gwc(cell, "machine", "start", "wc5")
+    assert started.returncode == 0, started.stderr + started.stdout
+    assert "wc:wc5: started" in started.stdout
+    assert status(cell, "wc5")[0] == "Idle"
+    assert setup_run(cell, "wc5", 32).ack_code == OK
+    assert start_run(cell, "wc5", 32).ack_code == OK
+    assert ear.wait("Run_Complete of run 32", lambda m: m.machine_run_id == 32).ack_code == OK
+    assert results(cell, "wc5", 32)["RESULT"] == "PASS"
+
+
+def test_kill_9_of_the_wc_during_a_run_the_me_keeps_its_queue_and_the_restarted_wc_resumes(
+        machine_cell: Any) -> None:
+    # A liveness long enough that the Machine Server does not shut the machine down while its WC restarts.
+    cell, ear = machine_cell({"id": "wc6", "kind": "dummy", "run_time": 2.0},
+                             prepare="update me_config set liveness_s = 30 where machine_id = 'wc6'")
+    start_machine(cell, "wc6", homing=False)
+    assert setup_run(cell, "wc6", 41).ack_code == OK
+    assert start_run(cell, "wc6", 41).ack_code == OK
+    cell.kill("wc", "wc6")
+    # The run completes with no WC: the ME's RUN_COMPL waits in the queue.
+    wait_for(lambda: cell.log_has("me:wc6", "run 1 complete"), T, "the ME to finish its run")
+    cell.start("wc", "wc6", start=False)
+    assert ear.wait("Run_Complete of run 41", lambda m: m.machine_run_id == 41).ack_code == OK
+    assert results(cell, "wc6", 41)["RESULT"] == "PASS"
+    wait_for(lambda: status(cell, "wc6")[0] == "Idle", T, "Idle again")
+    story(cell, "wc:wc6", "Running \\(run 41\\): resuming it", "41: 5 results stored")
+    assert setup_run(cell, "wc6", 42).ack_code == OK  # and it serves the cell again
+
+
+# ----------------------------------------------------------------------------- the numbers
+
+
+def test_gwc_bench_mq_reports_the_wc_me_round_trip_beside_the_bare_floor() -> None:
+    done = subprocess.run([sys.executable, "-m", "gwc", "bench", "mq", "-n", "300", "--json"], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    for path in ("bare", "channel", "wc"):
+        assert report[path]["n"] == 300 and 0 < report[path]["median_us"] <= report[path]["p99_us"], report
+    assert report["wc"]["median_us"] > report["bare"]["median_us"]
+    assert report["ratio_median"] > 1

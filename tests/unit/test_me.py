@@ -1,0 +1,276 @@
+"""The machine sides (dummy ME, CMM ME over a pty to the simulator) and the WC's queue end, without the bus.
+
+Each ME runs its real loop in a thread on real queues; the test plays the WC with a Channel.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from gwc.config import Config
+from gwc.errors import ConfigError, LineError, QueueTimeout
+from gwc.ipc.codes import AckCode
+from gwc.ipc.mq import Channel, MeMessage, MessageId, remove_queues
+from gwc.me import make_machine
+from gwc.me.cmm import RecordStream, sim_link
+from gwc.me.machine import MachineSide
+from gwc.me.cmm_sim import CmmSimulator
+from gwc.me.results import read_results, write_results
+from gwc.wc.link import MeDied, MeLink
+from tests.harness import wait_for, write_cell_config
+
+LOG = logging.getLogger("test_me")
+LOG.setLevel(5)
+
+
+class Running:
+    """A started ME (and simulator) in threads, with the WC's end of its queues."""
+
+    def __init__(self, cfg: Config, machine: str) -> None:
+        self.cfg = cfg
+        self.machine = machine
+        self.stop = threading.Event()
+        self.threads: list[threading.Thread] = []
+        self.wc = Channel(cfg.ipc_prefix, machine, "wc", LOG).open()
+        self.seq = 0
+        self.me: MachineSide | None = None
+
+    def run(self, target: Callable[[threading.Event], int]) -> None:
+        t = threading.Thread(target=target, args=(self.stop,), daemon=True)
+        t.start()
+        self.threads.append(t)
+
+    def ask(self, mid: MessageId, timeout: float = 10, **fields: Any) -> MeMessage:
+        self.seq += 1
+        self.wc.send(MeMessage(mid, seq=self.seq, **fields))
+        answer = self.wc.receive(timeout)
+        assert answer.seq == self.seq, answer
+        return answer
+
+    def close(self) -> None:
+        self.stop.set()
+        for t in self.threads:
+            t.join(5)
+        self.wc.close()
+        remove_queues(self.cfg.ipc_prefix, [self.machine])
+
+
+@pytest.fixture
+def machine(tmp_path: Path) -> Iterator[Callable[..., Running]]:
+    made: list[Running] = []
+
+    def make(**options: Any) -> Running:
+        spec = {"id": f"m{uuid.uuid4().hex[:6]}", **options}
+        cfg = write_cell_config(tmp_path / f"var{len(made)}", None, machines=[spec])
+        r = Running(cfg, spec["id"])
+        made.append(r)
+        if spec.get("kind") == "cmm":
+            r.run(CmmSimulator(cfg, cfg.machine(r.machine), LOG).serve)
+            wait_for(lambda: sim_link(cfg, r.machine).exists(), 10, "the simulator's pty link")
+        r.me = make_machine(cfg, r.machine, LOG)
+        r.run(r.me.serve)
+        return r
+
+    yield make
+    for r in made:
+        r.close()
+
+
+def recipe(tmp_path: Path, text: str = "# recipe\nRUN\n") -> str:
+    path = tmp_path / "recipe.v1"
+    path.write_text(text)
+    return str(path)
+
+
+def start_and_setup(m: Running, tmp_path: Path) -> None:
+    assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
+    assert m.ask(MessageId.SETUP_RUN, file_name=recipe(tmp_path), recipe_id="dummy_recipe").ack_code == AckCode.ACK_OK
+
+
+# ----------------------------------------------------------------------------- dummy ME
+
+
+def test_dummy_runs_a_recipe_and_reports_results(machine, tmp_path: Path) -> None:
+    m = machine(kind="dummy", run_time=0.2, results={"DIAMETER": "25.02"})
+    start_and_setup(m, tmp_path)
+    out = tmp_path / "results" / "run-1.txt"
+    assert m.ask(MessageId.START_RUN, file_name=str(out), recipe_id="dummy_recipe").ack_code == AckCode.ACK_OK
+    pings = 0
+    while True:  # the ME answers pings while its run goes on
+        m.seq += 1
+        m.wc.send(MeMessage(MessageId.NO_MESSAGE, seq=m.seq))
+        msg = m.wc.receive(5)
+        if msg.message_id == MessageId.RUN_COMPL:
+            break
+        assert (msg.message_id, msg.ack_code) == (MessageId.NO_MESSAGE, AckCode.ACK_OK)
+        pings += 1
+        time.sleep(0.02)
+    assert pings >= 3
+    assert msg.ack_code == AckCode.ACK_OK and msg.file_name == str(out)
+    results = read_results(out)
+    assert results["RESULT"] == "PASS" and results["RECIPE"] == "dummy_recipe" and results["DIAMETER"] == "25.02"
+    assert float(results["RUN_TIME"]) >= 0.2
+
+
+def test_dummy_homing_alarm_holds_the_start_until_cleared(machine) -> None:
+    m = machine(kind="dummy", homing_alarm=True)
+    m.wc.send(MeMessage(MessageId.ME_START, seq=41))
+    alarm = m.wc.receive(5)
+    assert (alarm.message_id, alarm.alarm_text) == (MessageId.CELL_ALAR, "HOME_CMM")
+    with pytest.raises(QueueTimeout):
+        m.wc.receive(0.3)  # nothing until the operator has cleared the alarm
+    m.wc.send(MeMessage(MessageId.ME_START_WAIT, ack_code=AckCode.ACK_OK, alarm_text="HOME_CMM"))
+    ready = m.wc.receive(5)
+    assert (ready.message_id, ready.seq, ready.ack_code) == (MessageId.ME_START, 41, AckCode.ACK_OK)
+
+
+def test_dummy_refuses_what_its_state_does_not_allow(machine, tmp_path: Path) -> None:
+    m = machine(kind="dummy")
+    assert m.ask(MessageId.NO_MESSAGE).ack_code == AckCode.NOTNOW  # shut down: a WC learns the ME restarted
+    assert m.ask(MessageId.SETUP_RUN, file_name=recipe(tmp_path), recipe_id="r").ack_code == AckCode.NOTNOW
+    assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
+    assert m.ask(MessageId.NO_MESSAGE).ack_code == AckCode.ACK_OK
+    assert m.ask(MessageId.START_RUN, file_name="/tmp/x").ack_code == AckCode.NOTNOW  # not set up
+    missing = m.ask(MessageId.SETUP_RUN, file_name=str(tmp_path / "nope"), recipe_id="r")
+    assert missing.ack_code == AckCode.REC_INVAL and missing.alarm_text.startswith("recipe file")
+    bad = m.ask(MessageId.RUN_COMPL)
+    assert bad.ack_code == AckCode.BAD_MESSAGE
+    shut = m.ask(MessageId.ME_SHUT)
+    assert (shut.message_id, shut.ack_code) == (MessageId.ME_SHUT_C, AckCode.ACK_OK)
+
+
+def test_dummy_configured_to_fail_a_run_and_to_fail_homing(machine, tmp_path: Path) -> None:
+    m = machine(kind="dummy", run_time=0.0, fail_runs=[2])
+    start_and_setup(m, tmp_path)
+    codes = []
+    for n in (1, 2, 3):
+        assert m.ask(MessageId.START_RUN, file_name=str(tmp_path / f"r{n}")).ack_code == AckCode.ACK_OK
+        done = m.wc.receive(5)
+        codes.append((done.message_id, done.ack_code, read_results(done.file_name)["RESULT"]))
+        m.ask(MessageId.SETUP_RUN, file_name=recipe(tmp_path), recipe_id="dummy_recipe")
+    assert codes == [(MessageId.RUN_COMPL, AckCode.ACK_OK, "PASS"), (MessageId.RUN_COMPL, AckCode.RUN_FAIL, "FAIL"),
+                     (MessageId.RUN_COMPL, AckCode.ACK_OK, "PASS")]
+    f = machine(kind="dummy", fail_start=True)
+    assert f.ask(MessageId.ME_START).ack_code == AckCode.START_FAIL
+
+
+def test_dummy_keeps_answers_while_the_wc_is_away(machine, tmp_path: Path) -> None:
+    m = machine(kind="dummy", run_time=0.0)
+    start_and_setup(m, tmp_path)
+    for i in range(9):  # fill the WC's queue but one slot
+        m.wc.send(MeMessage(MessageId.NO_MESSAGE, seq=1000 + i))
+    wait_for(lambda: m.wc.pending()[1] == 9, 5, "nine ping answers queued")
+    m.wc.send(MeMessage(MessageId.START_RUN, seq=2000, file_name=str(tmp_path / "r")))
+    assert m.me is not None
+    wait_for(lambda: m.me.waiting == 1, 5, "RUN_COMPL kept in the ME's outbox (START_RUN's answer took the last slot)")
+    got = [m.wc.receive(5) for _ in range(11)]
+    assert got[-2].seq == 2000 and got[-1].message_id == MessageId.RUN_COMPL
+
+
+def test_bad_options_are_a_config_error(tmp_path: Path) -> None:
+    cfg = write_cell_config(tmp_path, None, machines=[{"id": "x", "kind": "dummy", "run_time": "slow"}])
+    with pytest.raises(ConfigError, match="run_time"):
+        make_machine(cfg, "x", LOG)
+
+
+# ----------------------------------------------------------------------------- CMM over a pty
+
+
+CMM = {"kind": "cmm", "homing_alarm": False, "serial": {"port": "sim", "baudrate": 9600, "timeout": 5.0}}
+
+
+def test_cmm_measures_parts_pass_and_fail_over_the_pty(machine, tmp_path: Path) -> None:
+    m = machine(**CMM, sim={"measure_time": 0.1, "pattern": "PF"})
+    assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
+    verdicts = []
+    for n in (1, 2):
+        assert m.ask(MessageId.SETUP_RUN, file_name=recipe(tmp_path, "PART alum\n"),
+                     recipe_id="alum_chess_set").ack_code == AckCode.ACK_OK
+        out = tmp_path / f"cmm-{n}.txt"
+        assert m.ask(MessageId.START_RUN, file_name=str(out)).ack_code == AckCode.ACK_OK
+        done = m.wc.receive(5)
+        assert (done.message_id, done.ack_code) == (MessageId.RUN_COMPL, AckCode.ACK_OK)
+        verdicts.append(read_results(out)["RESULT"])
+    assert verdicts == ["PASS", "FAIL"]
+
+
+def test_cmm_download_then_upload_round_trips_the_program(machine, tmp_path: Path) -> None:
+    m = machine(**CMM, sim={"measure_time": 0.0})
+    assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
+    text = "PART king\nMEASURE all!\n" * 50  # '!' inside a program is payload, not a record end
+    assert m.ask(MessageId.DNLD_ME, file_name=recipe(tmp_path, text), recipe_id="king").ack_code == AckCode.ACK_OK
+    up = m.ask(MessageId.UPLD_ME, recipe_id="king")
+    assert up.ack_code == AckCode.ACK_OK and Path(up.file_name).read_text() == text
+    assert m.ask(MessageId.UPLD_ME, recipe_id="queen").ack_code == AckCode.REC_INVAL
+
+
+def test_cmm_without_its_simulator_fails_to_start(tmp_path: Path) -> None:
+    cfg = write_cell_config(tmp_path, None, machines=[{"id": "c", **CMM, "serial": {"port": "sim", "timeout": 0.3}}])
+    r = Running(cfg, "c")
+    try:
+        r.run(make_machine(cfg, "c", LOG).serve)
+        answer = r.ask(MessageId.ME_START)
+        assert answer.ack_code == AckCode.START_FAIL and "simulator" in answer.alarm_text
+    finally:
+        r.close()
+
+
+def test_record_stream_refuses_garbage() -> None:
+    chunks = [b"x" * 200]
+    stream = RecordStream(lambda t: chunks.pop() if chunks else b"", lambda b: None, "test line")
+    with pytest.raises(LineError, match="without '!'"):
+        stream.read_record(0.1)
+    with pytest.raises(LineError, match="within"):
+        stream.read_record(0.05)
+
+
+# ----------------------------------------------------------------------------- results file
+
+
+def test_results_file_round_trip_and_errors(tmp_path: Path) -> None:
+    path = write_results(tmp_path / "r.txt", {"A": "1", "NOTE": "two words"})
+    assert read_results(path) == {"A": "1", "NOTE": "two words"}
+    (tmp_path / "bad").write_text("A 1\nB\n")
+    with pytest.raises(ValueError, match="line 2"):
+        read_results(tmp_path / "bad")
+    (tmp_path / "dup").write_text("A 1\n# c\n\nA 2\n")
+    with pytest.raises(ValueError, match="twice"):
+        read_results(tmp_path / "dup")
+    with pytest.raises(ValueError):
+        write_results(tmp_path / "x", {"TWO WORDS": "1"})
+
+
+# ----------------------------------------------------------------------------- the WC's end
+
+
+def test_link_matches_answers_by_seq_and_declares_a_silent_me_dead(machine) -> None:
+    m = machine(kind="dummy")
+    m.wc.close()
+    unsolicited: list[MeMessage] = []
+
+    async def scenario() -> None:
+        link = MeLink(Channel(m.cfg.ipc_prefix, m.machine, "wc", LOG), LOG, unsolicited.append)
+        link.start(asyncio.get_running_loop())
+        try:
+            assert (await link.request(MeMessage(MessageId.ME_START), 5)).ack_code == AckCode.ACK_OK
+            answers = await asyncio.gather(*(link.request(MeMessage(MessageId.NO_MESSAGE), 5) for _ in range(5)))
+            assert len({a.seq for a in answers}) == 5
+            m.stop.set()  # the ME stops answering
+            for t in m.threads:
+                t.join(5)
+            with pytest.raises(MeDied, match="within 0.3s"):
+                await link.request(MeMessage(MessageId.NO_MESSAGE), 0.3)
+        finally:
+            link.stop()
+
+    asyncio.run(scenario())
+    assert unsolicited == []
