@@ -41,6 +41,7 @@ class Proc:
 
     kind: str
     machine: str | None = None
+    command: tuple[str, ...] = ()  # a process that is not a `gwc run` module (a lot script)
 
     @property
     def name(self) -> str:
@@ -48,6 +49,8 @@ class Proc:
 
     @property
     def argv(self) -> list[str]:
+        if self.command:
+            return list(self.command)
         args = [sys.executable, "-m", "gwc", "run", self.kind]
         return args + (["--machine", self.machine] if self.machine else [])
 
@@ -261,6 +264,18 @@ def clean_machine_state(cfg: Config, machine_ids: list[str]) -> list[str]:
 
 
 def stop_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = print, database: bool = True) -> None:
+    # Lot scripts first, while the servers they clean up through (ls, msched) still run; all told at
+    # once, so they clean up side by side.
+    lots = [p.stem.replace("-", ":", 1) for p in sorted(cfg.run_dir.glob("lot-*.pid"))] if cfg.run_dir.exists() else []
+    for name in lots:
+        st = read_pid(cfg, name)
+        if st.alive and st.pid is not None:
+            try:
+                os.killpg(st.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+    for name in lots:
+        say(f"{name}: {stop_proc(cfg, name)}")
     for proc in reversed(cell_procs(cfg)):
         what = stop_proc(cfg, proc.name)
         if what != "not running":

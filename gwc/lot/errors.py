@@ -1,0 +1,39 @@
+"""Why a lot script stops: each failure of an operation entity, as one exception with a clear message.
+
+All of them are GwcErrors, so `python -m gwc.lot.run` turns them into one log line, the entity's
+failure reason, and a non-zero exit code.
+"""
+
+from __future__ import annotations
+
+from gwc.errors import GwcError
+
+
+class LotError(GwcError):
+    """An operation entity could not go on: the message says which step and why."""
+
+    exit_code = 7
+
+
+class LotTimeout(LotError, TimeoutError):
+    """A step of the lot did not finish within its deadline (thesis 3.2.3)."""
+
+
+class RequestRefused(LotError):
+    """MSCHED could not give the machines asked for (NO_MACHINE), on every try."""
+
+
+class RequestCancelled(LotError):
+    """A machine request of the entity was cancelled (REQ_CANCEL), e.g. by the operator (Listing 8)."""
+
+
+class MachineLost(LotError):
+    """A machine reserved by the entity shut down (or its WC went silent) before the run completed."""
+
+
+class RunFailed(LotError):
+    """A machine refused to set up or start a run."""
+
+
+class ScriptStopped(LotError):
+    """The lot script was asked to stop (SIGTERM, e.g. by `gwc stop`)."""

@@ -1,0 +1,126 @@
+"""`python -m gwc.lot.run --entity E`: the process of one operation entity (thesis 6.1).
+
+The Human Interface starts one of these, detached, for every entity of an order (the thesis's HI
+used fork/exec). It finds the entity's lot script through LOTS / PRODUCTS -> LOT_SCRIPTS.path,
+loads it, and calls its `main(entity)` inside an OperationEntity, so whatever goes wrong in the
+script (an exception, a timeout, SIGTERM from `gwc stop`) ends with the entity's requests
+cancelled, its machines unreserved and the entity marked failed with the reason. Exit code 0 when
+the script finished its lot, non-zero otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib.util
+import json
+import os
+import signal
+import sys
+from pathlib import Path
+from types import FrameType, ModuleType
+
+from gwc import db
+from gwc.cell import Proc, pid_file, spawn
+from gwc.config import PROJECT_ROOT, Config, load_config
+from gwc.errors import GwcError
+from gwc.lot.entity import OperationEntity
+from gwc.lot.errors import LotError, ScriptStopped
+from gwc.log import open_log
+
+
+def script_of(cfg: Config, entity_id: int) -> tuple[str, Path]:
+    """The entity's lot script: (script_id, path), the lot's own script or else its product's."""
+    with db.connect(cfg, role="lot") as conn:
+        row = conn.execute(
+            "SELECT coalesce(l.script_id, p.script_id), ls.path FROM lot_status s JOIN lots l USING (lot_id) "
+            "LEFT JOIN products p ON p.product_id = l.product_id "
+            "LEFT JOIN lot_scripts ls ON ls.script_id = coalesce(l.script_id, p.script_id) "
+            "WHERE s.entity_id = %s", (entity_id,)).fetchone()
+    if row is None:
+        raise LotError(f"unknown lot entity {entity_id}")
+    if row[0] is None or row[1] is None:
+        raise LotError(f"entity {entity_id}: its lot and product name no lot script (register one with "
+                       f"`gwc script register`)")
+    return str(row[0]), resolve_path(str(row[1]))
+
+
+def resolve_path(path: str) -> Path:
+    """LOT_SCRIPTS.path: absolute, or relative to the project (the shipped scripts)."""
+    p = Path(path)
+    return p if p.is_absolute() else PROJECT_ROOT / p
+
+
+def load_script(path: Path) -> ModuleType:
+    """Import a lot script file and check it has `main(entity)`."""
+    if not path.is_file():
+        raise LotError(f"lot script {path} does not exist")
+    spec = importlib.util.spec_from_file_location(f"gwc_lot_script_{path.stem}", path)
+    if spec is None or spec.loader is None:
+        raise LotError(f"cannot load lot script {path}")
+    module = importlib.util.module_from_spec(spec)
+    try:
+        spec.loader.exec_module(module)
+    except Exception as e:
+        raise LotError(f"lot script {path} failed to load: {type(e).__name__}: {e}") from e
+    if not callable(getattr(module, "main", None)):
+        raise LotError(f"lot script {path} has no main(entity) function")
+    return module
+
+
+def spawn_lot_script(cfg: Config, entity_id: int) -> int:
+    """Start the entity's lot script process, detached, with a pid file (so `gwc stop` stops it too)."""
+    argv = (sys.executable, "-m", "gwc.lot.run", "--entity", str(entity_id))
+    return spawn(cfg, Proc("lot", str(entity_id), command=argv))
+
+
+def _stop(signum: int, frame: FrameType | None) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one is enough: clean up undisturbed
+    raise ScriptStopped(f"stopped by signal {signal.Signals(signum).name}")
+
+
+def run_entity(cfg: Config, entity_id: int) -> int:
+    """Run entity E's lot script to its end; the process's exit code."""
+    log = open_log(f"lot:{entity_id}", cfg.log_dir, cfg.level_of(f"lot:{entity_id}"))
+    log.info("lot script process for entity %d starting (pid %d)", entity_id, os.getpid())
+    signal.signal(signal.SIGTERM, _stop)
+    try:
+        with OperationEntity(cfg, entity_id, log) as entity:
+            script_id, path = script_of(cfg, entity_id)
+            log.info("running lot script %s (%s)", script_id, path)
+            entity.traveller.update(script_id=script_id)
+            load_script(path).main(entity)
+    except GwcError as e:
+        log.error("lot script of entity %d ended: %s", entity_id, e)
+        return e.exit_code
+    except Exception:
+        log.exception("lot script of entity %d crashed", entity_id)
+        return 1
+    finally:
+        _forget_pid_file(cfg, entity_id)
+    log.info("lot script of entity %d finished", entity_id)
+    return 0
+
+
+def _forget_pid_file(cfg: Config, entity_id: int) -> None:
+    """The process is ending: its pid file (written by whoever spawned it) goes with it."""
+    path = pid_file(cfg, f"lot:{entity_id}")
+    with contextlib.suppress(OSError, ValueError, KeyError):
+        if json.loads(path.read_text())["pid"] == os.getpid():
+            path.unlink()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m gwc.lot.run", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--entity", type=int, required=True, help="the operation entity (LOT_STATUS.entity_id)")
+    args = parser.parse_args(argv)
+    try:
+        cfg = load_config()
+    except GwcError as e:
+        print(f"gwc.lot.run: {e}", file=sys.stderr)
+        return e.exit_code
+    return run_entity(cfg, args.entity)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

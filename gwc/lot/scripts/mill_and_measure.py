@@ -1,0 +1,43 @@
+"""Mill a pawn, then measure it; re-mill a part out of tolerance, scrap it after too many tries.
+
+Thesis 1.3's plan for the NJIT cell: "the Mazak will mill chess pieces and the CMM will measure
+them to see if the pieces are within an acceptable tolerance. If not, they will either be sent back
+to be re-milled or discarded as scrap." Two operations, each on any machine qualified for it that
+is up (alternatives: the Mazak, or another mill): if a mill shuts down while the lot waits, MSCHED
+serves it from the other alternative; if it shuts down mid-run, the step is asked again. The
+tolerance decision is made from the measuring run's MACHINE_RUN_RESULT (thesis 3.2.3).
+"""
+
+from __future__ import annotations
+
+from gwc.lot import OperationEntity, verdict
+
+MILL = "mill_chess"
+MEASURE = "alum_chess"
+MAX_MILLS = 3  # the first milling and up to two re-millings; then the part is scrap
+
+
+def main(entity: OperationEntity) -> None:
+    entity.wait_for_import()
+    result = ""
+    for attempt in range(1, MAX_MILLS + 1):
+        mill = entity.operate(MILL)
+        if not mill.ok:
+            entity.log.warning("milling run %d on %s failed: milling again", mill.machine_run_id, mill.machines[0])
+            result = f"milling failed on {mill.machines[0]}"
+            continue
+        measure = entity.operate(MEASURE)
+        ok, why = verdict(measure.results) if measure.ok else (False, "measuring run failed")
+        entity.log.info("mill %d on %s (run %d), measured on %s (run %d): %s", attempt, mill.machines[0],
+                        mill.machine_run_id, measure.machines[0], measure.machine_run_id, why)
+        if ok:
+            result = f"PASS after {attempt} milling(s): milled on {mill.machines[0]}, {why}"
+            break
+        result = f"{why} after milling {attempt} on {mill.machines[0]}"
+        if attempt < MAX_MILLS:
+            entity.log.warning("part out of tolerance: re-milling (%d of %d)", attempt + 1, MAX_MILLS)
+    else:
+        result = f"SCRAP: {result}"
+        entity.log.warning("part scrapped: %s", result)
+    entity.lot_completed(result)
+    entity.wait_for_export()

@@ -1,0 +1,135 @@
+"""Lots end to end, everything real: work order -> lot scripts -> MSCHED -> WC/ME -> results -> export.
+
+Each test runs a private cell (tests/harness.py) with every server, and drives it as the operator
+does, through `gwc` commands; the lot scripts are the processes `gwc order new` starts.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from typing import Any
+
+from tests.e2e.lotkit import (cell_with_machines, gwc, holdings, import_export_all, lot_cell, lot_log, ok, order,
+                              script_pid, state, steps, wait_state)  # noqa: F401 (lot_cell is a fixture)
+from tests.harness import CellHarness, wait_for
+
+CMM = {"id": "cmm_wc", "kind": "cmm", "serial": {"port": "sim", "baudrate": 9600, "timeout": 5.0}}
+
+
+def test_chess_order_goes_from_work_order_to_exported_lots_in_fifo_order(lot_cell: Any) -> None:
+    cell = cell_with_machines(lot_cell(machines=[{**CMM, "sim": {"measure_time": 0.4, "pattern": "P"}}]), "cmm_wc")
+    entities = order(cell, "alum_chess_set=3")
+    assert len(entities) == 3
+    for e in entities:
+        wait_state(cell, e, "waiting_import")
+    listing = {r["entity"]: r for r in json.loads(ok(gwc(cell, "lots", "--json")))}
+    assert {listing[e]["state"] for e in entities} == {"waiting_import"}
+    assert all(listing[e]["script"].isdigit() for e in entities), listing  # each script's process is alive
+
+    # Import in reverse entity order, each after the previous has asked for the CMM: FIFO serves the
+    # requests in the order they came, whatever the entity ids.
+    first, second, third = reversed(entities)
+    ok(gwc(cell, "import", str(first)))
+    wait_state(cell, first, "running", "completed", "waiting_export")
+    ok(gwc(cell, "import", str(second)))
+    served = ("running", "completed", "waiting_export")
+    wait_for(lambda: sum(holdings(cell, second)) or state(cell, second)[0] in served, 15,
+             "the second lot's request to be queued (or served)")
+    ok(gwc(cell, "import", str(third)))
+    import_export_all(cell, entities)
+
+    runs = {e: [s["machine_run_id"] for s in steps(cell, e)] for e in entities}
+    assert all(len(r) == 1 for r in runs.values()), runs
+    assert runs[first][0] < runs[second][0] < runs[third][0], f"not FIFO: {runs}"
+    for e in entities:
+        st, reason = state(cell, e)
+        assert st == "exported" and reason.startswith("PASS"), (e, st, reason)
+        assert holdings(cell, e) == (0, 0)
+        log = lot_log(cell, e)
+        for told in ("attached", "imported", "got machine_run_id", "run", "complete", "unreserved", "exported"):
+            assert told in log, f"lot:{e} log does not tell '{told}'"
+    results = cell.query("SELECT machine_run_id, param, value FROM machine_run_result WHERE machine_id = 'cmm_wc' "
+                         "AND param = 'RESULT' ORDER BY 1")
+    assert [(r[0], r[2]) for r in results] == [(runs[e][0], "PASS") for e in (first, second, third)]
+    # every module tells its part
+    assert "MACH_REQ" in cell.log_text("msched")
+    assert re.search(r"run \d+ complete", cell.log_text("wc:cmm_wc"))
+    assert "exported" in cell.log_text("ls") and "lot script attached" in cell.log_text("ls")
+    assert "work order" in cell.log_text("hi")
+    orders = json.loads(ok(gwc(cell, "order", "list", "--json")))
+    assert orders[-1]["status"] == "DONE" and orders[-1]["items"] == "3 x alum_chess_set"
+    shown = ok(gwc(cell, "lots", str(first)))
+    assert "alum_chess" in shown and "RESULT=PASS" in shown
+
+
+def _first_on_the_cmm(cell: CellHarness) -> list[int]:
+    """Order two chess sets and import the first: once the CMM measures it, return both."""
+    entities = order(cell, "alum_chess_set=2")
+    for e in entities:
+        wait_state(cell, e, "waiting_import")
+    ok(gwc(cell, "import", str(entities[0])))
+    wait_for(lambda: cell.query("SELECT status FROM machine_status WHERE machine_id = 'cmm_wc'")[0][0] == "Running",
+             20, "the CMM to run the first lot")
+    return entities
+
+
+def test_lot_script_killed_mid_run_leaves_its_machine_free_and_its_entity_failed(lot_cell: Any) -> None:
+    cell = cell_with_machines(lot_cell(machines=[{**CMM, "sim": {"measure_time": 2.0, "pattern": "P"}}]), "cmm_wc")
+    killed, other = _first_on_the_cmm(cell)
+    pid = script_pid(cell, killed)
+    assert pid
+    os.kill(pid, signal.SIGKILL)
+    t0 = time.monotonic()
+    wait_for(lambda: state(cell, killed)[0] == "failed" and holdings(cell, killed) == (0, 0), 10,
+             "the killed lot's entity failed and its machine unreserved")
+    assert time.monotonic() - t0 < 10
+    assert "died" in (state(cell, killed)[1] or "")
+    import_export_all(cell, [other])  # the CMM serves the next lot as if nothing happened
+    assert state(cell, other)[1].startswith("PASS")
+    check = gwc(cell, "check", "--no-bus")
+    assert check.returncode == 0, check.stdout + check.stderr
+
+
+def test_request_cancelled_from_the_human_interface_reaches_the_lot_as_req_cancel(lot_cell: Any) -> None:
+    cell = cell_with_machines(lot_cell(machines=[{**CMM, "sim": {"measure_time": 4.0, "pattern": "P"}}]), "cmm_wc")
+    first, cancelled = _first_on_the_cmm(cell)
+    ok(gwc(cell, "import", str(cancelled)))
+    wait_for(lambda: holdings(cell, cancelled)[0], 15, "the second lot's request to be queued")
+    key = cell.query("SELECT request_key FROM request_machines WHERE entity_id = %s", cancelled)[0][0]
+    listed = json.loads(ok(gwc(cell, "requests", "--json")))  # Listing 8's screen lists it ...
+    queue = listed[0]["requests"] if isinstance(listed, list) and listed and "requests" in listed[0] else listed
+    assert any(r.get("request_key") == key for r in queue), listed
+    ok(gwc(cell, "cancel", str(key)))  # ... and its Do It cancels it
+    wait_state(cell, cancelled, "failed")
+    assert "REQ_CANCEL" in lot_log(cell, cancelled)
+    assert "REQ_CANCEL" in (state(cell, cancelled)[1] or "")
+    assert holdings(cell, cancelled) == (0, 0)
+    assert steps(cell, cancelled) == []
+    import_export_all(cell, [first])
+
+
+def test_bad_arguments_give_one_clear_line(lot_cell: Any) -> None:
+    cell = lot_cell(machines=[])
+    cell.start_servers("ls")
+    cases = ((("import", "99999"), "unknown lot entity 99999"),
+             (("export", "99999"), "unknown lot entity 99999"),
+             (("lots", "99999"), "unknown lot entity 99999"),
+             (("order", "show", "4242"), "unknown work order 4242"),
+             (("order", "new", "--customer", "NJIT", "no_such_product=1"), "unknown product"),
+             (("order", "new", "--customer", "NOBODY", "alum_chess_set=1"), "unknown customer"),
+             (("order", "new", "--customer", "NJIT", "alum_chess_set=x"), "bad order item"),
+             (("script", "register", "s", "/no/such/file.py"), "does not exist"))
+    procs = [subprocess.Popen([sys.executable, "-m", "gwc", *args], env=cell.env(), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for args, _ in cases]  # at once: it is quicker
+    for (args, says), proc in zip(cases, procs):
+        out, err = proc.communicate(timeout=60)
+        lines = err.strip().splitlines()
+        assert proc.returncode != 0, args
+        assert len(lines) == 1 and lines[0].startswith("gwc: ") and says in lines[0], (args, err)
+        assert "Traceback" not in err + out
