@@ -165,6 +165,36 @@ create table if not exists reserved_machines (
     reserved_at    timestamptz not null default now()
 );
 create index if not exists reserved_machines_entity on reserved_machines (entity_id);
+-- MSCHED finds a repeated Machine_Request (a step retried after a lost commit) by its conversation,
+-- and walks the requests of a freed machine oldest first (the FIFO scheduling pass).
+create index if not exists request_machines_conv on request_machines (reply_conv);
+create index if not exists request_machines_machine_seq on request_machines (machine_id, seq);
+-- Every row carries its request's 'machine:op_type' pairs, so the scheduling pass tells whether a
+-- request can be bound from one row (slots <@ the free, accepting pairs) instead of joining its rows.
+alter table request_machines add column if not exists slots text[];
+update request_machines q set slots = (select array_agg(u.machine_id || ':' || u.op_type order by u.seq)
+                                       from request_machines u where u.request_key = q.request_key)
+    where q.slots is null;
+
+-- MSCHED's decided requests whose Machine_Req_Comp the entity has not acknowledged yet. A request
+-- leaves request_machines in the transaction that writes its row here, so after a crash MSCHED
+-- resends exactly these answers and never decides a request twice. held: NO_MACHINE (a machine of
+-- the request shut down) not told yet, because the entity still has a live alternative queued.
+create table if not exists request_outcomes (
+    request_key    bigint primary key,
+    entity_id      bigint not null,
+    op_type        text not null,
+    machines       text[] not null,
+    ack_code       text not null check (ack_code in ('ACK_OK', 'NO_MACHINE', 'REQ_CANCEL')),
+    machine_run_id bigint,
+    note           text,
+    held           boolean not null default false check (not held or ack_code = 'NO_MACHINE'),
+    reply_to       text,
+    reply_conv     text,
+    decided_at     timestamptz not null default clock_timestamp(),
+    check ((ack_code = 'ACK_OK') = (machine_run_id is not null))
+);
+create index if not exists request_outcomes_entity on request_outcomes (entity_id);
 
 create table if not exists machine_run_result (
     machine_run_id bigint not null,
