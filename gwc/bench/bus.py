@@ -70,12 +70,20 @@ def _serve_bare(cfg: BusConfig) -> None:
             return
 
 
-class _Datagrams(asyncio.DatagramProtocol):
-    def __init__(self, on_datagram: Any) -> None:
-        self.on_datagram = on_datagram
+def _reader(sock: socket.socket, on_datagram: Any) -> Any:
+    """A loop.add_reader callback handing each datagram to on_datagram: the way the bus reads its socket
+    (asyncio's datagram transport allocates 256 KiB per datagram, which the bus does not pay either)."""
+    buf = bytearray(2048)
 
-    def datagram_received(self, data: bytes, addr: Any) -> None:
-        self.on_datagram(data)
+    def readable() -> None:
+        while True:
+            try:
+                n = sock.recv_into(buf)
+            except (BlockingIOError, InterruptedError):
+                return
+            on_datagram(bytes(buf[:n]))
+
+    return readable
 
 
 async def _serve_asyncio(cfg: BusConfig) -> None:
@@ -83,18 +91,20 @@ async def _serve_asyncio(cfg: BusConfig) -> None:
     loop = asyncio.get_running_loop()
     done = loop.create_future()
     dest = (cfg.group, cfg.port)
+    sock = open_socket(cfg)
 
     def on_datagram(data: bytes) -> None:
         if data[:1] == b"Q":
-            transport.sendto(b"R" + data[1:], dest)
+            sock.sendto(b"R" + data[1:], dest)
         elif data[:1] == b"X" and not done.done():
             done.set_result(None)
 
-    transport, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(on_datagram), sock=open_socket(cfg))
+    loop.add_reader(sock.fileno(), _reader(sock, on_datagram))
     try:
         await done
     finally:
-        transport.close()
+        loop.remove_reader(sock.fileno())
+        sock.close()
 
 
 # ----------------------------------------------------------------------------- clients
@@ -154,12 +164,17 @@ class _BareClient:
         self.sock.close()
 
 
+def _expire(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_exception(asyncio.TimeoutError())
+
+
 class _AsyncioClient:
     def __init__(self, cfg: BusConfig) -> None:
         self.cfg = cfg
         self.dest = (cfg.group, cfg.port)
         self.waiting: dict[int, asyncio.Future[None]] = {}
-        self.transport: asyncio.DatagramTransport | None = None
+        self.sock: socket.socket | None = None
 
     def _on_datagram(self, data: bytes) -> None:
         if data[:1] == b"R":
@@ -168,9 +183,8 @@ class _AsyncioClient:
                 fut.set_result(None)
 
     async def ready(self) -> None:
-        loop = asyncio.get_running_loop()
-        self.transport, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self._on_datagram),
-                                                                sock=open_socket(self.cfg))
+        self.sock = open_socket(self.cfg)
+        asyncio.get_running_loop().add_reader(self.sock.fileno(), _reader(self.sock, self._on_datagram))
         deadline = time.monotonic() + 20
         while True:
             try:
@@ -181,21 +195,28 @@ class _AsyncioClient:
                     raise GwcError("asyncio bench server did not answer within 20s") from None
 
     async def ping(self, i: int, timeout: float = 2.0) -> None:
-        fut = self.waiting[i] = asyncio.get_running_loop().create_future()
-        assert self.transport is not None
-        self.transport.sendto(b"Q\0\0\0\0" + i.to_bytes(8, "big"), self.dest)
-        await asyncio.wait_for(fut, timeout)
+        loop = asyncio.get_running_loop()
+        fut = self.waiting[i] = loop.create_future()
+        assert self.sock is not None
+        self.sock.sendto(b"Q\0\0\0\0" + i.to_bytes(8, "big"), self.dest)
+        timer = loop.call_later(timeout, _expire, fut)  # one timer, as the bus has for its waits: no wait_for task
+        try:
+            await fut
+        finally:
+            timer.cancel()
+            self.waiting.pop(i, None)
 
     async def rate(self, n: int, window: int) -> float:
         return await _windowed(self.ping, n, window)
 
     async def stop(self) -> None:
-        if self.transport is not None:
-            self.transport.sendto(b"X", self.dest)
+        if self.sock is not None:
+            self.sock.sendto(b"X", self.dest)
 
     async def close(self) -> None:
-        if self.transport is not None:
-            self.transport.close()
+        if self.sock is not None:
+            asyncio.get_running_loop().remove_reader(self.sock.fileno())
+            self.sock.close()
 
 
 class _BusClient:

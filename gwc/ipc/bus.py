@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import heapq
 import logging
 import random
 import socket
@@ -36,7 +37,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Coroutine, Iterable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
 from gwc.config import BusConfig
@@ -53,6 +54,7 @@ IP_MULTICAST_ALL = 49  # Linux's value, for Pythons whose socket module does not
 MAX_RTO = 0.5  # retransmission backoff stops growing here
 MAX_PIGGYBACK = 32  # acks riding on a msg at most; the rest go in ack datagrams
 MAX_REMEMBERED = 65_536  # ended conversations (and our idx counters) remembered, newest first
+INF = float("inf")
 
 
 def open_socket(cfg: BusConfig) -> socket.socket:
@@ -90,20 +92,29 @@ class Peer:
     last_seen: float
 
 
-@dataclass(slots=True)
 class _Pending:
-    """A msg datagram not yet acknowledged by every module it is meant for."""
+    """A msg datagram not yet acknowledged by every module it is meant for.
 
-    env: Envelope
-    data: bytes
-    waiting: set[str]
-    first_sent: float
-    rto: float
-    batch: list[Any]  # the _Outgoing.unsettled entry [start_idx, seqs] this datagram belongs to
-    timer: asyncio.TimerHandle | None = None
+    Plain __slots__ classes here and below: one is made per message, and a dataclass's generated
+    __init__ (default factories, keyword handling) costs more than the rest of the bookkeeping.
+    """
+
+    __slots__ = ("data", "waiting", "first_sent", "rto", "batch", "conv", "cls", "msg", "to", "base")
+
+    def __init__(self, data: bytes, waiting: set[str], first_sent: float, rto: float, batch: list[int],
+                 conv: str, cls: str, msg: str, to: str | None, base: int) -> None:
+        self.data = data
+        self.waiting = waiting
+        self.first_sent = first_sent
+        self.rto = rto
+        self.batch = batch  # the _Outgoing.unsettled entry [start_idx, datagrams not yet settled]
+        self.conv = conv
+        self.cls = cls
+        self.msg = msg
+        self.to = to
+        self.base = base  # the base this datagram was encoded with
 
 
-@dataclass
 class _Outgoing:
     """What this module sent in one conversation: the next idx, and its batches not yet settled.
 
@@ -111,23 +122,41 @@ class _Outgoing:
     incarnation goes on numbering where it stopped, and its receivers can tell settled from missing.
     """
 
-    next_idx: int = 0
-    unsettled: collections.deque[list[Any]] = field(default_factory=collections.deque)
+    __slots__ = ("next_idx", "unsettled")
+
+    def __init__(self, next_idx: int = 0) -> None:
+        self.next_idx = next_idx
+        self.unsettled: collections.deque[list[int]] = collections.deque()
 
     @property
     def base(self) -> int:
         return self.unsettled[0][0] if self.unsettled else self.next_idx
 
 
-@dataclass(slots=True)
 class _Stream:
     """Per (conversation, sender, incarnation): reorder buffer and the batch being assembled."""
 
-    next_idx: int = 0
-    buffer: dict[int, tuple[Envelope, Message | None]] = field(default_factory=dict)
-    batch: list[tuple[Envelope, Message | None]] = field(default_factory=list)
-    touched: float = 0.0
-    gap_since: float = 0.0  # when the buffer last became non-empty (a message is missing)
+    __slots__ = ("next_idx", "buffer", "batch", "touched", "gap_since")
+
+    def __init__(self, next_idx: int, touched: float) -> None:
+        self.next_idx = next_idx
+        self.buffer: dict[int, tuple[Envelope, Message | None]] = {}
+        self.batch: list[tuple[Envelope, Message | None]] = []
+        self.touched = touched
+        self.gap_since = 0.0  # when the buffer last became non-empty (a message is missing)
+
+
+class _Seen:
+    """The seqs taken from one (sender, incarnation), for dedup: two generations, swapped every
+    2 x retry_deadline by the housekeeping, so each seq is remembered that long at least (and at
+    most twice that) for the price of two set lookups per msg."""
+
+    __slots__ = ("new", "old", "since")
+
+    def __init__(self, since: float) -> None:
+        self.new: set[int] = set()
+        self.old: set[int] = set()
+        self.since = since
 
 
 @dataclass(frozen=True)
@@ -143,11 +172,6 @@ class Batch:
 
 
 _CLOSED: Any = object()  # put in inboxes when the bus closes, so every waiter fails at once
-
-
-def _expire_waiter(waiter: asyncio.Future[Any]) -> None:
-    if not waiter.done():
-        waiter.set_exception(asyncio.TimeoutError())
 
 
 class Conversation:
@@ -184,21 +208,21 @@ class Conversation:
         if self._inbox:
             batch = self._inbox.popleft()
         else:
-            # A bare future and one timer: no Queue, no wait_for task (this is the bus's hot path).
-            t = self.bus.cfg.reply_timeout if timeout is None else timeout
-            loop = asyncio.get_running_loop()
-            waiter = self._waiter = loop.create_future()
-            timer = loop.call_later(t, _expire_waiter, waiter)
+            # A bare future whose deadline the bus keeps (no Queue, no wait_for task, no timer of its own:
+            # this is the bus's hot path).
+            bus = self.bus
+            t = bus.cfg.reply_timeout if timeout is None else timeout
+            waiter = self._waiter = bus._waiter(t)
             try:
                 batch = await waiter
             except asyncio.TimeoutError:
                 who = self.peer or f"any module listening to {self.cls}"
                 err = ConversationTimeout(f"{self.cls} conversation {self.id}: no answer from {who} within {t:.1f}s")
-                self.bus.stats["timeouts"] += 1
-                self.bus.log.error("%s", err, extra={"conv": f"{self.id} {self.cls}"})
+                bus.stats["timeouts"] += 1
+                bus.log.error("%s", err, extra={"conv": f"{self.id} {self.cls}"})
                 raise err from None
             finally:
-                timer.cancel()
+                bus._deadlines.pop(waiter, None)
                 self._waiter = None
         if batch is _CLOSED:
             self._inbox.appendleft(batch)
@@ -256,21 +280,37 @@ class Bus:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._peers: dict[str, Peer] = {}
         self._pending: dict[int, _Pending] = {}
+        # Retransmission: one timer for all pending msgs. First sends are due in send order (a deque);
+        # retransmissions, with their backoff, in a heap. Entries of msgs acked since are skipped.
+        self._due_first: collections.deque[tuple[float, int]] = collections.deque()
+        self._due_again: list[tuple[float, int]] = []
+        self._rtx_timer: asyncio.TimerHandle | None = None
+        self._rtx_at = INF
         self._out: collections.OrderedDict[str, _Outgoing] = collections.OrderedDict()
-        self._seen: dict[tuple[str, int], tuple[set[int], collections.deque[tuple[float, int]]]] = {}
-        self._streams: dict[tuple[str, str, int], _Stream] = {}
+        self._seen: dict[tuple[str, int], _Seen] = {}
+        # Oldest-touched first, so housekeeping looks only at streams old enough to forget.
+        self._streams: collections.OrderedDict[tuple[str, str, int], _Stream] = collections.OrderedDict()
+        self._gaps: dict[tuple[str, str, int], _Stream] = {}  # streams holding messages that came early
         self._convs: dict[str, Conversation] = {}
         self._ended: collections.OrderedDict[str, None] = collections.OrderedDict()
         self._acks_due: dict[tuple[str, int], list[int]] = {}
         self._ack_timer: asyncio.TimerHandle | None = None
-        self._incoming: asyncio.Queue[Conversation] = asyncio.Queue()
+        # New conversations, and the first_message() calls waiting for one (no asyncio.Queue: hot path).
+        self._incoming: collections.deque[Conversation] = collections.deque()
+        self._incoming_waiters: collections.deque[asyncio.Future[Conversation]] = collections.deque()
+        # Every wait's deadline, kept by one timer armed for the earliest (not a timer per wait).
+        self._deadlines: dict[asyncio.Future[Any], float] = {}
+        self._deadline_timer: asyncio.TimerHandle | None = None
+        self._deadline_at = INF
         self._heartbeat: asyncio.Task[None] | None = None
         self._faults = cfg.faults
         seed = cfg.faults.seed
         self._rng = random.Random(None if seed is None else f"{seed}:{name}")
         self._held: bytes | None = None
         self._own = wire.own_prefix(name, self.inc)
-        self._flushed: asyncio.Event | None = None  # created on sign_on, inside the loop
+        self._mine = f"{name}."  # how the ids of conversations this module opened begin
+        self._conv_prefix = f"{name}.{self.inc:x}."  # ... in this incarnation
+        self._flushed: asyncio.Future[None] | None = None  # close() waiting for the last acks
         self.peer_listeners: list[Callable[[str, Peer | None], None]] = []
         self.stats = collections.Counter[str]()
         self.closed = False
@@ -281,8 +321,6 @@ class Bus:
         """Join the group, announce ourselves, and give present modules `settle` s to answer."""
         self._loop = asyncio.get_running_loop()
         self._sock = open_socket(self.cfg)
-        self._flushed = asyncio.Event()
-        self._flushed.set()
         self._loop.add_reader(self._sock.fileno(), self._readable)
         self._hello(query=True)
         self._heartbeat = self._loop.create_task(self._beat())
@@ -296,18 +334,15 @@ class Bus:
             return
         self.closed = True
         self._flush_acks()
-        if flush and self._pending and self._flushed is not None:
+        if flush and self._pending and self._loop is not None:
+            self._flushed = self._loop.create_future()
             try:
-                await asyncio.wait_for(self._flushed.wait(), flush)
+                await asyncio.wait_for(self._flushed, flush)
             except asyncio.TimeoutError:
                 self.log.warning("closing with %d datagram(s) unacknowledged", len(self._pending))
-        if self._heartbeat:
-            self._heartbeat.cancel()
-        if self._ack_timer:
-            self._ack_timer.cancel()
-        for p in self._pending.values():
-            if p.timer:
-                p.timer.cancel()
+        for timer in (self._heartbeat, self._ack_timer, self._rtx_timer, self._deadline_timer):
+            if timer is not None:
+                timer.cancel()
         self._pending.clear()
         if self._sock is not None:
             self._raw_send(Envelope(kind="bye", src=self.name, inc=self.inc))
@@ -317,7 +352,7 @@ class Bus:
             self._sock = None
         for conv in self._convs.values():
             conv._put(_CLOSED)
-        self._incoming.put_nowait(_CLOSED)
+        self._put_incoming(_CLOSED)
         self.log.info("signed off bus %s", self.cfg.name)
 
     # ----------------------------------------------------------------- interest filters
@@ -352,7 +387,7 @@ class Bus:
 
     def _new_conv_id(self) -> str:
         self._conv_n += 1
-        return f"{self.name}.{self.inc:x}.{self._conv_n}"
+        return f"{self._conv_prefix}{self._conv_n}"
 
     async def start(self, cls: str, *messages: Message, to: str | None = None) -> Conversation:
         """Open a conversation and send its first batch (broadcast to listeners of cls, or to one module)."""
@@ -362,7 +397,7 @@ class Bus:
         conv.peer = to
         self._convs[conv.id] = conv
         try:
-            await conv.send(*messages, to=to)
+            conv._idx = self._send_batch(conv, list(messages), to)  # conv.send() without its coroutine
         except BaseException:
             conv.end()
             raise
@@ -397,19 +432,65 @@ class Bus:
         """The next conversation another module opened with us; None after timeout (or once closed)."""
         if self.closed:
             return None
-        if not self._incoming.empty():
-            conv = self._incoming.get_nowait()
-        elif timeout is None:
-            conv = await self._incoming.get()
+        if self._incoming:
+            conv = self._incoming.popleft()
         else:
+            waiter: asyncio.Future[Conversation]
+            if timeout is None:
+                assert self._loop is not None
+                waiter = self._loop.create_future()
+            else:
+                waiter = self._waiter(timeout)
+            self._incoming_waiters.append(waiter)
             try:
-                conv = await asyncio.wait_for(self._incoming.get(), timeout)
+                conv = await waiter
             except asyncio.TimeoutError:
                 return None
+            finally:
+                self._deadlines.pop(waiter, None)
         if conv is _CLOSED:
-            self._incoming.put_nowait(conv)
+            self._incoming.appendleft(conv)
             return None
         return conv
+
+    def _put_incoming(self, conv: Conversation) -> None:
+        """A new conversation: to the longest-waiting first_message() still waiting, or queued."""
+        waiters = self._incoming_waiters
+        while waiters:
+            waiter = waiters.popleft()
+            if not waiter.done():
+                waiter.set_result(conv)
+                return
+        self._incoming.append(conv)
+
+    def _waiter(self, timeout: float) -> asyncio.Future[Any]:
+        """A future that fails with TimeoutError after `timeout` s unless it is done before."""
+        assert self._loop is not None
+        waiter = self._loop.create_future()
+        deadline = time.monotonic() + timeout
+        self._deadlines[waiter] = deadline
+        if deadline < self._deadline_at:
+            if self._deadline_timer is not None:
+                self._deadline_timer.cancel()
+            self._deadline_at = deadline
+            self._deadline_timer = self._loop.call_later(timeout, self._expire_waiters)
+        return waiter
+
+    def _expire_waiters(self) -> None:
+        self._deadline_timer = None
+        now = time.monotonic() + 0.001  # the loop may run a timer a hair early: do not re-arm for that
+        nxt = INF
+        for waiter, deadline in list(self._deadlines.items()):
+            if deadline <= now:
+                del self._deadlines[waiter]
+                if not waiter.done():
+                    waiter.set_exception(asyncio.TimeoutError())
+            elif deadline < nxt:
+                nxt = deadline
+        self._deadline_at = nxt
+        if nxt < INF:
+            assert self._loop is not None
+            self._deadline_timer = self._loop.call_later(nxt - now, self._expire_waiters)
 
     def _end(self, conv: Conversation) -> None:
         if self._convs.get(conv.id) is conv:
@@ -420,7 +501,7 @@ class Bus:
 
     def _is_ended(self, conv_id: str) -> bool:
         """A conversation we took part in and ended, or one opened by us (now or in an earlier incarnation)."""
-        return conv_id in self._ended or _initiator(conv_id) == self.name
+        return conv_id in self._ended or (conv_id.startswith(self._mine) and _initiator(conv_id) == self.name)
 
     # ----------------------------------------------------------------- sending
 
@@ -430,68 +511,68 @@ class Bus:
             raise MessageError("a send needs at least one message")
         if self._sock is None or self.closed:
             raise BusError(f"{self.name} is not signed on to the bus")
-        cc = catalogue.CONVERSATION_CLASSES[conv.cls]
+        allowed = catalogue.CONVERSATION_CLASSES[conv.cls].messages
         for m in messages:  # fields were checked when message() built m; receivers check them again
-            if m.name not in cc.messages:
+            if m.name not in allowed:
                 raise MessageError(f"message {m.name} does not belong to conversation {conv.cls}")
-        out = self._out.get(conv.id)
+        conv_id, cls = conv.id, conv.cls
+        outs = self._out
+        out = outs.get(conv_id)
         if out is None:
-            out = self._out[conv.id] = _Outgoing(next_idx=conv._idx)
+            out = outs[conv_id] = _Outgoing(conv._idx)
+            if len(outs) > MAX_REMEMBERED:
+                outs.popitem(last=False)
         else:
-            self._out.move_to_end(conv.id)
-        while len(self._out) > MAX_REMEMBERED:
-            self._out.popitem(last=False)
+            outs.move_to_end(conv_id)
         start = out.next_idx
-        batch: list[Any] = [start, set()]
         base = out.unsettled[0][0] if out.unsettled else start
         peer = self._peers.get(to) if to is not None else None
-        acks: tuple[int, ...] = ()
+        acks: tuple[int, ...] | list[int] = ()
+        to_inc = 0
         if peer is not None:
             due = self._acks_due.get((to, peer.inc))  # type: ignore[arg-type]
             if due and len(due) <= MAX_PIGGYBACK:  # more wait for their own ack datagram
-                acks = tuple(self._acks_due.pop((to, peer.inc)))  # type: ignore[arg-type]
+                acks = self._acks_due.pop((to, peer.inc))  # type: ignore[arg-type]
+                to_inc = peer.inc
         n = len(messages)
-        envs = []
         seq = self._seq
-        for i, m in enumerate(messages):
-            seq += 1
-            envs.append(Envelope(
-                kind="msg", src=self.name, inc=self.inc, seq=seq, conv=conv.id, cls=conv.cls, idx=start + i,
-                more=n - 1 if i == 0 else 0, part=i, base=base, to=to, msg=m.name, fields=m.fields,
-                acks=acks if i == 0 else (), to_inc=peer.inc if acks and i == 0 and peer else 0,
-            ))
+        own = self._own
         # Encode everything before sending anything: an oversize batch fails whole, at the sender.
         try:
-            datas = [wire.encode(e) for e in envs]
+            datas = [wire.encode_parts(own, "msg", seq + 1 + i, conv_id, cls, start + i, n - 1 if i == 0 else 0, i,
+                                       base, to, m.name, m.fields, acks if i == 0 else (), to_inc if i == 0 else 0)
+                     for i, m in enumerate(messages)]
         except MessageError:
-            if acks and peer is not None:
-                self._acks_due.setdefault((to, peer.inc), []).extend(acks)  # type: ignore[arg-type]
+            if acks:
+                self._acks_due.setdefault((to, to_inc), []).extend(acks)  # type: ignore[arg-type]
             raise
-        self._seq = seq
+        self._seq = seq + n
         out.next_idx = start + n
-        waiting = {to} if to is not None else set(self.listeners_of(conv.cls))
-        now = time.monotonic()
-        rto = self.cfg.ack_timeout
-        loop = self._loop
-        assert loop is not None
+        waiting = {to} if to is not None else set(self.listeners_of(cls))
         if waiting:
+            batch = [start, n]
             out.unsettled.append(batch)
-            if self._flushed is not None:
-                self._flushed.clear()
-        elif to is None:
-            self.log.log(TRACE, "%s: nobody listens to %s yet", conv.cls, envs[0].msg,
-                         extra={"conv": f"{conv.id} {conv.cls}"})
-        for env, data in zip(envs, datas):
-            self._transmit(data)
-            if waiting:
-                batch[1].add(env.seq)
-                p = _Pending(env, data, set(waiting), now, rto, batch)
-                p.timer = loop.call_later(rto, self._retransmit, env.seq)
-                self._pending[env.seq] = p
+            now = time.monotonic()
+            rto = self.cfg.ack_timeout
+            pending = self._pending
+            for i, data in enumerate(datas):
+                self._transmit(data)
+                seq += 1
+                pending[seq] = _Pending(data, set(waiting) if i else waiting, now, rto, batch, conv_id, cls,
+                                        messages[i].name, to, base)
+                self._due_first.append((now + rto, seq))
+            if self._rtx_timer is None or now + rto < self._rtx_at:
+                self._arm_retransmit(now + rto)
+        else:
+            if to is None:
+                self.log.log(TRACE, "%s: nobody listens to %s yet", cls, messages[0].name,
+                             extra={"conv": f"{conv_id} {cls}"})
+            for data in datas:
+                self._transmit(data)
         self.stats["sent"] += n
         if self.log.isEnabledFor(TRACE):
-            self.log.log(TRACE, "sent %s to %s", ", ".join(e.msg for e in envs), to or "all",
-                         extra={"conv": f"{conv.id} {conv.cls}"})
+            self.log.log(TRACE, "sent %s to %s", ", ".join(m.name for m in messages), to or "all",
+                         extra={"conv": f"{conv_id} {cls}"})
         return out.next_idx
 
     def _transmit(self, data: bytes) -> None:
@@ -513,44 +594,70 @@ class Bus:
         except BusError as e:  # not signed on (closing): lost like a dropped datagram
             self.log.warning("send of %s failed: %s", env.kind, e)
 
-    def _retransmit(self, seq: int) -> None:
-        p = self._pending.get(seq)
-        if p is None:
-            return
-        if time.monotonic() - p.first_sent > self.cfg.retry_deadline:
+    def _arm_retransmit(self, when: float) -> None:
+        """(Re)arm the one retransmission timer for `when` (monotonic time)."""
+        if self._rtx_timer is not None:
+            self._rtx_timer.cancel()
+        assert self._loop is not None
+        self._rtx_at = when
+        self._rtx_timer = self._loop.call_later(when - time.monotonic(), self._retransmit_due)
+
+    def _retransmit_due(self) -> None:
+        """The retransmission timer: resend every msg due and not yet acked, then re-arm for the next.
+
+        Runs at most every ack_timeout/4, so a retransmission may come that much after its due time;
+        between runs, acked msgs cost nothing but their entry, skipped here.
+        """
+        self._rtx_timer = None
+        now = time.monotonic()
+        pending, first, again = self._pending, self._due_first, self._due_again
+        while first and first[0][0] <= now:
+            seq = first.popleft()[1]
+            if seq in pending:
+                self._retransmit(seq, now)
+        while again and again[0][0] <= now:
+            seq = heapq.heappop(again)[1]
+            if seq in pending:
+                self._retransmit(seq, now)
+        nxt = min(first[0][0] if first else INF, again[0][0] if again else INF)
+        if nxt < INF:
+            self._arm_retransmit(max(nxt, now + self.cfg.ack_timeout / 4))
+
+    def _retransmit(self, seq: int, now: float) -> None:
+        p = self._pending[seq]
+        if now - p.first_sent > self.cfg.retry_deadline:
             self.stats["gave_up"] += 1
             self.log.warning(
                 "gave up on %s seq %d: no ack from %s within %.1fs",
-                p.env.msg, seq, ", ".join(sorted(p.waiting)), self.cfg.retry_deadline,
-                extra={"conv": f"{p.env.conv} {p.env.cls}"},
+                p.msg, seq, ", ".join(sorted(p.waiting)), self.cfg.retry_deadline,
+                extra={"conv": f"{p.conv} {p.cls}"},
             )
             self._done(seq)
             return
         self.stats["retransmitted"] += 1
         # Sent with the conversation's base as it is now, so a receiver that has no state for this stream
         # (it restarted) never waits for messages that are settled and will not come again.
-        out = self._out.get(p.env.conv)
-        if out is not None and out.base != p.env.base:
-            p.env = replace(p.env, base=out.base)
-            p.data = wire.encode(p.env)
+        out = self._out.get(p.conv)
+        if out is not None and out.base != p.base:
+            p.base = out.base
+            p.data = wire.encode(replace(wire.decode(p.data), base=p.base))
         self._transmit(p.data)
         p.rto = min(p.rto * 2, MAX_RTO)
-        assert self._loop is not None
-        p.timer = self._loop.call_later(p.rto, self._retransmit, seq)
+        heapq.heappush(self._due_again, (now + p.rto, seq))
 
     def _done(self, seq: int) -> None:
         p = self._pending.pop(seq, None)
         if p is None:
             return
-        if p.timer:
-            p.timer.cancel()
-        p.batch[1].discard(seq)
-        out = self._out.get(p.env.conv)
-        if out is not None:
-            while out.unsettled and not out.unsettled[0][1]:
-                out.unsettled.popleft()
-        if not self._pending and self._flushed:
-            self._flushed.set()
+        batch = p.batch
+        batch[1] -= 1
+        if not batch[1]:
+            out = self._out.get(p.conv)
+            if out is not None:
+                while out.unsettled and not out.unsettled[0][1]:
+                    out.unsettled.popleft()
+        if not self._pending and self._flushed is not None and not self._flushed.done():
+            self._flushed.set_result(None)
 
     def _ack(self, src: str, inc: int, seq: int) -> None:
         """Acknowledge soon: acks due to one peer go out together, or ride on our next msg to it."""
@@ -589,18 +696,28 @@ class Bus:
             if now - peer.last_seen > self.cfg.peer_timeout:
                 self._peer_left(name, "silent for %.1fs" % (now - peer.last_seen))
         # A sender retransmits for at most retry_deadline after the first send: twice that is safe.
-        horizon = now - 2 * self.cfg.retry_deadline
-        for key, (seen, order) in list(self._seen.items()):
-            while order and order[0][0] < horizon:
-                seen.discard(order.popleft()[1])
-            if not order:
-                del self._seen[key]
-        for key, st in list(self._streams.items()):
-            if st.buffer and now - st.gap_since > self.cfg.retry_deadline + self.cfg.heartbeat:
+        remember = 2 * self.cfg.retry_deadline
+        horizon = now - remember
+        for key, seen in list(self._seen.items()):
+            if seen.since <= horizon:
+                if not seen.new and not seen.old:
+                    del self._seen[key]
+                    continue
+                seen.old, seen.new, seen.since = seen.new, set(), now
+        for key, st in list(self._gaps.items()):
+            if now - st.gap_since > self.cfg.retry_deadline + self.cfg.heartbeat:
                 # The sender has given up on what is missing: deliver what came after it.
                 self._advance(st, key, upto=min(st.buffer))
-            if st.touched < horizon and not st.buffer and key[0] not in self._convs:
-                del self._streams[key]
+        streams = self._streams
+        while streams:
+            key, st = next(iter(streams.items()))
+            if st.touched >= horizon:
+                break
+            if st.buffer or key[0] in self._convs:
+                st.touched = now  # kept: looked at again `remember` from now
+                streams.move_to_end(key)
+            else:
+                del streams[key]
 
     def _peer_left(self, name: str, why: str, clean: bool = False) -> None:
         peer = self._peers.pop(name, None)
@@ -614,9 +731,9 @@ class Bus:
     def _forget_waiting(self, name: str, directed_too: bool, unless_cls: frozenset[str] | None = None) -> None:
         """Stop waiting for acks from `name` (broadcasts; directed sends too when it left for good)."""
         for seq, p in list(self._pending.items()):
-            if name not in p.waiting or (p.env.to is not None and not directed_too):
+            if name not in p.waiting or (p.to is not None and not directed_too):
                 continue
-            if unless_cls is not None and (p.env.to is not None or p.env.cls in unless_cls):
+            if unless_cls is not None and (p.to is not None or p.cls in unless_cls):
                 continue
             p.waiting.discard(name)
             if not p.waiting:
@@ -626,9 +743,10 @@ class Bus:
 
     def _readable(self) -> None:
         """The socket has datagrams: take up to 64 (then let timers and tasks run), skip our own."""
-        sock, buf, own = self._sock, self._buf, self._own
+        sock, buf, view, own = self._sock, self._buf, self._view, self._own
         if sock is None:
             return
+        handle = self._received if self._faults.active else self._handle
         for _ in range(64):
             try:
                 n = sock.recv_into(buf)
@@ -639,29 +757,26 @@ class Bus:
                 return
             if n >= len(own) and buf.startswith(own):
                 continue  # our own datagram, looped back by the group
-            self._received(bytes(self._view[:n]))
+            handle(bytes(view[:n]))
 
     def _received(self, data: bytes) -> None:
-        """Entry point for every datagram; applies the fault injector when configured."""
-        if self._faults.active:
-            r = self._rng.random()
-            f = self._faults
-            if r < f.drop:
-                self.stats["injected_drop"] += 1
-                return
-            if r < f.drop + f.duplicate:
-                self.stats["injected_duplicate"] += 1
-                self._handle(data)
-            elif r < f.drop + f.duplicate + f.reorder and self._held is None:
-                self.stats["injected_reorder"] += 1
-                self._held = data  # delivered after the next datagram, or after 10 ms
-                assert self._loop is not None
-                self._loop.call_later(0.01, self._release_held)
-                return
+        """Every datagram when the fault injector is configured: applies it, then handles what is left."""
+        r = self._rng.random()
+        f = self._faults
+        if r < f.drop:
+            self.stats["injected_drop"] += 1
+            return
+        if r < f.drop + f.duplicate:
+            self.stats["injected_duplicate"] += 1
             self._handle(data)
-            self._release_held()
-        else:
-            self._handle(data)
+        elif r < f.drop + f.duplicate + f.reorder and self._held is None:
+            self.stats["injected_reorder"] += 1
+            self._held = data  # delivered after the next datagram, or after 10 ms
+            assert self._loop is not None
+            self._loop.call_later(0.01, self._release_held)
+            return
+        self._handle(data)
+        self._release_held()
 
     def _release_held(self) -> None:
         held, self._held = self._held, None
@@ -675,17 +790,19 @@ class Bus:
             self.stats["malformed"] += 1
             self.log.warning("dropped malformed datagram (%d bytes): %s", len(data), e)
             return
-        if env.src == self.name and env.inc == self.inc:
+        if env.inc == self.inc and env.src == self.name:
             return
         try:
+            now = time.monotonic()
             peer = self._peers.get(env.src)
             if peer is not None and peer.inc == env.inc:
-                peer.last_seen = time.monotonic()  # any datagram proves life, not only hellos
-            if env.kind == "msg":
-                self._on_msg(env)
-            elif env.kind == "ack":
+                peer.last_seen = now  # any datagram proves life, not only hellos
+            kind = env.kind
+            if kind == "msg":
+                self._on_msg(env, now)
+            elif kind == "ack":
                 self._on_ack(env)
-            elif env.kind == "hello":
+            elif kind == "hello":
                 self._on_hello(env, peer)
             elif peer is not None and peer.inc == env.inc:
                 self._peer_left(env.src, "said bye", clean=True)
@@ -729,56 +846,61 @@ class Bus:
                 if not p.waiting:
                     self._done(seq)
 
-    def _on_msg(self, env: Envelope) -> None:
-        if env.acks and env.to == self.name and env.to_inc == self.inc:
-            self._acked(env.src, env.acks)
-        if env.to is not None and env.to != self.name:
+    def _on_msg(self, env: Envelope, now: float) -> None:
+        to, src, inc = env.to, env.src, env.inc
+        if to is not None and to != self.name:
             return
-        conv_open = env.conv in self._convs
-        if env.to is None and not conv_open and env.cls not in self._interest:
+        if env.acks and to is not None and env.to_inc == self.inc:
+            self._acked(src, env.acks)
+        conv_id = env.conv
+        conv = self._convs.get(conv_id)
+        if to is None and conv is None and env.cls not in self._interest:
             return  # not for us: no ack, the sender does not count us
-        self._ack(env.src, env.inc, env.seq)
-        key = (env.src, env.inc)
-        seen_order = self._seen.get(key)
-        if seen_order is None:
-            seen_order = self._seen[key] = (set(), collections.deque())
-        seen, order = seen_order
-        if env.seq in seen:
+        seq = env.seq
+        self._ack(src, inc, seq)
+        key = (src, inc)
+        seen = self._seen.get(key)
+        if seen is None:
+            seen = self._seen[key] = _Seen(now)
+        elif seq in seen.new or seq in seen.old:
             self.stats["duplicates"] += 1
             return
-        seen.add(env.seq)
-        now = time.monotonic()
-        order.append((now, env.seq))
-        if not conv_open and self._is_ended(env.conv):
+        seen.new.add(seq)
+        if conv is None and self._is_ended(conv_id):
             self.stats["late"] += 1
-            self.log.warning("late %s from %s in ended conversation: dropped", env.msg, env.src,
-                             extra={"conv": f"{env.conv} {env.cls}"})
+            self.log.warning("late %s from %s in ended conversation: dropped", env.msg, src,
+                             extra={"conv": f"{conv_id} {env.cls}"})
             return
         try:
             msg: Message | None = catalogue.check(env.cls, env.msg, env.fields)
         except MessageError as e:
             # Still take its place in the order, so the messages after it are not held up forever.
             self.stats["invalid"] += 1
-            self.log.warning("dropped invalid %s from %s: %s", env.msg, env.src, e,
-                             extra={"conv": f"{env.conv} {env.cls}"})
+            self.log.warning("dropped invalid %s from %s: %s", env.msg, src, e,
+                             extra={"conv": f"{conv_id} {env.cls}"})
             msg = None
-        skey = (env.conv, env.src, env.inc)
-        st = self._streams.get(skey)
+        skey = (conv_id, src, inc)
+        streams = self._streams
+        st = streams.get(skey)
         if st is None:
             # No state for this stream (first contact, or we restarted): what is below base is settled.
-            st = self._streams[skey] = _Stream(next_idx=env.base)
-        st.touched = now
-        if env.idx < st.next_idx:  # a new seq for a place already passed: never sent by a well-behaved peer
-            self.log.warning("dropped %s from %s: idx %d is behind the stream (%d)", env.msg, env.src, env.idx,
-                             st.next_idx, extra={"conv": f"{env.conv} {env.cls}"})
+            st = streams[skey] = _Stream(env.base, now)
+        else:
+            st.touched = now
+            streams.move_to_end(skey)
+        idx = env.idx
+        if idx < st.next_idx:  # a new seq for a place already passed: never sent by a well-behaved peer
+            self.log.warning("dropped %s from %s: idx %d is behind the stream (%d)", env.msg, src, idx,
+                             st.next_idx, extra={"conv": f"{conv_id} {env.cls}"})
             return
-        if env.idx == st.next_idx and not env.more and not env.part and not st.buffer and not st.batch:
+        if idx == st.next_idx and not env.more and not env.part and not st.buffer and not st.batch:
             st.next_idx += 1  # the usual case: a one-message batch, in order, nothing waiting
-            self._deliver([(env, msg)])
+            self._deliver(env, conv, (msg,))
             return
         if not st.buffer:
             st.gap_since = now
-        st.buffer[env.idx] = (env, msg)
+            self._gaps[skey] = st
+        st.buffer[idx] = (env, msg)
         self._advance(st, skey, upto=env.base)
 
     def _advance(self, st: _Stream, skey: tuple[str, str, int], upto: int = 0) -> None:
@@ -806,22 +928,23 @@ class Bus:
                 continue
             if len(st.batch) == st.batch[0][0].more + 1:
                 batch, st.batch = st.batch, []
-                self._deliver(batch)
+                head = batch[0][0]
+                self._deliver(head, self._convs.get(head.conv), tuple(m for _, m in batch))
+        if not st.buffer:
+            self._gaps.pop(skey, None)
         if lost:
             self.stats["gaps"] += 1
             self.log.warning("%d message(s) from %s never arrived (the sender gave up on them); going on",
                              lost, skey[1], extra={"conv": skey[0]})
 
-    def _deliver(self, items: list[tuple[Envelope, Message | None]]) -> None:
-        head = items[0][0]
-        if any(m is None for _, m in items):
-            self.log.warning("dropped a batch of %d from %s: it holds an invalid message", len(items), head.src,
-                             extra={"conv": f"{head.conv} {head.cls}"})
-            return
-        msgs = tuple(m for _, m in items)  # type: ignore[misc]
+    def _deliver(self, head: Envelope, conv: Conversation | None, msgs: tuple[Message | None, ...]) -> None:
+        for m in msgs:
+            if m is None:
+                self.log.warning("dropped a batch of %d from %s: it holds an invalid message", len(msgs), head.src,
+                                 extra={"conv": f"{head.conv} {head.cls}"})
+                return
         self.stats["delivered"] += 1
         batch = Batch(head.src, msgs)  # type: ignore[arg-type]
-        conv = self._convs.get(head.conv)
         if conv is not None:
             conv._put(batch)
             return
@@ -834,7 +957,7 @@ class Bus:
             return
         conv = Conversation(self, head.conv, head.cls, head.src, first=batch)
         self._convs[conv.id] = conv
-        self._incoming.put_nowait(conv)
+        self._put_incoming(conv)
 
 
 def _initiator(conv_id: str) -> str | None:

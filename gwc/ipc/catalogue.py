@@ -37,21 +37,27 @@ class MessageClass:
     fields: tuple[FieldSpec, ...]
     doc: str = ""
 
+    def __post_init__(self) -> None:
+        # Worked out once here, not on every check: every message sent and received is checked.
+        object.__setattr__(self, "_known", frozenset(f.name for f in self.fields))
+        object.__setattr__(self, "_checks", tuple(
+            (f.name, _TYPES[f.type], f.type in ("int", "float"), f.nullable, f) for f in self.fields
+        ))
+
     def check(self, values: dict[str, Any]) -> None:
         """Raise MessageError unless values fit this class exactly."""
-        known = {f.name for f in self.fields}
-        extra = set(values) - known
-        if extra:
+        known: frozenset[str] = self._known  # type: ignore[attr-defined]
+        if not known.issuperset(values):
+            extra = set(values) - known
             raise MessageError(f"{self.name}: unknown field(s) {', '.join(sorted(extra))}")
-        for f in self.fields:
-            v = values.get(f.name)
+        for name, types, numeric, nullable, f in self._checks:  # type: ignore[attr-defined]
+            v = values.get(name)
             if v is None:
-                if not f.nullable:
-                    raise MessageError(f"{self.name}: field {f.name} ({f.type}) is required")
+                if not nullable:
+                    raise MessageError(f"{self.name}: field {name} ({f.type}) is required")
                 continue
-            types = _TYPES[f.type]
-            if not isinstance(v, types) or (f.type in ("int", "float") and isinstance(v, bool)):
-                raise MessageError(f"{self.name}: field {f.name} must be {f.type}, got {type(v).__name__}")
+            if not isinstance(v, types) or (numeric and v.__class__ is bool):
+                raise MessageError(f"{self.name}: field {name} must be {f.type}, got {type(v).__name__}")
 
 
 @dataclass(frozen=True)

@@ -1,25 +1,33 @@
-"""The bus wire format: one UDP datagram = 4-byte header + one compact JSON object.
+"""The bus wire format: one UDP datagram = a binary header + the message's fields as one JSON object.
 
 Kept apart from the bus (as python-can keeps encoding apart from its transports) so that the
 monitor, the fuzz tests and a client in another language share one definition. docs/protocol.md
 is the normative description; this module is its reference implementation.
+
+The envelope (who, which conversation, numbering, acks) is fixed-layout binary, read with one
+struct call; only the application's fields are JSON. Every datagram is decoded and every msg
+encoded on the bus's hot path, and a JSON envelope cost several times the rest of the work there.
 """
 
 from __future__ import annotations
 
 import json
+import struct
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
 from gwc.errors import MessageError
 
 MAGIC = b"GWC"
-VERSION = 1
+VERSION = 2
 HEADER = MAGIC + bytes([VERSION])
 MAX_DATAGRAM = 60_000  # below the 65,507-byte UDP limit, with room for IP options
-MAX_NAME = 200  # module names, conversation ids and class names are short; longer is hostile
+MAX_NAME = 200  # bytes: module names, conversation ids and class names are short; longer is hostile
 
 KINDS = ("msg", "ack", "hello", "bye")
+_KIND_CODE = {kind: code for code, kind in enumerate(KINDS)}
+QUERY = 1  # flags bit: hello asks every member to answer with its own hello
 
 
 @dataclass(slots=True)
@@ -49,131 +57,167 @@ class Envelope:
     query: bool = False  # hello: "tell me who you are" (peers answer with their own hello)
 
 
-_KEYS: dict[str, tuple[str, tuple[type, ...]]] = {
-    "s": ("src", (str,)),
-    "n": ("inc", (int,)),
-    "k": ("kind", (str,)),
-    "q": ("seq", (int,)),
-    "c": ("conv", (str,)),
-    "C": ("cls", (str,)),
-    "i": ("idx", (int,)),
-    "+": ("more", (int,)),
-    "p": ("part", (int,)),
-    "b": ("base", (int,)),
-    "t": ("to", (str, type(None))),
-    "m": ("msg", (str,)),
-    "f": ("fields", (dict,)),
-    "a": ("acks", (list,)),
-    "T": ("to_inc", (int,)),
-    "I": ("interest", (list,)),
-    "?": ("query", (bool,)),
-}
-_ATTR = {key: attr for key, (attr, _) in _KEYS.items()}
-# JSON yields exact types, so `type(v) in allowed` is the whole check (and keeps bool out of int).
-_ALLOWED = {key: frozenset(types) for key, (_, types) in _KEYS.items()}
-_INTS = frozenset(key for key, (_, types) in _KEYS.items() if types == (int,))
-_STRS = frozenset(key for key, (attr, types) in _KEYS.items() if str in types and attr != "kind")
+# After HEADER: inc, length of src, src. Then _FIXED: kind, flags, seq, idx, more, part, base, to_inc,
+# the lengths of conv, cls, to and msg, the number of acks and of interest entries. Network byte order.
+_SRC = struct.Struct("!QB")
+_FIXED = struct.Struct("!BBQIIIIQBBBBHH")
+_OWN = len(HEADER) + _SRC.size  # where src begins
+
 _dumps = json.JSONEncoder(separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode
+# The C encoder and scanner behind json.dumps/json.loads, called directly: the Python layers around
+# them (a new encoder object per call, whitespace regexes) cost more than the work on a small object.
+# No circular-reference bookkeeping: a cyclic value ends in RecursionError, refused like any other.
+_c_encode = json.encoder.c_make_encoder(
+    None, _dumps.__self__.default, json.encoder.encode_basestring, None, ":", ",", False, False, False
+) if json.encoder.c_make_encoder else None
+_scan = json.JSONDecoder().scan_once
+
+
+def _json(value: Any) -> str:
+    return "".join(_c_encode(value, 0)) if _c_encode else _dumps(value)
+
+
+def own_prefix(src: str, inc: int) -> bytes:
+    """How every datagram this module encodes begins: lets it skip its own looped-back traffic cheaply."""
+    name = src.encode()
+    if not 0 < len(name) <= MAX_NAME:
+        raise MessageError(f"module name {src[:40]!r} must be 1 to {MAX_NAME} bytes")
+    try:
+        return HEADER + _SRC.pack(inc, len(name)) + name
+    except struct.error:
+        raise MessageError(f"incarnation {inc} out of range") from None
 
 
 def encode(env: Envelope) -> bytes:
-    """Serialise, leaving out fields at their defaults; refuse what cannot fit one datagram.
+    """Serialise one envelope; refuse what cannot fit one datagram (or the layout)."""
+    return encode_parts(own_prefix(env.src, env.inc), env.kind, env.seq, env.conv, env.cls, env.idx, env.more,
+                        env.part, env.base, env.to, env.msg, env.fields, env.acks, env.to_inc, env.interest,
+                        env.query)
 
-    src and inc come first, so a module can recognise its own looped-back datagrams by their prefix.
+
+def encode_parts(prefix: bytes, kind: str, seq: int, conv: str, cls: str, idx: int, more: int, part: int, base: int,
+                 to: str | None, msg: str, fields: dict[str, Any], acks: Iterable[int] = (), to_inc: int = 0,
+                 interest: Iterable[str] = (), query: bool = False) -> bytes:
+    """encode() from the parts, for the bus's hot path (no Envelope made just to be read).
+
+    prefix is own_prefix(src, inc) of the sender.
     """
-    body: dict[str, Any] = {"s": env.src, "n": env.inc, "k": env.kind}
-    if env.kind == "msg":
-        body.update(q=env.seq, c=env.conv, C=env.cls, i=env.idx, m=env.msg)
-        if env.more:
-            body["+"] = env.more
-        if env.part:
-            body["p"] = env.part
-        if env.base:
-            body["b"] = env.base
-        if env.fields:
-            body["f"] = env.fields
-    if env.to is not None:
-        body["t"] = env.to
-    if env.acks:
-        body["a"] = list(env.acks)
-        body["T"] = env.to_inc
-    elif env.to_inc:
-        body["T"] = env.to_inc
-    if env.interest:
-        body["I"] = list(env.interest)
-    if env.query:
-        body["?"] = True
-    if env.kind != "msg":
-        for key, value in (("q", env.seq), ("c", env.conv), ("C", env.cls), ("i", env.idx), ("m", env.msg),
-                           ("+", env.more), ("p", env.part), ("b", env.base)):
-            if value:
-                body[key] = value
-        if env.fields:
-            body["f"] = env.fields
+    c, k, m = conv.encode(), cls.encode(), msg.encode()
+    if to is None:
+        t = b""
+    else:
+        t = to.encode()
+        if not t:
+            raise MessageError("the addressee of a datagram cannot be empty (None: everyone)")
+    if len(c) > MAX_NAME or len(k) > MAX_NAME or len(t) > MAX_NAME or len(m) > MAX_NAME:
+        raise MessageError(f"{msg or kind} in {conv or '-'}: a name is over {MAX_NAME} bytes")
+    parts = [c, k, t, m]
     try:
-        data = HEADER + _dumps(body).encode()
-    except (TypeError, ValueError) as e:
-        raise MessageError(f"{env.msg or env.kind} in {env.conv or '-'} cannot be encoded: {e}") from None
+        if acks:
+            acks = tuple(acks)
+            if 0 in acks:
+                raise MessageError("acks must be positive integers")
+            parts.append(struct.pack(f"!{len(acks)}Q", *acks))
+        if interest:
+            interest = tuple(interest)
+            for cl in interest:
+                name = cl.encode()
+                if len(name) > MAX_NAME:
+                    raise MessageError(f"class name {cl[:40]!r} is over {MAX_NAME} bytes")
+                parts += (bytes([len(name)]), name)
+        if fields:
+            parts.append(_json(fields).encode())
+        head = _FIXED.pack(_KIND_CODE[kind], QUERY if query else 0, seq, idx, more, part, base, to_inc, len(c), len(k),
+                           len(t), len(m), len(acks), len(interest))  # type: ignore[arg-type]
+    except MessageError:
+        raise
+    except (TypeError, ValueError, RecursionError, KeyError, struct.error) as e:
+        raise MessageError(f"{msg or kind} in {conv or '-'} cannot be encoded: {e}") from None
+    data = prefix + head + b"".join(parts)
     if len(data) > MAX_DATAGRAM:
         raise MessageError(
-            f"{env.msg or env.kind} in {env.conv or '-'} is {len(data)} bytes, over the bus limit of "
+            f"{msg or kind} in {conv or '-'} is {len(data)} bytes, over the bus limit of "
             f"{MAX_DATAGRAM}: send large payloads (recipes, results) through the database, not the bus"
         )
     return data
 
 
-def own_prefix(src: str, inc: int) -> bytes:
-    """How every datagram this module encodes begins: lets it skip its own looped-back traffic cheaply."""
-    return HEADER + (_dumps({"s": src, "n": inc})[:-1] + ",").encode()
+def _loads(text: str) -> Any:
+    """json.loads(text), through the C scanner alone when the text is one compact value (ours always is)."""
+    try:
+        value, end = _scan(text, 0)
+        if end == len(text):
+            return value
+    except StopIteration:
+        pass
+    return json.loads(text)  # whitespace around the value, or an error worth json's own message
 
 
 def decode(data: bytes) -> Envelope:
     """Parse one datagram; anything malformed raises MessageError saying what is wrong."""
-    if len(data) > MAX_DATAGRAM:
-        raise MessageError(f"datagram of {len(data)} bytes is over the limit {MAX_DATAGRAM}")
-    if data[:3] != MAGIC:
-        raise MessageError("not a GWC datagram (bad magic)")
-    if len(data) < 4 or data[3] != VERSION:
-        raise MessageError(f"unknown wire version {data[3] if len(data) > 3 else None}")
+    n = len(data)
+    if n > MAX_DATAGRAM:
+        raise MessageError(f"datagram of {n} bytes is over the limit {MAX_DATAGRAM}")
+    if data[:4] != HEADER:
+        if data[:3] != MAGIC:
+            raise MessageError("not a GWC datagram (bad magic)")
+        raise MessageError(f"unknown wire version {data[3] if n > 3 else None}")
     try:
-        body = json.loads(data[4:].decode("utf-8"))
-    except (UnicodeDecodeError, ValueError, RecursionError) as e:  # ValueError covers JSONDecodeError, huge ints
-        raise MessageError(f"undecodable body: {str(e)[:200]}") from None
-    if not isinstance(body, dict):
-        raise MessageError("body is not a JSON object")
-    try:
-        kwargs = {_ATTR[key]: value for key, value in body.items()}
-    except KeyError as e:
-        raise MessageError(f"unknown key {str(e.args[0])[:20]!r}") from None
-    for key, value in body.items():
-        if type(value) not in _ALLOWED[key]:
-            raise MessageError(f"key {key!r} ({_ATTR[key]}) has the wrong type {type(value).__name__}")
-        if key in _INTS:
-            if not 0 <= value < 2**63:
-                raise MessageError(f"key {key!r} ({_ATTR[key]}) is out of range")
-        elif key in _STRS and len(value) > MAX_NAME:
-            raise MessageError(f"key {key!r} ({_ATTR[key]}) is longer than {MAX_NAME} characters")
-    for required in ("kind", "src", "inc"):
-        if required not in kwargs:
-            raise MessageError(f"missing key for {required}")
-    if kwargs["kind"] not in KINDS:
-        raise MessageError(f"unknown kind {str(kwargs['kind'])[:20]!r}")
-    if not kwargs["src"]:
+        inc, ls = _SRC.unpack_from(data, 4)
+        o = _OWN + ls
+        kind, flags, seq, idx, more, part, base, to_inc, lc, lk, lt, lm, na, ni = _FIXED.unpack_from(data, o)
+        o += _FIXED.size
+        if max(ls, lc, lk, lt, lm) > MAX_NAME:
+            raise MessageError(f"a name is longer than {MAX_NAME} bytes")
+        src = data[_OWN:_OWN + ls].decode()
+        e = o + lc
+        conv = data[o:e].decode()
+        o, e = e, e + lk
+        cls = data[o:e].decode()
+        o, e = e, e + lt
+        to = data[o:e].decode() if lt else None
+        o, e = e, e + lm
+        msg = data[o:e].decode()
+        if e > n:
+            raise MessageError("truncated datagram")
+        acks: tuple[int, ...] = ()
+        if na:
+            acks = struct.unpack_from(f"!{na}Q", data, e)
+            e += 8 * na
+            if 0 in acks:
+                raise MessageError("acks must be positive integers")
+        interest: tuple[str, ...] = ()
+        if ni:
+            names = []
+            for _ in range(ni):
+                o, e = e + 1, e + 1 + data[e]
+                if e > n:
+                    raise MessageError("truncated datagram")
+                names.append(data[o:e].decode())
+            interest = tuple(names)
+        fields = {}
+        if e < n:
+            fields = _loads(data[e:].decode())
+            if type(fields) is not dict:
+                raise MessageError("fields are not a JSON object")
+    except MessageError:
+        raise
+    except (struct.error, IndexError):
+        raise MessageError("truncated datagram") from None
+    except (UnicodeDecodeError, ValueError, RecursionError) as err:  # ValueError covers JSONDecodeError, huge ints
+        raise MessageError(f"undecodable datagram: {str(err)[:200]}") from None
+    if kind >= len(KINDS):
+        raise MessageError(f"unknown kind {kind}")
+    if flags & ~QUERY:
+        raise MessageError(f"unknown flags {flags:#x}")
+    if not src:
         raise MessageError("empty src")
-    if "acks" in kwargs:
-        if not all(isinstance(a, int) and not isinstance(a, bool) and a > 0 for a in kwargs["acks"]):
-            raise MessageError("acks must be positive integers")
-        kwargs["acks"] = tuple(kwargs["acks"])
-    if "interest" in kwargs:
-        if not all(isinstance(c, str) and len(c) <= MAX_NAME for c in kwargs["interest"]):
-            raise MessageError("interest must be class names")
-        kwargs["interest"] = tuple(kwargs["interest"])
-    env = Envelope(**kwargs)
-    if env.kind == "msg":
-        if not (env.conv and env.cls and env.msg and env.seq > 0):
+    if kind == 0:
+        if not (conv and cls and msg and seq > 0):
             raise MessageError("a msg needs conv, cls, msg and a positive seq")
-        if env.part and env.more:
+        if part and more:
             raise MessageError("only the first message of a batch (part 0) says how many follow")
-        if env.base > env.idx:
+        if base > idx:
             raise MessageError("base is beyond idx")
-    return env
+    return Envelope(KINDS[kind], src, inc, seq, conv, cls, idx, more, part, base, to, msg, fields, acks, to_inc,
+                    interest, bool(flags))

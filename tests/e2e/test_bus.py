@@ -227,16 +227,17 @@ def test_crossed_waits_with_new_conversations_arriving_never_deadlock(make_lab: 
 def _mutations(valid: bytes, rnd: random.Random) -> Iterator[bytes]:
     yield b""
     yield b"GWC"
-    yield b"GWC\x02{}"  # unknown version
-    yield b"XYZ\x01{}"
-    yield wire.HEADER + b"[" * 50_000  # nesting bomb
-    yield wire.HEADER + b'{"k":"msg","s":"x","n":' + b"9" * 5000 + b"}"  # huge integer
-    yield wire.HEADER + json.dumps({"k": "msg", "s": "x", "n": 1, "q": 1, "c": "x.1.1", "C": "NOPE", "m": "Ping",
-                                    "t": "fz"}).encode()  # unknown class
-    yield wire.HEADER + json.dumps({"k": "msg", "s": "x", "n": 1, "q": 2, "c": "x.1.2", "C": "PING", "m": "Ping",
-                                    "f": {"n": "one"}, "t": "fz"}).encode()  # wrong field type
-    yield wire.HEADER + b'{"k":"hello","s":"x","n":1,"I":[1,2]}'
-    yield wire.HEADER + b"x" * (wire.MAX_DATAGRAM + 10 - len(wire.HEADER))  # oversized
+    yield b'GWC\x01{"k":"msg","s":"x","n":1}'  # an old (JSON) version
+    yield b"XYZ" + valid[3:]
+    yield wire.HEADER + b"\0" * 20  # truncated
+    yield valid + b"[" * 50_000  # nesting bomb in the fields
+    yield valid[:-1] + b',"x":' + b"9" * 5000 + b"}"  # huge integer in the fields
+    yield wire.encode(wire.Envelope(kind="msg", src="x", inc=1, seq=1, conv="x.1.1", cls="NOPE", msg="Ping",
+                                    to="fz"))  # unknown class
+    yield wire.encode(wire.Envelope(kind="msg", src="x", inc=1, seq=2, conv="x.1.2", cls="PING", msg="Ping",
+                                    fields={"n": "one"}, to="fz"))  # wrong field type
+    yield wire.encode(wire.Envelope(kind="hello", src="x", inc=1, interest=("\0", "é" * 100)))  # classes unknown
+    yield valid + b" " * wire.MAX_DATAGRAM  # oversized
     for _ in range(400):
         data = bytearray(valid)
         for _ in range(rnd.randrange(1, 6)):
