@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import random
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -204,3 +205,46 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
         machines=tuple(machines),
         raw=raw,
     )
+
+
+def toml_value(v: Any) -> str:
+    """One TOML value: strings quoted, dicts as inline tables, lists as arrays."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (str, Path)):
+        return '"' + str(v).replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {toml_value(x)}" for k, x in v.items()) + " }"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def dump_toml(doc: dict[str, Any]) -> str:
+    """A cell.toml document: a dict value is a [table] (its dict values [table.sub]), a list an [[array]]."""
+    lines: list[str] = []
+    for key, value in doc.items():
+        if isinstance(value, list):
+            for item in value:
+                lines += ["", f"[[{key}]]"] + [f"{k} = {toml_value(x)}" for k, x in item.items()]
+            continue
+        subs = {k: x for k, x in value.items() if isinstance(x, dict)}
+        lines += ["", f"[{key}]"] + [f"{k} = {toml_value(x)}" for k, x in value.items() if k not in subs]
+        for sub, table in subs.items():
+            lines += ["", f"[{key}.{sub}]"] + [f"{k} = {toml_value(x)}" for k, x in table.items()]
+    return "\n".join(lines).lstrip() + "\n"
+
+
+def write_config(path: Path, doc: dict[str, Any]) -> Config:
+    """Write a cell configuration (for tests, benchmarks and private cells) and load it back."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(dump_toml(doc))
+    return load_config(path)
+
+
+def private_bus(**settings: Any) -> dict[str, Any]:
+    """[bus] settings of a private cell (tests, benchmarks, soaks): a multicast group and port of its
+    own, so that it never hears another cell on this machine."""
+    rnd = random.SystemRandom()
+    return {"group": f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
+            "port": rnd.randrange(20000, 60000), **settings}

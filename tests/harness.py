@@ -19,7 +19,7 @@ from typing import Any, TypeVar
 import psycopg
 from xprocess import ProcessStarter
 
-from gwc.config import Config, load_config
+from gwc.config import Config, private_bus, write_config
 from gwc.ipc.bus import BlockingBus
 from gwc.log import log_file_name, open_log
 from gwc.module import module_name
@@ -41,18 +41,6 @@ def wait_for(predicate: Callable[[], T], timeout: float = 10.0, what: str = "con
         time.sleep(interval)
 
 
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    return repr(v)
-
-
 def write_cell_config(
     var: Path,
     database_url: str | None,
@@ -64,22 +52,17 @@ def write_cell_config(
     level: str = "note",
 ) -> Config:
     """Write var/etc/cell.toml for a private cell with a random multicast group and port."""
-    rnd = random.Random()
-    bus_cfg = {"group": f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}", "port": rnd.randrange(20000, 60000),
-               "peer_timeout": 1.5, "heartbeat": 0.2, **(bus or {})}
-    lines = ["[cell]", f"name = \"test\"", f"var = {_toml_value(str(var))}", f"policy = {_toml_value(policy)}", "",
-             "[bus]"] + [f"{k} = {_toml_value(v)}" for k, v in bus_cfg.items()]
+    bus_cfg = private_bus(peer_timeout=1.5, heartbeat=0.2, **(bus or {}))
     if faults:
-        lines += ["", "[bus.faults]"] + [f"{k} = {_toml_value(v)}" for k, v in faults.items()]
-    lines += ["", "[database]", f"url = {_toml_value(database_url or '')}", "", "[log]", f"level = \"{level}\""]
-    for m in modules:
-        lines += ["", "[[module]]", f"name = \"{m}\""]
-    for m in machines:
-        lines += ["", "[[machine]]"] + [f"{k} = {_toml_value(v)}" for k, v in m.items()]
-    etc = var / "etc"
-    etc.mkdir(parents=True, exist_ok=True)
-    (etc / "cell.toml").write_text("\n".join(lines) + "\n")
-    return load_config(etc / "cell.toml")
+        bus_cfg["faults"] = faults
+    return write_config(var / "etc" / "cell.toml", {
+        "cell": {"name": "test", "var": str(var), "policy": policy},
+        "bus": bus_cfg,
+        "database": {"url": database_url or ""},
+        "log": {"level": level},
+        "module": [{"name": m} for m in modules],
+        "machine": list(machines),
+    })
 
 
 class CellHarness:

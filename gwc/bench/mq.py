@@ -29,7 +29,7 @@ import click
 import posix_ipc
 
 from gwc.bench import summary
-from gwc.config import load_config
+from gwc.config import write_config
 from gwc.errors import GwcError, QueueTimeout
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import LAYOUT_SIZE, Channel, MeMessage, MessageId, open_queue, queue_names, remove_queues
@@ -118,11 +118,9 @@ def run(n: int = 5000) -> dict[str, Any]:
     me: subprocess.Popen[bytes] | None = None
     prefix_me: str | None = None
     try:
-        (var / "etc").mkdir()
         cfg_path = var / "etc" / "cell.toml"
-        cfg_path.write_text(f'[cell]\nname = "bench"\nvar = "{var}"\n\n[log]\nlevel = "warning"\n\n'
-                            '[[machine]]\nid = "bench"\nkind = "dummy"\n')
-        cfg = load_config(cfg_path)
+        cfg = write_config(cfg_path, {"cell": {"name": "bench", "var": str(var)}, "log": {"level": "warning"},
+                                      "machine": [{"id": "bench", "kind": "dummy"}]})
         prefix_me = cfg.ipc_prefix
         env = dict(os.environ, GWC_CONFIG=str(cfg_path), GWC_VAR=str(var))
         me = subprocess.Popen([sys.executable, "-m", "gwc", "run", "me", "--machine", "bench"], env=env,

@@ -37,7 +37,7 @@ from psycopg import sql
 
 from gwc import db
 from gwc.bench import summary
-from gwc.config import Config, load_config
+from gwc.config import Config, private_bus, write_config
 from gwc.errors import GwcError
 from gwc.hi import context
 from gwc.ipc.bus import Bus, Conversation
@@ -91,15 +91,14 @@ def _prepare(url: str, machines: list[str], entities: int) -> None:
 
 
 def _bench_config(tmp: Path, url: str, level: str) -> Config:
-    rnd = random.Random()
-    (tmp / "etc").mkdir(parents=True, exist_ok=True)
-    (tmp / "etc" / "cell.toml").write_text(
-        f'[cell]\nname = "bench"\nvar = "{tmp / "var"}"\npolicy = "fifo"\n\n'
-        f'[bus]\ngroup = "239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}"\n'
-        f"port = {rnd.randrange(20000, 60000)}\nheartbeat = 0.25\npeer_timeout = 3.0\n\n"
-        f'[database]\nurl = "{url}"\n\n[log]\nlevel = "{level}"\n')
+    cfg = write_config(tmp / "etc" / "cell.toml", {
+        "cell": {"name": "bench", "var": str(tmp / "var"), "policy": "fifo"},
+        "bus": private_bus(heartbeat=0.25, peer_timeout=3.0),
+        "database": {"url": url},
+        "log": {"level": level},
+    })
     # The scratch cell's own var/ and database, whatever GWC_VAR / GWC_DATABASE_URL say.
-    return dataclasses.replace(load_config(tmp / "etc" / "cell.toml"), var=tmp / "var", database_url=url)
+    return dataclasses.replace(cfg, var=tmp / "var", database_url=url)
 
 
 # ----------------------------------------------------------------------------- the entities
