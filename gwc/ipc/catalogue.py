@@ -96,11 +96,13 @@ MESSAGE_CLASSES: dict[str, MessageClass] = {
         # --- MSCHED ---
         _msg(
             "Machine_Request",
-            "first of 1+N: N Machine_Entry follow",
+            "first of 1+N: N Machine_Entry follow; requests of an entity with the same alt_group are "
+            "alternatives of one need: once one is bound, a later one is refused REQ_CANCEL",
             entity_id="int",
             op_type="str",
             num_machines="int",
             priority="int?",
+            alt_group="str?",
         ),
         _msg("Machine_Entry", "one machine of a request (AND)", machine_id="str"),
         _msg("Machine_Req_Ack", "request queued", request_key="int?", **ACK),
