@@ -244,8 +244,12 @@ class MachineSide:
         # A shut-down ME says so: a WC that believes its machine is up learns the ME was restarted.
         if self.state == MeState.SHUTDOWN:
             self.answer(msg, AckCode.NOTNOW, alarm_text="the machine is shut down")
-        else:
-            self.answer(msg, AckCode.ACK_OK)
+            return
+        # A started ME tells its state, and while running the results file of its run: a restarted
+        # WC learns whether the run it resumes is still going (gwc.wc.wc.WC._resume).
+        running = self.state == MeState.RUNNING and self.results_path is not None
+        self.answer(msg, AckCode.ACK_OK, alarm_text=self.state.value, recipe_id=self.recipe_id,
+                    file_name=str(self.results_path) if running else "")
 
     def _me_start(self, msg: MeMessage) -> None:
         if self.state == MeState.RUNNING:
@@ -341,7 +345,7 @@ class MachineSide:
             results.setdefault("NOTE", outcome.note)
         file_name = str(self.results_path)
         try:
-            write_results(self.results_path, results)
+            write_results(self.results_path, results, outcome=(outcome.ack_code, outcome.note))
         except (OSError, ValueError) as e:
             self.log.error("run %d: cannot write results file %s: %s", self.run_no, self.results_path, e)
             outcome, file_name = RunOutcome(AckCode.RUN_FAIL), ""

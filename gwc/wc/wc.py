@@ -18,6 +18,12 @@ an ME that does not answer within `ME_DEADLINE`, or answers that it is shut down
 is up (it was restarted and lost its state), is dead: alarm ME_DIED, a run in progress ends with
 Run_Complete(Run_Fail), the machine goes Shutdown, and the WC waits for the operator's next
 ME_START (6.3.2.1) once the ME has been restarted.
+
+A WC restarted (kill -9) while MACHINE_STATUS says its machine is up serves nothing (Notnow) until it
+has checked, first, that its ME is still the started ME (a fresh ME, or none, means the machine is
+down: Shutdown until ME_START) and, second, what became of the run the status names: the results
+file of run N (the WC chose its path, results_dir/run-N.txt) outlives a RUN_COMPL the dead WC read
+and never handled, and the ME says whether it is still running it (see _resume).
 """
 
 from __future__ import annotations
@@ -38,7 +44,8 @@ from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.mq import Channel, MeMessage, MessageId
-from gwc.me.results import read_results
+from gwc.me.machine import MeState
+from gwc.me.results import read_outcome, read_results
 from gwc.module import Handler, Module
 from gwc.wc.link import MeDied, MeLink
 
@@ -71,6 +78,7 @@ class WC(Module):
         self._cleared: set[int] = set()  # alarm numbers seen cleared (a clear may beat our wait for it)
         self._alarm_pending = 0  # alarms of ours waiting for the operator: ME answers may take that long
         self._start_note: str | None = None  # why the last ME_START failed, for ME_Ready's note
+        self._resuming = False  # a restarted WC checking its ME and its run: nothing served meanwhile
 
     # ----------------------------------------------------------------- module hooks
 
@@ -105,15 +113,72 @@ class WC(Module):
 
     async def on_bus(self) -> None:
         self.status, self.machine_run_id, self.recipe_id = self._read_status()
+        # What the ME sent while no WC listened is read now (a RUN_COMPL is completed by its own task,
+        # which takes the state lock before _resume looks at the run).
+        self.me.start(self._loop)
         if self.status != S.SHUTDOWN:
-            # A WC restarted while its machine was up resumes it (the ME kept its queue, and what the
-            # ME sent meanwhile is still in it); the ME watch finds out soon enough if the ME is gone.
             self.log.warning("machine %s is %s (run %s): resuming it", self.machine_id, self.status,
                              self.machine_run_id)
-            self.started = self.status not in (S.SETUP_SHUT, S.RUN_SHUT)
-            self.bus.set_interest(self.busy_interest() if self.started else self.idle_interest())
-            self.me.heard = 0.0
-        self.me.start(self._loop)
+            self._resuming = True
+            self._spawn(self._resume())
+
+    async def _resume(self) -> None:
+        """A WC restarted while its machine was up: check the ME, then the run, then serve again.
+
+        Until this is done the WC is not started, so what the cell asks meanwhile (SETUP_RUN from a
+        scheduler that still sees the machine Idle) is answered Notnow, never passed to an ME that
+        cannot serve it.
+        """
+        try:
+            try:
+                answer: MeMessage | None = await self.me_request(MeMessage(MessageId.NO_MESSAGE), timeout=ME_DEADLINE)
+            except (MeDied, QueueError) as e:
+                answer, why = None, f"no ME answers: {e}"
+            else:
+                why = (f"the ME answers that it is shut down ({answer.alarm_text or answer.ack_code}): it was "
+                       "restarted and lost the machine's state")
+            async with self._state_lock:
+                if answer is None or answer.ack_code != AckCode.ACK_OK:
+                    if self.status != S.SHUTDOWN:  # (a RUN_COMPL that waited may have shut it down)
+                        await self.me_died(why)
+                    return
+                await self._reconcile_run(answer)
+                self.started = self.status in (S.IDLE, S.SETUP, S.RUNNING)
+                self.bus.set_interest(self.busy_interest() if self.started else self.idle_interest())
+                self.log.info("machine %s resumed: %s, the ME is %s", self.machine_id, self.status,
+                              answer.alarm_text or "up")
+        finally:
+            self._resuming = False
+            self.me.heard = time.monotonic()
+
+    async def _reconcile_run(self, me: MeMessage) -> None:
+        """The run MACHINE_STATUS says is running, as it really is (the ME is up and answered `me`).
+
+        Its results file exists: the run ended and its RUN_COMPL was read by the WC that died (or
+        never handled): complete it from the file. The ME runs it: its RUN_COMPL will come. Neither:
+        the results are lost (stored already if the dead WC got that far): complete it without them,
+        so the lot hears and the machine is Idle again.
+        """
+        run_id = self.machine_run_id
+        if self.status not in (S.RUNNING, S.RUN_SHUT) or run_id is None:
+            return
+        path = self._results_path(run_id)
+        shutdown = "shutdown after run" if self.status == S.RUN_SHUT else None
+        if path.exists():
+            code, note = self._outcome_in(path)
+            self.log.warning("run %d ended while no WC handled it: completing it from its results file %s",
+                             run_id, path)
+            await self._finish_run(run_id, code, path, note, shutdown)
+        elif me.alarm_text == MeState.RUNNING and me.file_name == str(path):
+            self.log.info("run %d is still in progress on the ME", run_id)
+        elif self._stored_results(run_id):
+            self.log.warning("run %d: results stored before the WC died, not announced: completing it", run_id)
+            await self._finish_run(run_id, AckCode.ACK_OK, None, None, shutdown)
+        else:
+            self.log.error("run %d: no results file and the ME is %s with no run: the results are lost", run_id,
+                           me.alarm_text or "up")
+            await self._finish_run(run_id, AckCode.RUN_FAIL, None,
+                                   "results lost: the run ended while its WC was down", shutdown)
 
     async def on_startup(self) -> str:
         """6.3.2.1: ME_START to the ME (homing alarm passed on and cleared), Idle, all operations."""
@@ -163,7 +228,7 @@ class WC(Module):
 
     async def on_idle(self) -> None:
         """Watch the ME: ping it when quiet; declare it dead when a ping goes unanswered."""
-        if self.status == S.SHUTDOWN or self.me.busy or time.monotonic() - self.me.heard < ME_PING:
+        if self._resuming or self.status == S.SHUTDOWN or self.me.busy or time.monotonic() - self.me.heard < ME_PING:
             return
         try:
             answer = await self.me_request(MeMessage(MessageId.NO_MESSAGE), timeout=ME_DEADLINE)
@@ -211,10 +276,19 @@ class WC(Module):
         return await self.me.request(msg, timeout, hold_open=lambda: self._alarm_pending > 0)
 
     async def me_died(self, why: str) -> None:
-        """6.3's ME is gone: alarm, a run in progress failed, machine Shutdown until the next ME_START."""
+        """6.3's ME is gone: alarm, a run in progress failed, machine Shutdown until the next ME_START.
+
+        A run whose results file the ME wrote before it died (its RUN_COMPL read by a WC that died
+        too) is completed from the file instead.
+        """
         self.log.error("ME of %s is dead (%s): alarm, machine Shutdown", self.machine_id, why)
         run_id = self.machine_run_id if self.status in (S.RUNNING, S.RUN_SHUT) else None
         await self.raise_alarm("ME_DIED", f"machine side of {self.machine_id} stopped answering: {why}", wait=False)
+        if run_id is not None and self._results_path(run_id).exists():
+            path = self._results_path(run_id)
+            self.log.warning("run %d ended before the ME died: completing it from its results file %s", run_id, path)
+            await self._finish_run(run_id, *self._outcome_in(path), shutdown=f"ME died: {why}", tell_me=False)
+            return
         await self._go_shutdown(f"ME died: {why}", tell_me=False)
         if run_id is not None:
             await self._announce_run(run_id, AckCode.RUN_FAIL, "the ME died during the run")
@@ -449,10 +523,41 @@ class WC(Module):
         self.log.info("run %d started", req.machine_run_id)
         await conv.send(message("Start_Run_Ack", ack_code=AckCode.ACK_OK))
 
+    def _results_path(self, run_id: int) -> Path:
+        """Where the ME writes run `run_id`'s results: chosen by the WC, so a restarted WC finds them."""
+        return self.results_dir / f"run-{run_id}.txt"
+
+    def _outcome_in(self, path: Path) -> tuple[str, str | None]:
+        """How the ME said the run of this results file ended (its RUN_COMPL's ack code and note)."""
+        try:
+            outcome = read_outcome(path)
+        except (OSError, ValueError) as e:
+            self.log.error("results file %s unreadable: %s", path, e)
+            return AckCode.RUN_FAIL, f"results file unreadable: {e}"
+        if outcome is None:
+            return AckCode.ACK_OK, None
+        try:
+            return AckCode(outcome[0]), outcome[1] or None
+        except ValueError:
+            self.log.error("results file %s records an unknown outcome %r", path, outcome[0])
+            return AckCode.RUN_FAIL, f"unknown outcome {outcome[0]} in the results file"
+
+    def _stored_results(self, run_id: int) -> bool:
+        """Whether MACHINE_RUN_RESULT holds results of this run (a read that fails counts as none)."""
+        try:
+            row = self._read("SELECT 1 FROM machine_run_result WHERE machine_run_id = %s AND machine_id = %s LIMIT 1",
+                             (run_id, self.machine_id))
+        except DatabaseUnavailable:
+            raise
+        except DatabaseError as e:
+            self.log.error("cannot check the stored results of run %d: %s", run_id, e)
+            return False
+        return row is not None
+
     async def _run_on_me(self, req: Message) -> tuple[str, str] | None:
         if req.machine_run_id != self.machine_run_id:
             return AckCode.START_FAIL, f"set up for run {self.machine_run_id}, not {req.machine_run_id}"
-        results = self.results_dir / f"run-{req.machine_run_id}.txt"
+        results = self._results_path(req.machine_run_id)
         try:
             answer = await self.me_request(MeMessage(MessageId.START_RUN, file_name=str(results),
                                                      recipe_id=self.recipe_id or ""))
@@ -471,50 +576,60 @@ class WC(Module):
         return None
 
     async def run_complete(self, msg: MeMessage) -> None:
-        """6.3.2.7: results into MACHINE_RUN_RESULT, file removed, Run_Complete on the bus, Idle again."""
+        """6.3.2.7: the ME's RUN_COMPL ends the run in progress."""
         async with self._state_lock:
             run_id = self.machine_run_id
             if self.status not in (S.RUNNING, S.RUN_SHUT) or run_id is None:
                 self.log.warning("RUN_COMPL from the ME while %s: ignored (results file %s kept)", self.status,
                                  msg.file_name or "none")
                 return
-            code = msg.ack_code or AckCode.ACK_OK
-            path = Path(msg.file_name)
+            await self._finish_run(run_id, msg.ack_code or AckCode.ACK_OK, Path(msg.file_name) if msg.file_name
+                                   else None, msg.alarm_text or None,
+                                   "shutdown after run" if self.status == S.RUN_SHUT else None)
+
+    async def _finish_run(self, run_id: int, code: str, path: Path | None, note: str | None, shutdown: str | None,
+                          tell_me: bool = True) -> None:
+        """Results into MACHINE_RUN_RESULT, file removed, Idle (Shutdown if `shutdown` says why), Run_Complete.
+
+        Idempotent, so a restarted WC may complete a run its predecessor had begun to complete: the
+        insert replaces rows already stored, and the file is removed only once they are stored.
+        """
+        results: dict[str, str] = {}
+        if path is not None:
             try:
-                results = read_results(path) if msg.file_name else {}
+                results = read_results(path)
             except (OSError, ValueError) as e:
                 self.log.error("results file %s unreadable: %s", path, e)
-                results, code = {}, AckCode.RUN_FAIL
+                code = AckCode.RUN_FAIL
 
-            def store(cur: Any) -> None:
-                for param, value in results.items():
-                    cur.execute(
-                        "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) "
-                        "VALUES (%s, %s, %s, %s) "
-                        "ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value",
-                        (run_id, self.machine_id, param, value))
+        def store(cur: Any) -> None:
+            for param, value in results.items():
+                cur.execute(
+                    "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) "
+                    "VALUES (%s, %s, %s, %s) "
+                    "ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value",
+                    (run_id, self.machine_id, param, value))
 
-            try:
-                self.transaction(store)
-            except DatabaseError as e:
-                self.log.error("results of run %d not stored: %s (file %s kept)", run_id, e, path)
-                code = AckCode.DB_BADUPD
-            else:
-                self.log.info("run %d: %d results stored in MACHINE_RUN_RESULT", run_id, len(results))
-                if msg.file_name:
-                    path.unlink(missing_ok=True)
-            if code != AckCode.ACK_OK:
-                await self.raise_alarm("RUN_FAIL", f"{self.machine_id}: run {run_id} failed ({code}"
-                                       f"{': ' + msg.alarm_text if msg.alarm_text else ''})", wait=False)
-            shutting = self.status == S.RUN_SHUT
-            self.machine_run_id = self.recipe_id = None
-            if shutting:
-                await self._go_shutdown("shutdown after run")
-            else:
-                await self.change_status(S.IDLE, note=None if code == AckCode.ACK_OK else f"run {run_id}: {code}")
-            await self._announce_run(run_id, code, msg.alarm_text or None)
-            if not shutting:
-                await self.set_accept_types(ALL_OPERATIONS)
+        try:
+            self.transaction(store)
+        except DatabaseError as e:
+            self.log.error("results of run %d not stored: %s (file %s kept)", run_id, e, path)
+            code = AckCode.DB_BADUPD
+        else:
+            self.log.info("run %d: %d results stored in MACHINE_RUN_RESULT", run_id, len(results))
+            if path is not None:
+                path.unlink(missing_ok=True)
+        if code != AckCode.ACK_OK:
+            await self.raise_alarm("RUN_FAIL", f"{self.machine_id}: run {run_id} failed ({code}"
+                                   f"{': ' + note if note else ''})", wait=False)
+        self.machine_run_id = self.recipe_id = None
+        if shutdown is not None:
+            await self._go_shutdown(shutdown, tell_me=tell_me)
+        else:
+            await self.change_status(S.IDLE, note=None if code == AckCode.ACK_OK else f"run {run_id}: {code}")
+        await self._announce_run(run_id, code, note)
+        if shutdown is None:
+            await self.set_accept_types(ALL_OPERATIONS)
 
     async def _announce_run(self, run_id: int, code: str, note: str | None) -> None:
         self.log.info("run %d complete (%s)%s", run_id, code, f": {note}" if note else "")

@@ -19,6 +19,7 @@ import pytest
 from gwc.ipc.bus import BlockingBus, BlockingConversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.mq import Channel, MessageId
 from gwc.log import log_file_name
 from tests.harness import CellHarness, wait_for
 
@@ -358,6 +359,77 @@ def test_kill_9_of_the_wc_during_a_run_the_me_keeps_its_queue_and_the_restarted_
     wait_for(lambda: status(cell, "wc6")[0] == "Idle", T, "Idle again")
     story(cell, "wc:wc6", "Running \\(run 41\\): resuming it", "41: 5 results stored")
     assert setup_run(cell, "wc6", 42).ack_code == OK  # and it serves the cell again
+
+
+def test_kill_9_of_both_halves_the_restarted_wc_finds_a_fresh_me_refuses_setups_and_shuts_the_machine_down(
+        machine_cell: Any) -> None:
+    # BUG-3: WC and ME killed and restarted before the Machine Server notices (liveness 30 s here): the
+    # status still says Idle, but the new ME is shut down. The WC checks its ME before serving anything.
+    cell, ear = machine_cell({"id": "wc5", "kind": "dummy", "run_time": 0.3},
+                             prepare="update me_config set liveness_s = 30 where machine_id = 'wc5'")
+    start_machine(cell, "wc5", homing=False)
+    cell.kill("wc", "wc5")
+    cell.kill("me", "wc5")
+    cell.start("me", "wc5")
+    cell.start("wc", "wc5", start=False)
+    refused = setup_run(cell, "wc5", 51)  # at once, while the WC may still be checking its ME
+    assert refused.ack_code == AckCode.NOTNOW, refused
+    wait_for(lambda: status(cell, "wc5")[0] == "Shutdown", T, "the machine to be Shutdown")
+    pending_alarm(cell, "ME_DIED", "wc5")
+    assert accepts(cell, "wc5") == []
+    assert setup_run(cell, "wc5", 52).ack_code == AckCode.NOTNOW
+    assert not cell.log_has("me:wc5", "SETUP_RUN"), "no SETUP_RUN may reach a shut-down ME"
+    story(cell, "wc:wc5", r"Idle \(run None\): resuming it", "ME of wc5 is dead", "answers that it is shut down",
+          "Idle -> Shutdown")
+
+    started = gwc(cell, "machine", "start", "wc5")  # the operator's way back
+    assert started.returncode == 0, started.stderr + started.stdout
+    assert status(cell, "wc5")[0] == "Idle"
+    assert setup_run(cell, "wc5", 53).ack_code == OK
+    assert start_run(cell, "wc5", 53).ack_code == OK
+    assert ear.wait("Run_Complete of run 53", lambda m: m.machine_run_id == 53).ack_code == OK
+
+
+def test_kill_9_of_the_wc_after_it_read_run_compl_the_restarted_wc_completes_the_run_from_its_results_file(
+        machine_cell: Any) -> None:
+    # BUG-5: the dead WC had read RUN_COMPL from the queue and died before handling it. Its successor
+    # finds run N Running in MACHINE_STATUS and the results file it chose for the run: it completes it.
+    cell, ear = machine_cell({"id": "wc2", "kind": "dummy", "run_time": 0.3},
+                             prepare="update me_config set liveness_s = 30 where machine_id = 'wc2'")
+    start_machine(cell, "wc2", homing=False)
+    results_file = cell.cfg.results_dir / "wc2" / "run-427.txt"
+
+    def run_and_lose_run_compl(run_id: int) -> Any:
+        assert setup_run(cell, "wc2", run_id).ack_code == OK
+        assert start_run(cell, "wc2", run_id).ack_code == OK
+        cell.kill("wc", "wc2")
+        with Channel(cell.cfg.ipc_prefix, "wc2", "wc", cell.log) as queue:  # what the dead WC had read
+            deadline = time.monotonic() + T
+            while (msg := queue.receive(max(deadline - time.monotonic(), 0.1))).message_id != MessageId.RUN_COMPL:
+                pass
+        assert status(cell, "wc2")[:3] == ("Running", "dummy_recipe", run_id)
+        return msg
+
+    msg = run_and_lose_run_compl(427)
+    assert msg.file_name == str(results_file) and results_file.exists()
+    cell.start("wc", "wc2", start=False)
+    assert ear.wait("Run_Complete of run 427", lambda m: m.machine_run_id == 427).ack_code == OK
+    assert results(cell, "wc2", 427)["RESULT"] == "PASS"
+    wait_for(lambda: status(cell, "wc2")[0] == "Idle", T, "Idle again")
+    assert not results_file.exists(), "the results file is removed once stored"
+    wait_for(lambda: accepts(cell, "wc2") == ["dummy_op", "measure", "mill_chess"], T, "all operations again")
+    story(cell, "wc:wc2", r"Running \(run 427\): resuming it", "run 427 ended while no WC handled it",
+          "427: 5 results stored", "Running -> Idle", r"run 427 complete \(ACK_OK\)", "resumed: Idle")
+
+    # The same, but the results file is gone too: the ME is idle with no run, the run failed.
+    run_and_lose_run_compl(428)
+    (cell.cfg.results_dir / "wc2" / "run-428.txt").unlink()
+    cell.start("wc", "wc2", start=False)
+    lost = ear.wait("Run_Complete(Run_Fail) of run 428", lambda m: m.machine_run_id == 428)
+    assert lost.ack_code == AckCode.RUN_FAIL and "results lost" in (lost.note or "")
+    wait_for(lambda: status(cell, "wc2")[0] == "Idle", T, "Idle again")
+    pending_alarm(cell, "RUN_FAIL", "wc2")
+    assert setup_run(cell, "wc2", 429).ack_code == OK  # and it serves the cell again
 
 
 # ----------------------------------------------------------------------------- the numbers

@@ -24,7 +24,7 @@ from gwc.me import make_machine
 from gwc.me.cmm import RecordStream, sim_link
 from gwc.me.machine import MachineSide
 from gwc.me.cmm_sim import CmmSimulator
-from gwc.me.results import read_results, write_results
+from gwc.me.results import read_outcome, read_results, write_results
 from gwc.wc.link import MeDied, MeLink
 from tests.harness import wait_for, write_cell_config
 
@@ -112,6 +112,8 @@ def test_dummy_runs_a_recipe_and_reports_results(machine, tmp_path: Path) -> Non
         if msg.message_id == MessageId.RUN_COMPL:
             break
         assert (msg.message_id, msg.ack_code) == (MessageId.NO_MESSAGE, AckCode.ACK_OK)
+        # a restarted WC learns from the ping whether the run it resumes is still going
+        assert (msg.alarm_text, msg.file_name, msg.recipe_id) == ("running", str(out), "dummy_recipe")
         pings += 1
         time.sleep(0.02)
     assert pings >= 3
@@ -119,6 +121,9 @@ def test_dummy_runs_a_recipe_and_reports_results(machine, tmp_path: Path) -> Non
     results = read_results(out)
     assert results["RESULT"] == "PASS" and results["RECIPE"] == "dummy_recipe" and results["DIAMETER"] == "25.02"
     assert float(results["RUN_TIME"]) >= 0.2
+    assert read_outcome(out) == ("ACK_OK", "")  # how the run ended, for a WC that lost its RUN_COMPL
+    idle = m.wc.receive(5)  # the answer to the last ping, sent after RUN_COMPL
+    assert (idle.seq, idle.ack_code, idle.alarm_text, idle.file_name) == (m.seq, AckCode.ACK_OK, "idle", "")
 
 
 def test_dummy_homing_alarm_holds_the_start_until_cleared(machine) -> None:
@@ -156,6 +161,8 @@ def test_dummy_configured_to_fail_a_run_and_to_fail_homing(machine, tmp_path: Pa
         assert m.ask(MessageId.START_RUN, file_name=str(tmp_path / f"r{n}")).ack_code == AckCode.ACK_OK
         done = m.wc.receive(5)
         codes.append((done.message_id, done.ack_code, read_results(done.file_name)["RESULT"]))
+        assert read_outcome(done.file_name) == ((AckCode.RUN_FAIL, "configured to fail") if n == 2
+                                                else (AckCode.ACK_OK, ""))
         m.ask(MessageId.SETUP_RUN, file_name=recipe(tmp_path), recipe_id="dummy_recipe")
     assert codes == [(MessageId.RUN_COMPL, AckCode.ACK_OK, "PASS"), (MessageId.RUN_COMPL, AckCode.RUN_FAIL, "FAIL"),
                      (MessageId.RUN_COMPL, AckCode.ACK_OK, "PASS")]
@@ -247,6 +254,10 @@ def test_results_file_round_trip_and_errors(tmp_path: Path) -> None:
         read_results(tmp_path / "dup")
     with pytest.raises(ValueError):
         write_results(tmp_path / "x", {"TWO WORDS": "1"})
+    assert read_outcome(path) is None  # a file with no recorded outcome
+    path = write_results(tmp_path / "o.txt", {"RESULT": "FAIL"}, outcome=("Run_Fail", "the line\nwas lost"))
+    assert read_results(path) == {"RESULT": "FAIL"}  # the outcome is a comment: never a result row
+    assert read_outcome(path) == ("Run_Fail", "the line was lost")
 
 
 # ----------------------------------------------------------------------------- the WC's end
