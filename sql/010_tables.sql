@@ -195,6 +195,17 @@ create table if not exists request_outcomes (
     check ((ack_code = 'ACK_OK') = (machine_run_id is not null))
 );
 create index if not exists request_outcomes_entity on request_outcomes (entity_id);
+-- Machine_Request.alt_group: an entity's requests with the same alt_group are alternatives of one
+-- need. MSCHED remembers each group it bound until the entity finishes, so an alternative arriving
+-- after its group was served is answered REQ_CANCEL instead of queued (BUG-6).
+alter table request_machines add column if not exists alt_group text;
+create table if not exists satisfied_alt_groups (
+    entity_id   bigint not null,
+    alt_group   text not null,
+    request_key bigint not null,  -- the request of the group that was bound
+    bound_at    timestamptz not null default clock_timestamp(),
+    primary key (entity_id, alt_group)
+);
 
 create table if not exists machine_run_result (
     machine_run_id bigint not null,

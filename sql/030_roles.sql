@@ -36,8 +36,8 @@ grant execute on function get_new_max_value(text)
     to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot;
 
 -- MSCHED: the request queue, the reservations, what machines accept now.
-grant insert, update, delete on request_machines, reserved_machines, accept_types, request_outcomes
-    to gwc_msched;
+grant insert, update, delete on request_machines, reserved_machines, accept_types, request_outcomes,
+    satisfied_alt_groups to gwc_msched;
 grant usage on sequence request_machines_seq_seq to gwc_msched;
 -- Machine Server: machine status (rows for machines that join, never deleted) and their config.
 grant insert, update on machine_status, me_config to gwc_ms;

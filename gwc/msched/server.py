@@ -128,7 +128,11 @@ class Msched(Module):
     # ------------------------------------------------------------------ conversations
 
     async def machine_request(self, conv: Conversation) -> None:
-        """MACH_REQ: queue the request, answer Machine_Req_Ack, and later tell how it ended."""
+        """MACH_REQ: queue the request, answer Machine_Req_Ack, and later tell how it ended.
+
+        An alternative whose group (entity, alt_group) was bound already is answered REQ_CANCEL at
+        once and never queued: that conversation ends with the Machine_Req_Ack.
+        """
         assert conv.first is not None
         head, entries = conv.first.first, conv.first.messages[1:]
         problem = _malformed_request(head, entries)
@@ -141,18 +145,18 @@ class Msched(Module):
         self._waiters[conv.id] = waiter  # before the step: the pass in it may already bind the request
         try:
             queued: store.Queued = await self._submit(lambda s: s.queue_request(
-                head.entity_id, head.op_type, machines, head.priority, conv.peer, conv.id))
+                head.entity_id, head.op_type, machines, head.priority, conv.peer, conv.id, head.alt_group))
         except BaseException:
             self._waiters.pop(conv.id, None)
             raise
         if queued.ack_code != AckCode.ACK_OK:
             self._waiters.pop(conv.id, None)
-            self.log.info("request of entity %s for %s (%s) refused: %s %s", head.entity_id, head.op_type,
-                          " AND ".join(machines), queued.ack_code, queued.note)
+            self.log.info("request of entity %s for %s (%s)%s refused: %s %s", head.entity_id, head.op_type,
+                          " AND ".join(machines), _group(head), queued.ack_code, queued.note)
             await conv.send(message("Machine_Req_Ack", ack_code=queued.ack_code, note=queued.note))
             return
-        self.log.info("request %d of entity %s for %s (%s) queued", queued.request_key, head.entity_id, head.op_type,
-                      " AND ".join(machines))
+        self.log.info("request %d of entity %s for %s (%s)%s queued", queued.request_key, head.entity_id,
+                      head.op_type, " AND ".join(machines), _group(head))
         await conv.send(message("Machine_Req_Ack", ack_code=AckCode.ACK_OK, request_key=queued.request_key))
         await self._tell(conv, await waiter)
 
@@ -329,4 +333,11 @@ def _malformed_request(head: Message, entries: tuple[Message, ...]) -> str | Non
         return "a machine is named twice in one request"
     if not head.op_type:
         return "op_type is empty"
+    if head.alt_group == "":
+        return "alt_group is empty (leave it out for a request without alternatives)"
     return None
+
+
+def _group(head: Message) -> str:
+    """The request's alternative group, for the log."""
+    return f" alt_group {head.alt_group}" if head.alt_group is not None else ""

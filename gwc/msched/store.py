@@ -36,12 +36,24 @@ FINISHED = (LotState.COMPLETED.value, LotState.WAITING_EXPORT.value, LotState.EX
 
 _OUTCOME_COLS = "request_key, entity_id, ack_code, machines, machine_run_id, note, reply_to, reply_conv"
 
+
+def _live(entity: str, finished: str) -> str:
+    """SQL: the entity (a column) exists, is not destroyed and has a lot status that is not finished.
+
+    `finished` is the query parameter holding FINISHED. One definition for the pass (never bind a
+    request of a finished entity) and for the sweep that ends such requests.
+    """
+    return (f"exists (select 1 from lot_status s join lot_entities e on e.entity_id = s.entity_id "
+            f"where s.entity_id = {entity} and e.destroyed_at is null and s.state <> all({finished}))")
+
+
 # For each trigger machine, the first few requests in the policy's order whose every machine is
 # free (up, unreserved) and accepts the request's op type (its `slots` are all among the usable
-# 'machine:op_type' pairs), of entities not finished. For FIFO the index (machine_id, seq) is walked
-# in order and the walk stops after `per` matches: a freed machine costs a few index probes however
-# long the queue. (Checking each request's other rows with a subquery instead made PostgreSQL test
-# every request of the machine: 23 ms for 20 freed machines with 10,000 queued, against ~1 ms.)
+# 'machine:op_type' pairs), of entities alive (not finished, not destroyed). For FIFO the index
+# (machine_id, seq) is walked in order and the walk stops after `per` matches: a freed machine costs
+# a few index probes however long the queue. (Checking each request's other rows with a subquery
+# instead made PostgreSQL test every request of the machine: 23 ms for 20 freed machines with
+# 10,000 queued, against ~1 ms.)
 _CANDIDATES = """
 select c.request_key, c.entity_id, c.op_type, c.priority, c.first_seq, c.requested_at, c.machines
 from unnest(%(trig)s::text[]) as t (machine_id)
@@ -55,7 +67,7 @@ cross join lateral (
     from request_machines q
     where q.machine_id = t.machine_id
       and q.slots <@ %(usable)s::text[]
-      and not exists (select 1 from lot_status s where s.entity_id = q.entity_id and s.state = any(%(finished)s))
+      and {live}
     order by {key}
     limit %(per)s
 ) c
@@ -106,21 +118,27 @@ class Step:
     # ------------------------------------------------------------------ conversations
 
     def queue_request(self, entity_id: int, op_type: str, machines: Sequence[str], priority: int | None,
-                      reply_to: str | None, reply_conv: str | None) -> Queued:
-        """Machine_Request: check it and put it in REQUEST_MACHINES (6.2.4.3)."""
+                      reply_to: str | None, reply_conv: str | None, alt_group: str | None = None) -> Queued:
+        """Machine_Request: check it and put it in REQUEST_MACHINES (6.2.4.3).
+
+        A request whose alternative group (entity, alt_group) was bound already is refused
+        REQ_CANCEL: its need is met, and queued it would wait forever or bind the entity twice.
+        """
         cur = self.cur
         # One round trip for what must be checked: a repeat (a step retried after a lost commit gets
-        # the same answer), the entity, the op type; a second for the machines.
+        # the same answer), the entity, its group, the op type; a second for the machines.
         row = cur.execute(
             "select coalesce((select request_key from request_machines where reply_conv = %(conv)s limit 1), "
             "                (select request_key from request_outcomes where reply_conv = %(conv)s limit 1)), "
             "       (select array[(e.destroyed_at is null)::text, s.state, l.priority::text] from lot_entities e "
             "        join lots l on l.lot_id = e.lot_id left join lot_status s on s.entity_id = e.entity_id "
             "        where e.entity_id = %(entity)s), "
+            "       (select request_key from satisfied_alt_groups where entity_id = %(entity)s "
+            "        and alt_group = %(group)s), "
             "       exists (select 1 from op_types where op_type = %(op)s)",
-            {"conv": reply_conv, "entity": entity_id, "op": op_type}).fetchone()
+            {"conv": reply_conv, "entity": entity_id, "group": alt_group, "op": op_type}).fetchone()
         assert row is not None
-        repeat, ent, op_known = row
+        repeat, ent, satisfied_by, op_known = row
         if repeat is not None:
             return Queued(AckCode.ACK_OK, int(repeat), "already queued")
         if ent is None:
@@ -129,6 +147,8 @@ class Step:
         if alive != "true" or state is None or state in FINISHED:
             return Queued(AckCode.NOTNOW, note=f"entity {entity_id} is {state or 'without a lot status'}: "
                                                f"it cannot ask for machines")
+        if satisfied_by is not None:
+            return Queued(AckCode.REQ_CANCEL, note=f"alternative {satisfied_by} already satisfied")
         if not op_known:
             return Queued(AckCode.UNKNOWN, note=f"op type {op_type!r} is not known")
         status = dict(cur.execute(
@@ -142,12 +162,12 @@ class Step:
         key = int(cur.execute(
             "with k (key, at) as (select get_new_max_value('MACH_R_KEY'), clock_timestamp()) "
             "insert into request_machines (request_key, entity_id, machine_id, op_type, priority, reply_to, reply_conv, "
-            "                              requested_at, slots) "
-            "select k.key, %s, m, %s, %s, %s, %s, k.at, %s from k, unnest(%s::text[]) with ordinality as u (m, i) "
-            "order by i "
+            "                              requested_at, slots, alt_group) "
+            "select k.key, %s, m, %s, %s, %s, %s, k.at, %s, %s "
+            "from k, unnest(%s::text[]) with ordinality as u (m, i) order by i "
             "returning request_key",
             (entity_id, op_type, int(lot_priority) if priority is None else priority, reply_to, reply_conv,
-             [f"{m}:{op_type}" for m in machines], list(machines))).fetchone()[0])
+             [f"{m}:{op_type}" for m in machines], alt_group, list(machines))).fetchone()[0])
         self.triggers.update(machines)
         return Queued(AckCode.ACK_OK, key)
 
@@ -240,26 +260,37 @@ class Step:
         """At start: wipe (--clean, the thesis's way) or carry on; return answers owed from before."""
         cur = self.cur
         if clean:
-            for table in ("request_outcomes", "request_machines", "reserved_machines"):
+            for table in ("request_outcomes", "request_machines", "reserved_machines", "satisfied_alt_groups"):
                 cur.execute(f"delete from {table}")
             owed: list[Outcome] = []
         else:
             owed = [Outcome.of(r) for r in cur.execute(
                 f"select {_OUTCOME_COLS} from request_outcomes where not held order by decided_at, request_key")]
-        # Entities that finished while MSCHED was away will never take their machines.
-        ended = self._end_queued(
-            "entity_id in (select e.entity_id from lot_entities e left join lot_status s on s.entity_id = e.entity_id "
-            "where e.destroyed_at is not null or s.state is null or s.state = any(%s))",
-            [list(FINISHED)], AckCode.REQ_CANCEL, "entity finished")
-        self._settle({o.entity_id for o in ended})
+        self.end_finished()  # entities that finished while MSCHED was away
         self.machines_down()
         self.full = True
         return owed
 
     def sweep(self) -> None:
-        """The periodic safety net: catch a status change whose broadcast never came."""
+        """The periodic safety net: a status change whose broadcast never came, an orphan request."""
+        self.end_finished()
         self.machines_down()
         self.full = True
+
+    def end_finished(self) -> int:
+        """Entities that finished (or were destroyed) will never take a machine: end their queued
+        requests REQ_CANCEL ("entity finished") and forget the alternative groups they were served.
+
+        The pass never binds such a request; this takes it out of the queue, so that an orphan cannot
+        linger (e.g. an alternative sent without alt_group that arrived just after its sibling was
+        bound). How many requests ended.
+        """
+        ended = self._end_queued(f"not {_live('request_machines.entity_id', '%s')}", [list(FINISHED)],
+                                 AckCode.REQ_CANCEL, "entity finished")
+        self._settle({o.entity_id for o in ended})
+        self.cur.execute(f"delete from satisfied_alt_groups g where not {_live('g.entity_id', '%s')}",
+                         (list(FINISHED),))
+        return len(ended)
 
     # ------------------------------------------------------------------ the scheduling pass
 
@@ -273,7 +304,8 @@ class Step:
     def candidates(self, trig: set[str], usable: set[tuple[str, str]]) -> list[Candidate]:
         # prepare=False: planned for these machines each time; a generic (prepared) plan of this
         # query walked every request of the queue (70 ms instead of 1 with 10,000 queued).
-        rows = self.cur.execute(_CANDIDATES.format(key=self.policy.sql_key()),
+        query = _CANDIDATES.format(key=self.policy.sql_key(), live=_live("q.entity_id", "%(finished)s"))
+        rows = self.cur.execute(query,
                                 {"trig": sorted(trig), "usable": sorted(f"{m}:{op}" for m, op in usable),
                                  "finished": list(FINISHED), "per": self.per_machine}, prepare=False).fetchall()
         unique = {int(k): Candidate(int(k), int(e), op, int(p), int(s), at, tuple(ms))
@@ -324,8 +356,9 @@ class Step:
         flat = [(m, c.entity_id, rid, c.request_key) for c, rid in zip(chosen, run_ids) for m in c.machines]
         machines, m_entities, m_run_ids, m_keys = (list(col) for col in zip(*flat))
         # One statement: reserve; the bound request ends ACK_OK, the entity's other requests (its
-        # alternatives) REQ_CANCEL, and so do its held outcomes. The CTEs share one snapshot, so the
-        # update sees only outcomes held before this statement.
+        # alternatives) REQ_CANCEL, and so do its held outcomes; a bound request's alt_group is
+        # remembered as satisfied. The CTEs share one snapshot, so the update sees only outcomes held
+        # before this statement.
         rows = cur.execute(
             "with b (entity_id, bound_key, run_id) as (select * from unnest(%(entities)s::bigint[], "
             "        %(keys)s::bigint[], %(run_ids)s::bigint[])), "
@@ -334,6 +367,9 @@ class Step:
             "                             %(m_keys)s::bigint[])), "
             "gone as (delete from request_machines q using b where q.entity_id = b.entity_id "
             "        returning q.*, b.bound_key, b.run_id), "
+            "satisfied as (insert into satisfied_alt_groups (entity_id, alt_group, request_key) "
+            "        select distinct entity_id, alt_group, bound_key from gone "
+            "        where request_key = bound_key and alt_group is not null on conflict do nothing), "
             "ended as (insert into request_outcomes (request_key, entity_id, op_type, machines, ack_code, "
             "                                        machine_run_id, note, reply_to, reply_conv) "
             "        select request_key, min(entity_id), min(op_type), array_agg(machine_id order by seq), "

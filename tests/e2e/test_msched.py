@@ -90,6 +90,7 @@ class Request:
     machines: list[str]
     op_type: str = "dummy_op"
     priority: int | None = None
+    alt_group: str | None = None
     conv: BlockingConversation | None = None
     ack: Message | None = None
     comp_batch: Batch | None = field(default=None, repr=False)
@@ -98,7 +99,7 @@ class Request:
         n = len(self.machines) if num_machines is None else num_machines
         self.conv, batch = self.cell.bus.request(
             "MACH_REQ", message("Machine_Request", entity_id=self.entity, op_type=self.op_type, num_machines=n,
-                                priority=self.priority),
+                                priority=self.priority, alt_group=self.alt_group),
             *[message("Machine_Entry", machine_id=m) for m in self.machines], to="msched", timeout=T)
         self.ack = batch.first
         if self.ack.ack_code != AckCode.ACK_OK:
@@ -378,6 +379,67 @@ def test_dead_entity_does_not_hold_up_the_scheduler(make_cell: Any) -> None:
     assert alive.comp().ack_code == AckCode.ACK_OK
     assert time.monotonic() - started < 5, "the scheduler waited for a dead entity's acknowledgement"
     assert reservations(cell) == {"wc1": 2, "wc2": 3}
+
+
+# ----------------------------------------------------------------------------- alternatives (BUG-6)
+
+
+def test_alternative_arriving_after_its_group_was_bound_is_cancelled_not_queued(make_cell: Any) -> None:
+    """BUG-6: an entity's second alternative arrived just after the first was bound; it was queued
+    and outlived the entity. With alt_group it is answered REQ_CANCEL at once: nothing queued, nothing bound."""
+    cell = msched_cell(make_cell)
+    cell.start("msched")
+    add_entities(cell, 1, 2)
+    machines_up(cell, "wc1", "wc2")
+    request(cell, 2, "wc2").comp()  # entity 2 holds wc2: a request for it would wait
+    first = request(cell, 1, "wc1", alt_group="step1")  # wc1 is free: bound at once
+    assert first.comp().ack_code == AckCode.ACK_OK and first.reserved == ["wc1"]
+
+    late = request(cell, 1, "wc2", alt_group="step1")
+    assert (late.ack.ack_code, late.ack.request_key) == (AckCode.REQ_CANCEL, None)
+    assert late.ack.note == f"alternative {first.key} already satisfied"
+    assert queued_keys(cell) == [] and reservations(cell) == {"wc1": 1, "wc2": 2}
+    assert cell.log_has("msched", f"alt_group step1 refused: REQ_CANCEL alternative {first.key} already satisfied")
+    # The group stays satisfied after its machine is given back (until the entity finishes).
+    assert unreserve(cell, 1).ack_code == AckCode.ACK_OK
+    assert request(cell, 1, "wc1", alt_group="step1").ack.ack_code == AckCode.REQ_CANCEL
+    assert reservations(cell) == {"wc2": 2}
+
+    # Without alt_group, and with a group not served yet, requests queue as before.
+    plain = request(cell, 1, "wc2")
+    assert plain.ack.ack_code == AckCode.ACK_OK
+    other = request(cell, 2, "wc2", alt_group="step1")  # another entity's group of the same name
+    assert other.ack.ack_code == AckCode.ACK_OK
+    wait_queued(cell, 2)
+    assert Request(cell, 1, ["wc1"], alt_group="").send().ack.ack_code == AckCode.BAD_MESSAGE
+    assert unreserve(cell, 2).ack_code == AckCode.ACK_OK
+    assert plain.comp().ack_code == AckCode.ACK_OK and reservations(cell) == {"wc2": 1}
+    assert queued_keys(cell) == [other.key]
+
+
+def test_finished_entity_is_never_bound_and_its_orphan_request_ends(make_cell: Any) -> None:
+    """A request queued without alt_group outlives its entity: the pass never binds it, the
+    periodic sweep ends it REQ_CANCEL and forgets the entity's satisfied groups."""
+    cell = msched_cell(make_cell)
+    cell.start("msched")
+    add_entities(cell, 1, 2)
+    machines_up(cell, "wc1", "wc2")
+    request(cell, 2, "wc1").comp()
+    served = request(cell, 1, "wc2", alt_group="step1")
+    assert served.comp().ack_code == AckCode.ACK_OK
+    orphan = request(cell, 1, "wc1")
+    wait_queued(cell, 1)
+    groups = cell.query("select entity_id, alt_group, request_key from satisfied_alt_groups")
+    assert groups == [(1, "step1", served.key)]
+
+    with cell.db() as conn:  # the entity finishes (as the Lot Server records it); its orphan still waits
+        conn.execute("update lot_status set state = 'completed' where entity_id = 1")
+    assert unreserve(cell, 2).ack_code == AckCode.ACK_OK  # wc1 free: the pass must not give it to entity 1
+    assert reservations(cell) == {"wc2": 1}
+    comp = orphan.comp()  # the sweep ([msched] sweep_s, 5 s)
+    assert (comp.ack_code, comp.note) == (AckCode.REQ_CANCEL, "entity finished")
+    assert queued_keys(cell) == [] and reservations(cell) == {"wc2": 1}
+    assert cell.query("select count(*) from satisfied_alt_groups")[0][0] == 0
 
 
 # ----------------------------------------------------------------------------- the operator's screen (MREQ)

@@ -78,3 +78,25 @@ def test_clean_start_wipes_the_queue_as_the_thesis_did(make_cell: Any) -> None:
     waiting.conv.end()
     again = request(cell, 2, "wc1")
     assert again.comp().ack_code == AckCode.ACK_OK
+
+
+def test_satisfied_alternative_group_survives_kill9(make_cell: Any) -> None:
+    """The bound alternative groups live in the database: after a kill -9, a late alternative of a
+    served group is still refused REQ_CANCEL, even once its machine was given back."""
+    cell = msched_cell(make_cell)
+    cell.start("msched")
+    add_entities(cell, 1, 2)
+    machines_up(cell, "wc1", "wc2")
+    request(cell, 2, "wc2").comp()
+    first = request(cell, 1, "wc1", alt_group="step1")
+    assert first.comp().ack_code == AckCode.ACK_OK
+    assert unreserve(cell, 1).ack_code == AckCode.ACK_OK
+    wait_for(lambda: cell.query("select count(*) from request_outcomes")[0][0] == 0, T, "the answer acknowledged")
+
+    kill9_and_restart(cell)
+
+    late = request(cell, 1, "wc1", alt_group="step1")
+    assert (late.ack.ack_code, late.ack.note) == (AckCode.REQ_CANCEL, f"alternative {first.key} already satisfied")
+    assert queued_keys(cell) == [] and reservations(cell) == {"wc2": 2}
+    assert request(cell, 1, "wc1").comp().ack_code == AckCode.ACK_OK  # without alt_group: queued and bound
+    assert reservations(cell) == {"wc1": 1, "wc2": 2}

@@ -1,9 +1,10 @@
-"""The scheduler on random request/free/shutdown/accept/cancel sequences, against the real database.
+"""The scheduler on random request/free/shutdown/accept/cancel/finish sequences, against the real database.
 
 After every step: no machine reserved twice, nothing bound to a machine that was not up, free and
 accepting the request's op type, FIFO kept among requests that could have been bound together, no
 request left queued that could be bound now, NO_MACHINE told only when the entity has no alternative
-left; and at the end every request ended exactly once.
+left, nothing bound to a finished entity, an alternative group (entity, alt_group) bound at most once
+and a request of a bound group refused REQ_CANCEL; and at the end every request ended exactly once.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ MACHINES = ["wc1", "wc2", "wc3", "wc4", "wc5", "wc6", "mazak"]
 OP_TYPES = ["dummy_op", "measure", "mill_chess"]
 ENTITIES = list(range(1, 31))
 STATUSES = ["Idle", "Idle", "Running", "Setup", "Shutdown", "Run_Shut"]
+GROUPS = [None, None, "g1", "g2"]  # Machine_Request.alt_group
 
 
 def _setup(admin: psycopg.Connection[Any]) -> None:
@@ -57,18 +59,30 @@ class World:
             "select request_key, min(entity_id), min(op_type), min(seq), array_agg(machine_id order by seq) "
             "from request_machines group by request_key order by 4")]
 
+    def finished(self) -> set[int]:
+        return {e for (e,) in self.cur.execute("select entity_id from lot_status where state = 'completed'")}
+
+    def groups(self) -> set[tuple[int, str]]:
+        return set(self.cur.execute("select entity_id, alt_group from satisfied_alt_groups"))
+
     def satisfiable(self) -> list[tuple[int, int, str, int, tuple[str, ...]]]:
-        status, acc, res = self.status(), self.accepts(), self.reserved()
-        return [q for q in self.queue()
-                if all(status[m] in UP and m not in res and (m, q[2]) in acc for m in q[4])]
+        status, acc, res, done = self.status(), self.accepts(), self.reserved(), self.finished()
+        return [q for q in self.queue() if q[1] not in done
+                and all(status[m] in UP and m not in res and (m, q[2]) in acc for m in q[4])]
 
 
 def _random_op(rng: random.Random, w: World, admin: psycopg.Connection[Any]) -> tuple[str, Any]:
     """Pick the next event; the database side of it (a status change) is done here, as MS would."""
-    kind = rng.choices(["request", "free", "status", "accept", "cancel", "ack"], [8, 4, 2, 2, 1, 2])[0]
+    kind = rng.choices(["request", "free", "status", "accept", "cancel", "ack", "finish", "sweep"],
+                       [8, 4, 2, 2, 1, 2, 0.5, 1])[0]
     if kind == "request":
         n = rng.choice([1, 1, 2])
-        return kind, (rng.choice(ENTITIES), rng.choice(OP_TYPES), rng.sample(MACHINES, n))
+        return kind, (rng.choice(ENTITIES), rng.choice(OP_TYPES), rng.sample(MACHINES, n), rng.choice(GROUPS))
+    if kind == "finish":  # an entity completes, as the Lot Server records it, mostly one with requests waiting
+        q = w.queue()
+        e = rng.choice(q)[1] if q and rng.random() < 0.8 else rng.choice(ENTITIES)
+        admin.execute("update lot_status set state = 'completed' where entity_id = %s", (e,))
+        return kind, e
     if kind == "free":
         res = w.reserved()
         if not res:
@@ -91,11 +105,11 @@ def _random_op(rng: random.Random, w: World, admin: psycopg.Connection[Any]) -> 
     return kind, None
 
 
-def _apply(step: Step, kind: str, arg: Any, told: list[Outcome]) -> None:
+def _apply(step: Step, kind: str, arg: Any, told: list[Outcome]) -> Any:
     if kind == "request":
-        entity, op, machines = arg
-        step.queue_request(entity, op, machines, None, "lot:test", None)
-    elif kind == "free":
+        entity, op, machines, group = arg
+        return step.queue_request(entity, op, machines, None, "lot:test", None, group)
+    if kind == "free":
         step.unreserve(*arg)
     elif kind == "status":
         machine, status = arg
@@ -110,6 +124,9 @@ def _apply(step: Step, kind: str, arg: Any, told: list[Outcome]) -> None:
     elif kind == "ack" and told:
         step.finish([o.request_key for o in told])
         told.clear()
+    elif kind == "sweep":
+        step.sweep()
+    return None
 
 
 def _run(conn: psycopg.Connection[Any], admin: psycopg.Connection[Any], policy: Policy, seed: int,
@@ -119,21 +136,39 @@ def _run(conn: psycopg.Connection[Any], admin: psycopg.Connection[Any], policy: 
     codes: Counter[str] = Counter()
     queued_ever: set[int] = set()
     told: list[Outcome] = []
+    group_of: dict[int, tuple[int, str]] = {}  # request_key -> its (entity, alt_group)
+    satisfied: set[tuple[int, str]] = set()  # the groups bound, and not forgotten by a sweep
     for i in range(steps):
         with conn.transaction(), conn.cursor() as cur:
             w = World(cur)
             kind, arg = _random_op(rng, w, admin)
             step = Step(cur, policy, per_machine=1 if i % 2 else 3)  # small rounds: stress the repeat
             before_q = {q[0] for q in w.queue()}
-            _apply(step, kind, arg, told)
+            done = w.finished()
+            result = _apply(step, kind, arg, told)
+            where = f"seed {seed} step {i} ({kind} {arg})"
+            if kind == "request":
+                entity, _, _, group = arg
+                served = entity not in done and (entity, group) in satisfied
+                assert (result.ack_code == AckCode.REQ_CANCEL) == served, f"{where}: {result}"
+                if result.ack_code == AckCode.ACK_OK and group is not None:
+                    group_of[result.request_key] = (entity, group)
+                if served:
+                    assert {q[0] for q in w.queue()} == before_q, f"{where}: a served group's request was queued"
+            if kind == "sweep":
+                assert not {q[1] for q in w.queue()} & done, f"{where}: a finished entity's request still waits"
+                satisfied = {g for g in satisfied if g[0] not in done}
             queued_ever |= {q[0] for q in w.queue()} | before_q
             # The state the pass sees: after the step's changes, before binding.
             status, acc, res_before = w.status(), w.accepts(), w.reserved()
             sat = w.satisfiable()
             bound = step.schedule()
-            where = f"seed {seed} step {i} ({kind} {arg})"
             res_after = w.reserved()
             for o in bound:
+                assert o.entity_id not in done, f"{where}: bound a request of finished entity {o.entity_id}"
+                if o.request_key in group_of:
+                    assert group_of[o.request_key] not in satisfied, f"{where}: a group bound twice"
+                    satisfied.add(group_of[o.request_key])
                 q = next(q for q in sat if q[0] == o.request_key)
                 for m in o.machines:
                     assert status[m] in UP, f"{where}: bound {m} which is {status[m]}"
@@ -151,6 +186,7 @@ def _run(conn: psycopg.Connection[Any], admin: psycopg.Connection[Any], policy: 
                                 and (set(b[4]) & set(q[4]) or b[1] == q[1])]
                     assert blockers, f"{where}: request {q[0]} could be bound and no older request took its place"
             assert w.satisfiable() == [], f"{where}: a request that could be bound is left waiting"
+            assert w.groups() == satisfied, f"{where}: satisfied_alt_groups is not what was bound"
             queue_entities = {q[1] for q in w.queue()}
             for o in step.outcomes:
                 ended[o.request_key] += 1
