@@ -38,6 +38,9 @@ from gwc.ipc.codes import AckCode
 from gwc.log import conversation, open_log
 
 Handler = Callable[[Conversation], Awaitable[None]]
+# The note of the Notnow a module answers before its STARTUP (or after its SHUTDOWN): a passing state,
+# so callers (the lot library) ask again after a pause rather than give up.
+NOT_STARTED = "module not started"
 
 # Bus modules: name -> "module:Class". Machine halves take --machine and are named kind:ID.
 BUS_MODULES = {
@@ -214,7 +217,7 @@ class Module:
                     handler = self.handlers().get(conv.cls)
                     if handler is None or not self.serves(conv.cls):
                         self.log.info("ignored %s from %s: not served now", head.name, conv.first.sender)
-                        await self._refuse(conv, AckCode.NOTNOW, "module not started")
+                        await self._refuse(conv, AckCode.NOTNOW, NOT_STARTED)
                     else:
                         await handler(conv)
             except asyncio.CancelledError:

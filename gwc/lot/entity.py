@@ -22,10 +22,16 @@ corrupt the tables: this one asks the owners instead of writing them). A script 
 cannot clean up; the Lot Server's reaper does the same for it when `lot:E` leaves the bus.
 
 The entity listens to RUN_COMPL (its runs finish), UPD_ME_ST (a reserved machine shut down mid-run:
-the step is retried on other machines a bounded number of times) and LOT_MOVED (the operator's
-import and export). It reads the tables (as role gwc_lot) and writes none. Besides its log it
-keeps a traveller, var/lots/entity-E.json: what it ran where and what it decided, for the operator
-(`gwc lots show E`) and the demonstration.
+the step is retried, after a pause, on whatever machine is up, a bounded number of times) and
+LOT_MOVED (the operator's import and export). It remembers every status change of the machines it
+works with, so a machine that went Shutdown and came up again while the entity waited is still
+known to have lost the run. Servers come and go too: a conversation with the Lot Server or MSCHED
+that finds it away, restarting or not yet started is asked again with a backoff for a bounded time
+(Timeouts.retry); every request the entity repeats that way is safe to repeat.
+
+It reads the tables (as role gwc_lot) and writes none. Besides its log it keeps a traveller,
+var/lots/entity-E.json: what it ran where and what it decided, for the operator (`gwc lots show E`)
+and the demonstration.
 """
 
 from __future__ import annotations
@@ -47,12 +53,13 @@ import psycopg
 
 from gwc import db
 from gwc.config import Config
-from gwc.errors import BusError, GwcError
-from gwc.ipc.bus import BlockingBus, Conversation
+from gwc.errors import BusError, ConversationTimeout, DatabaseError, GwcError
+from gwc.ipc.bus import Batch, BlockingBus, Bus, Conversation, Peer
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, LotState, MachineStatus
 from gwc.lot.errors import (LotError, LotTimeout, MachineLost, RequestCancelled, RequestRefused, RunFailed,
                             ScriptStopped)
+from gwc.module import NOT_STARTED
 
 T = TypeVar("T")
 S = LotState
@@ -62,6 +69,12 @@ FINISHED = (S.COMPLETED, S.WAITING_EXPORT, S.EXPORTED, S.FAILED)
 IMPORTED = (S.IMPORTED, S.WAITING_MACHINE, S.RUNNING, *FINISHED)
 FOREVER = 10.0**7  # a conversation MSCHED answers when it can: its own deadline is the caller's
 POLL = 1.0  # fallback reads of LOT_STATUS / MACHINE_STATUS while waiting for a broadcast
+HISTORY = 32  # status changes remembered per machine
+SHUT = (MachineStatus.SHUTDOWN.value,)
+ENDED = (MachineStatus.SHUTDOWN.value, MachineStatus.IDLE.value)  # a machine in these runs nothing
+# ENTITY_REQ actions whose repeat (its first answer was lost) may find the operator already moved the
+# entity on: the Lot Server then answers Notnow with the state the first request led to.
+ALREADY = {"import": (S.IMPORTED,), "export": (S.EXPORTED,)}
 
 
 @dataclass(frozen=True)
@@ -74,8 +87,36 @@ class Timeouts:
     machines: float = 600.0  # waiting in MSCHED's queue for machines
     setup: float = 300.0  # SETUP_RUN (the CMM waits for its start button to be pushed)
     run: float = 600.0  # from START_RUN to RUN_COMPL
-    lost_grace: float = 3.0  # RUN_COMPL may still follow a machine's Shutdown (Run_Shut)
+    lost_grace: float = 3.0  # RUN_COMPL may still follow a machine's Shutdown (Run_Shut) or Idle
     cleanup: float = 5.0  # each cleanup conversation of a failing entity
+    retry: float = 60.0  # asking a server (ls, msched) again while it is away, restarting or not started
+    backoff: float = 0.2  # the first pause between those asks, doubling ...
+    backoff_max: float = 2.0  # ... up to this
+    pause: float = 1.0  # before an operation's next try after a machine was lost, doubling per try
+
+
+class Backoff:
+    """The pauses between asks of a server that cannot answer now: short, doubling, for a bounded time."""
+
+    def __init__(self, timeouts: Timeouts, within: float | None = None) -> None:
+        self.deadline = time.monotonic() + (timeouts.retry if within is None else within)
+        self.delay = timeouts.backoff
+        self.most = timeouts.backoff_max
+        self.tries = 0
+
+    def next(self) -> float | None:
+        """The pause before the next ask, or None when the time for asking is up."""
+        self.tries += 1
+        left = self.deadline - time.monotonic()
+        if left <= 0:
+            return None
+        pause, self.delay = min(self.delay, left), min(self.delay * 2, self.most)
+        return pause
+
+
+def _not_started(ack: Message) -> bool:
+    """The module is on the bus but not started (yet, or any more): ask again later."""
+    return ack.ack_code == AckCode.NOTNOW and ack.note == NOT_STARTED
 
 
 @dataclass
@@ -194,7 +235,10 @@ class _Alternative:
 
     @property
     def sibling_cancelled(self) -> bool:
-        """MSCHED ended it because another alternative of the entity was satisfied."""
+        """MSCHED ended it because another alternative of the entity was satisfied, or refused it for
+        that reason (Machine_Req_Ack REQ_CANCEL: a sibling of its alt_group was bound before it came)."""
+        if self.ack is not None and self.ack.ack_code == AckCode.REQ_CANCEL:
+            return True
         c = self.comp
         return c is not None and c.ack_code == AckCode.REQ_CANCEL and "satisfied" in (c.note or "")
 
@@ -202,12 +246,24 @@ class _Alternative:
         return " AND ".join(self.machines)
 
 
+class _Call:
+    """A conversation held on the bus thread for a step waiting in the script's thread (see _ask_wc)."""
+
+    def __init__(self) -> None:
+        self.answer: Message | None = None
+        self.error: GwcError | None = None
+        self.done = False
+        self.task: asyncio.Task[None] | None = None
+        self.abandoned = False
+
+
 class MachineRequest:
     """The alternatives asked for one operation ((M1 AND M2) OR (M3)), as MSCHED answered them."""
 
-    def __init__(self, op_type: str, alternatives: list[_Alternative]) -> None:
+    def __init__(self, op_type: str, alternatives: list[_Alternative], alt_group: str | None = None) -> None:
         self.op_type = op_type
         self.alternatives = alternatives
+        self.alt_group = alt_group  # sent with each alternative: MSCHED binds at most one of them
         self.winner: _Alternative | None = None  # the alternative the entity took
         for a in alternatives:
             a.group = self
@@ -246,7 +302,14 @@ class OperationEntity:
         self._conn: psycopg.Connection[Any] | None = None
         self._cond = threading.Condition()
         self._runs: dict[tuple[str, int], str] = {}
-        self._status: dict[str, tuple[str, float]] = {}
+        # Every machine's status changes as (when, status, machine_run_id), from UPD_ME_ST (and MACHINE_STATUS
+        # when a wait reads it): a Shutdown stays known after the machine is up again.
+        self._history: dict[str, list[tuple[float, str, int | None]]] = {}
+        self._peer_inc: dict[str, int] = {}  # bus peers present now -> incarnation
+        self._peer_left: dict[str, float] = {}  # bus peers that left -> when
+        self._began: dict[tuple[str, int], tuple[float, int | None]] = {}  # (machine, run) -> when, its WC's inc
+        self._requests: list[MachineRequest] = []  # asked for and not yet waited for
+        self._groups = 0
         self._moved: list[tuple[str, int | None]] = []
         self._tasks: set[asyncio.Task[None]] = set()
         self._failed = False
@@ -282,6 +345,8 @@ class OperationEntity:
             self._failed = True  # nothing of ours to clean up
             raise LotError(f"entity {self.entity_id} is already {self.state}: nothing to do")
         self._bus = BlockingBus(self.name, self.cfg.bus, self.log, interest=LISTENS)
+        self._bus.call_soon(self._watch_peers, self._bus.bus)
+        self._bus.peers()  # returns after _watch_peers ran (the bus thread runs callbacks in order)
         self._spawn(self._listen())
         ack = self.entity_request("attach", script_pid=os.getpid())
         self.log.info("entity %d attached (lot %s, product %s, state %s, pid %d)", self.entity_id, self.lot_id,
@@ -311,8 +376,7 @@ class OperationEntity:
         self.traveller.update(result=f"failed: {reason}")
         if self._bus is None:
             return
-        peers = self._bus.peers()
-        if "msched" in peers:
+        if self._present("msched"):
             for what, fn in (("cancel its requests", self.cancel_requests), ("unreserve its machines", self.unreserve)):
                 try:
                     fn(timeout=self.timeouts.cleanup)
@@ -320,7 +384,7 @@ class OperationEntity:
                     self.log.error("cleanup: could not %s: %s", what, e)
         else:
             self.log.error("cleanup: msched is not on the bus; its reaper cleans up when it returns")
-        try:
+        try:  # asked again while the Lot Server is away (Timeouts.retry): else the entity stays as it is
             self.entity_request("failed", reason=reason[:500], timeout=self.timeouts.cleanup)
         except GwcError as e:
             self.log.error("cleanup: the Lot Server did not take the failure: %s", e)
@@ -330,11 +394,19 @@ class OperationEntity:
     # ----------------------------------------------------------------- the Lot Server
 
     def entity_request(self, action: str, reason: str | None = None, script_pid: int | None = None,
-                       timeout: float | None = None) -> Message:
-        """ENTITY_REQ: ask the Lot Server to move this entity (import, export, completed, failed ...)."""
+                       timeout: float | None = None, within: float | None = None) -> Message:
+        """ENTITY_REQ: ask the Lot Server to move this entity (import, export, completed, failed ...).
+
+        Asked again while the Lot Server is away or not started (see `_ask`). Every action is safe to
+        repeat: the Lot Server moves an entity only into the state it is asked for (attach, completed,
+        failed, waiting_machine, running: a repeat finds it there and changes nothing), and a repeated
+        import or export that finds the operator already moved the entity on is taken as done (ALREADY).
+        """
         ack = self._ask("ENTITY_REQ", message("Entity_Request", entity_id=self.entity_id, action=action,
-                                              reason=reason, script_pid=script_pid), "ls", timeout)
-        if ack.ack_code != AckCode.ACK_OK:
+                                              reason=reason, script_pid=script_pid), "ls", timeout, within)
+        if ack.ack_code == AckCode.NOTNOW and ack.state in ALREADY.get(action, ()):
+            self.log.info("entity %d: %s already done (the entity is %s)", self.entity_id, action, ack.state)
+        elif ack.ack_code != AckCode.ACK_OK:
             raise LotError(f"the Lot Server refused {action} for entity {self.entity_id}: {ack.ack_code}"
                            + (f" ({ack.note})" if ack.note else "") + (f", entity is {ack.state}" if ack.state else ""))
         if ack.lot_id is not None:
@@ -365,7 +437,12 @@ class OperationEntity:
         self.log.info("entity %d imported (lot %s)", self.entity_id, self.lot_id)
 
     def lot_completed(self, result: str | None = None) -> None:
-        """Tell the Lot Server the lot's work here is done, with its result (Listing 1's lot_completed)."""
+        """Tell the Lot Server the lot's work here is done, with its result (Listing 1's lot_completed).
+
+        First every request of the entity still queued in MSCHED is cancelled: nothing may wait for
+        machines on behalf of a finished entity.
+        """
+        self._cancel_leftovers("before completing")
         self.entity_request("completed", reason=result)
         self.result = result
         self.traveller.update(result=result or "completed")
@@ -397,21 +474,27 @@ class OperationEntity:
                          priority: int | None = None) -> MachineRequest:
         """MACH_REQ: one request per alternative (all machines of an alternative are needed).
 
-        Returns once MSCHED acknowledged each (queued with a request_key, or NO_MACHINE).
+        Returns once MSCHED acknowledged each (queued with a request_key, or NO_MACHINE). All of them
+        carry one new alt_group, so MSCHED binds at most one: a sibling that reaches it after another
+        was bound is refused (Machine_Req_Ack REQ_CANCEL), which the entity takes as a sibling cancel.
         """
         alts = [_Alternative(op_type, list(a)) for a in alternatives if a]
         if not alts:
             raise RequestRefused(f"no machines to ask for {op_type}")
         if self.state != S.WAITING_MACHINE:
             self.entity_request("waiting_machine")
-        request = MachineRequest(op_type, alts)
+        self._groups += 1  # unique per call (and per process: a restarted script's groups are new ones)
+        request = MachineRequest(op_type, alts, f"{self.entity_id}.{os.getpid()}.{self._groups}")
+        self._requests.append(request)
         for alt in alts:
             self._spawn(self._request(alt, priority if priority is not None else self.priority))
-        self._wait(lambda: all(a.ack is not None or a.done for a in alts), self.timeouts.answer + 1,
-                   f"MSCHED's answer to the request for {op_type}")
+        self._wait(lambda: all(a.ack is not None or a.done for a in alts),
+                   self.timeouts.retry + self.timeouts.answer + 1, f"MSCHED's answer to the request for {op_type}")
         for a in alts:
             if a.ack is not None and a.ack.ack_code == AckCode.ACK_OK:
                 self.log.info("request %s for %s (%s) queued", a.key, op_type, a.describe())
+            elif a.sibling_cancelled:
+                self.log.info("request for %s (%s) not queued: another alternative is bound", op_type, a.describe())
             else:
                 self.log.warning("request for %s (%s) refused: %s", op_type, a.describe(),
                                  a.error or (a.ack.ack_code if a.ack else "no answer"))
@@ -432,11 +515,17 @@ class OperationEntity:
                 return bound[0]
             return all(a.done for a in alts) and not any(a.sibling_cancelled for a in alts)
 
-        got = self._wait(outcome, timeout, f"machines for {request.op_type} ({request.describe()})")
+        try:
+            got = self._wait(outcome, timeout, f"machines for {request.op_type} ({request.describe()})")
+        finally:
+            if request in self._requests:
+                self._requests.remove(request)
         for m in surplus:  # MSCHED bound two alternatives: keep the first, give the other back
             self.log.warning("%s was bound too by another alternative: giving it back", m)
             self.unreserve(m)
         if isinstance(got, _Alternative):
+            if any(not a.done for a in alts if a is not got):  # a sibling may still be queued: end it
+                self._cancel_leftovers("after taking an alternative", request)
             assert got.comp is not None
             res = Reservation(request.op_type, int(got.comp.machine_run_id or 0), got.key,
                               got.reserved or got.machines)
@@ -473,24 +562,26 @@ class OperationEntity:
                 reason = str(e)
             if attempt == self.max_tries:
                 raise RequestRefused(f"{reason} (asked {attempt} times)")
-            wanted = sorted({m for a in alts for m in a}) if alternatives else None
             self.log.warning("%s: waiting for a machine to come up, then asking again", reason)
-            self._wait_machine_up(op_type, wanted, deadline)
+            self._pause(attempt, f"asking MSCHED for {op_type} again")
+            self._wait_machine_up(op_type, alternatives, deadline)
         raise AssertionError("unreachable")
 
-    def cancel_requests(self, request_key: int | None = None, timeout: float | None = None) -> int:
+    def cancel_requests(self, request_key: int | None = None, timeout: float | None = None,
+                        within: float | None = None) -> int:
         """CANCEL_RE: cancel one request, or all of the entity's. Returns how many were cancelled."""
         ack = self._ask("CANCEL_RE", message("Cancel_Request", request_key=request_key,
                                              entity_id=None if request_key else self.entity_id, by=self.name),
-                        "msched", timeout)
+                        "msched", timeout, within)
         if ack.ack_code not in (AckCode.ACK_OK, AckCode.REQ_KEY_U):
             raise LotError(f"MSCHED refused to cancel the requests of entity {self.entity_id}: {ack.ack_code}")
         return int(ack.cancelled or 0)
 
-    def unreserve(self, machine_id: str | None = None, timeout: float | None = None) -> int:
+    def unreserve(self, machine_id: str | None = None, timeout: float | None = None,
+                  within: float | None = None) -> int:
         """UNRESERVE: free one reserved machine, or all of the entity's. Returns how many were freed."""
         ack = self._ask("UNRESERVE", message("Unreserve_Me", entity_id=self.entity_id, machine_id=machine_id,
-                                             by=self.name), "msched", timeout)
+                                             by=self.name), "msched", timeout, within)
         if ack.ack_code == AckCode.NOT_RESERVED:
             self.log.info("unreserve %s: nothing reserved", machine_id or "all")
             return 0
@@ -510,43 +601,71 @@ class OperationEntity:
         return str(rows[0][0])
 
     def setup_run(self, machine_id: str, recipe_id: str, op_type: str, machine_run_id: int) -> None:
-        """SETUP_RUN to the machine's WC: recipe downloaded, machine set up (the CMM is homed first)."""
+        """SETUP_RUN to the machine's WC: recipe downloaded, machine set up (the CMM is homed first).
+
+        Waits up to Timeouts.setup (the CMM waits for its start button), but no longer than the
+        machine lives: MachineLost as soon as it goes Shutdown or its WC leaves the bus.
+        """
         self.log.info("setting up run %d on %s with recipe %s", machine_run_id, machine_id, recipe_id)
-        ack = self._ask("SETUP_RUN", message("Setup_Run", machine_id=machine_id, recipe_id=recipe_id, op_type=op_type,
-                                             machine_run_id=machine_run_id, entity_id=self.entity_id),
-                        f"wc:{machine_id}", self.timeouts.setup)
+        with self._cond:  # the run's life on this machine begins: what happens to it from now on counts
+            self._began[(machine_id, machine_run_id)] = (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
+        ack = self._ask_wc("SETUP_RUN", message("Setup_Run", machine_id=machine_id, recipe_id=recipe_id,
+                                                op_type=op_type, machine_run_id=machine_run_id,
+                                                entity_id=self.entity_id), machine_id, machine_run_id,
+                           self.timeouts.setup)
         if ack.ack_code != AckCode.ACK_OK:
-            self._raise_if_lost(machine_id, ack)
+            self._raise_if_lost(machine_id, machine_run_id, ack)
             raise RunFailed(f"{machine_id} refused to set up run {machine_run_id} ({recipe_id}): {ack.ack_code}"
                             + (f" ({ack.note})" if ack.note else ""))
 
     def start_run(self, machine_id: str, machine_run_id: int) -> None:
-        """START_RUN to the machine's WC: run what was set up."""
-        ack = self._ask("START_RUN", message("Start_Run", machine_id=machine_id, machine_run_id=machine_run_id),
-                        f"wc:{machine_id}")
+        """START_RUN to the machine's WC: run what was set up (MachineLost if the machine goes meanwhile)."""
+        with self._cond:
+            self._began.setdefault((machine_id, machine_run_id),
+                                   (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}")))
+        ack = self._ask_wc("START_RUN", message("Start_Run", machine_id=machine_id, machine_run_id=machine_run_id),
+                           machine_id, machine_run_id, self.timeouts.answer)
         if ack.ack_code != AckCode.ACK_OK:
-            self._raise_if_lost(machine_id, ack)
+            self._raise_if_lost(machine_id, machine_run_id, ack)
             raise RunFailed(f"{machine_id} refused to start run {machine_run_id}: {ack.ack_code}"
                             + (f" ({ack.note})" if ack.note else ""))
         self.log.info("run %d started on %s", machine_run_id, machine_id)
 
     def wait_run_complete(self, machine_run_id: int, machines: Sequence[str],
                           timeout: float | None = None) -> dict[str, str]:
-        """Wait for RUN_COMPL of this run from every machine; MachineLost if one shuts down meanwhile."""
+        """Wait for RUN_COMPL of this run from every machine.
+
+        MachineLost once a machine cannot complete it: since the run began there, the machine went
+        Shutdown, or Idle with no or another machine_run_id, or on to another run, and no RUN_COMPL
+        followed within lost_grace. That it is up again by now (restarted by the operator) changes
+        nothing: the status history remembers. A machine Idle after our run is how every run ends, a
+        moment before its RUN_COMPL: that one gets `answer` to come before the run counts as lost.
+        """
         started = time.monotonic()
 
         def done() -> dict[str, str] | None:
             if all((m, machine_run_id) in self._runs for m in machines):
                 return {m: self._runs[(m, machine_run_id)] for m in machines}
+            now = time.monotonic()
             for m in machines:
-                status, since = self._status.get(m, ("", 0.0))
-                if status == MachineStatus.SHUTDOWN and since >= started and (m, machine_run_id) not in self._runs \
-                        and time.monotonic() - since > self.timeouts.lost_grace:
-                    raise MachineLost(f"{m} shut down during run {machine_run_id}")
+                if (m, machine_run_id) in self._runs:
+                    continue
+                since = self._began.get((m, machine_run_id), (started, None))[0]
+                went = self._went(m, since, ENDED, machine_run_id)
+                if went is None:
+                    continue
+                when, status, run = went
+                ended = status == MachineStatus.IDLE and run == machine_run_id
+                grace = max(self.timeouts.lost_grace, self.timeouts.answer) if ended else self.timeouts.lost_grace
+                if now - when > grace:
+                    other = f" (run {run})" if run != machine_run_id else ""
+                    self.log.error("%s went %s%s during run %d and no RUN_COMPL followed within %.1fs", m, status,
+                                   other, machine_run_id, grace)
+                    raise MachineLost(f"{m} went {status}{other} during run {machine_run_id}: the run cannot complete")
             return None
 
         codes = self._wait(done, timeout or self.timeouts.run, f"run {machine_run_id} to complete on "
-                           + ", ".join(machines))
+                           + ", ".join(machines), poll=lambda: self._read_status(machines, ENDED, machine_run_id))
         self.log.info("run %d complete: %s", machine_run_id, ", ".join(f"{m} {c}" for m, c in codes.items()))
         return codes
 
@@ -572,11 +691,16 @@ class OperationEntity:
                 recipes: str | dict[str, str] | None = None, priority: int | None = None) -> Operation:
         """One operation, start to end: reserve machines, run, read results, unreserve.
 
-        A machine lost mid-run (it shut down, or its WC went silent) is given back and the operation
-        asked for again, up to `max_tries` times; then MachineLost.
+        A machine lost (it shut down, its WC went silent or left, or it turned Idle without completing
+        the run) is given back and the operation asked for again, up to `max_tries` times, each try
+        after a pause (Timeouts.pause, doubling) and once a machine that can serve it is up; then
+        MachineLost.
         """
         lost: MachineLost | None = None
         for attempt in range(1, self.max_tries + 1):
+            if lost is not None:
+                self._pause(attempt - 1, f"trying {op_type} again")
+                self._wait_machine_up(op_type, alternatives, time.monotonic() + self.timeouts.machines)
             res = self.reserve(op_type, alternatives, priority)
             try:
                 runs = self.run_on(res, recipes)
@@ -594,12 +718,100 @@ class OperationEntity:
 
     # ----------------------------------------------------------------- internals: bus
 
-    def _ask(self, cls: str, first: Message, to: str, timeout: float | None = None) -> Message:
+    def _present(self, name: str) -> bool:
+        """Is `name` on the bus now (as this entity's bus last heard)?"""
+        with self._cond:
+            return name in self._peer_inc
+
+    def _ask(self, cls: str, first: Message, to: str, timeout: float | None = None,
+             within: float | None = None) -> Message:
+        """One conversation with a server (ls, msched): its answer.
+
+        A server away from the bus, not started (Notnow "module not started": it is restarting) or
+        silent past `timeout` is asked again, in a NEW conversation, after a pause (Timeouts.backoff,
+        doubling to backoff_max) until `within` (Timeouts.retry) has passed; then LotTimeout. So every
+        request sent through here must be safe to repeat (ENTITY_REQ, CANCEL_RE, UNRESERVE are).
+        """
         if self._bus is None:
             raise LotError(f"entity {self.entity_id} is not open")
-        conv, batch = self._bus.request(cls, first, to=to, timeout=timeout or self.timeouts.answer)
-        conv.end()
-        return batch.first
+        backoff = Backoff(self.timeouts, within)
+        while True:
+            error: ConversationTimeout | None = None
+            if not self._present(to):
+                why = f"{to} is not on the bus"
+            else:
+                try:
+                    conv, batch = self._bus.request(cls, first, to=to, timeout=timeout or self.timeouts.answer)
+                except ConversationTimeout as e:
+                    why, error = f"no answer within {timeout or self.timeouts.answer:.1f}s", e
+                else:
+                    conv.end()
+                    if not _not_started(batch.first):
+                        if backoff.tries:
+                            self.log.info("%s answered %s after %d more tries", to, cls, backoff.tries)
+                        return batch.first
+                    why = f"{to} is not started (Notnow)"
+            pause = backoff.next()
+            if pause is None:
+                self.log.error("%s to %s: %s; gave up after %d tries", cls, to, why, backoff.tries)
+                raise LotTimeout(f"entity {self.entity_id}: {cls} to {to} failed: {why} "
+                                 f"(asked {backoff.tries} times)") from error
+            self.log.warning("%s to %s: %s; asking again in %.1fs", cls, to, why, pause)
+            time.sleep(pause)
+
+    def _ask_wc(self, cls: str, first: Message, machine_id: str, machine_run_id: int, timeout: float) -> Message:
+        """One conversation with a machine's WC, given up (MachineLost) as soon as the machine is lost:
+        it went Shutdown (UPD_ME_ST, or MACHINE_STATUS read meanwhile), or its WC left the bus for longer
+        than lost_grace or came back as a new process (which knows nothing of this conversation) --
+        rather than after the step's whole deadline. Never asked twice: a setup is not a repeatable step."""
+        if self._bus is None:
+            raise LotError(f"entity {self.entity_id} is not open")
+        call = _Call()
+        self._spawn(self._converse(call, self._bus.bus, cls, first, f"wc:{machine_id}", timeout))
+
+        def answered() -> bool:
+            if call.done:
+                return True
+            why = self._lost(machine_id, machine_run_id)
+            if why:
+                self.log.error("%s of run %d: %s; not waiting for wc:%s's answer", cls, machine_run_id, why,
+                               machine_id)
+                raise MachineLost(f"{why} ({cls} of run {machine_run_id})")
+            return False
+
+        try:
+            self._wait(answered, timeout + 1, f"wc:{machine_id}'s answer to {cls}",
+                       poll=lambda: self._read_status([machine_id], SHUT, None))
+        except BaseException:
+            self._abandon(call)
+            raise
+        if call.error is not None:
+            self._raise_if_lost(machine_id, machine_run_id, None)
+            raise call.error
+        assert call.answer is not None
+        return call.answer
+
+    async def _converse(self, call: _Call, bus: Bus, cls: str, first: Message, to: str, timeout: float) -> None:
+        call.task = asyncio.current_task()
+        if call.abandoned:
+            return
+        answer: Message | None = None
+        error: GwcError | None = None
+        try:
+            conv, batch = await bus.request(cls, first, to=to, timeout=timeout)
+            conv.end()
+            answer = batch.first
+        except GwcError as e:
+            error = e
+        with self._cond:
+            call.answer, call.error, call.done = answer, error, True
+            self._cond.notify_all()
+
+    def _abandon(self, call: _Call) -> None:
+        """Stop a conversation nobody waits for any more (its task ends it)."""
+        call.abandoned = True
+        if self._bus is not None:
+            self._bus.call_soon(lambda: call.task.cancel() if call.task is not None else None)
 
     def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
         """Run a coroutine on the bus's event loop (its thread), kept so close() can cancel it."""
@@ -632,43 +844,75 @@ class OperationEntity:
                 if m.name == "Run_Complete" and m.machine_run_id is not None:
                     self._runs[(m.machine_id, int(m.machine_run_id))] = m.ack_code
                 elif m.name == "Update_ME_Status":
-                    self._status[m.machine_id] = (m.status, time.monotonic())
+                    self._note(m.machine_id, m.status, m.machine_run_id)
                 elif m.name == "Lot_Moved" and int(m.entity_id) == self.entity_id:
                     self._moved.append((m.action, m.lot_id))
                 self._cond.notify_all()
 
+    def _watch_peers(self, bus: Bus) -> None:
+        """(bus thread) Keep who is on the bus, and since when a module left, for the steps that wait on one."""
+        with self._cond:
+            self._peer_inc.update({name: p.inc for name, p in bus.peers().items()})
+        bus.peer_listeners.append(self._peer_changed)
+
+    def _peer_changed(self, name: str, peer: Peer | None) -> None:
+        with self._cond:
+            if peer is None:
+                self._peer_inc.pop(name, None)
+                self._peer_left[name] = time.monotonic()
+            else:
+                self._peer_inc[name] = peer.inc
+            self._cond.notify_all()
+
     async def _request(self, alt: _Alternative, priority: int | None) -> None:
-        """One MACH_REQ conversation, from Machine_Request to its one Machine_Req_Comp."""
+        """One MACH_REQ conversation, from Machine_Request to its one Machine_Req_Comp.
+
+        Until MSCHED takes it (Machine_Req_Ack), a MSCHED away, not started or silent is asked again
+        in a new conversation, as `_ask` does: a request that did reach it and is asked again is one
+        more alternative of the same alt_group, which MSCHED refuses once one is bound, and which the
+        entity cancels once it has its machines.
+        """
         assert self._bus is not None
+        bus = self._bus.bus
+        group = alt.group
         conv: Conversation | None = None
+        backoff = Backoff(self.timeouts)
         try:
-            conv = await self._bus.bus.start(
-                "MACH_REQ", message("Machine_Request", entity_id=self.entity_id, op_type=alt.op_type,
-                                    num_machines=len(alt.machines), priority=priority),
-                *[message("Machine_Entry", machine_id=m) for m in alt.machines], to="msched")
-            while not alt.done:
-                batch = await conv.next_message(self.timeouts.answer if alt.ack is None else FOREVER)
-                head = batch.first
-                if head.name == "Machine_Req_Comp":
-                    await conv.send(message("Request_Comp_Ack", entity_id=self.entity_id, ack_code=AckCode.ACK_OK))
-                with self._cond:
-                    if head.name == "Machine_Req_Ack":
-                        alt.ack = head
-                        alt.done = head.ack_code != AckCode.ACK_OK
-                    elif head.name == "Machine_Req_Comp":
-                        alt.comp = head
-                        alt.reserved = [m.machine_id for m in batch.messages[1:] if m.name == "Reserved_Machine"]
+            while alt.ack is None and not alt.done:
+                if group is not None and group.winner is not None:  # no need to ask any more
+                    with self._cond:
                         alt.done = True
-                    late = alt.group is not None and alt.group.winner not in (None, alt) and \
-                        head.name == "Machine_Req_Comp" and head.ack_code == AckCode.ACK_OK
-                    surplus = alt.group.surplus(alt) if late and alt.group else []
-                    self._cond.notify_all()
-                for m in surplus:  # bound after the entity took another alternative: give it back
-                    self.log.warning("%s was bound after another alternative was taken: giving it back", m)
-                    back, _ = await self._bus.bus.request(
-                        "UNRESERVE", message("Unreserve_Me", entity_id=self.entity_id, machine_id=m, by=self.name),
-                        to="msched", timeout=self.timeouts.answer)
-                    back.end()
+                        self._cond.notify_all()
+                    return
+                if not self._present("msched"):
+                    why = "msched is not on the bus"
+                else:
+                    conv = await bus.start(
+                        "MACH_REQ", message("Machine_Request", entity_id=self.entity_id, op_type=alt.op_type,
+                                            num_machines=len(alt.machines), priority=priority,
+                                            alt_group=group.alt_group if group else None),
+                        *[message("Machine_Entry", machine_id=m) for m in alt.machines], to="msched")
+                    try:
+                        batch = await conv.next_message(self.timeouts.answer)
+                    except ConversationTimeout:
+                        why = f"no answer within {self.timeouts.answer:.1f}s"
+                    else:
+                        if not _not_started(batch.first):
+                            await self._answered(alt, conv, batch)
+                            continue
+                        why = "msched is not started (Notnow)"
+                    conv.end()
+                    conv = None
+                pause = backoff.next()
+                if pause is None:
+                    raise LotTimeout(f"MACH_REQ for {alt.op_type} ({alt.describe()}): {why} "
+                                     f"(asked {backoff.tries} times)")
+                self.log.warning("MACH_REQ for %s (%s): %s; asking again in %.1fs", alt.op_type, alt.describe(),
+                                 why, pause)
+                await asyncio.sleep(pause)
+            while not alt.done:
+                assert conv is not None
+                await self._answered(alt, conv, await conv.next_message(FOREVER))
         except asyncio.CancelledError:
             raise
         except (GwcError, OSError) as e:
@@ -680,13 +924,71 @@ class OperationEntity:
             if conv is not None:
                 conv.end()
 
+    async def _answered(self, alt: _Alternative, conv: Conversation, batch: Batch) -> None:
+        """MSCHED's Machine_Req_Ack or Machine_Req_Comp for one alternative."""
+        head = batch.first
+        if head.name == "Machine_Req_Comp":
+            await conv.send(message("Request_Comp_Ack", entity_id=self.entity_id, ack_code=AckCode.ACK_OK))
+        with self._cond:
+            if head.name == "Machine_Req_Ack":
+                alt.ack = head
+                alt.done = head.ack_code != AckCode.ACK_OK
+            elif head.name == "Machine_Req_Comp":
+                alt.comp = head
+                alt.reserved = [m.machine_id for m in batch.messages[1:] if m.name == "Reserved_Machine"]
+                alt.done = True
+            taken = alt.group is not None and alt.group.winner not in (None, alt) and head.ack_code == AckCode.ACK_OK
+            surplus = alt.group.surplus(alt) if taken and alt.group and head.name == "Machine_Req_Comp" else []
+            queued = taken and head.name == "Machine_Req_Ack"
+            self._cond.notify_all()
+        for m in surplus:  # bound after the entity took another alternative: give it back
+            self.log.warning("%s was bound after another alternative was taken: giving it back", m)
+            await self._tell("UNRESERVE", message("Unreserve_Me", entity_id=self.entity_id, machine_id=m,
+                                                  by=self.name))
+        if queued:  # queued after the entity took another alternative: it must not wait there
+            self.log.warning("request %s was queued after another alternative was taken: cancelling it", alt.key)
+            await self._tell("CANCEL_RE", message("Cancel_Request", request_key=alt.key, by=self.name))
+
+    async def _tell(self, cls: str, first: Message) -> None:
+        """(bus thread) A cleanup conversation with MSCHED whose answer only goes to the log."""
+        assert self._bus is not None
+        try:
+            conv, batch = await self._bus.bus.request(cls, first, to="msched", timeout=self.timeouts.answer)
+            conv.end()
+            self.log.info("%s: %s", cls, batch.first.ack_code)
+        except GwcError as e:
+            self.log.error("%s failed: %s", cls, e)
+
+    def _cancel_leftovers(self, when: str, request: MachineRequest | None = None) -> None:
+        """Cancel the entity's requests still queued in MSCHED (all of them, or only `request`'s when
+        another request of the entity is still being asked for). Belt and braces: a failure is logged."""
+        try:
+            if request is not None and any(r is not request for r in self._requests):
+                n = sum(self.cancel_requests(a.key, within=self.timeouts.cleanup)
+                        for a in request.alternatives if a.key is not None and not a.done and a is not request.winner)
+            else:
+                n = self.cancel_requests(within=self.timeouts.cleanup)
+        except GwcError as e:
+            self.log.warning("could not cancel the requests left %s: %s", when, e)
+            return
+        if n:
+            self.log.info("cancelled %d request(s) of entity %d left queued %s", n, self.entity_id, when)
+
     # ----------------------------------------------------------------- internals: waiting
 
-    def _wait(self, predicate: Callable[[], T | None | bool], timeout: float, what: str) -> T:
-        """Wait until predicate() (called under the lock) is truthy; LotTimeout naming `what` after timeout."""
+    def _wait(self, predicate: Callable[[], T | None | bool], timeout: float, what: str,
+              poll: Callable[[], None] | None = None) -> T:
+        """Wait until predicate() (called under the lock) is truthy; LotTimeout naming `what` after timeout.
+
+        `poll`, if given, runs every POLL seconds outside the lock: a fallback read of the tables.
+        """
         deadline = time.monotonic() + timeout
-        with self._cond:
-            while True:
+        next_poll = time.monotonic()
+        while True:
+            if poll is not None and time.monotonic() >= next_poll:
+                poll()
+                next_poll = time.monotonic() + POLL
+            with self._cond:
                 value = predicate()
                 if value:
                     return value  # type: ignore[return-value]
@@ -694,7 +996,7 @@ class OperationEntity:
                 if left <= 0:
                     self.log.error("timed out after %.0fs waiting for %s", timeout, what)
                     raise LotTimeout(f"entity {self.entity_id}: timed out after {timeout:.0f}s waiting for {what}")
-                self._cond.wait(min(left, 0.5))
+                self._cond.wait(max(0.0, min(left, 0.5, next_poll - time.monotonic() if poll else 0.5)))
 
     def _wait_moved(self, action: str, states: Sequence[str], timeout: float) -> None:
         """Wait for LOT_MOVED(action) for this entity, reading LOT_STATUS as a fallback."""
@@ -716,21 +1018,88 @@ class OperationEntity:
                 raise LotTimeout(f"entity {self.entity_id}: the operator did not {action} the lot within "
                                  f"{timeout:.0f}s (it is {state})")
 
-    def _wait_machine_up(self, op_type: str, wanted: list[str] | None, deadline: float) -> None:
+    def _wait_machine_up(self, op_type: str, alternatives: Sequence[Sequence[str]] | None, deadline: float) -> None:
+        """Until a machine can serve the operation again: every machine of one alternative is up (without
+        alternatives: one machine qualified for op_type is)."""
         while time.monotonic() < deadline:
-            up = self.qualified_machines(op_type)
-            if (set(up) & set(wanted)) if wanted else up:
+            if alternatives:
+                up = {r[0] for r in self._query("SELECT machine_id FROM machine_status WHERE status = ANY(%s)",
+                                                list(UP))}
+                if any(a and set(a) <= up for a in alternatives):
+                    return
+            elif self.qualified_machines(op_type):
                 return
             with self._cond:
                 self._cond.wait(min(POLL, max(0.0, deadline - time.monotonic())))
         raise LotTimeout(f"entity {self.entity_id}: no machine for {op_type} came up in time")
 
-    def _raise_if_lost(self, machine_id: str, ack: Message) -> None:
-        """A refusal because the machine is going or gone (shut down since it was bound) loses the machine."""
+    def _pause(self, tries: int, what: str) -> None:
+        """The pause before an operation's next try: a machine that just failed gets time to be marked
+        down (or come up) rather than be asked again at once."""
+        pause = self.timeouts.pause * 2 ** (tries - 1)
+        self.log.info("%s in %.1fs", what, pause)
+        time.sleep(pause)
+
+    def _note(self, machine_id: str, status: str, machine_run_id: int | None) -> None:
+        """(under the lock) Remember a status change of a machine."""
+        changes = self._history.setdefault(machine_id, [])
+        changes.append((time.monotonic(), status, None if machine_run_id is None else int(machine_run_id)))
+        del changes[:-HISTORY]
+
+    def _went(self, machine_id: str, since: float, statuses: Sequence[str],
+              machine_run_id: int | None = None) -> tuple[float, str, int | None] | None:
+        """(under the lock) The first change of the machine, since `since`, into one of `statuses` or, if
+        machine_run_id is given, to another run: (when, status, its machine_run_id)."""
+        for when, status, run in self._history.get(machine_id, ()):
+            if when >= since and (status in statuses or
+                                  (machine_run_id is not None and run is not None and run != machine_run_id)):
+                return when, status, run
+        return None
+
+    def _lost(self, machine_id: str, machine_run_id: int) -> str | None:
+        """(under the lock) Why the machine's WC will not answer for this run any more, if it will not."""
+        since, inc = self._began.get((machine_id, machine_run_id), (time.monotonic(), None))
+        if self._went(machine_id, since, SHUT) is not None:
+            return f"{machine_id} shut down"
+        wc = f"wc:{machine_id}"
+        now_inc = self._peer_inc.get(wc)
+        if now_inc is None:
+            away = time.monotonic() - max(since, self._peer_left.get(wc, since))
+            if away > self.timeouts.lost_grace:
+                return f"{wc} is not on the bus ({away:.1f}s)"
+        elif inc is not None and now_inc != inc:
+            return f"{wc} restarted"
+        return None
+
+    def _read_status(self, machines: Sequence[str], statuses: Sequence[str], machine_run_id: int | None) -> None:
+        """Fallback for a missed UPD_ME_ST: a machine found in one of `statuses` (or, if machine_run_id is
+        given, on another run) in MACHINE_STATUS is noted as having changed now."""
+        try:
+            rows = self._query("SELECT machine_id, status, machine_run_id FROM machine_status "
+                               "WHERE machine_id = ANY(%s)", list(machines))
+        except DatabaseError as e:
+            self.log.warning("could not read MACHINE_STATUS: %s", e)
+            return
+        with self._cond:
+            for m, status, run in rows:
+                other = machine_run_id is not None and run is not None and run != machine_run_id
+                known = self._history.get(m)
+                if (status in statuses or other) and not (known and known[-1][1:] == (status, run)):
+                    self.log.info("%s is %s (run %s) in MACHINE_STATUS", m, status, run)
+                    self._note(m, status, run)
+                    self._cond.notify_all()
+
+    def _raise_if_lost(self, machine_id: str, machine_run_id: int, ack: Message | None) -> None:
+        """A refusal (or no answer) because the machine is going or gone loses the machine: it shut down
+        since the run began there, its WC left or restarted, it is not up now, or it cannot serve now."""
+        with self._cond:
+            why = self._lost(machine_id, machine_run_id)
+        if why:
+            raise MachineLost(why)
         row = self._query_one("SELECT status FROM machine_status WHERE machine_id = %s", machine_id)
         if row is None or row[0] not in UP:
             raise MachineLost(f"{machine_id} is {row[0] if row else 'unknown'}")
-        if ack.ack_code == AckCode.NOTNOW:
+        if ack is not None and ack.ack_code == AckCode.NOTNOW:
             raise MachineLost(f"{machine_id} cannot serve now ({ack.note or ack.ack_code})")
 
     # ----------------------------------------------------------------- internals: database, record

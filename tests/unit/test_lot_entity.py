@@ -11,6 +11,7 @@ import asyncio
 import logging
 import random
 import threading
+import time
 from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -22,9 +23,11 @@ from gwc.config import Config
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
-from gwc.lot import (OperationEntity, RequestCancelled, RunFailed, Timeouts, read_traveller,
+from gwc.lot import (LotTimeout, MachineLost, OperationEntity, RequestCancelled, RunFailed, Timeouts, read_traveller,
                      verdict)
+from gwc.module import NOT_STARTED
 from tests.conftest import make_config
+from tests.harness import wait_for
 
 OK = AckCode.ACK_OK
 Handler = Callable[[Conversation, Message], Awaitable[None]]
@@ -39,10 +42,14 @@ class FakeCell:
         self.entity = entity
         self.log = logging.getLogger("fakecell")
         self.seen: list[tuple[str, dict[str, Any]]] = []
+        self.at: list[float] = []  # when each of `seen` came (monotonic)
         self.run_id = 100
         self.key = 0
         self.complete_runs = True
+        self.lose_run: list[tuple[str, int | None]] = []  # instead of completing the next run: these UPD_ME_ST
         self.comp: dict[str, Any] = {}  # how MSCHED ends requests: machine -> (ack_code, note)
+        self.ack: dict[str, Any] = {}  # how MSCHED answers requests at once: machine -> (ack_code, note)
+        self.queued: dict[int, tuple[Conversation, Message, list[str]]] = {}  # requests left waiting ("wait")
         self.loop = asyncio.new_event_loop()
         self.buses: dict[str, Bus] = {}
         self.handlers: dict[str, Handler] = {
@@ -51,9 +58,18 @@ class FakeCell:
         }
         self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
         self.thread.start()
-        for name, classes in (("ls", ["ENTITY_REQ"]), ("msched", ["MACH_REQ", "CANCEL_RE", "UNRESERVE"]),
-                              ("wc:m1", ["SETUP_RUN", "START_RUN"]), ("wc:m2", ["SETUP_RUN", "START_RUN"])):
-            self.buses[name] = asyncio.run_coroutine_threadsafe(self._join(name, classes), self.loop).result(5)
+        self.classes = {"ls": ["ENTITY_REQ"], "msched": ["MACH_REQ", "CANCEL_RE", "UNRESERVE"],
+                        "wc:m1": ["SETUP_RUN", "START_RUN"], "wc:m2": ["SETUP_RUN", "START_RUN"]}
+        for name in self.classes:
+            self.join(name)
+
+    def join(self, name: str) -> None:
+        """`name` (back) on the bus."""
+        self.buses[name] = asyncio.run_coroutine_threadsafe(self._join(name, self.classes[name]), self.loop).result(5)
+
+    def leave(self, name: str) -> None:
+        """`name` leaves the bus (a clean close: its peers know at once)."""
+        asyncio.run_coroutine_threadsafe(self.buses.pop(name).close(flush=0.2), self.loop).result(5)
 
     async def _join(self, name: str, classes: list[str]) -> Bus:
         bus = Bus(name, self.cfg.bus, self.log, classes)
@@ -70,6 +86,7 @@ class FakeCell:
                 continue
             m = conv.first.first
             self.seen.append((conv.cls, dict(m.fields)))
+            self.at.append(time.monotonic())
             self.loop.create_task(self.handlers[conv.cls](conv, m))
 
     def close(self) -> None:
@@ -84,6 +101,20 @@ class FakeCell:
 
     def actions(self) -> list[str]:
         return [f["action"] for cls, f in self.seen if cls == "ENTITY_REQ"]
+
+    def when(self, cls: str) -> list[float]:
+        return [t for (c, _), t in zip(self.seen, self.at) if c == cls]
+
+    def later(self, delay: float, fn: Callable[[], Any]) -> None:
+        """Run fn (blocking is fine: a thread of its own) `delay` s from now."""
+        timer = threading.Timer(delay, fn)
+        timer.daemon = True
+        timer.start()
+
+    def status(self, machine: str, status: str, run: int | None = None) -> None:
+        """The Machine Server's table: machine's status (and run) now."""
+        self.sql("UPDATE machine_status SET status = %s, machine_run_id = coalesce(%s, machine_run_id) "
+                 "WHERE machine_id = %s", status, run, machine)
 
     async def broadcast(self, sender: str, cls: str, msg: Message) -> None:
         conv = await self.buses[sender].start(cls, msg)
@@ -109,10 +140,15 @@ class FakeCell:
         machines = [e.machine_id for e in conv.first.messages[1:]]
         self.key += 1
         key = self.key
+        code, note = self.ack.get(machines[0], (OK, None))
+        if code != OK:
+            await conv.send(message("Machine_Req_Ack", ack_code=code, note=note))
+            return
         await conv.send(message("Machine_Req_Ack", ack_code=OK, request_key=key))
         code, note = self.comp.get(machines[0], (OK, None))
         if code == "wait":
-            return  # never ends: the entity's deadline or cleanup must
+            self.queued[key] = (conv, m, machines)  # ends when cancelled, or never
+            return
         await asyncio.sleep(0.05)
         self.run_id += 1
         comp = message("Machine_Req_Comp", ack_code=code, entity_id=m.entity_id, request_key=key, note=note,
@@ -122,7 +158,13 @@ class FakeCell:
         await conv.expect("Request_Comp_Ack", timeout=5)
 
     async def cancel(self, conv: Conversation, m: Message) -> None:
-        await conv.send(message("Cancel_Req_Ack", ack_code=AckCode.REQ_KEY_U, cancelled=0))
+        ended = [k for k, (_, req, _) in self.queued.items()
+                 if k == m.request_key or (m.request_key is None and req.entity_id == m.entity_id)]
+        for k in ended:
+            req_conv, req, machines = self.queued.pop(k)
+            await req_conv.send(message("Machine_Req_Comp", ack_code=AckCode.REQ_CANCEL, entity_id=req.entity_id,
+                                        request_key=k, note=f"cancelled by {m.by}", num_machines=len(machines)))
+        await conv.send(message("Cancel_Req_Ack", ack_code=OK if ended else AckCode.REQ_KEY_U, cancelled=len(ended)))
 
     async def unreserve(self, conv: Conversation, m: Message) -> None:
         await conv.send(message("Unreserve_Me_Ack", ack_code=OK, freed=1))
@@ -132,9 +174,16 @@ class FakeCell:
         await conv.send(message("Setup_Run_Ack", ack_code=code))
 
     async def start(self, conv: Conversation, m: Message) -> None:
+        self.status(m.machine_id, "Running", m.machine_run_id)
         await conv.send(message("Start_Run_Ack", ack_code=OK))
         await asyncio.sleep(0.05)
         wc = f"wc:{m.machine_id}"
+        if self.lose_run:
+            changes, self.lose_run = self.lose_run, []  # the next try completes
+            for status, run in changes:
+                await self.broadcast(wc, "UPD_ME_ST", message("Update_ME_Status", machine_id=m.machine_id,
+                                                                status=status, machine_run_id=run))
+            return
         if not self.complete_runs:
             await self.broadcast(wc, "UPD_ME_ST", message("Update_ME_Status", machine_id=m.machine_id,
                                                             status="Shutdown", previous="Running"))
@@ -142,6 +191,7 @@ class FakeCell:
             return
         self.sql("INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) VALUES (%s, %s, 'RESULT', "
                  "'PASS')", m.machine_run_id, m.machine_id)
+        self.status(m.machine_id, "Idle")
         await self.broadcast(wc, "RUN_COMPL", message("Run_Complete", machine_id=m.machine_id,
                                                       machine_run_id=m.machine_run_id, ack_code=OK))
 
@@ -162,7 +212,8 @@ def fake(tmp_path: Path, database_url: str) -> Iterator[tuple[FakeCell, Operatio
         conn.execute("INSERT INTO lot_status (entity_id, lot_id, state) VALUES (7, 1, 'created')")
     cell = FakeCell(cfg, database_url, 7)
     log = logging.getLogger("lot-test")
-    entity = OperationEntity(cfg, 7, log, Timeouts(answer=3, machines=5, setup=3, run=5, lost_grace=0.2, cleanup=2))
+    entity = OperationEntity(cfg, 7, log, Timeouts(answer=3, machines=5, setup=3, run=5, lost_grace=0.2, cleanup=2,
+                                                   retry=3, backoff=0.05, backoff_max=0.2, pause=0.1))
     try:
         yield cell, entity
     finally:
@@ -235,7 +286,7 @@ def test_a_refused_setup_fails_the_lot_with_the_machines_answer(fake: tuple[Fake
 def test_waiting_for_machines_has_a_deadline(fake: tuple[FakeCell, OperationEntity]) -> None:
     cell, entity = fake
     cell.comp = {"m1": ("wait", None)}
-    entity.timeouts = Timeouts(answer=3, machines=0.5, cleanup=2)
+    entity.timeouts = Timeouts(answer=3, machines=0.5, cleanup=2, retry=3)
     with pytest.raises(Exception, match="timed out"), entity:
         entity.wait_for_import()
         entity.operate("dummy_op", [["m1"]])
@@ -267,3 +318,203 @@ def test_a_second_alternative_bound_too_is_given_back(fake: tuple[FakeCell, Oper
     spare = ({"m1", "m2"} - set(op.machines)).pop()
     freed = [f.get("machine_id") for cls, f in cell.seen if cls == "UNRESERVE"]
     assert spare in freed, freed
+
+
+# ----------------------------------------------------------------- machines that go away (soak BUG-1, 3, 4)
+
+@pytest.mark.parametrize("changes, table", [
+    # killed and restarted within lost_grace: only the UPD_ME_ST tell, the table shows nothing wrong
+    ([("Shutdown", 101), ("Idle", 101)], ("Running", 101)),
+    # no broadcast came at all: MACHINE_STATUS says the machine is Idle on another run
+    ([("Running", 101)], ("Idle", 99)),
+], ids=["restarted", "idle-in-the-table"])
+def test_a_machine_that_lost_its_run_is_not_waited_for_even_when_it_is_up_again(
+        fake: tuple[FakeCell, OperationEntity], changes: list[tuple[str, int]], table: tuple[str, int]) -> None:
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=3, machines=5, setup=3, run=60, lost_grace=0.2, cleanup=2, retry=3, pause=0.1)
+    cell.lose_run = changes
+
+    async def start(conv: Conversation, m: Message) -> None:
+        await FakeCell.start(cell, conv, m)
+        if m.machine_run_id == 101:
+            cell.status(m.machine_id, *table)
+
+    cell.handlers["START_RUN"] = start
+    t0 = time.monotonic()
+    with entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", [["m1"]])
+        entity.lot_completed("PASS")
+    assert op.tries == 2 and op.ok and op.machine_run_id == 102
+    assert time.monotonic() - t0 < 10  # not Timeouts.run (60 s)
+    notes = [s["note"] for s in read_traveller(entity.cfg, 7)["steps"]]  # type: ignore[index]
+    assert notes[0].startswith("machine lost: m1 went") and "run 101" in notes[0], notes
+
+
+def test_setup_gives_up_as_soon_as_the_machine_shuts_down_and_asks_again_once_it_is_up(
+        fake: tuple[FakeCell, OperationEntity]) -> None:
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=3, machines=10, setup=60, run=5, lost_grace=0.2, cleanup=2, retry=3, pause=0.1)
+    setups = 0
+
+    async def setup(conv: Conversation, m: Message) -> None:
+        nonlocal setups
+        setups += 1
+        if setups > 1:
+            return await FakeCell.setup(cell, conv, m)
+        # The WC was killed -9: no answer ever; the Machine Server marks the machine Shutdown, and the
+        # operator brings it back a moment later.
+        await asyncio.sleep(0.2)
+        cell.status("m1", "Shutdown")
+        await cell.broadcast("wc:m2", "UPD_ME_ST", message("Update_ME_Status", machine_id="m1", status="Shutdown",
+                                                             previous="Idle"))
+        cell.later(0.6, lambda: cell.status("m1", "Idle"))
+
+    cell.handlers["SETUP_RUN"] = setup
+    t0 = time.monotonic()
+    with entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", [["m1"]])
+        entity.lot_completed("PASS")
+    assert op.tries == 2 and op.ok
+    assert time.monotonic() - t0 < 10  # not Timeouts.setup (60 s)
+    first, second = cell.when("SETUP_RUN")
+    assert second - first > 0.6  # asked again only once m1 was up again
+    assert len(cell.when("UNRESERVE")) == 2
+
+
+def test_setup_gives_up_when_the_wc_leaves_the_bus(fake: tuple[FakeCell, OperationEntity]) -> None:
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=3, setup=60, lost_grace=0.3, cleanup=2, retry=1)
+
+    async def silent(conv: Conversation, m: Message) -> None:
+        cell.later(0.2, lambda: cell.leave("wc:m1"))
+
+    cell.handlers["SETUP_RUN"] = silent
+    t0 = time.monotonic()
+    with pytest.raises(MachineLost, match="wc:m1 is not on the bus"), entity:
+        entity.setup_run("m1", "dummy_recipe", "dummy_op", 55)
+    assert time.monotonic() - t0 < 10
+
+
+def test_a_machine_refusing_a_setup_is_asked_again_after_a_pause_once_it_is_up(
+        fake: tuple[FakeCell, OperationEntity]) -> None:
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=3, machines=10, setup=3, run=5, lost_grace=0.2, cleanup=2, retry=3, pause=0.3)
+    setups = 0
+
+    async def setup(conv: Conversation, m: Message) -> None:
+        nonlocal setups
+        setups += 1
+        if setups > 1:
+            return await FakeCell.setup(cell, conv, m)
+        cell.status("m1", "Shutdown")  # its ME stopped: the machine is going down
+        cell.later(0.5, lambda: cell.status("m1", "Idle"))
+        await conv.send(message("Setup_Run_Ack", ack_code=AckCode.START_FAIL,
+                                note="ME refused the setup: cannot set up a run: the machine is shutdown"))
+
+    cell.handlers["SETUP_RUN"] = setup
+    with entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", [["m1"]])
+        entity.lot_completed("PASS")
+    assert op.tries == 2 and op.ok
+    first, second = cell.when("SETUP_RUN")
+    assert second - first >= 0.5  # the pause, then m1 up again: not three tries in 150 ms
+
+
+# ----------------------------------------------------------------- servers that restart (soak BUG-2)
+
+def test_the_lot_server_and_msched_are_asked_again_while_not_started_or_silent(
+        fake: tuple[FakeCell, OperationEntity]) -> None:
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=0.5, machines=5, setup=3, run=5, lost_grace=0.2, cleanup=2, retry=10,
+                               backoff=0.05, backoff_max=0.2)
+    attaches = unreserves = 0
+
+    async def entity_req(conv: Conversation, m: Message) -> None:
+        nonlocal attaches
+        if m.action == "attach":
+            attaches += 1
+            if attaches == 1:  # just restarted, STARTUP not yet done
+                return await conv.send(message("Entity_Ack", ack_code=AckCode.NOTNOW, note=NOT_STARTED))
+            if attaches == 2:  # busy or dying: no answer
+                return
+        await FakeCell.entity_req(cell, conv, m)
+
+    async def unreserve(conv: Conversation, m: Message) -> None:
+        nonlocal unreserves
+        unreserves += 1
+        if unreserves == 1:
+            return await conv.send(message("Unreserve_Me_Ack", ack_code=AckCode.NOTNOW, note=NOT_STARTED))
+        await FakeCell.unreserve(cell, conv, m)
+
+    cell.handlers["ENTITY_REQ"] = entity_req
+    cell.handlers["UNRESERVE"] = unreserve
+    with entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", [["m1"]])
+        entity.lot_completed("PASS")
+    assert op.ok and attaches == 3 and unreserves == 2
+    assert cell.actions()[:3] == ["attach", "attach", "attach"] and cell.actions()[-1] == "completed"
+
+
+def test_a_script_started_while_the_lot_server_is_down_attaches_once_it_is_back(
+        fake: tuple[FakeCell, OperationEntity]) -> None:
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=3, cleanup=2, retry=10, backoff=0.05, backoff_max=0.2)
+    cell.leave("ls")
+    cell.later(0.5, lambda: cell.join("ls"))
+    with entity:
+        assert cell.actions() == ["attach"]
+        entity.lot_completed("PASS")
+    assert cell.actions() == ["attach", "completed"]
+
+
+def test_a_server_that_never_starts_fails_the_step_after_the_retry_window(
+        fake: tuple[FakeCell, OperationEntity]) -> None:
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=3, cleanup=2, retry=0.6, backoff=0.05, backoff_max=0.2)
+
+    async def not_started(conv: Conversation, m: Message) -> None:
+        await conv.send(message("Entity_Ack", ack_code=AckCode.NOTNOW, note=NOT_STARTED))
+
+    cell.handlers["ENTITY_REQ"] = not_started
+    t0 = time.monotonic()
+    with pytest.raises(LotTimeout, match="ls is not started"), entity:
+        pass
+    assert 0.6 <= time.monotonic() - t0 < 10
+    assert cell.actions().count("attach") >= 3
+
+
+# ----------------------------------------------------------------- alternatives (soak BUG-6)
+
+def test_alternatives_share_an_alt_group_and_a_late_sibling_refused_is_a_sibling_cancel(
+        fake: tuple[FakeCell, OperationEntity]) -> None:
+    cell, entity = fake
+    cell.ack = {"m1": (AckCode.REQ_CANCEL, "alternative of a group already bound")}  # came after m2 was bound
+    with entity:
+        entity.wait_for_import()
+        first = entity.operate("dummy_op", [["m1"], ["m2"]])
+        second = entity.operate("dummy_op", [["m1"], ["m2"]])
+        entity.lot_completed("PASS")
+    assert first.machines == second.machines == ["m2"]
+    groups = [f["alt_group"] for cls, f in cell.seen if cls == "MACH_REQ"]
+    assert len(groups) == 4 and all(groups)
+    assert groups[0] == groups[1] != groups[2] == groups[3]
+
+
+def test_no_request_is_left_queued_for_a_finished_entity(fake: tuple[FakeCell, OperationEntity]) -> None:
+    cell, entity = fake
+    cell.comp = {"m1": ("wait", None)}  # MSCHED queued m1's alternative and bound m2's: m1's would wait on
+    with entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", [["m1"], ["m2"]])
+        wait_for(lambda: not cell.queued, 5, "the sibling request to be cancelled")
+        entity.lot_completed("PASS")
+    assert op.machines == ["m2"]
+    cancels = [f for cls, f in cell.seen if cls == "CANCEL_RE"]
+    assert cancels and cancels[0]["entity_id"] == 7
+    assert cell.when("CANCEL_RE")[0] < cell.when("SETUP_RUN")[0]  # cancelled once the winner was taken
+    told = [(cls, f.get("action")) for cls, f in cell.seen if cls in ("CANCEL_RE", "ENTITY_REQ")]
+    assert told[-2:] == [("CANCEL_RE", None), ("ENTITY_REQ", "completed")]  # and once more before completing
