@@ -22,7 +22,7 @@ import pytest
 from psycopg import sql
 
 from gwc import db
-from gwc.config import Config, load_config
+from gwc.config import Config, write_config
 
 TEMPLATE_DB = "gwc_template"
 # Test clusters trade durability for speed: a crashed test cluster is thrown away anyway.
@@ -30,18 +30,6 @@ TEST_PG_SETTINGS = {"fsync": False, "synchronous_commit": False, "full_page_writ
 
 
 # ----------------------------------------------------------------------------- configuration
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (str, Path)):
-        return '"' + str(v).replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    return repr(v)
 
 
 def make_config(tmp_dir: Path, database_url: str | None, **sections: Any) -> Config:
@@ -60,17 +48,7 @@ def make_config(tmp_dir: Path, database_url: str | None, **sections: Any) -> Con
     }
     for key, value in sections.items():
         doc[key] = {**doc[key], **value} if isinstance(value, dict) and key in doc else value
-    lines: list[str] = []
-    for key, value in doc.items():
-        if isinstance(value, list):
-            for item in value:
-                lines += ["", f"[[{key}]]"] + [f"{k} = {_toml_value(x)}" for k, x in item.items()]
-        else:
-            lines += ["", f"[{key}]"] + [f"{k} = {_toml_value(x)}" for k, x in value.items()]
-    path = tmp_dir / "etc" / "cell.toml"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines).lstrip() + "\n")
-    return load_config(path)
+    return write_config(tmp_dir / "etc" / "cell.toml", doc)
 
 
 # ----------------------------------------------------------------------------- database
@@ -133,3 +111,16 @@ def db_conn(database_url: str) -> Iterator[psycopg.Connection[Any]]:
     """A superuser connection (autocommit off) to this test's fresh database, closed after it."""
     with psycopg.connect(database_url) as conn:
         yield conn
+
+
+# ----------------------------------------------------------------------------- the long soak
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Tests marked `soak` (the long chaos soak) run only when asked for: `bin/test -m soak`."""
+    if "soak" in (config.getoption("markexpr") or ""):
+        return
+    skip = pytest.mark.skip(reason="the long chaos soak runs apart: bin/test -m soak")
+    for item in items:
+        if item.get_closest_marker("soak") is not None:
+            item.add_marker(skip)
