@@ -24,6 +24,7 @@ COMMAND_MODULES = [
     "gwc.hi.recipe",  # the recipe library (ERS)
     "gwc.hi.monitor",  # the conversation monitor
     "gwc.hi.check",  # cell invariants
+    "gwc.hi.soak",  # the chaos soak
     "gwc.hi.demo",  # section 7's demonstration
     "gwc.hi.bench",  # benchmarks
 ]

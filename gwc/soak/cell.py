@@ -1,0 +1,235 @@
+"""A private cell for the soak and the whole-cell benchmark: its own var/, bus group, queues, database.
+
+It is the operator's cell in miniature, started and stopped with the same gwc.cell functions
+`gwc start` / `gwc stop` use, plus what chaos needs: kill -9 one process, restart it (with the bus
+fault injector on, if asked), and, at the end, a list of whatever the cell left behind.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import random
+import signal
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import posix_ipc
+
+from gwc import db
+from gwc.cell import (Proc, cell_procs, hi_bus, pid_file, read_pid, spawn, start_procs, startup, stop_cell,
+                      wait_on_bus)
+from gwc.config import SERVER_MODULES, Config, load_config
+from gwc.errors import GwcError, ModuleError
+from gwc.ipc.bus import BlockingBus
+from gwc.ipc.mq import queue_names
+
+UP_TIMEOUT = 30.0  # a restarted module must be back on the bus within this (machines are shared and busy)
+HI_TIMEOUT = 60.0  # one `gwc machine start|stop` command
+
+
+def _toml(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml(x)}" for k, x in v.items()) + " }"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml(x) for x in v) + "]"
+    return repr(v)
+
+
+def config_text(var: Path, database_url: str | None, machines: list[dict[str, Any]], policy: str,
+                bus: dict[str, Any], faults: dict[str, Any] | None = None,
+                db_settings: dict[str, Any] | None = None) -> str:
+    """cell.toml of a private cell; the same text with `faults` is the fault-injected variant."""
+    lines = ["[cell]", 'name = "private"', f"var = {_toml(str(var))}", f"policy = {_toml(policy)}", "", "[bus]"]
+    lines += [f"{k} = {_toml(v)}" for k, v in bus.items()]
+    if faults:
+        lines += ["", "[bus.faults]"] + [f"{k} = {_toml(v)}" for k, v in faults.items()]
+    lines += ["", "[database]", f"url = {_toml(database_url or '')}"]
+    if db_settings:
+        lines += ["", "[database.settings]"] + [f"{k} = {_toml(v)}" for k, v in db_settings.items()]
+    lines += ["", "[log]", 'level = "note"']
+    for m in SERVER_MODULES:
+        lines += ["", "[[module]]", f'name = "{m}"']
+    for m in machines:
+        lines += ["", "[[machine]]"] + [f"{k} = {_toml(v)}" for k, v in m.items()]
+    return "\n".join(lines) + "\n"
+
+
+class PrivateCell:
+    """A whole cell (servers, MSCHED, dummy machines) under `var`, on a bus group of its own."""
+
+    def __init__(self, var: Path, machines: list[dict[str, Any]], log: logging.Logger,
+                 database_url: str | None = None, policy: str = "priority",
+                 db_settings: dict[str, Any] | None = None) -> None:
+        self.var = var.resolve()
+        self.log = log
+        self.machines = [m["id"] for m in machines]
+        rnd = random.SystemRandom()  # not the soak's seed: two soaks of one seed may run side by side
+        self._bus_cfg = {"group": f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
+                         "port": rnd.randrange(20000, 60000), "heartbeat": 0.25, "peer_timeout": 1.5}
+        self._text_args = dict(var=self.var, database_url=database_url, machines=machines, policy=policy,
+                               db_settings=db_settings)
+        etc = self.var / "etc"
+        etc.mkdir(parents=True, exist_ok=True)
+        path = etc / "cell.toml"
+        path.write_text(config_text(bus=self._bus_cfg, **self._text_args))
+        self.cfg: Config = load_config(path)
+        self.bus: BlockingBus | None = None
+
+    # ----------------------------------------------------------------- whole cell
+
+    def start(self, start_machines: bool = True) -> None:
+        """Database, schema, every process (servers through STARTUP), then each machine (ME_START)."""
+        if self.cfg.embedded:
+            db.cluster_start(self.cfg, self.log)
+        db.init_schema(self.cfg, self.log)
+        self.bus = hi_bus(self.cfg, self.log)
+        start_procs(self.cfg, cell_procs(self.cfg), self.bus, self.log.info)
+        if start_machines:
+            for m in self.machines:
+                self.machine_start(m, via_hi=False)
+
+    def stop(self) -> None:
+        """Everything the cell runs, stopped as `gwc stop` does (lot scripts first). Never raises."""
+        try:
+            stop_cell(self.cfg, self.log, say=self.log.info, database=self.cfg.embedded)
+        except GwcError as e:
+            self.log.error("stopping the private cell: %s", e)
+        if self.bus is not None:
+            self.bus.close()
+            self.bus = None
+
+    def env(self, config: Path | None = None) -> dict[str, str]:
+        env = dict(os.environ, GWC_CONFIG=str(config or self.cfg.path), GWC_VAR=str(self.var),
+                   PYTHONUNBUFFERED="1")
+        if self.cfg.database_url:
+            env["GWC_DATABASE_URL"] = self.cfg.database_url
+        return env
+
+    # ----------------------------------------------------------------- one process
+
+    def kill(self, name: str) -> int | None:
+        """kill -9 one process (its whole process group); returns its pid, None if it was not running."""
+        st = read_pid(self.cfg, name)
+        if not st.alive or st.pid is None:
+            return None
+        try:
+            os.killpg(st.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            return st.pid
+        deadline = time.monotonic() + 10
+        while read_pid(self.cfg, name).alive and time.monotonic() < deadline:
+            time.sleep(0.02)
+        pid_file(self.cfg, name).unlink(missing_ok=True)
+        return st.pid
+
+    def faults_config(self, seed: int, faults: dict[str, float]) -> Path:
+        """A copy of cell.toml with the bus fault injector on (seeded), for one restarted process."""
+        path = self.var / "etc" / f"cell-faults-{seed}.toml"
+        path.write_text(config_text(bus=self._bus_cfg, faults={**faults, "seed": seed}, **self._text_args))
+        return path
+
+    def restart(self, name: str, config: Path | None = None) -> int:
+        """Start one process again and bring it up: a server through STARTUP, a WC onto the bus."""
+        assert self.bus is not None
+        kind, _, machine = name.partition(":")
+        old = self.bus.peers().get(name)
+        extra = {"GWC_CONFIG": str(config)} if config else None
+        pid = spawn(self.cfg, Proc(kind, machine or None), extra)
+        if kind in ("me", "cmmsim"):
+            return pid
+        deadline = time.monotonic() + UP_TIMEOUT
+        while True:  # the new incarnation, not the dead one the bus still remembers
+            peer = self.bus.peers().get(name)
+            if peer is not None and (old is None or peer.inc != old.inc):
+                break
+            if time.monotonic() > deadline:
+                raise ModuleError(f"{name} (pid {pid}) did not come back on the bus within {UP_TIMEOUT:.0f}s")
+            if not read_pid(self.cfg, name).alive:
+                wait_on_bus(self.cfg, self.bus, name, 0.0)  # raises with the tail of its .out
+            time.sleep(0.02)
+        if kind != "wc":
+            startup(self.bus, name, timeout=UP_TIMEOUT)
+        return pid
+
+    def machine_start(self, machine: str, via_hi: bool = True) -> str:
+        """Bring a machine up (ME_START): through the operator's `gwc machine start`, or directly."""
+        if via_hi:
+            return self.hi("machine", "start", machine)
+        assert self.bus is not None
+        return startup(self.bus, f"wc:{machine}", "ME_START", timeout=UP_TIMEOUT)
+
+    def hi(self, *args: str) -> str:
+        """Run one Human Interface command against this cell; its output. ModuleError if it fails."""
+        try:
+            r = subprocess.run([sys.executable, "-m", "gwc", *args], env=self.env(), capture_output=True, text=True,
+                               timeout=HI_TIMEOUT, cwd=str(self.var))
+        except subprocess.TimeoutExpired:
+            raise ModuleError(f"gwc {' '.join(args)} did not finish within {HI_TIMEOUT:.0f}s") from None
+        out = (r.stdout + r.stderr).strip().replace("\n", " | ")
+        if r.returncode != 0:
+            raise ModuleError(f"gwc {' '.join(args)} failed (exit {r.returncode}): {out}")
+        return out
+
+    def alive(self, name: str) -> bool:
+        return read_pid(self.cfg, name).alive
+
+    # ----------------------------------------------------------------- what is left behind
+
+    def processes(self) -> list[str]:
+        """Live processes started for this cell (found by the GWC_VAR their environment carries)."""
+        mark = f"GWC_VAR={self.var}".encode()
+        found = []
+        for d in Path("/proc").iterdir():
+            if not d.name.isdigit() or int(d.name) == os.getpid():
+                continue
+            try:
+                if mark not in (d / "environ").read_bytes().split(b"\0"):
+                    continue
+                fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+                if fields[0] == "Z":
+                    continue
+                cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
+            except OSError:
+                continue
+            found.append(f"pid {d.name}: {cmd}")
+        return found
+
+    def leaks(self) -> list[str]:
+        """Processes, queues, pid files, sockets, pty links and stray files the stopped cell left."""
+        left = [f"process {p}" for p in self.processes()]
+        for m in self.machines:
+            for q in queue_names(self.cfg.ipc_prefix, m):
+                try:
+                    posix_ipc.MessageQueue(q).close()
+                    left.append(f"queue {q}")
+                except posix_ipc.ExistentialError:
+                    pass
+        mq = Path("/dev/mqueue")
+        if mq.is_dir():
+            left += [f"queue /{p.name}" for p in mq.iterdir() if p.name.startswith(self.cfg.ipc_prefix[1:])
+                     and f"queue /{p.name}" not in left]
+        if self.cfg.embedded and db.cluster_running(self.cfg):
+            left.append(f"database cluster in {self.cfg.pg_dir} still running")
+        run = self.cfg.run_dir
+        if run.is_dir():
+            for p in sorted(run.iterdir()):
+                try:
+                    mode = p.lstat().st_mode
+                except OSError:
+                    continue
+                if p.suffix in (".pid", ".pty", ".tmp") or stat.S_ISSOCK(mode):
+                    left.append(f"file {p}")
+        for folder in (self.cfg.results_dir,):
+            if folder.is_dir():
+                left += [f"file {p}" for p in sorted(folder.rglob("*")) if p.is_file()]
+        left += [f"file {p}" for p in sorted(self.var.rglob("*.tmp")) if self.cfg.pg_dir not in p.parents]
+        return left

@@ -1,0 +1,30 @@
+"""`gwc bench cell`, run small through the real CLI: it reports lots/s, overhead per lot, death to reroute."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+
+@pytest.mark.timeout(600)
+def test_bench_cell_runs_lots_and_a_death_trial_and_reports_them(tmp_path: Path, database_url: str) -> None:
+    env = dict(os.environ, GWC_DATABASE_URL=database_url, GWC_VAR=str(tmp_path / "var"))
+    r = subprocess.run([sys.executable, "-m", "gwc", "bench", "cell", "--machines", "2", "--lots", "6",
+                        "--solo", "3", "--deaths", "1", "--dir", str(tmp_path / "bench"), "--json"],
+                       env=env, capture_output=True, text=True, timeout=540)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    result = json.loads(r.stdout)
+    assert result["lots"] == 6 and result["failed"] == 0
+    assert result["lots_per_s"] > 0
+    assert result["loaded_overhead_ms"]["n"] == 6
+    assert result["solo_lots"] == 3 and result["solo_failed"] == 0
+    assert result["overhead_ms"]["n"] == 3 and 0 < result["overhead_ms"]["median"] < 5000
+    assert {"queued->bound", "started->complete", "complete->unreserved"} <= set(result["phases_ms"])
+    death = result["death_to_reroute_s"]
+    assert death["n"] == 1 and 0 < death["median"] < 60
+    assert not list((tmp_path / "bench" / "run").glob("*.pid"))  # the bench stopped its cell
