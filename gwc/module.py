@@ -267,7 +267,15 @@ class Module:
             await conv.send(message("Startup_Ack", ack_code=AckCode.NOTNOW, note=f"{self.name} is already started"))
             return
         await conv.send(message("Startup_Ack", ack_code=AckCode.ACK_OK))
-        code = await self._start()
+        try:
+            code = await self._start()
+        except Exception as e:
+            # The starter waits for Startup_Complete: tell it how the startup failed, then let
+            # _serve log the error (and stop the module if the database is gone).
+            failed = (AckCode.DB_BADREA if isinstance(e, DatabaseUnavailable)
+                      else AckCode.DB_BADUPD if isinstance(e, DatabaseError) else AckCode.START_FAIL)
+            await conv.send(self.startup_complete(failed))
+            raise
         await conv.send(self.startup_complete(code))
 
     async def _shutdown(self, conv: Conversation) -> None:

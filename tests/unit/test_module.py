@@ -1,0 +1,46 @@
+"""The module lifecycle: a startup that fails after Startup_Ack still ends its conversation."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from pathlib import Path
+
+from gwc.config import private_bus
+from gwc.errors import DatabaseError
+from gwc.ipc.bus import Bus
+from gwc.ipc.catalogue import message
+from gwc.ipc.codes import AckCode
+from gwc.module import Module
+from tests.conftest import make_config
+
+
+class FailingStartup(Module):
+    async def on_startup(self) -> str:
+        raise DatabaseError("the table is gone")
+
+
+def test_startup_work_that_raises_is_answered_with_startup_complete_not_left_to_time_out(tmp_path: Path) -> None:
+    cfg = make_config(tmp_path, None, bus=private_bus())
+    log = logging.getLogger("test.module")
+
+    async def scenario() -> tuple[str, str, bool]:
+        module = FailingStartup(cfg, "failing", log)
+        runner = asyncio.get_running_loop().create_task(module.run())
+        starter = Bus("starter", cfg.bus, log)
+        await starter.sign_on()
+        try:
+            conv, ack = await starter.request("STARTUP", message("Startup_Request", module="failing"), to="failing",
+                                              timeout=10)
+            done = await conv.next_message(5)  # well before the 10 s a starter would otherwise wait
+            conv.end()
+            return ack.first.ack_code, done.first.ack_code, module.started
+        finally:
+            module.stop()
+            await runner
+            await starter.close()
+
+    ack, complete, started = asyncio.run(asyncio.wait_for(scenario(), 30))
+    assert ack == AckCode.ACK_OK
+    assert complete == AckCode.DB_BADUPD
+    assert not started
