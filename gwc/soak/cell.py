@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import os
-import random
 import signal
 import stat
 import subprocess
@@ -23,7 +22,7 @@ import posix_ipc
 from gwc import db
 from gwc.cell import (Proc, cell_procs, hi_bus, pid_file, read_pid, spawn, start_procs, startup, stop_cell,
                       wait_on_bus)
-from gwc.config import SERVER_MODULES, Config, load_config
+from gwc.config import SERVER_MODULES, Config, private_bus, write_config
 from gwc.errors import GwcError, ModuleError
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.mq import queue_names
@@ -32,35 +31,21 @@ UP_TIMEOUT = 30.0  # a restarted module must be back on the bus within this (mac
 HI_TIMEOUT = 60.0  # one `gwc machine start|stop` command
 
 
-def _toml(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {_toml(x)}" for k, x in v.items()) + " }"
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml(x) for x in v) + "]"
-    return repr(v)
-
-
-def config_text(var: Path, database_url: str | None, machines: list[dict[str, Any]], policy: str,
-                bus: dict[str, Any], faults: dict[str, Any] | None = None,
-                db_settings: dict[str, Any] | None = None) -> str:
-    """cell.toml of a private cell; the same text with `faults` is the fault-injected variant."""
-    lines = ["[cell]", 'name = "private"', f"var = {_toml(str(var))}", f"policy = {_toml(policy)}", "", "[bus]"]
-    lines += [f"{k} = {_toml(v)}" for k, v in bus.items()]
-    if faults:
-        lines += ["", "[bus.faults]"] + [f"{k} = {_toml(v)}" for k, v in faults.items()]
-    lines += ["", "[database]", f"url = {_toml(database_url or '')}"]
+def config_doc(var: Path, database_url: str | None, machines: list[dict[str, Any]], policy: str,
+               bus: dict[str, Any], faults: dict[str, Any] | None = None,
+               db_settings: dict[str, Any] | None = None) -> dict[str, Any]:
+    """cell.toml of a private cell; the same document with `faults` is the fault-injected variant."""
+    database: dict[str, Any] = {"url": database_url or ""}
     if db_settings:
-        lines += ["", "[database.settings]"] + [f"{k} = {_toml(v)}" for k, v in db_settings.items()]
-    lines += ["", "[log]", 'level = "note"']
-    for m in SERVER_MODULES:
-        lines += ["", "[[module]]", f'name = "{m}"']
-    for m in machines:
-        lines += ["", "[[machine]]"] + [f"{k} = {_toml(v)}" for k, v in m.items()]
-    return "\n".join(lines) + "\n"
+        database["settings"] = db_settings
+    return {
+        "cell": {"name": "private", "var": str(var), "policy": policy},
+        "bus": {**bus, **({"faults": faults} if faults else {})},
+        "database": database,
+        "log": {"level": "note"},
+        "module": [{"name": m} for m in SERVER_MODULES],
+        "machine": machines,
+    }
 
 
 class PrivateCell:
@@ -72,16 +57,11 @@ class PrivateCell:
         self.var = var.resolve()
         self.log = log
         self.machines = [m["id"] for m in machines]
-        rnd = random.SystemRandom()  # not the soak's seed: two soaks of one seed may run side by side
-        self._bus_cfg = {"group": f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
-                         "port": rnd.randrange(20000, 60000), "heartbeat": 0.25, "peer_timeout": 1.5}
+        # Not the soak's seed: two soaks of one seed may run side by side.
+        self._bus_cfg = private_bus(heartbeat=0.25, peer_timeout=1.5)
         self._text_args = dict(var=self.var, database_url=database_url, machines=machines, policy=policy,
                                db_settings=db_settings)
-        etc = self.var / "etc"
-        etc.mkdir(parents=True, exist_ok=True)
-        path = etc / "cell.toml"
-        path.write_text(config_text(bus=self._bus_cfg, **self._text_args))
-        self.cfg: Config = load_config(path)
+        self.cfg: Config = write_config(self.var / "etc" / "cell.toml", config_doc(bus=self._bus_cfg, **self._text_args))
         self.bus: BlockingBus | None = None
 
     # ----------------------------------------------------------------- whole cell
@@ -134,7 +114,7 @@ class PrivateCell:
     def faults_config(self, seed: int, faults: dict[str, float]) -> Path:
         """A copy of cell.toml with the bus fault injector on (seeded), for one restarted process."""
         path = self.var / "etc" / f"cell-faults-{seed}.toml"
-        path.write_text(config_text(bus=self._bus_cfg, faults={**faults, "seed": seed}, **self._text_args))
+        write_config(path, config_doc(bus=self._bus_cfg, faults={**faults, "seed": seed}, **self._text_args))
         return path
 
     def restart(self, name: str, config: Path | None = None) -> int:
