@@ -23,6 +23,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -30,7 +31,7 @@ import psycopg
 
 from gwc import db
 from gwc.config import Config, load_config
-from gwc.errors import DatabaseError, DatabaseUnavailable, GwcError
+from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, GwcError
 from gwc.ipc import catalogue
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
@@ -120,14 +121,31 @@ class Module:
         return message("Shutdown_Complete", ack_code=AckCode.ACK_OK, note=note)
 
     async def ask(self, cls: str, first: catalogue.Message, to: str | None, timeout: float | None = None,
-                  *more: catalogue.Message) -> catalogue.Message:
+                  *more: catalogue.Message, within: float = 0.0) -> catalogue.Message:
         """Hold a one-question conversation with another module and return its answer.
 
         Raises ConversationTimeout (logged) if nobody answers. The caller reads the answer's ack_code.
+        With `within` > 0, a module that is restarting (no answer, or Notnow "module not started")
+        is asked again in a new conversation, with backoff, for up to `within` seconds: only for
+        questions that are safe to ask twice.
         """
-        conv, batch = await self.bus.request(cls, first, *more, to=to, timeout=timeout)
-        conv.end()
-        return batch.first
+        deadline = time.monotonic() + within
+        pause = 0.2
+        while True:
+            try:
+                conv, batch = await self.bus.request(cls, first, *more, to=to, timeout=timeout)
+                conv.end()
+                answer = batch.first
+                if answer.ack_code != AckCode.NOTNOW or answer.fields.get("note") != NOT_STARTED:
+                    return answer
+                if time.monotonic() + pause > deadline:
+                    return answer
+            except ConversationTimeout:
+                if time.monotonic() + pause > deadline:
+                    raise
+            self.log.warning("%s did not take %s (restarting?): asking again in %.1fs", to or "nobody", cls, pause)
+            await asyncio.sleep(pause)
+            pause = min(pause * 2, 2.0)
 
     def idle_interest(self) -> set[str]:
         return {self.start_class, *self.always}

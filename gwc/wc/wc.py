@@ -32,7 +32,7 @@ import asyncio
 import hashlib
 import logging
 import time
-from collections.abc import Coroutine
+from collections.abc import Awaitable, Callable, Coroutine
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +53,7 @@ ME_PING = 0.5  # ping the ME after this long without hearing from it
 ME_DEADLINE = 1.5  # an ME silent this long after a ping is dead
 ME_ANSWER = 10.0  # longest an ME may take to acknowledge a request (not counting operator alarms)
 SERVER_TIMEOUT = 5.0  # longest a server may take to answer the WC
+SERVER_RESTART = 30.0  # how long the WC asks a restarting server again (status, accept types)
 ALL_OPERATIONS = ["*"]
 S = MachineStatus
 
@@ -335,11 +336,14 @@ class WC(Module):
         try:
             answer = await self.ask("CHG_STATUS", message(
                 "Change_Status", machine_id=self.machine_id, status=status,
-                expect=[str(s) for s in expect] if expect else None, **fields), "ms", SERVER_TIMEOUT)
+                expect=[str(s) for s in expect] if expect else None, **fields), "ms", SERVER_TIMEOUT,
+                within=SERVER_RESTART)
         except ConversationTimeout:
             self.log.error("Machine Server did not answer the change to %s", status)
             return False
-        if answer.ack_code != AckCode.ACK_OK:
+        # A refusal that names the status asked for is no refusal: asked again after the Machine
+        # Server restarted, the first change had been made.
+        if answer.ack_code != AckCode.ACK_OK and answer.status != status:
             self.log.error("Machine Server refused %s: %s %s", status, answer.ack_code, answer.note or "")
             if answer.status:
                 self.status = MachineStatus(answer.status)
@@ -351,7 +355,8 @@ class WC(Module):
     async def set_accept_types(self, op_types: list[str]) -> bool:
         try:
             answer = await self.ask("ACC_TYP_C", message("Chg_Accept_Type", machine_id=self.machine_id,
-                                                         op_types=op_types), "msched", SERVER_TIMEOUT)
+                                                         op_types=op_types), "msched", SERVER_TIMEOUT,
+                                  within=SERVER_RESTART)
         except ConversationTimeout:
             self.log.error("MSCHED did not answer the accept-type change to %s", op_types or "none")
             return False
@@ -443,17 +448,28 @@ class WC(Module):
             return AckCode.NOTNOW, f"machine is {self.status}, not {' or '.join(allowed)}"
         return None
 
+    async def _serve_step(self, conv: Conversation, ack: str, allowed: tuple[MachineStatus, ...],
+                          work: Callable[[Message], Awaitable[tuple[str, str] | None]]) -> bool:
+        """One of 6.3.2's steps: the state checked and the work done under the state lock, refusals
+        answered with `ack`. True when it was done (the caller answers ACK_OK)."""
+        assert conv.first is not None
+        req = conv.first.first
+        async with self._state_lock:
+            refusal = self._check(req, allowed)
+            if refusal is None:
+                refusal = await work(req)
+        if refusal is not None:
+            await self._refuse_now(conv, ack, *refusal)
+            return False
+        return True
+
     async def setup_run(self, conv: Conversation) -> None:
         """6.3.2.3: Idle only; recipe and op type checked; the approved recipe to the ME; status Setup."""
         assert conv.first is not None
         req = conv.first.first
         self.log.info("SETUP_RUN run %d recipe %s op %s", req.machine_run_id, req.recipe_id, req.op_type)
-        async with self._state_lock:
-            refusal = self._check(req, (S.IDLE,))
-            if refusal is None:
-                refusal = await self._setup(req)
-        if refusal is not None:
-            return await self._refuse_now(conv, "Setup_Run_Ack", *refusal)
+        if not await self._serve_step(conv, "Setup_Run_Ack", (S.IDLE,), self._setup):
+            return
         self.log.info("set up run %d with recipe %s", req.machine_run_id, req.recipe_id)
         await conv.send(message("Setup_Run_Ack", ack_code=AckCode.ACK_OK))
 
@@ -514,12 +530,8 @@ class WC(Module):
         assert conv.first is not None
         req = conv.first.first
         self.log.info("START_RUN run %d", req.machine_run_id)
-        async with self._state_lock:
-            refusal = self._check(req, (S.SETUP, S.SETUP_SHUT))
-            if refusal is None:
-                refusal = await self._run_on_me(req)
-        if refusal is not None:
-            return await self._refuse_now(conv, "Start_Run_Ack", *refusal)
+        if not await self._serve_step(conv, "Start_Run_Ack", (S.SETUP, S.SETUP_SHUT), self._run_on_me):
+            return
         self.log.info("run %d started", req.machine_run_id)
         await conv.send(message("Start_Run_Ack", ack_code=AckCode.ACK_OK))
 
@@ -641,12 +653,8 @@ class WC(Module):
         """DNLD_ME (5.1.3): a recipe from the cell to the machine. Idle only."""
         assert conv.first is not None
         req = conv.first.first
-        async with self._state_lock:
-            refusal = self._check(req, (S.IDLE,))
-            if refusal is None:
-                refusal = await self._download(req)
-        if refusal is not None:
-            return await self._refuse_now(conv, "Download_Ack", *refusal)
+        if not await self._serve_step(conv, "Download_Ack", (S.IDLE,), self._download):
+            return
         self.log.info("recipe %s downloaded to %s", req.recipe_id, self.machine_id)
         await conv.send(message("Download_Ack", ack_code=AckCode.ACK_OK))
 

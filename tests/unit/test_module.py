@@ -44,3 +44,36 @@ def test_startup_work_that_raises_is_answered_with_startup_complete_not_left_to_
     assert ack == AckCode.ACK_OK
     assert complete == AckCode.DB_BADUPD
     assert not started
+
+
+def test_ask_within_rides_out_a_server_that_is_not_up_yet(tmp_path: Path) -> None:
+    """A question safe to ask twice is asked again while the server restarts, not failed at once."""
+    cfg = make_config(tmp_path, None, bus=private_bus())
+    log = logging.getLogger("test.module")
+
+    async def server_appears_late() -> None:
+        await asyncio.sleep(1.0)
+        srv = Bus("srv", cfg.bus, log, interest=("GET_STATUS",))
+        await srv.sign_on()
+        try:
+            while True:  # as a real server does, answer every question (earlier tries arrive too)
+                conv = await srv.first_message()
+                if conv is not None:
+                    await conv.send(message("Status_Reply", machine_id="wc1", status="Idle", ack_code=AckCode.ACK_OK))
+                    conv.end()
+        finally:
+            await srv.close()
+
+    async def scenario() -> str:
+        asker = Module(cfg, "asker", log)
+        await asker.bus.sign_on()
+        late = asyncio.get_running_loop().create_task(server_appears_late())
+        try:
+            answer = await asker.ask("GET_STATUS", message("Get_Status", machine_id="wc1"), "srv", 0.3, within=10)
+            return answer.status
+        finally:
+            late.cancel()
+            await asyncio.gather(late, return_exceptions=True)
+            await asker.bus.close()
+
+    assert asyncio.run(asyncio.wait_for(scenario(), 30)) == "Idle"
