@@ -169,6 +169,15 @@ def queue_names(prefix: str, machine_id: str) -> tuple[str, str]:
     return f"{prefix}.{machine_id}.to_me", f"{prefix}.{machine_id}.from_me"
 
 
+def queue_exists(name: str) -> bool:
+    """Whether a queue of this name exists (for leak checks: opening it creates nothing)."""
+    try:
+        posix_ipc.MessageQueue(name).close()
+    except posix_ipc.ExistentialError:
+        return False
+    return True
+
+
 def remove_queues(prefix: str, machine_ids: list[str]) -> list[str]:
     """Unlink the queues of these machines (gwc stop); returns the names that existed."""
     removed = []

@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import posix_ipc
 
 from gwc import db
 from gwc.cell import (Proc, cell_procs, hi_bus, pid_file, read_pid, spawn, start_procs, startup, stop_cell,
@@ -25,7 +24,7 @@ from gwc.cell import (Proc, cell_procs, hi_bus, pid_file, read_pid, spawn, start
 from gwc.config import SERVER_MODULES, Config, private_bus, write_config
 from gwc.errors import GwcError, ModuleError
 from gwc.ipc.bus import BlockingBus
-from gwc.ipc.mq import queue_names
+from gwc.ipc.mq import queue_exists, queue_names
 
 UP_TIMEOUT = 30.0  # a restarted module must be back on the bus within this (machines are shared and busy)
 HI_TIMEOUT = 60.0  # one `gwc machine start|stop` command
@@ -187,12 +186,7 @@ class PrivateCell:
         """Processes, queues, pid files, sockets, pty links and stray files the stopped cell left."""
         left = [f"process {p}" for p in self.processes()]
         for m in self.machines:
-            for q in queue_names(self.cfg.ipc_prefix, m):
-                try:
-                    posix_ipc.MessageQueue(q).close()
-                    left.append(f"queue {q}")
-                except posix_ipc.ExistentialError:
-                    pass
+            left += [f"queue {q}" for q in queue_names(self.cfg.ipc_prefix, m) if queue_exists(q)]
         mq = Path("/dev/mqueue")
         if mq.is_dir():
             left += [f"queue /{p.name}" for p in mq.iterdir() if p.name.startswith(self.cfg.ipc_prefix[1:])

@@ -448,6 +448,17 @@ class WC(Module):
             return AckCode.NOTNOW, f"machine is {self.status}, not {' or '.join(allowed)}"
         return None
 
+    async def _ask_me(self, msg: MeMessage) -> tuple[MeMessage | None, tuple[str, str] | None]:
+        """One request to the ME within a step: its answer, or the refusal the step gives (a dead ME
+        is declared dead on the way)."""
+        try:
+            return await self.me_request(msg), None
+        except MeDied as e:
+            await self.me_died(str(e))
+            return None, (AckCode.START_FAIL, f"ME failed: {e}")
+        except QueueError as e:
+            return None, (AckCode.START_FAIL, str(e))
+
     async def _serve_step(self, conv: Conversation, ack: str, allowed: tuple[MachineStatus, ...],
                           work: Callable[[Message], Awaitable[tuple[str, str] | None]]) -> bool:
         """One of 6.3.2's steps: the state checked and the work done under the state lock, refusals
@@ -487,13 +498,10 @@ class WC(Module):
         if path is None:
             await self.raise_alarm("REC_INVAL", f"{self.machine_id}: recipe {req.recipe_id} refused: {why}", wait=False)
             return AckCode.REC_INVAL, why
-        try:
-            answer = await self.me_request(MeMessage(MessageId.SETUP_RUN, file_name=str(path), recipe_id=req.recipe_id))
-        except MeDied as e:
-            await self.me_died(str(e))
-            return AckCode.START_FAIL, f"ME failed: {e}"
-        except QueueError as e:
-            return AckCode.START_FAIL, str(e)
+        answer, refusal = await self._ask_me(MeMessage(MessageId.SETUP_RUN, file_name=str(path),
+                                                       recipe_id=req.recipe_id))
+        if answer is None:
+            return refusal
         if answer.ack_code != AckCode.ACK_OK:
             return answer.ack_code or AckCode.START_FAIL, f"ME refused the setup: {answer.alarm_text}"
         # Listing 3: a machine set up for a run accepts no other operation until the run is over.
@@ -570,14 +578,10 @@ class WC(Module):
         if req.machine_run_id != self.machine_run_id:
             return AckCode.START_FAIL, f"set up for run {self.machine_run_id}, not {req.machine_run_id}"
         results = self._results_path(req.machine_run_id)
-        try:
-            answer = await self.me_request(MeMessage(MessageId.START_RUN, file_name=str(results),
-                                                     recipe_id=self.recipe_id or ""))
-        except MeDied as e:
-            await self.me_died(str(e))
-            return AckCode.START_FAIL, f"ME failed: {e}"
-        except QueueError as e:
-            return AckCode.START_FAIL, str(e)
+        answer, refusal = await self._ask_me(MeMessage(MessageId.START_RUN, file_name=str(results),
+                                                      recipe_id=self.recipe_id or ""))
+        if answer is None:
+            return refusal
         if answer.ack_code != AckCode.ACK_OK:
             return AckCode.START_FAIL, f"ME refused to start: {answer.ack_code} {answer.alarm_text}"
         # The status now, not at the check: a shutdown may have come while the ME was starting.
@@ -662,13 +666,9 @@ class WC(Module):
         path, why = await self.fetch_recipe(req.recipe_id)
         if path is None:
             return AckCode.REC_INVAL, why
-        try:
-            answer = await self.me_request(MeMessage(MessageId.DNLD_ME, file_name=str(path), recipe_id=req.recipe_id))
-        except MeDied as e:
-            await self.me_died(str(e))
-            return AckCode.START_FAIL, f"ME failed: {e}"
-        except QueueError as e:
-            return AckCode.START_FAIL, str(e)
+        answer, refusal = await self._ask_me(MeMessage(MessageId.DNLD_ME, file_name=str(path), recipe_id=req.recipe_id))
+        if answer is None:
+            return refusal
         if answer.ack_code != AckCode.ACK_OK:
             return answer.ack_code or AckCode.START_FAIL, f"ME refused the download: {answer.alarm_text}"
         return None
@@ -696,13 +696,9 @@ class WC(Module):
         await conv.send(message("Upload_Ack", ack_code=stored.ack_code, version=stored.version, note=stored.note))
 
     async def _upload(self, req: Message) -> tuple[tuple[str, str] | None, str | None]:
-        try:
-            answer = await self.me_request(MeMessage(MessageId.UPLD_ME, recipe_id=req.recipe_id))
-        except MeDied as e:
-            await self.me_died(str(e))
-            return (AckCode.START_FAIL, f"ME failed: {e}"), None
-        except QueueError as e:
-            return (AckCode.START_FAIL, str(e)), None
+        answer, refusal = await self._ask_me(MeMessage(MessageId.UPLD_ME, recipe_id=req.recipe_id))
+        if answer is None:
+            return refusal, None
         if answer.ack_code != AckCode.ACK_OK or not answer.file_name:
             return (answer.ack_code or AckCode.START_FAIL, f"the ME returned no recipe: {answer.alarm_text}"), None
         try:

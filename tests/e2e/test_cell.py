@@ -10,11 +10,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import posix_ipc
 import pytest
 
 from gwc.cell import cell_procs, pid_file
-from gwc.ipc.mq import queue_names
+from gwc.ipc.mq import queue_exists, queue_names
 from gwc.log import log_file_name
 from tests.harness import wait_for, write_cell_config
 
@@ -36,14 +35,6 @@ def cell_env(tmp_path: Path, database_url: str):
     env = dict(os.environ, GWC_CONFIG=str(cfg.path), GWC_VAR=str(cfg.var), GWC_DATABASE_URL=database_url)
     yield cfg, env
     gwc(env, "stop")  # whatever the test did, leave nothing running
-
-
-def queue_exists(name: str) -> bool:
-    try:
-        posix_ipc.MessageQueue(name).close()
-        return True
-    except posix_ipc.ExistentialError:
-        return False
 
 
 def test_start_status_kill_stop_leaves_nothing_behind(cell_env) -> None:

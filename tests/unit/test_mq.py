@@ -18,20 +18,12 @@ import pytest
 from gwc.errors import QueueError, QueueFull, QueueTimeout
 from gwc.ipc import mq
 from gwc.ipc.codes import AckCode
-from gwc.ipc.mq import (ALARM_TEXT_SIZE, FILE_NAME_SIZE, LAYOUT_SIZE, MAX_MESSAGES, RECIPE_ID_SIZE, Channel,
+from gwc.ipc.mq import (queue_exists, ALARM_TEXT_SIZE, FILE_NAME_SIZE, LAYOUT_SIZE, MAX_MESSAGES, RECIPE_ID_SIZE, Channel,
                         MeMessage, MessageId, pack, queue_names, remove_queues, unpack)
 from tests.harness import write_cell_config
 
 LOG = logging.getLogger("test_mq")
 MACHINE = "m1"
-
-
-def queue_exists(name: str) -> bool:
-    try:
-        posix_ipc.MessageQueue(name).close()
-        return True
-    except posix_ipc.ExistentialError:
-        return False
 
 
 @pytest.fixture
