@@ -47,6 +47,7 @@ class BusConfig:
     ack_timeout: float = 0.02
     retry_deadline: float = 5.0
     reply_timeout: float = 10.0
+    kernel_filter: bool = True  # the kernel drops datagrams a module would drop unread (docs/protocol.md)
     faults: Faults = field(default_factory=Faults)
 
 

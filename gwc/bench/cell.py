@@ -94,7 +94,7 @@ class CellBench:
     """One run of the benchmark on its own private cell (see the module docstring)."""
 
     def __init__(self, var: Path, machines: int, lots: int, solo: int, deaths: int, database_url: str | None,
-                 log: logging.Logger, say: Callable[[str], None]) -> None:
+                 log: logging.Logger, say: Callable[[str], None], kernel_filter: bool = True) -> None:
         self.var = var.resolve()
         self.n = machines
         self.m = lots
@@ -108,7 +108,7 @@ class CellBench:
         specs += [{"id": m, "kind": "dummy", "run_time": SLOW_RUN} for m in self.slow]
         if self.var.exists():
             shutil.rmtree(self.var)
-        self.cell = PrivateCell(self.var, specs, log, database_url)
+        self.cell = PrivateCell(self.var, specs, log, database_url, bus={"kernel_filter": kernel_filter})
         self.conn: psycopg.Connection[Any] | None = None
 
     def run(self) -> dict[str, Any]:
@@ -319,8 +319,11 @@ def _ms(s: dict[str, float]) -> str:
               help="Death trials (0: none): kill the machine a lot runs on, time until it has the alternative.")
 @click.option("--dir", "where", type=click.Path(file_okay=False, path_type=Path),
               help="The private cell's folder (default: var/bench-cell); emptied first.")
+@click.option("--kernel-filter/--no-kernel-filter", default=True, show_default=True,
+              help="The bus's kernel filter (docs/protocol.md): off shows what it saves.")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
-def command(machines: int, lots: int, solo: int, deaths: int, where: Path | None, as_json: bool) -> None:
+def command(machines: int, lots: int, solo: int, deaths: int, where: Path | None, kernel_filter: bool,
+            as_json: bool) -> None:
     """Run lots through a private cell of N dummy machines: lots/s, the cell's overhead per lot
     (machine request to unreserve, median and p99) and the time from a machine's death to the
     first lot served by its alternative. Uses $GWC_DATABASE_URL if set, else an embedded cluster
@@ -329,7 +332,8 @@ def command(machines: int, lots: int, solo: int, deaths: int, where: Path | None
         raise click.BadParameter("--machines and --lots must be at least 1, --solo and --deaths at least 0")
     cfg, log = context()
     bench = CellBench(where or cfg.var / "bench-cell", machines, lots, solo, deaths,
-                      os.environ.get("GWC_DATABASE_URL"), log, (lambda s: None) if as_json else click.echo)
+                      os.environ.get("GWC_DATABASE_URL"), log, (lambda s: None) if as_json else click.echo,
+                      kernel_filter)
     result = bench.run()
     if as_json:
         click.echo(json.dumps(result, indent=1))

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import ctypes
 import heapq
 import logging
 import random
@@ -51,6 +52,7 @@ T = TypeVar("T")
 _DEFAULT: Any = object()
 RCVBUF = 4 * 1024 * 1024
 IP_MULTICAST_ALL = 49  # Linux's value, for Pythons whose socket module does not name it
+SO_ATTACH_FILTER = getattr(socket, "SO_ATTACH_FILTER", 26)  # Linux's value
 MAX_RTO = 0.5  # retransmission backoff stops growing here
 MAX_PIGGYBACK = 32  # acks riding on a msg at most; the rest go in ack datagrams
 MAX_REMEMBERED = 65_536  # ended conversations (and our idx counters) remembered, newest first
@@ -270,10 +272,11 @@ class Bus:
         self.log = log
         self.inc = random.SystemRandom().randrange(1, 2**31)
         self._interest: set[str] = set()
+        self._kernel_filter = cfg.kernel_filter
+        self._sock: socket.socket | None = None
         self.set_interest(interest, announce=False)
         self._seq = 0
         self._conv_n = 0
-        self._sock: socket.socket | None = None
         self._dest = (cfg.group, cfg.port)
         self._buf = bytearray(65_536)  # one receive buffer, reused: no 256 KiB allocation per datagram
         self._view = memoryview(self._buf)
@@ -307,7 +310,7 @@ class Bus:
         seed = cfg.faults.seed
         self._rng = random.Random(None if seed is None else f"{seed}:{name}")
         self._held: bytes | None = None
-        self._own = wire.own_prefix(name, self.inc)
+        self._origin = wire.origin(name, self.inc)
         self._mine = f"{name}."  # how the ids of conversations this module opened begin
         self._conv_prefix = f"{name}.{self.inc:x}."  # ... in this incarnation
         self._flushed: asyncio.Future[None] | None = None  # close() waiting for the last acks
@@ -321,6 +324,7 @@ class Bus:
         """Join the group, announce ourselves, and give present modules `settle` s to answer."""
         self._loop = asyncio.get_running_loop()
         self._sock = open_socket(self.cfg)
+        self._filter()
         self._loop.add_reader(self._sock.fileno(), self._readable)
         self._hello(query=True)
         self._heartbeat = self._loop.create_task(self._beat())
@@ -368,8 +372,23 @@ class Bus:
         if unknown:
             raise MessageError(f"unknown conversation class(es): {', '.join(sorted(unknown))}")
         self._interest = new
-        if announce and self._sock is not None:
-            self._hello()
+        if self._sock is not None:
+            self._filter()
+            if announce:
+                self._hello()
+
+    def _filter(self) -> None:
+        """Have the kernel drop what this module would drop unread (wire.kernel_filter), where it can."""
+        if not self._kernel_filter or self._sock is None:
+            return
+        code = wire.kernel_filter(self.name, self.inc, self._interest)
+        program = ctypes.create_string_buffer(b"".join(struct.pack("HBBI", *c) for c in code))
+        try:  # struct sock_fprog {unsigned short len; struct sock_filter *filter;}: the kernel copies the program
+            self._sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER,
+                                  struct.pack("HP", len(code), ctypes.addressof(program)))
+        except OSError as e:  # not Linux, or filters forbidden: the bus drops the same datagrams itself
+            self.log.warning("no kernel filter on the bus socket (%s): every datagram wakes this module", e)
+            self._kernel_filter = False
 
     def interest(self, *classes: str) -> None:
         self.set_interest(self._interest | set(classes))
@@ -536,7 +555,7 @@ class Bus:
                 to_inc = peer.inc
         n = len(messages)
         seq = self._seq
-        own = self._own
+        own = self._origin
         # Encode everything before sending anything: an oversize batch fails whole, at the sender.
         try:
             datas = [wire.encode_parts(own, "msg", seq + 1 + i, conv_id, cls, start + i, n - 1 if i == 0 else 0, i,
@@ -743,7 +762,7 @@ class Bus:
 
     def _readable(self) -> None:
         """The socket has datagrams: take up to 64 (then let timers and tasks run), skip our own."""
-        sock, buf, view, own = self._sock, self._buf, self._view, self._own
+        sock, buf, view, own = self._sock, self._buf, self._view, self._origin.prefix
         if sock is None:
             return
         handle = self._received if self._faults.active else self._handle
@@ -798,6 +817,7 @@ class Bus:
             if peer is not None and peer.inc == env.inc:
                 peer.last_seen = now  # any datagram proves life, not only hellos
             kind = env.kind
+            self.stats[kind] += 1  # datagrams read, by kind: what the kernel filter let through
             if kind == "msg":
                 self._on_msg(env, now)
             elif kind == "ack":

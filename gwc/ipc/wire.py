@@ -7,12 +7,17 @@ is the normative description; this module is its reference implementation.
 The envelope (who, which conversation, numbering, acks) is fixed-layout binary, read with one
 struct call; only the application's fields are JSON. Every datagram is decoded and every msg
 encoded on the bus's hot path, and a JSON envelope cost several times the rest of the work there.
+
+The fixed part begins with the *filter keys* (the sender's incarnation and 32-bit tags of the
+sender, the addressee and the class) at fixed offsets, so that the kernel can drop, before any
+process wakes, what a module would drop anyway: `kernel_filter` builds that program.
 """
 
 from __future__ import annotations
 
 import json
 import struct
+import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -20,7 +25,7 @@ from typing import Any
 from gwc.errors import MessageError
 
 MAGIC = b"GWC"
-VERSION = 2
+VERSION = 3
 HEADER = MAGIC + bytes([VERSION])
 MAX_DATAGRAM = 60_000  # below the 65,507-byte UDP limit, with room for IP options
 MAX_NAME = 200  # bytes: module names, conversation ids and class names are short; longer is hostile
@@ -57,11 +62,19 @@ class Envelope:
     query: bool = False  # hello: "tell me who you are" (peers answer with their own hello)
 
 
-# After HEADER: inc, length of src, src. Then _FIXED: kind, flags, seq, idx, more, part, base, to_inc,
-# the lengths of conv, cls, to and msg, the number of acks and of interest entries. Network byte order.
-_SRC = struct.Struct("!QB")
-_FIXED = struct.Struct("!BBQIIIIQBBBBHH")
-_OWN = len(HEADER) + _SRC.size  # where src begins
+# After HEADER, the fixed part: inc, the tags of src, to and cls, kind, flags, seq, idx, more, part, base,
+# to_inc, the lengths of src, conv, cls, to and msg, the number of acks and of interest entries. Network order.
+_FIXED = struct.Struct("!QIIIBBQIIIIQBBBBBHH")
+_AFTER_PREFIX = struct.Struct("!" + _FIXED.format[3:])  # the fixed part after inc and src tag (Origin.prefix)
+_BODY = len(HEADER) + _FIXED.size  # where the strings begin
+# Offsets in the datagram of what the kernel filter reads (docs/protocol.md, "Kernel filtering").
+OFF_INC, OFF_SRC_TAG, OFF_TO_TAG, OFF_CLS_TAG, OFF_KIND, OFF_IDX, OFF_PART = 4, 12, 16, 20, 24, 34, 42
+
+
+def tag(name: str | bytes) -> int:
+    """The 32-bit filter key of a name: its CRC-32 (zlib's) with the low bit set, so that 0 means none."""
+    return zlib.crc32(name.encode() if isinstance(name, str) else name) | 1
+
 
 _dumps = json.JSONEncoder(separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode
 # The C encoder and scanner behind json.dumps/json.loads, called directly: the Python layers around
@@ -77,30 +90,37 @@ def _json(value: Any) -> str:
     return "".join(_c_encode(value, 0)) if _c_encode else _dumps(value)
 
 
-def own_prefix(src: str, inc: int) -> bytes:
-    """How every datagram this module encodes begins: lets it skip its own looped-back traffic cheaply."""
+@dataclass(frozen=True, slots=True)
+class Origin:
+    """What every datagram of one sender (module name, incarnation) begins with, computed once."""
+
+    src: bytes
+    prefix: bytes  # magic, version, inc, src tag: lets the sender skip its own looped-back datagrams
+
+
+def origin(src: str, inc: int) -> Origin:
     name = src.encode()
     if not 0 < len(name) <= MAX_NAME:
         raise MessageError(f"module name {src[:40]!r} must be 1 to {MAX_NAME} bytes")
     try:
-        return HEADER + _SRC.pack(inc, len(name)) + name
+        return Origin(name, HEADER + struct.pack("!QI", inc, tag(name)))
     except struct.error:
         raise MessageError(f"incarnation {inc} out of range") from None
 
 
 def encode(env: Envelope) -> bytes:
     """Serialise one envelope; refuse what cannot fit one datagram (or the layout)."""
-    return encode_parts(own_prefix(env.src, env.inc), env.kind, env.seq, env.conv, env.cls, env.idx, env.more,
+    return encode_parts(origin(env.src, env.inc), env.kind, env.seq, env.conv, env.cls, env.idx, env.more,
                         env.part, env.base, env.to, env.msg, env.fields, env.acks, env.to_inc, env.interest,
                         env.query)
 
 
-def encode_parts(prefix: bytes, kind: str, seq: int, conv: str, cls: str, idx: int, more: int, part: int, base: int,
+def encode_parts(orig: Origin, kind: str, seq: int, conv: str, cls: str, idx: int, more: int, part: int, base: int,
                  to: str | None, msg: str, fields: dict[str, Any], acks: Iterable[int] = (), to_inc: int = 0,
                  interest: Iterable[str] = (), query: bool = False) -> bytes:
     """encode() from the parts, for the bus's hot path (no Envelope made just to be read).
 
-    prefix is own_prefix(src, inc) of the sender.
+    orig is origin(src, inc) of the sender.
     """
     c, k, m = conv.encode(), cls.encode(), msg.encode()
     if to is None:
@@ -127,13 +147,15 @@ def encode_parts(prefix: bytes, kind: str, seq: int, conv: str, cls: str, idx: i
                 parts += (bytes([len(name)]), name)
         if fields:
             parts.append(_json(fields).encode())
-        head = _FIXED.pack(_KIND_CODE[kind], QUERY if query else 0, seq, idx, more, part, base, to_inc, len(c), len(k),
-                           len(t), len(m), len(acks), len(interest))  # type: ignore[arg-type]
+        src = orig.src
+        head = _AFTER_PREFIX.pack(tag(t) if t else 0, tag(k) if k else 0, _KIND_CODE[kind], QUERY if query else 0,
+                           seq, idx, more, part, base, to_inc, len(src), len(c), len(k), len(t), len(m), len(acks),
+                           len(interest))  # type: ignore[arg-type]
     except MessageError:
         raise
     except (TypeError, ValueError, RecursionError, KeyError, struct.error) as e:
         raise MessageError(f"{msg or kind} in {conv or '-'} cannot be encoded: {e}") from None
-    data = prefix + head + b"".join(parts)
+    data = orig.prefix + head + src + b"".join(parts)
     if len(data) > MAX_DATAGRAM:
         raise MessageError(
             f"{msg or kind} in {conv or '-'} is {len(data)} bytes, over the bus limit of "
@@ -163,23 +185,25 @@ def decode(data: bytes) -> Envelope:
             raise MessageError("not a GWC datagram (bad magic)")
         raise MessageError(f"unknown wire version {data[3] if n > 3 else None}")
     try:
-        inc, ls = _SRC.unpack_from(data, 4)
-        o = _OWN + ls
-        kind, flags, seq, idx, more, part, base, to_inc, lc, lk, lt, lm, na, ni = _FIXED.unpack_from(data, o)
-        o += _FIXED.size
+        (inc, src_tag, to_tag, cls_tag, kind, flags, seq, idx, more, part, base, to_inc, ls, lc, lk, lt, lm, na,
+         ni) = _FIXED.unpack_from(data, 4)
         if max(ls, lc, lk, lt, lm) > MAX_NAME:
             raise MessageError(f"a name is longer than {MAX_NAME} bytes")
-        src = data[_OWN:_OWN + ls].decode()
-        e = o + lc
+        o, e = _BODY, _BODY + ls
+        src_b = data[o:e]
+        o, e = e, e + lc
         conv = data[o:e].decode()
         o, e = e, e + lk
-        cls = data[o:e].decode()
+        cls_b = data[o:e]
         o, e = e, e + lt
-        to = data[o:e].decode() if lt else None
+        to_b = data[o:e]
         o, e = e, e + lm
         msg = data[o:e].decode()
         if e > n:
             raise MessageError("truncated datagram")
+        if src_tag != tag(src_b) or to_tag != (tag(to_b) if to_b else 0) or cls_tag != (tag(cls_b) if cls_b else 0):
+            raise MessageError("a filter tag does not match its name")
+        src, cls, to = src_b.decode(), cls_b.decode(), to_b.decode() if lt else None
         acks: tuple[int, ...] = ()
         if na:
             acks = struct.unpack_from(f"!{na}Q", data, e)
@@ -221,3 +245,58 @@ def decode(data: bytes) -> Envelope:
             raise MessageError("base is beyond idx")
     return Envelope(KINDS[kind], src, inc, seq, conv, cls, idx, more, part, base, to, msg, fields, acks, to_inc,
                     interest, bool(flags))
+
+
+# Classic BPF (Linux's SO_ATTACH_FILTER), as (code, jt, jf, k): what kernel_filter is made of.
+_LD_W, _LD_B, _LD_LEN, _TAX, _SUB_X, _JEQ, _JGE, _RET = 0x20, 0x30, 0x80, 0x07, 0x1C, 0x15, 0x35, 0x06
+UDP_HEADER = 8  # Linux runs a UDP socket's filter on the datagram from its UDP header: payload offsets + 8
+_WHOLE = 0xFFFF_FFFF  # a filter's "keep the whole datagram"
+
+
+def kernel_filter(src: str, inc: int, interest: Iterable[str]) -> list[tuple[int, int, int, int]]:
+    """The socket filter for module `src` (incarnation `inc`) listening to `interest`.
+
+    It keeps exactly what the bus would not drop unread: every datagram that is too short or not of
+    this version (so the bus logs it), hellos and byes, acks and msgs addressed to `src`, and broadcast msgs of a
+    class in `interest` or of a conversation's later batches (a conversation the module holds is
+    received whatever its interest). It drops the module's own datagrams. Tags can collide, so it
+    may keep a little more than needed, never less: the bus checks every datagram it reads again.
+    """
+    own, hi, lo = tag(src), inc >> 32, inc & 0xFFFF_FFFF
+    u = UDP_HEADER
+    # (instruction, label to jump to when true, when false); None falls through.
+    prog: list[tuple[tuple[int, int], str | None, str | None] | str] = [
+        ((_LD_LEN, 0), None, None), ((_JGE, u + _BODY), None, "keep"),
+        ((_LD_W, u), None, None), ((_JEQ, int.from_bytes(HEADER, "big")), None, "keep"),
+        ((_LD_W, u + OFF_INC), None, None), ((_JEQ, hi), None, "not_own"),
+        ((_LD_W, u + OFF_INC + 4), None, None), ((_JEQ, lo), None, "not_own"),
+        ((_LD_W, u + OFF_SRC_TAG), None, None), ((_JEQ, own), "drop", None),
+        "not_own",
+        ((_LD_B, u + OFF_KIND), None, None), ((_JEQ, _KIND_CODE["msg"]), "msg", None),
+        ((_JEQ, _KIND_CODE["ack"]), None, "keep"),  # hello, bye: everyone hears them
+        ((_LD_W, u + OFF_TO_TAG), None, None), ((_JEQ, own), "keep", "drop"),
+        "msg",
+        ((_LD_W, u + OFF_TO_TAG), None, None), ((_JEQ, own), "keep", None), ((_JEQ, 0), None, "drop"),
+        ((_LD_W, u + OFF_PART), None, None), ((_TAX, 0), None, None),
+        ((_LD_W, u + OFF_IDX), None, None), ((_SUB_X, 0), None, None),
+        ((_JEQ, 0), None, "keep"),  # idx - part > 0: a later batch of a conversation begun before
+        ((_LD_W, u + OFF_CLS_TAG), None, None),
+        *(((_JEQ, t), "keep", None) for t in sorted({tag(c) for c in interest})),
+        "drop", ((_RET, 0), None, None),
+        "keep", ((_RET, _WHOLE), None, None),
+    ]
+    where: dict[str, int] = {}  # label -> index of the instruction after it
+    n = 0
+    for item in prog:
+        if isinstance(item, str):
+            where[item] = n
+        else:
+            n += 1
+    code: list[tuple[int, int, int, int]] = []
+    for item in prog:
+        if isinstance(item, str):
+            continue
+        (op, k), yes, no = item
+        here = len(code) + 1
+        code.append((op, where[yes] - here if yes else 0, where[no] - here if no else 0, k))
+    return code

@@ -52,12 +52,12 @@ class PrivateCell:
 
     def __init__(self, var: Path, machines: list[dict[str, Any]], log: logging.Logger,
                  database_url: str | None = None, policy: str = "priority",
-                 db_settings: dict[str, Any] | None = None) -> None:
+                 db_settings: dict[str, Any] | None = None, bus: dict[str, Any] | None = None) -> None:
         self.var = var.resolve()
         self.log = log
         self.machines = [m["id"] for m in machines]
         # Not the soak's seed: two soaks of one seed may run side by side.
-        self._bus_cfg = private_bus(heartbeat=0.25, peer_timeout=1.5)
+        self._bus_cfg = private_bus(**{"heartbeat": 0.25, "peer_timeout": 1.5, **(bus or {})})
         self._text_args = dict(var=self.var, database_url=database_url, machines=machines, policy=policy,
                                db_settings=db_settings)
         self.cfg: Config = write_config(self.var / "etc" / "cell.toml", config_doc(bus=self._bus_cfg, **self._text_args))

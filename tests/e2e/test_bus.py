@@ -247,6 +247,22 @@ def _mutations(valid: bytes, rnd: random.Random) -> Iterator[bytes]:
         yield bytes(rnd.randrange(256) for _ in range(rnd.randrange(1, 300)))
 
 
+def test_the_kernel_keeps_from_a_module_what_is_not_meant_for_it(make_lab: Any) -> None:
+    """Directed msgs, broadcasts of a class a module does not hear, and acks to others never wake it."""
+    lab = make_lab()
+    lab.start_peer("echo")
+    lab.start_peer("deaf", interest="MACH_REQ")
+    for i in range(50):
+        for to in ("echo", None):
+            conv, answer = lab.bus.request("PING", message("Ping", n=i), to=to, timeout=15)
+            conv.end()
+            assert answer.first.n == i
+    deaf, echo = lab.report("deaf")["stats"], lab.report("echo")["stats"]
+    assert echo["msg"] >= 100 and echo["hello"] > 0
+    assert deaf.get("msg", 0) == 1 and deaf.get("ack", 0) <= 1, "only the report's own conversation reached it"
+    assert deaf["hello"] > 0, "membership still reaches everyone"
+
+
 def test_fuzzed_datagrams_are_dropped_and_the_module_keeps_answering(make_lab: Any) -> None:
     lab = make_lab()
     lab.start_peer("fz")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import random
 import struct
+import zlib
 
 import pytest
 
@@ -31,13 +32,15 @@ def test_round_trip(env: Envelope) -> None:
     assert wire.decode(data) == env
 
 
-def test_the_layout_is_as_documented_and_src_inc_come_first() -> None:
+def test_the_layout_is_as_documented_and_the_sender_comes_first() -> None:
     data = wire.encode(SAMPLES[-1])
-    # GWC, version 2, inc, len(src), src, then kind 3 (bye) and 41 zero bytes: nothing else is set.
-    assert data == b"GWC\x02" + (5).to_bytes(8, "big") + b"\x06msched" + b"\x03" + bytes(41)
-    assert data.startswith(wire.own_prefix("msched", 5))
-    assert not wire.encode(Envelope(kind="bye", src="msched", inc=55)).startswith(wire.own_prefix("msched", 5))
-    assert not wire.own_prefix("msched2", 5).startswith(wire.own_prefix("msched", 5))
+    # GWC, version 3, inc, src tag, no to or cls tag, kind 3 (bye), 32 zero bytes, len(src) 6, 8 zero bytes, src.
+    src_tag = (zlib.crc32(b"msched") | 1).to_bytes(4, "big")
+    assert data == (b"GWC\x03" + (5).to_bytes(8, "big") + src_tag + bytes(8) + b"\x03" + bytes(33) + b"\x06"
+                    + bytes(8) + b"msched")
+    assert data.startswith(wire.origin("msched", 5).prefix)
+    assert not wire.encode(Envelope(kind="bye", src="msched", inc=55)).startswith(wire.origin("msched", 5).prefix)
+    assert not wire.origin("msched2", 5).prefix.startswith(wire.origin("msched", 5).prefix)
     msg = wire.encode(SAMPLES[0])
     assert msg.endswith(b'{"entity_id":17,"op_type":"mill","num_machines":2}')
 
@@ -69,10 +72,10 @@ def frame(src: bytes = b"a", inc: int = 1, kind: int = 0, flags: int = 0, seq: i
           lengths: tuple[int, ...] | None = None) -> bytes:
     """A datagram laid out by hand (the encoder refuses to make bad ones); lengths overrides the length bytes."""
     ls, lc, lk, lt, lm = lengths or (len(src), len(conv), len(cls), len(to), len(msg))
-    return (wire.HEADER + struct.pack("!QB", inc, ls) + src
-            + struct.pack("!BBQIIIIQBBBBHH", kind, flags, seq, idx, more, part, base, to_inc, lc, lk, lt, lm,
-                          len(acks), len(interest))
-            + conv + cls + to + msg + b"".join(struct.pack("!Q", a) for a in acks)
+    tags = [zlib.crc32(name) | 1 if name else 0 for name in (src, to, cls)]
+    return (wire.HEADER + struct.pack("!QIIIBBQIIIIQBBBBBHH", inc, *tags, kind, flags, seq, idx, more, part, base,
+                                      to_inc, ls, lc, lk, lt, lm, len(acks), len(interest))
+            + src + conv + cls + to + msg + b"".join(struct.pack("!Q", a) for a in acks)
             + b"".join(bytes([len(i)]) + i for i in interest) + tail)
 
 
@@ -96,6 +99,9 @@ MALFORMED = {
     "huge integer": frame(tail=b'{"n":' + b"9" * 10_000 + b"}"),
     "src not utf-8": frame(src=b"\xff"),
     "empty src": frame(src=b""),
+    "wrong src tag": frame()[:12] + b"\0\0\0\1" + frame()[16:],
+    "wrong addressee tag": frame(to=b"b")[:16] + b"\0\0\0\0" + frame(to=b"b")[20:],
+    "wrong class tag": frame()[:20] + b"\0\0\0\3" + frame()[24:],
     "unknown kind": frame(kind=9),
     "unknown flag": frame(flags=4),
     "msg without seq": frame(seq=0),
@@ -128,3 +134,54 @@ def test_random_mutations_never_raise_anything_but_message_error() -> None:
             wire.decode(bytes(data[: rnd.randrange(1, len(data) + 1)]))
         except MessageError:
             pass
+
+
+def run_filter(code: list[tuple[int, int, int, int]], payload: bytes) -> bool:
+    """Classic BPF, as much of it as wire.kernel_filter uses, run as Linux runs it on a UDP socket."""
+    packet = bytes(wire.UDP_HEADER) + payload
+    a = x = pc = 0
+    while True:
+        op, jt, jf, k = code[pc]
+        pc += 1
+        if op == 0x80:
+            a = len(packet)
+        elif op in (0x20, 0x30):  # ld word / byte, absolute; out of the packet: drop
+            size = 4 if op == 0x20 else 1
+            if k + size > len(packet):
+                return False
+            a = int.from_bytes(packet[k:k + size], "big")
+        elif op == 0x07:
+            x = a
+        elif op == 0x1C:
+            a = (a - x) & 0xFFFF_FFFF
+        elif op in (0x15, 0x35):
+            pc += jt if (a == k if op == 0x15 else a >= k) else jf
+        elif op == 0x06:
+            return k != 0
+        else:
+            raise AssertionError(f"unexpected opcode {op:#x}")
+
+
+def test_the_kernel_filter_keeps_exactly_what_the_module_would_read() -> None:
+    code = wire.kernel_filter("msched", 5, ["MACH_REQ", "STARTUP"])
+
+    def kept(**kw: object) -> bool:
+        return run_filter(code, wire.encode(Envelope(**kw)))  # type: ignore[arg-type]
+
+    msg = dict(kind="msg", src="lot:1", inc=7, seq=1, conv="lot:1.7.1", msg="Machine_Request")
+    assert kept(**msg, cls="MACH_REQ")  # a broadcast opener of a class it listens to
+    assert kept(**msg, cls="MACH_REQ", idx=1, part=1)  # the rest of that opening batch
+    assert not kept(**msg, cls="SETUP_RUN")  # ... of a class it does not
+    assert not kept(**msg, cls="SETUP_RUN", idx=2, part=2, more=0)
+    assert kept(**msg, cls="SETUP_RUN", idx=3, base=3)  # a later batch: it may hold the conversation
+    assert kept(**msg, cls="SETUP_RUN", to="msched")  # directed to it, whatever its interest
+    assert not kept(**msg, cls="MACH_REQ", to="wc:wc1")  # directed to another
+    assert kept(kind="ack", src="wc:wc1", inc=3, to="msched", to_inc=5, acks=(1,))
+    assert not kept(kind="ack", src="wc:wc1", inc=3, to="lot:1", to_inc=7, acks=(1,))
+    assert kept(kind="hello", src="wc:wc1", inc=3) and kept(kind="bye", src="wc:wc1", inc=3)
+    assert not kept(kind="hello", src="msched", inc=5)  # its own, looped back
+    assert not kept(**dict(msg, src="msched", inc=5), cls="MACH_REQ")
+    assert kept(kind="hello", src="msched", inc=6)  # its restarted self, or another process of that name
+    assert kept(kind="hello", src="msched2", inc=5)
+    for garbage in (b"", b"GWC", b"GWC\x02" + bytes(80), bytes(range(200))):  # the bus logs what is malformed
+        assert run_filter(code, garbage)
