@@ -23,8 +23,9 @@ cannot clean up; the Lot Server's reaper does the same for it when `lot:E` leave
 
 The entity listens to RUN_COMPL (its runs finish), UPD_ME_ST (a reserved machine shut down mid-run:
 the step is retried, after a pause, on whatever machine is up, a bounded number of times) and
-LOT_MOVED (the operator's import and export). It remembers every status change of the machines it
-works with, so a machine that went Shutdown and came up again while the entity waited is still
+LOT_MOVED (the operator's import and export); to the first two only once its lot is in the cell
+(imported), so that lots waiting to be imported are not woken by every run. It remembers every
+status change of the machines it works with, so a machine that went Shutdown and came up again while the entity waited is still
 known to have lost the run. Servers come and go too: a conversation with the Lot Server or MSCHED
 that finds it away, restarting or not yet started is asked again with a backoff for a bounded time
 (Timeouts.retry); every request the entity repeats that way is safe to repeat.
@@ -37,6 +38,7 @@ and the demonstration.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import json
 import logging
@@ -64,6 +66,9 @@ from gwc.module import NOT_STARTED
 T = TypeVar("T")
 S = LotState
 LISTENS = ("RUN_COMPL", "UPD_ME_ST", "LOT_MOVED")
+# Until its lot is imported an entity hears only its moves: the cell's machine traffic is no
+# business of a lot waiting at the door, and in a busy cell many wait there.
+WAITING_LISTENS = ("LOT_MOVED",)
 UP = (MachineStatus.IDLE.value, MachineStatus.SETUP.value, MachineStatus.RUNNING.value)
 FINISHED = (S.COMPLETED, S.WAITING_EXPORT, S.EXPORTED, S.FAILED)
 IMPORTED = (S.IMPORTED, S.WAITING_MACHINE, S.RUNNING, *FINISHED)
@@ -311,6 +316,9 @@ class OperationEntity:
         self._requests: list[MachineRequest] = []  # asked for and not yet waited for
         self._groups = 0
         self._moved: list[tuple[str, int | None]] = []
+        # Progress reports (waiting_machine, running) on their way to the Lot Server, in order (report()).
+        self._reporter: concurrent.futures.ThreadPoolExecutor | None = None
+        self._reports: list[concurrent.futures.Future[Message]] = []
         self._tasks: set[asyncio.Task[None]] = set()
         self._failed = False
         self.traveller: dict[str, Any] = {"entity_id": self.entity_id, "steps": []}
@@ -344,10 +352,14 @@ class OperationEntity:
         if self.state in (S.FAILED, S.EXPORTED):
             self._failed = True  # nothing of ours to clean up
             raise LotError(f"entity {self.entity_id} is already {self.state}: nothing to do")
-        self._bus = BlockingBus(self.name, self.cfg.bus, self.log, interest=LISTENS)
+        self._bus = BlockingBus(self.name, self.cfg.bus, self.log,
+                                interest=LISTENS if self.state in IMPORTED else WAITING_LISTENS)
         self._bus.call_soon(self._watch_peers, self._bus.bus)
         self._bus.peers()  # returns after _watch_peers ran (the bus thread runs callbacks in order)
         self._spawn(self._listen())
+        # Started now, not at the first report: starting a thread takes milliseconds on a busy machine.
+        self._reporter = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"{self.name}-reports")
+        self._reporter.submit(lambda: None)
         ack = self.entity_request("attach", script_pid=os.getpid())
         self.log.info("entity %d attached (lot %s, product %s, state %s, pid %d)", self.entity_id, self.lot_id,
                       self.product_id, ack.state, os.getpid())
@@ -357,6 +369,9 @@ class OperationEntity:
 
     def close(self) -> None:
         """Leave the bus and the database. Safe to call twice."""
+        if self._reporter is not None:  # a report still retrying fails fast once the bus is gone
+            self._reporter.shutdown(wait=False, cancel_futures=True)
+            self._reporter = None
         if self._bus is not None:
             bus, self._bus = self._bus, None
             bus.call_soon(self._cancel_tasks)
@@ -384,6 +399,8 @@ class OperationEntity:
                     self.log.error("cleanup: could not %s: %s", what, e)
         else:
             self.log.error("cleanup: msched is not on the bus; its reaper cleans up when it returns")
+        with contextlib.suppress(GwcError):  # a refused report is why we fail, perhaps: the failure still goes
+            self._drain_reports()
         try:  # asked again while the Lot Server is away (Timeouts.retry): else the entity stays as it is
             self.entity_request("failed", reason=reason[:500], timeout=self.timeouts.cleanup)
         except GwcError as e:
@@ -401,7 +418,32 @@ class OperationEntity:
         repeat: the Lot Server moves an entity only into the state it is asked for (attach, completed,
         failed, waiting_machine, running: a repeat finds it there and changes nothing), and a repeated
         import or export that finds the operator already moved the entity on is taken as done (ALREADY).
+        Progress reports sent before (report()) are answered first; one that failed raises here.
         """
+        self._drain_reports()
+        return self._entity_request(action, reason, script_pid, timeout, within)
+
+    def report(self, action: str) -> None:
+        """ENTITY_REQ for a progress state (waiting_machine, running), sent without waiting for the answer.
+
+        The Lot Server records progress for the operator; the operation does not need its answer, so
+        reports go in the background, one at a time and in order (asked again while the Lot Server is
+        away, as entity_request is), and the next entity_request waits for them first. A report the
+        Lot Server refuses raises there, at the latest when the lot completes or fails.
+        """
+        self._set_state(action)
+        if self._reporter is None:
+            raise LotError(f"entity {self.entity_id} is not open")
+        self._reports.append(self._reporter.submit(self._entity_request, action, keep_state=True))
+
+    def _drain_reports(self) -> None:
+        reports, self._reports = self._reports, []
+        for report in reports:
+            report.result()
+
+    def _entity_request(self, action: str, reason: str | None = None, script_pid: int | None = None,
+                        timeout: float | None = None, within: float | None = None,
+                        keep_state: bool = False) -> Message:
         ack = self._ask("ENTITY_REQ", message("Entity_Request", entity_id=self.entity_id, action=action,
                                               reason=reason, script_pid=script_pid), "ls", timeout, within)
         if ack.ack_code == AckCode.NOTNOW and ack.state in ALREADY.get(action, ()):
@@ -411,7 +453,7 @@ class OperationEntity:
                            + (f" ({ack.note})" if ack.note else "") + (f", entity is {ack.state}" if ack.state else ""))
         if ack.lot_id is not None:
             self.lot_id = ack.lot_id
-        if ack.state:
+        if ack.state and not keep_state:  # a report's answer comes after the script has moved on
             self._set_state(ack.state)
         return ack
 
@@ -428,13 +470,19 @@ class OperationEntity:
         state = self.read_state()
         if state in IMPORTED:
             self.log.info("entity %d already imported (%s)", self.entity_id, state)
-            return
-        if state != S.WAITING_IMPORT:
-            self.entity_request("import")
-        self.log.info("entity %d waiting to be imported", self.entity_id)
-        self._wait_moved("import", IMPORTED, timeout or self.timeouts.import_)
-        self._set_state(S.IMPORTED)
-        self.log.info("entity %d imported (lot %s)", self.entity_id, self.lot_id)
+        else:
+            if state != S.WAITING_IMPORT:
+                self.entity_request("import")
+            self.log.info("entity %d waiting to be imported", self.entity_id)
+            self._wait_moved("import", IMPORTED, timeout or self.timeouts.import_)
+            self._set_state(S.IMPORTED)
+            self.log.info("entity %d imported (lot %s)", self.entity_id, self.lot_id)
+        self._listen_in_cell()
+
+    def _listen_in_cell(self) -> None:
+        """From now on hear the machines' news too (RUN_COMPL, UPD_ME_ST): the lot is in the cell."""
+        if self._bus is not None and self._bus.bus.interests != frozenset(LISTENS):
+            self._bus.set_interest(LISTENS)
 
     def lot_completed(self, result: str | None = None) -> None:
         """Tell the Lot Server the lot's work here is done, with its result (Listing 1's lot_completed).
@@ -481,8 +529,9 @@ class OperationEntity:
         alts = [_Alternative(op_type, list(a)) for a in alternatives if a]
         if not alts:
             raise RequestRefused(f"no machines to ask for {op_type}")
+        self._listen_in_cell()  # already, unless the script skipped wait_for_import
         if self.state != S.WAITING_MACHINE:
-            self.entity_request("waiting_machine")
+            self.report(S.WAITING_MACHINE)
         self._groups += 1  # unique per call (and per process: a restarted script's groups are new ones)
         request = MachineRequest(op_type, alts, f"{self.entity_id}.{os.getpid()}.{self._groups}")
         self._requests.append(request)
@@ -531,7 +580,7 @@ class OperationEntity:
                               got.reserved or got.machines)
             self.log.info("got machine_run_id %d on %s for %s (request %s)", res.machine_run_id,
                           ", ".join(res.machines), res.op_type, res.request_key)
-            self.entity_request("running")
+            self.report(S.RUNNING)
             return res
         cancelled = [a for a in alts if a.comp is not None and a.comp.ack_code == AckCode.REQ_CANCEL]
         if cancelled:
@@ -980,10 +1029,12 @@ class OperationEntity:
               poll: Callable[[], None] | None = None) -> T:
         """Wait until predicate() (called under the lock) is truthy; LotTimeout naming `what` after timeout.
 
-        `poll`, if given, runs every POLL seconds outside the lock: a fallback read of the tables.
+        `poll`, if given, runs every POLL seconds outside the lock: a fallback read of the tables. Not
+        at once: what the broadcasts said is known already, and a read now would hold the GIL while the
+        bus thread sends the step this wait is for.
         """
         deadline = time.monotonic() + timeout
-        next_poll = time.monotonic()
+        next_poll = time.monotonic() + POLL
         while True:
             if poll is not None and time.monotonic() >= next_poll:
                 poll()

@@ -29,6 +29,9 @@ from gwc.lot.errors import LotError, ScriptStopped
 from gwc.log import open_log
 
 
+SWITCH_INTERVAL = 0.0005  # seconds
+
+
 def script_of(cfg: Config, entity_id: int) -> tuple[str, Path]:
     """The entity's lot script: (script_id, path), the lot's own script or else its product's."""
     with db.connect(cfg, role="lot") as conn:
@@ -84,6 +87,9 @@ def run_entity(cfg: Config, entity_id: int) -> int:
     log = open_log(f"lot:{entity_id}", cfg.log_dir, cfg.level_of(f"lot:{entity_id}"))
     log.info("lot script process for entity %d starting (pid %d)", entity_id, os.getpid())
     signal.signal(signal.SIGTERM, _stop)
+    # The script and its bus thread hand the GIL back and forth at every step: with the default 5 ms
+    # switch interval, a bus thread woken while the script runs Python would answer that much later.
+    sys.setswitchinterval(SWITCH_INTERVAL)
     try:
         with OperationEntity(cfg, entity_id, log) as entity:
             script_id, path = script_of(cfg, entity_id)
