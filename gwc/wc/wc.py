@@ -494,6 +494,27 @@ class WC(Module):
             return AckCode.DB_BADREA, str(e)
         if not ok:
             return AckCode.REC_INVAL, f"recipe {req.recipe_id} is not for op type {req.op_type} on {self.machine_id}"
+        # Listing 3: a machine set up for a run accepts no other operation until the run is over. Asked
+        # now, beside the recipe's download, which does not depend on it: only the status change waits.
+        accept = asyncio.ensure_future(self.set_accept_types([]))
+        try:
+            refusal = await self._set_up_on_me(req)
+        finally:
+            accepted = await accept
+        if refusal is None and not accepted:
+            refusal = AckCode.DB_BADUPD, "MSCHED did not take the accept types"
+        if refusal is None and not await self.change_status(S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id,
+                                                            machine_run_id=req.machine_run_id):
+            refusal = AckCode.DB_BADUPD, "the Machine Server refused the change to Setup"
+        if refusal is not None:
+            if accepted:
+                await self.set_accept_types(ALL_OPERATIONS)
+            return refusal
+        self.machine_run_id, self.recipe_id = req.machine_run_id, req.recipe_id
+        return None
+
+    async def _set_up_on_me(self, req: Message) -> tuple[str, str] | None:
+        """The approved recipe from the ERS to the ME, which sets up with it; the refusal, or None."""
         path, why = await self.fetch_recipe(req.recipe_id)
         if path is None:
             await self.raise_alarm("REC_INVAL", f"{self.machine_id}: recipe {req.recipe_id} refused: {why}", wait=False)
@@ -504,14 +525,6 @@ class WC(Module):
             return refusal
         if answer.ack_code != AckCode.ACK_OK:
             return answer.ack_code or AckCode.START_FAIL, f"ME refused the setup: {answer.alarm_text}"
-        # Listing 3: a machine set up for a run accepts no other operation until the run is over.
-        if not await self.set_accept_types([]):
-            return AckCode.DB_BADUPD, "MSCHED did not take the accept types"
-        if not await self.change_status(S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id,
-                                        machine_run_id=req.machine_run_id):
-            await self.set_accept_types(ALL_OPERATIONS)
-            return AckCode.DB_BADUPD, "the Machine Server refused the change to Setup"
-        self.machine_run_id, self.recipe_id = req.machine_run_id, req.recipe_id
         return None
 
     async def fetch_recipe(self, recipe_id: str) -> tuple[Path | None, str]:
@@ -619,12 +632,11 @@ class WC(Module):
                 code = AckCode.RUN_FAIL
 
         def store(cur: Any) -> None:
-            for param, value in results.items():
-                cur.execute(
-                    "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) "
-                    "VALUES (%s, %s, %s, %s) "
-                    "ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value",
-                    (run_id, self.machine_id, param, value))
+            cur.executemany(  # pipelined: one round trip to the server, not one per result
+                "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) "
+                "VALUES (%s, %s, %s, %s) "
+                "ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value",
+                [(run_id, self.machine_id, param, value) for param, value in results.items()])
 
         try:
             self.transaction(store)
