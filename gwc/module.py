@@ -177,22 +177,13 @@ class Module:
         self.log.info("Starting: listening for %s", ", ".join(sorted(self.bus.interests)))
         if start:
             await self._start()
-        idle = asyncio.get_running_loop().create_task(self._idle_loop())
+        loop = asyncio.get_running_loop()
+        idle = loop.create_task(self._idle_loop())
+        accept = loop.create_task(self._accept())
         try:
-            while not self._stop.is_set():
-                getter = asyncio.ensure_future(self.bus.first_message())
-                stopper = asyncio.ensure_future(self._stop.wait())
-                done, _ = await asyncio.wait({getter, stopper}, return_when=asyncio.FIRST_COMPLETED)
-                stopper.cancel()
-                if getter in done:
-                    conv = getter.result()
-                    if conv is not None:
-                        task = asyncio.get_running_loop().create_task(self._serve(conv))
-                        self._tasks.add(task)
-                        task.add_done_callback(self._tasks.discard)
-                else:
-                    getter.cancel()
+            await self._stop.wait()
         finally:
+            accept.cancel()
             idle.cancel()
             if self.started:
                 await self._shutdown_work()
@@ -203,6 +194,17 @@ class Module:
                 self._conn.close()
             self.log.info("Stopped (exit %d)", self.exit_code)
         return self.exit_code
+
+    async def _accept(self) -> None:
+        """Every conversation opened with this module runs as a task of its own: a handler waiting for
+        an answer never keeps the next conversation waiting (docs/protocol.md, No collisions)."""
+        loop = asyncio.get_running_loop()
+        while not self.bus.closed:
+            conv = await self.bus.first_message()
+            if conv is not None:
+                task = loop.create_task(self._serve(conv))
+                self._tasks.add(task)
+                task.add_done_callback(self._tasks.discard)
 
     async def _idle_loop(self) -> None:
         while True:
