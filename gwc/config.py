@@ -50,6 +50,11 @@ class BusConfig:
     kernel_filter: bool = True  # the kernel drops datagrams a module would drop unread (docs/protocol.md)
     faults: Faults = field(default_factory=Faults)
 
+    @property
+    def beat_port(self) -> int:
+        """Where periodic hellos go: the next port, on the same group (docs/protocol.md, Membership)."""
+        return self.port + 1
+
 
 @dataclass(frozen=True)
 class MachineSpec:

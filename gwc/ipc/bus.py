@@ -59,15 +59,17 @@ MAX_REMEMBERED = 65_536  # ended conversations (and our idx counters) remembered
 INF = float("inf")
 
 
-def open_socket(cfg: BusConfig) -> socket.socket:
-    """A UDP socket joined to the cell's group on its interface; closed again if any step fails."""
+def open_socket(cfg: BusConfig, port: int | None = None) -> socket.socket:
+    """A UDP socket joined to the cell's group on its interface, at `port` (the bus's, unless given);
+    closed again if any step fails."""
+    port = cfg.port if port is None else port
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         if hasattr(socket, "SO_REUSEPORT"):
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF)
-        sock.bind(("", cfg.port))
+        sock.bind(("", port))
         iface = socket.inet_aton(cfg.interface)
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton(cfg.group) + iface)
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, iface)
@@ -80,7 +82,7 @@ def open_socket(cfg: BusConfig) -> socket.socket:
         sock.setblocking(False)
     except OSError as e:
         sock.close()
-        raise BusError(f"cannot join bus group {cfg.group}:{cfg.port} on {cfg.interface}: {e}") from e
+        raise BusError(f"cannot join bus group {cfg.group}:{port} on {cfg.interface}: {e}") from e
     return sock
 
 
@@ -128,7 +130,9 @@ class _Outgoing:
 
     def __init__(self, next_idx: int = 0) -> None:
         self.next_idx = next_idx
-        self.unsettled: collections.deque[list[int]] = collections.deque()
+        # None once all are settled: most of the remembered entries then hold no container for the garbage
+        # collector to walk again and again.
+        self.unsettled: collections.deque[list[int]] | None = None
 
     @property
     def base(self) -> int:
@@ -143,7 +147,7 @@ class _Stream:
     def __init__(self, next_idx: int, touched: float) -> None:
         self.next_idx = next_idx
         self.buffer: dict[int, tuple[Envelope, Message | None]] = {}
-        self.batch: list[tuple[Envelope, Message | None]] = []
+        self.batch: list[tuple[Envelope, Message | None]] | None = None  # made when a batch of several begins
         self.touched = touched
         self.gap_since = 0.0  # when the buffer last became non-empty (a message is missing)
 
@@ -201,7 +205,7 @@ class Conversation:
     async def send(self, *messages: Message, to: str | None = _DEFAULT) -> None:
         """Send a batch into this conversation; by default to the other side (or to all, if unknown)."""
         target = self.peer if to is _DEFAULT else to
-        self._idx = self.bus._send_batch(self, list(messages), target)
+        self._idx = self.bus._send_batch(self, messages, target)
 
     async def next_message(self, timeout: float | None = None) -> Batch:
         """The next batch the other side sends; ConversationTimeout (logged) if none comes in time."""
@@ -306,6 +310,11 @@ class Bus:
         self._deadline_timer: asyncio.TimerHandle | None = None
         self._deadline_at = INF
         self._heartbeat: asyncio.Task[None] | None = None
+        # Periodic hellos (beats) travel on a port of their own, read only at each heartbeat: hearing
+        # that every module is still there must not wake every module every few milliseconds.
+        self._beat_sock: socket.socket | None = None
+        self._beat_dest = (cfg.group, cfg.beat_port)
+        self._beats: dict[bytes, tuple[str, int]] = {}  # each peer's last beat, as sent -> (name, inc)
         self._faults = cfg.faults
         seed = cfg.faults.seed
         self._rng = random.Random(None if seed is None else f"{seed}:{name}")
@@ -325,6 +334,12 @@ class Bus:
         self._loop = asyncio.get_running_loop()
         self._sock = open_socket(self.cfg)
         self._filter()
+        try:
+            self._beat_sock = open_socket(self.cfg, self.cfg.beat_port)
+        except BusError:
+            self._sock.close()
+            self._sock = None
+            raise
         self._loop.add_reader(self._sock.fileno(), self._readable)
         self._hello(query=True)
         self._heartbeat = self._loop.create_task(self._beat())
@@ -354,6 +369,9 @@ class Bus:
                 self._loop.remove_reader(self._sock.fileno())
             self._sock.close()
             self._sock = None
+        if self._beat_sock is not None:
+            self._beat_sock.close()
+            self._beat_sock = None
         for conv in self._convs.values():
             conv._put(_CLOSED)
         self._put_incoming(_CLOSED)
@@ -416,7 +434,7 @@ class Bus:
         conv.peer = to
         self._convs[conv.id] = conv
         try:
-            conv._idx = self._send_batch(conv, list(messages), to)  # conv.send() without its coroutine
+            conv._idx = self._send_batch(conv, messages, to)  # conv.send() without its coroutine
         except BaseException:
             conv.end()
             raise
@@ -524,17 +542,17 @@ class Bus:
 
     # ----------------------------------------------------------------- sending
 
-    def _send_batch(self, conv: Conversation, messages: list[Message], to: str | None) -> int:
+    def _send_batch(self, conv: Conversation, messages: tuple[Message, ...], to: str | None) -> int:
         """Number, encode (all or nothing), transmit and track one batch; returns the conversation's next idx."""
         if not messages:
             raise MessageError("a send needs at least one message")
         if self._sock is None or self.closed:
             raise BusError(f"{self.name} is not signed on to the bus")
-        allowed = catalogue.CONVERSATION_CLASSES[conv.cls].messages
+        conv_id, cls = conv.id, conv.cls
+        allowed = catalogue.CONVERSATION_CLASSES[cls].messages
         for m in messages:  # fields were checked when message() built m; receivers check them again
             if m.name not in allowed:
-                raise MessageError(f"message {m.name} does not belong to conversation {conv.cls}")
-        conv_id, cls = conv.id, conv.cls
+                raise MessageError(f"message {m.name} does not belong to conversation {cls}")
         outs = self._out
         out = outs.get(conv_id)
         if out is None:
@@ -545,49 +563,56 @@ class Bus:
             outs.move_to_end(conv_id)
         start = out.next_idx
         base = out.unsettled[0][0] if out.unsettled else start
-        peer = self._peers.get(to) if to is not None else None
         acks: tuple[int, ...] | list[int] = ()
         to_inc = 0
-        if peer is not None:
-            due = self._acks_due.get((to, peer.inc))  # type: ignore[arg-type]
-            if due and len(due) <= MAX_PIGGYBACK:  # more wait for their own ack datagram
-                acks = self._acks_due.pop((to, peer.inc))  # type: ignore[arg-type]
-                to_inc = peer.inc
+        if to is not None:
+            peer = self._peers.get(to)
+            if peer is not None:
+                key = (to, peer.inc)
+                due = self._acks_due.get(key)
+                if due and len(due) <= MAX_PIGGYBACK:  # more wait for their own ack datagram
+                    del self._acks_due[key]
+                    acks, to_inc = due, peer.inc
         n = len(messages)
         seq = self._seq
-        own = self._origin
+        own, encode = self._origin, wire.encode_parts
         # Encode everything before sending anything: an oversize batch fails whole, at the sender.
         try:
-            datas = [wire.encode_parts(own, "msg", seq + 1 + i, conv_id, cls, start + i, n - 1 if i == 0 else 0, i,
-                                       base, to, m.name, m.fields, acks if i == 0 else (), to_inc if i == 0 else 0)
-                     for i, m in enumerate(messages)]
+            if n == 1:  # the usual case, without the batch's numbering
+                datas = [encode(own, "msg", seq + 1, conv_id, cls, start, 0, 0, base, to, messages[0].name,
+                                messages[0].fields, acks, to_inc)]
+            else:
+                datas = [encode(own, "msg", seq + 1 + i, conv_id, cls, start + i, n - 1 if i == 0 else 0, i, base, to,
+                                m.name, m.fields, acks if i == 0 else (), to_inc if i == 0 else 0)
+                         for i, m in enumerate(messages)]
         except MessageError:
             if acks:
                 self._acks_due.setdefault((to, to_inc), []).extend(acks)  # type: ignore[arg-type]
             raise
         self._seq = seq + n
         out.next_idx = start + n
-        waiting = {to} if to is not None else set(self.listeners_of(cls))
+        for data in datas:  # first on the wire; the bookkeeping below can wait that long
+            self._transmit(data)
+        waiting = {to} if to is not None else {p.name for p in self._peers.values() if cls in p.interest}
         if waiting:
             batch = [start, n]
-            out.unsettled.append(batch)
+            if out.unsettled is None:
+                out.unsettled = collections.deque((batch,))
+            else:
+                out.unsettled.append(batch)
             now = time.monotonic()
             rto = self.cfg.ack_timeout
-            pending = self._pending
+            pending, first_due = self._pending, self._due_first
             for i, data in enumerate(datas):
-                self._transmit(data)
                 seq += 1
                 pending[seq] = _Pending(data, set(waiting) if i else waiting, now, rto, batch, conv_id, cls,
                                         messages[i].name, to, base)
-                self._due_first.append((now + rto, seq))
+                first_due.append((now + rto, seq))
             if self._rtx_timer is None or now + rto < self._rtx_at:
                 self._arm_retransmit(now + rto)
-        else:
-            if to is None:
-                self.log.log(TRACE, "%s: nobody listens to %s yet", cls, messages[0].name,
-                             extra={"conv": f"{conv_id} {cls}"})
-            for data in datas:
-                self._transmit(data)
+        elif to is None:
+            self.log.log(TRACE, "%s: nobody listens to %s yet", cls, messages[0].name,
+                         extra={"conv": f"{conv_id} {cls}"})
         self.stats["sent"] += n
         if self.log.isEnabledFor(TRACE):
             self.log.log(TRACE, "sent %s to %s", ", ".join(m.name for m in messages), to or "all",
@@ -672,17 +697,20 @@ class Bus:
         batch[1] -= 1
         if not batch[1]:
             out = self._out.get(p.conv)
-            if out is not None:
-                while out.unsettled and not out.unsettled[0][1]:
-                    out.unsettled.popleft()
+            if out is not None and out.unsettled:
+                unsettled = out.unsettled
+                while unsettled and not unsettled[0][1]:
+                    unsettled.popleft()
+                if not unsettled:
+                    out.unsettled = None
         if not self._pending and self._flushed is not None and not self._flushed.done():
             self._flushed.set_result(None)
 
-    def _ack(self, src: str, inc: int, seq: int) -> None:
-        """Acknowledge soon: acks due to one peer go out together, or ride on our next msg to it."""
-        due = self._acks_due.get((src, inc))
+    def _ack(self, key: tuple[str, int], seq: int) -> None:
+        """Acknowledge soon: acks due to one peer (name, inc) go out together, or ride on our next msg to it."""
+        due = self._acks_due.get(key)
         if due is None:
-            self._acks_due[(src, inc)] = [seq]
+            self._acks_due[key] = [seq]
         else:
             due.append(seq)
         if self._ack_timer is None and self._loop is not None:
@@ -701,13 +729,65 @@ class Bus:
                                 query=query))
 
     async def _beat(self) -> None:
+        """Every heartbeat: read the beats that came, send ours, then look for who went silent."""
         while True:
             await asyncio.sleep(self.cfg.heartbeat)
-            self._hello()
             try:
+                self._read_beats()
+                self._send_beat()
                 self._expire()
             except Exception:  # a bug here must not stop the heartbeat
                 self.log.exception("bus housekeeping failed")
+
+    def _read_beats(self) -> None:
+        """Beats since the last heartbeat. They are late by up to a heartbeat, so one never brings in a
+        new incarnation of a module we know (that comes by its sign-on hello on the bus port): a dead
+        incarnation's last beats, read after its successor's hello, must not bring it back."""
+        sock, own = self._beat_sock, self._origin.prefix
+        while sock is not None:
+            try:
+                data = sock.recv(wire.MAX_DATAGRAM + 1)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as e:
+                self.log.warning("bus beat socket error: %s", e)
+                return
+            if data.startswith(own):
+                continue
+            known = self._beats.get(data)
+            if known is not None:  # the same beat as last time: nothing changed but the time
+                peer = self._peers.get(known[0])
+                if peer is not None and peer.inc == known[1]:
+                    peer.last_seen = time.monotonic()
+                    self.stats["beat"] += 1
+                    continue
+            try:
+                env = wire.decode(data)
+            except MessageError as e:
+                self.stats["malformed"] += 1
+                self.log.warning("dropped malformed beat (%d bytes): %s", len(data), e)
+                continue
+            if env.kind != "hello":
+                self.stats["malformed"] += 1
+                self.log.warning("dropped a %s from %s on the beat port", env.kind, env.src)
+                continue
+            self.stats["beat"] += 1
+            peer = self._peers.get(env.src)
+            if peer is None or peer.inc == env.inc:
+                self._on_hello(env, peer)
+                self._beats = {d: k for d, k in self._beats.items() if k[0] != env.src}
+                self._beats[data] = (env.src, env.inc)
+
+    def _send_beat(self) -> None:
+        """Our hello, to the beat port: a change of interest or a query goes to the bus port instead."""
+        if self._sock is None:
+            return
+        try:
+            self._sock.sendto(wire.encode(Envelope(kind="hello", src=self.name, inc=self.inc,
+                                                   interest=tuple(sorted(self._interest)))), self._beat_dest)
+        except OSError as e:  # lost like a dropped datagram: the next beat makes up for it
+            self.stats["send_lost"] += 1
+            self.log.debug("beat not sent: %s", e)
 
     def _expire(self) -> None:
         now = time.monotonic()
@@ -743,6 +823,7 @@ class Bus:
         if peer is None:
             return
         self.log.info("%s left the bus (%s)", name, why)
+        self._beats = {d: k for d, k in self._beats.items() if k[0] != name}
         self._forget_waiting(name, directed_too=clean)
         for cb in self.peer_listeners:
             cb(name, None)
@@ -877,8 +958,8 @@ class Bus:
         if to is None and conv is None and env.cls not in self._interest:
             return  # not for us: no ack, the sender does not count us
         seq = env.seq
-        self._ack(src, inc, seq)
         key = (src, inc)
+        self._ack(key, seq)
         seen = self._seen.get(key)
         if seen is None:
             seen = self._seen[key] = _Seen(now)
@@ -934,20 +1015,22 @@ class Bus:
                 target = min(min(st.buffer, default=upto), upto)
                 lost += target - st.next_idx
                 st.next_idx = target
-                st.batch = []  # a batch with a hole in it is never delivered
+                st.batch = None  # a batch with a hole in it is never delivered
                 continue
             st.next_idx += 1
             env = item[0]
+            batch = st.batch
             if env.part == 0:
-                lost += len(st.batch)
-                st.batch = [item]
-            elif st.batch and env.part == len(st.batch):
-                st.batch.append(item)
+                if batch:
+                    lost += len(batch)
+                batch = st.batch = [item]
+            elif batch and env.part == len(batch):
+                batch.append(item)
             else:
                 lost += 1  # the rest of a batch whose beginning was lost
                 continue
-            if len(st.batch) == st.batch[0][0].more + 1:
-                batch, st.batch = st.batch, []
+            if len(batch) == batch[0][0].more + 1:
+                st.batch = None
                 head = batch[0][0]
                 self._deliver(head, self._convs.get(head.conv), tuple(m for _, m in batch))
         if not st.buffer:

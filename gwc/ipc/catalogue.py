@@ -258,7 +258,7 @@ class Message:
         if item in fields:
             return fields[item]
         mc = MESSAGE_CLASSES.get(object.__getattribute__(self, "name"))
-        if mc and any(f.name == item for f in mc.fields):
+        if mc and item in mc._known:  # type: ignore[attr-defined]
             return None
         raise AttributeError(f"{self.name} has no field {item}")
 
@@ -273,12 +273,16 @@ def message(name: str, **fields: Any) -> Message:
     return Message(name, values)
 
 
+# (conversation class, message class) -> the message class: one lookup for every message received.
+_MEMBERS = {(c.name, m): MESSAGE_CLASSES[m] for c in CONVERSATION_CLASSES.values() for m in c.messages}
+
+
 def check(cls: str, msg: str, fields: dict[str, Any]) -> Message:
     """Validate a received (cls, msg, fields) triple; raise MessageError on any mismatch."""
-    cc = CONVERSATION_CLASSES.get(cls)
-    if cc is None:
-        raise MessageError(f"unknown conversation class {cls!r}")
-    if msg not in cc.messages:
+    mc = _MEMBERS.get((cls, msg))
+    if mc is None:
+        if cls not in CONVERSATION_CLASSES:
+            raise MessageError(f"unknown conversation class {cls!r}")
         raise MessageError(f"message {msg!r} does not belong to conversation {cls}")
-    MESSAGE_CLASSES[msg].check(fields)
+    mc.check(fields)
     return Message(msg, fields)

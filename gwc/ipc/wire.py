@@ -76,6 +76,34 @@ def tag(name: str | bytes) -> int:
     return zlib.crc32(name.encode() if isinstance(name, str) else name) | 1
 
 
+# The few names a module meets (modules, classes) recur on every datagram: their encodings and tags are
+# remembered, not recomputed. Bounded, since names come from the network: emptied when full.
+_MAX_CACHED = 4096
+_DECODED: dict[bytes, tuple[str, int]] = {}  # UTF-8 -> (name, tag)
+_ENCODED: dict[str, tuple[bytes, int]] = {}  # name -> (UTF-8, tag)
+
+
+def _decoded(b: bytes) -> tuple[str, int]:
+    got = _DECODED.get(b)
+    if got is None:
+        got = (b.decode(), zlib.crc32(b) | 1)
+        if len(_DECODED) >= _MAX_CACHED:
+            _DECODED.clear()
+        _DECODED[b] = got
+    return got
+
+
+def _encoded(name: str) -> tuple[bytes, int]:
+    got = _ENCODED.get(name)
+    if got is None:
+        b = name.encode()
+        got = (b, zlib.crc32(b) | 1)
+        if len(_ENCODED) >= _MAX_CACHED:
+            _ENCODED.clear()
+        _ENCODED[name] = got
+    return got
+
+
 _dumps = json.JSONEncoder(separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode
 # The C encoder and scanner behind json.dumps/json.loads, called directly: the Python layers around
 # them (a new encoder object per call, whitespace regexes) cost more than the work on a small object.
@@ -122,16 +150,19 @@ def encode_parts(orig: Origin, kind: str, seq: int, conv: str, cls: str, idx: in
 
     orig is origin(src, inc) of the sender.
     """
-    c, k, m = conv.encode(), cls.encode(), msg.encode()
+    c = conv.encode()
+    k, ktag = _ENCODED.get(cls) or _encoded(cls)
+    m = (_ENCODED.get(msg) or _encoded(msg))[0]
     if to is None:
-        t = b""
+        t, ttag = b"", 0
     else:
-        t = to.encode()
+        t, ttag = _ENCODED.get(to) or _encoded(to)
         if not t:
             raise MessageError("the addressee of a datagram cannot be empty (None: everyone)")
     if len(c) > MAX_NAME or len(k) > MAX_NAME or len(t) > MAX_NAME or len(m) > MAX_NAME:
         raise MessageError(f"{msg or kind} in {conv or '-'}: a name is over {MAX_NAME} bytes")
-    parts = [c, k, t, m]
+    src = orig.src
+    parts = [orig.prefix, b"", src, c, k, t, m]  # parts[1]: the rest of the fixed part, packed last
     try:
         if acks:
             acks = tuple(acks)
@@ -147,15 +178,14 @@ def encode_parts(orig: Origin, kind: str, seq: int, conv: str, cls: str, idx: in
                 parts += (bytes([len(name)]), name)
         if fields:
             parts.append(_json(fields).encode())
-        src = orig.src
-        head = _AFTER_PREFIX.pack(tag(t) if t else 0, tag(k) if k else 0, _KIND_CODE[kind], QUERY if query else 0,
-                           seq, idx, more, part, base, to_inc, len(src), len(c), len(k), len(t), len(m), len(acks),
-                           len(interest))  # type: ignore[arg-type]
+        parts[1] = _AFTER_PREFIX.pack(ttag, ktag if k else 0, _KIND_CODE[kind], QUERY if query else 0, seq, idx,
+                                      more, part, base, to_inc, len(src), len(c), len(k), len(t), len(m), len(acks),
+                                      len(interest))  # type: ignore[arg-type]
     except MessageError:
         raise
     except (TypeError, ValueError, RecursionError, KeyError, struct.error) as e:
         raise MessageError(f"{msg or kind} in {conv or '-'} cannot be encoded: {e}") from None
-    data = orig.prefix + head + src + b"".join(parts)
+    data = b"".join(parts)
     if len(data) > MAX_DATAGRAM:
         raise MessageError(
             f"{msg or kind} in {conv or '-'} is {len(data)} bytes, over the bus limit of "
@@ -180,30 +210,46 @@ def decode(data: bytes) -> Envelope:
     n = len(data)
     if n > MAX_DATAGRAM:
         raise MessageError(f"datagram of {n} bytes is over the limit {MAX_DATAGRAM}")
-    if data[:4] != HEADER:
+    if not data.startswith(HEADER):
         if data[:3] != MAGIC:
             raise MessageError("not a GWC datagram (bad magic)")
         raise MessageError(f"unknown wire version {data[3] if n > 3 else None}")
+    names = _DECODED
     try:
         (inc, src_tag, to_tag, cls_tag, kind, flags, seq, idx, more, part, base, to_inc, ls, lc, lk, lt, lm, na,
          ni) = _FIXED.unpack_from(data, 4)
-        if max(ls, lc, lk, lt, lm) > MAX_NAME:
+        if ls > MAX_NAME or lc > MAX_NAME or lk > MAX_NAME or lt > MAX_NAME or lm > MAX_NAME:
             raise MessageError(f"a name is longer than {MAX_NAME} bytes")
-        o, e = _BODY, _BODY + ls
-        src_b = data[o:e]
-        o, e = e, e + lc
-        conv = data[o:e].decode()
-        o, e = e, e + lk
-        cls_b = data[o:e]
-        o, e = e, e + lt
-        to_b = data[o:e]
-        o, e = e, e + lm
-        msg = data[o:e].decode()
+        o = _BODY + ls
+        e = o + lc + lk + lt + lm
         if e > n:
             raise MessageError("truncated datagram")
-        if src_tag != tag(src_b) or to_tag != (tag(to_b) if to_b else 0) or cls_tag != (tag(cls_b) if cls_b else 0):
+        b = data[_BODY:o]
+        src, t = names.get(b) or _decoded(b)
+        if t != src_tag:
             raise MessageError("a filter tag does not match its name")
-        src, cls, to = src_b.decode(), cls_b.decode(), to_b.decode() if lt else None
+        conv = data[o:o + lc].decode()
+        o += lc
+        cls = ""
+        if lk:
+            b = data[o:o + lk]
+            cls, t = names.get(b) or _decoded(b)
+            if t != cls_tag:
+                raise MessageError("a filter tag does not match its name")
+        elif cls_tag:
+            raise MessageError("a filter tag does not match its name")
+        o += lk
+        to: str | None = None
+        if lt:
+            b = data[o:o + lt]
+            to, t = names.get(b) or _decoded(b)
+            if t != to_tag:
+                raise MessageError("a filter tag does not match its name")
+        elif to_tag:
+            raise MessageError("a filter tag does not match its name")
+        o += lt
+        b = data[o:e]
+        msg = (names.get(b) or _decoded(b))[0]
         acks: tuple[int, ...] = ()
         if na:
             acks = struct.unpack_from(f"!{na}Q", data, e)
@@ -212,13 +258,13 @@ def decode(data: bytes) -> Envelope:
                 raise MessageError("acks must be positive integers")
         interest: tuple[str, ...] = ()
         if ni:
-            names = []
+            got = []
             for _ in range(ni):
                 o, e = e + 1, e + 1 + data[e]
                 if e > n:
                     raise MessageError("truncated datagram")
-                names.append(data[o:e].decode())
-            interest = tuple(names)
+                got.append(data[o:e].decode())
+            interest = tuple(got)
         fields = {}
         if e < n:
             fields = _loads(data[e:].decode())
