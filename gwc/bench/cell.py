@@ -144,10 +144,12 @@ class CellBench:
         spawn_lot_script(self.cell.cfg, entities[0])
         return entities[0]
 
-    def _operator(self, decided: set[tuple[int, str]]) -> dict[int, str]:
-        """Import and export what waits; return every entity's state."""
+    def _operator(self, decided: set[tuple[int, str]], entities: list[int]) -> dict[int, str]:
+        """Import and export what of `entities` waits; return their states. (Only theirs: the operator
+        looks every 10 ms, and reading every lot's row would load the cell it measures.)"""
         assert self.conn is not None and self.cell.bus is not None
-        states = {int(e): str(s) for e, s in self.conn.execute("SELECT entity_id, state FROM lot_status")}
+        states = {int(e): str(s) for e, s in self.conn.execute(
+            "SELECT entity_id, state FROM lot_status WHERE entity_id = ANY(%s)", (entities,))}
         for e, s in states.items():
             action = {LotState.WAITING_IMPORT.value: "import", LotState.WAITING_EXPORT.value: "export"}.get(s)
             if action and (e, action) not in decided:
@@ -173,7 +175,7 @@ class CellBench:
                     lane[m] = self._order([[m]])
                     entities.append(lane[m])  # type: ignore[arg-type]
                     ordered += 1
-            states = self._operator(decided)
+            states = self._operator(decided, [e for e in lane.values() if e is not None])
             for m, e in lane.items():
                 if e is not None and states.get(e) in FINAL:
                     finished += 1
@@ -208,7 +210,7 @@ class CellBench:
                      what: str) -> dict[int, str]:
         deadline = time.monotonic() + LOT_TIMEOUT
         while True:
-            now = self._operator(decided)
+            now = self._operator(decided, entities)
             if all(now.get(e) in states for e in entities):
                 return now
             if time.monotonic() > deadline:
@@ -252,7 +254,7 @@ class CellBench:
             deadline = time.monotonic() + LOT_TIMEOUT
             victim = None
             while victim is None:  # its run has started on one of the two
-                self._operator(decided)
+                self._operator(decided, [entity])
                 row = self.conn.execute(
                     "SELECT r.machine_id FROM reserved_machines r JOIN machine_status s USING (machine_id) "
                     "WHERE r.entity_id = %s AND s.status = 'Running'", (entity,)).fetchone()
@@ -267,7 +269,7 @@ class CellBench:
             rerouted = None
             path = self.cell.cfg.log_dir / log_file_name(f"lot:{entity}")
             while rerouted is None:
-                self._operator(decided)
+                self._operator(decided, [entity])
                 for t, text in log_events(path):
                     hit = PHASES[1][1].search(text)
                     if t >= killed_at and hit and hit.group(1).rstrip(",") == other:
@@ -281,7 +283,7 @@ class CellBench:
             self.say(f"  trial {k + 1}: {victim} killed, lot on {other} after {rerouted - killed_at:.2f}s")
             for p in machine_procs(self.cell.cfg, victim):
                 self.cell.restart(p.name)
-            while self._operator(decided).get(entity) not in FINAL:
+            while self._operator(decided, [entity]).get(entity) not in FINAL:
                 if time.monotonic() > deadline:
                     raise GwcError(f"death trial {k + 1}: entity {entity} did not finish")
                 time.sleep(POLL * 5)
