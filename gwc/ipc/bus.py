@@ -55,6 +55,7 @@ IP_MULTICAST_ALL = 49  # Linux's value, for Pythons whose socket module does not
 SO_ATTACH_FILTER = getattr(socket, "SO_ATTACH_FILTER", 26)  # Linux's value
 MAX_RTO = 0.5  # retransmission backoff stops growing here
 MAX_PIGGYBACK = 32  # acks riding on a msg at most; the rest go in ack datagrams
+MAX_GONE = 1024  # incarnations that said bye, remembered so that their late beats are ignored
 MAX_REMEMBERED = 65_536  # ended conversations (and our idx counters) remembered, newest first
 INF = float("inf")
 
@@ -315,6 +316,8 @@ class Bus:
         self._beat_sock: socket.socket | None = None
         self._beat_dest = (cfg.group, cfg.beat_port)
         self._beats: dict[bytes, tuple[str, int]] = {}  # each peer's last beat, as sent -> (name, inc)
+        # Incarnations that said bye, newest last: a beat they sent before it, read after, is stale.
+        self._gone: collections.OrderedDict[tuple[str, int], None] = collections.OrderedDict()
         self._faults = cfg.faults
         seed = cfg.faults.seed
         self._rng = random.Random(None if seed is None else f"{seed}:{name}")
@@ -724,9 +727,9 @@ class Bus:
                 self._raw_send(Envelope(kind="ack", src=self.name, inc=self.inc, to=src, to_inc=inc,
                                         acks=tuple(seqs[i:i + 1000])))
 
-    def _hello(self, query: bool = False) -> None:
+    def _hello(self, query: bool = False, to: str | None = None) -> None:
         self._raw_send(Envelope(kind="hello", src=self.name, inc=self.inc, interest=tuple(sorted(self._interest)),
-                                query=query))
+                                query=query, to=to))
 
     async def _beat(self) -> None:
         """Every heartbeat: read the beats that came, send ours, then look for who went silent."""
@@ -741,8 +744,9 @@ class Bus:
 
     def _read_beats(self) -> None:
         """Beats since the last heartbeat. They are late by up to a heartbeat, so one never brings in a
-        new incarnation of a module we know (that comes by its sign-on hello on the bus port): a dead
-        incarnation's last beats, read after its successor's hello, must not bring it back."""
+        new incarnation of a module we know (that comes by its sign-on hello on the bus port), nor back
+        one that said bye: a dead incarnation's last beats, read after its successor's hello or its
+        own bye, must not bring it back."""
         sock, own = self._beat_sock, self._origin.prefix
         while sock is not None:
             try:
@@ -773,7 +777,7 @@ class Bus:
                 continue
             self.stats["beat"] += 1
             peer = self._peers.get(env.src)
-            if peer is None or peer.inc == env.inc:
+            if (peer is None and (env.src, env.inc) not in self._gone) or (peer is not None and peer.inc == env.inc):
                 self._on_hello(env, peer)
                 self._beats = {d: k for d, k in self._beats.items() if k[0] != env.src}
                 self._beats[data] = (env.src, env.inc)
@@ -824,6 +828,10 @@ class Bus:
             return
         self.log.info("%s left the bus (%s)", name, why)
         self._beats = {d: k for d, k in self._beats.items() if k[0] != name}
+        if clean:
+            self._gone[(name, peer.inc)] = None
+            if len(self._gone) > MAX_GONE:
+                self._gone.popitem(last=False)
         self._forget_waiting(name, directed_too=clean)
         for cb in self.peer_listeners:
             cb(name, None)
@@ -930,8 +938,8 @@ class Bus:
                 # It no longer listens to some classes: it will not ack broadcasts of them.
                 self._forget_waiting(env.src, directed_too=False, unless_cls=interest)
             peer.last_seen = now
-        if env.query:
-            self._hello()
+        if env.query:  # addressed to the newcomer: N answers to one module, not N x N receptions
+            self._hello(to=env.src)
 
     def _on_ack(self, env: Envelope) -> None:
         if env.to != self.name or env.to_inc != self.inc:

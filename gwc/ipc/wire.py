@@ -303,8 +303,8 @@ def kernel_filter(src: str, inc: int, interest: Iterable[str]) -> list[tuple[int
     """The socket filter for module `src` (incarnation `inc`) listening to `interest`.
 
     It keeps exactly what the bus would not drop unread: every datagram that is too short or not of
-    this version (so the bus logs it), hellos and byes, acks and msgs addressed to `src`, and broadcast msgs of a
-    class in `interest` or of a conversation's later batches (a conversation the module holds is
+    this version (so the bus logs it), hellos and byes for everyone, acks, msgs and hellos (answers
+    to its query) addressed to `src`, and broadcast msgs of a class in `interest` or of a conversation's later batches (a conversation the module holds is
     received whatever its interest). It drops the module's own datagrams. Tags can collide, so it
     may keep a little more than needed, never less: the bus checks every datagram it reads again.
     """
@@ -319,8 +319,8 @@ def kernel_filter(src: str, inc: int, interest: Iterable[str]) -> list[tuple[int
         ((_LD_W, u + OFF_SRC_TAG), None, None), ((_JEQ, own), "drop", None),
         "not_own",
         ((_LD_B, u + OFF_KIND), None, None), ((_JEQ, _KIND_CODE["msg"]), "msg", None),
-        ((_JEQ, _KIND_CODE["ack"]), None, "keep"),  # hello, bye: everyone hears them
-        ((_LD_W, u + OFF_TO_TAG), None, None), ((_JEQ, own), "keep", "drop"),
+        # ack, hello, bye: addressed to us, or to nobody in particular (a hello or bye for everyone)
+        ((_LD_W, u + OFF_TO_TAG), None, None), ((_JEQ, own), "keep", None), ((_JEQ, 0), "keep", "drop"),
         "msg",
         ((_LD_W, u + OFF_TO_TAG), None, None), ((_JEQ, own), "keep", None), ((_JEQ, 0), None, "drop"),
         ((_LD_W, u + OFF_PART), None, None), ((_TAX, 0), None, None),

@@ -179,6 +179,8 @@ def test_the_kernel_filter_keeps_exactly_what_the_module_would_read() -> None:
     assert kept(kind="ack", src="wc:wc1", inc=3, to="msched", to_inc=5, acks=(1,))
     assert not kept(kind="ack", src="wc:wc1", inc=3, to="lot:1", to_inc=7, acks=(1,))
     assert kept(kind="hello", src="wc:wc1", inc=3) and kept(kind="bye", src="wc:wc1", inc=3)
+    assert kept(kind="hello", src="wc:wc1", inc=3, to="msched")  # an answer to its query
+    assert not kept(kind="hello", src="wc:wc1", inc=3, to="lot:1")  # ... to another's
     assert not kept(kind="hello", src="msched", inc=5)  # its own, looped back
     assert not kept(**dict(msg, src="msched", inc=5), cls="MACH_REQ")
     assert kept(kind="hello", src="msched", inc=6)  # its restarted self, or another process of that name
