@@ -38,6 +38,7 @@ DEFAULT_SWEEP_S = 5.0
 # change (a datagram already received needs about three turns - read, open the conversation, run its
 # handler - to become one), or after MAX_GATHER_TURNS turns under a steady stream.
 GATHER_TURNS = 4
+LAZY_S = 0.5  # a change submitted without a kick waits at most this long for a step to ride on
 MAX_GATHER_TURNS = 200
 
 Op = Callable[[Step], Any]
@@ -210,12 +211,20 @@ class Msched(Module):
 
     # ------------------------------------------------------------------ the step worker
 
-    def _submit(self, op: Op, wait: bool = True) -> asyncio.Future[Any]:
-        """Queue a change for the next step; the future gives the op's result once it is committed."""
+    def _submit(self, op: Op, wait: bool = True, kick: bool = True) -> asyncio.Future[Any]:
+        """Queue a change for the next step; the future gives the op's result once it is committed.
+
+        Without `kick` the change rides on the next step something else starts, or on its own after
+        LAZY_S: for bookkeeping nobody waits on, which should not cost a transaction of its own.
+        """
         assert self._kick is not None
-        fut = asyncio.get_running_loop().create_future() if wait else None
+        loop = asyncio.get_running_loop()
+        fut = loop.create_future() if wait else None
         self._ops.append((op, fut))
-        self._kick.set()
+        if kick:
+            self._kick.set()
+        else:
+            loop.call_later(LAZY_S, self._kick.set)
         return fut  # type: ignore[return-value]
 
     async def _worker(self) -> None:
@@ -314,7 +323,9 @@ class Msched(Module):
         self._told(o)  # not when cancelled (MSCHED stopping): the next start tells it again
 
     def _told(self, o: Outcome) -> None:
-        self._submit(lambda s: s.finish([o.request_key]), wait=False)
+        # Forgetting an acknowledged outcome rides on the next step: kept a moment longer, it is only
+        # told again (and dropped as late) should MSCHED restart meanwhile.
+        self._submit(lambda s: s.finish([o.request_key]), wait=False, kick=False)
         done = self._acks.pop(o.request_key, None)
         if done is not None and not done.done():
             done.set_result(None)
