@@ -530,8 +530,6 @@ class OperationEntity:
         if not alts:
             raise RequestRefused(f"no machines to ask for {op_type}")
         self._listen_in_cell()  # already, unless the script skipped wait_for_import
-        if self.state != S.WAITING_MACHINE:
-            self.report(S.WAITING_MACHINE)
         self._groups += 1  # unique per call (and per process: a restarted script's groups are new ones)
         request = MachineRequest(op_type, alts, f"{self.entity_id}.{os.getpid()}.{self._groups}")
         self._requests.append(request)
@@ -565,7 +563,11 @@ class OperationEntity:
             return all(a.done for a in alts) and not any(a.sibling_cancelled for a in alts)
 
         try:
-            got = self._wait(outcome, timeout, f"machines for {request.op_type} ({request.describe()})")
+            with self._cond:
+                got = outcome()
+            if not got and self.state != S.WAITING_MACHINE:  # not bound at once: it waits, say so
+                self.report(S.WAITING_MACHINE)
+            got = got or self._wait(outcome, timeout, f"machines for {request.op_type} ({request.describe()})")
         finally:
             if request in self._requests:
                 self._requests.remove(request)
