@@ -73,6 +73,7 @@ UP = (MachineStatus.IDLE.value, MachineStatus.SETUP.value, MachineStatus.RUNNING
 FINISHED = (S.COMPLETED, S.WAITING_EXPORT, S.EXPORTED, S.FAILED)
 IMPORTED = (S.IMPORTED, S.WAITING_MACHINE, S.RUNNING, *FINISHED)
 FOREVER = 10.0**7  # a conversation MSCHED answers when it can: its own deadline is the caller's
+BOUND_AT_ONCE = 0.01  # s: a request granted within this after its Machine_Req_Ack never waited
 POLL = 1.0  # fallback reads of LOT_STATUS / MACHINE_STATUS while waiting for a broadcast
 HISTORY = 32  # status changes remembered per machine
 SHUT = (MachineStatus.SHUTDOWN.value,)
@@ -563,8 +564,8 @@ class OperationEntity:
             return all(a.done for a in alts) and not any(a.sibling_cancelled for a in alts)
 
         try:
-            with self._cond:
-                got = outcome()
+            with self._cond:  # MSCHED's Machine_Req_Comp follows its Machine_Req_Ack when it binds at once
+                got = self._cond.wait_for(outcome, BOUND_AT_ONCE)
             if not got and self.state != S.WAITING_MACHINE:  # not bound at once: it waits, say so
                 self.report(S.WAITING_MACHINE)
             got = got or self._wait(outcome, timeout, f"machines for {request.op_type} ({request.describe()})")
