@@ -729,6 +729,11 @@ class OperationEntity:
 
     def run_on(self, reservation: Reservation, recipes: str | dict[str, str] | None = None) -> list[Run]:
         """Set up and start the run on each reserved machine, wait for them all, read the results."""
+        return self._results(reservation, *self._run(reservation, recipes))
+
+    def _run(self, reservation: Reservation, recipes: str | dict[str, str] | None
+             ) -> tuple[dict[str, str], dict[str, str]]:
+        """run_on without reading the results: the recipe and the ack code of each machine's run."""
         run_id, op_type = reservation.machine_run_id, reservation.op_type
         chosen = {}
         for m in reservation.machines:
@@ -736,12 +741,16 @@ class OperationEntity:
             chosen[m] = recipe or self.recipe_for(m, op_type)
             self.setup_run(m, chosen[m], op_type, run_id)
             self.start_run(m, run_id)
-        codes = self.wait_run_complete(run_id, reservation.machines)
+        return chosen, self.wait_run_complete(run_id, reservation.machines)
+
+    def _results(self, reservation: Reservation, chosen: dict[str, str], codes: dict[str, str]) -> list[Run]:
+        run_id = reservation.machine_run_id
         return [Run(m, chosen[m], run_id, codes[m], self.run_results(m, run_id)) for m in reservation.machines]
 
     def operate(self, op_type: str, alternatives: Sequence[Sequence[str]] | None = None,
                 recipes: str | dict[str, str] | None = None, priority: int | None = None) -> Operation:
-        """One operation, start to end: reserve machines, run, read results, unreserve.
+        """One operation, start to end: reserve machines, run, unreserve, read the results (they are in
+        the tables: the machines need not wait for the entity to read them).
 
         A machine lost (it shut down, its WC went silent or left, or it turned Idle without completing
         the run) is given back and the operation asked for again, up to `max_tries` times, each try
@@ -755,7 +764,7 @@ class OperationEntity:
                 self._wait_machine_up(op_type, alternatives, time.monotonic() + self.timeouts.machines)
             res = self.reserve(op_type, alternatives, priority)
             try:
-                runs = self.run_on(res, recipes)
+                chosen, codes = self._run(res, recipes)
             except MachineLost as e:
                 lost = e
                 self.log.warning("%s (try %d of %d): unreserving and asking again", e, attempt, self.max_tries)
@@ -763,6 +772,7 @@ class OperationEntity:
                 self.unreserve()
                 continue
             self.unreserve()
+            runs = self._results(res, chosen, codes)
             op = Operation(op_type, res.machine_run_id, runs, attempt)
             self._record(op_type, res, runs, verdict(op.results)[1] if op.ok else "run failed")
             return op
