@@ -316,6 +316,7 @@ class OperationEntity:
         self._began: dict[tuple[str, int], tuple[float, int | None]] = {}  # (machine, run) -> when, its WC's inc
         self._requests: list[MachineRequest] = []  # asked for and not yet waited for
         self._groups = 0
+        self._recipes: dict[tuple[str, str], str] = {}  # (machine, op type) -> recipe, read ahead (_read_recipes)
         self._moved: list[tuple[str, int | None]] = []
         # Progress reports (waiting_machine, running) on their way to the Lot Server, in order (report()).
         self._reporter: concurrent.futures.ThreadPoolExecutor | None = None
@@ -536,6 +537,7 @@ class OperationEntity:
         self._requests.append(request)
         for alt in alts:
             self._spawn(self._request(alt, priority if priority is not None else self.priority))
+        self._read_recipes(op_type, {m for a in alts for m in a.machines})
         self._wait(lambda: all(a.ack is not None or a.done for a in alts),
                    self.timeouts.retry + self.timeouts.answer + 1, f"MSCHED's answer to the request for {op_type}")
         for a in alts:
@@ -646,11 +648,24 @@ class OperationEntity:
     # ----------------------------------------------------------------- machines (WC)
 
     def recipe_for(self, machine_id: str, op_type: str) -> str:
+        known = self._recipes.pop((machine_id, op_type), None)
+        if known is not None:
+            return known
         rows = self._query("SELECT recipe_id FROM op_machine_recipe WHERE machine_id = %s AND op_type = %s "
                            "ORDER BY recipe_id", machine_id, op_type)
         if not rows:
             raise RunFailed(f"no recipe for {op_type} on {machine_id} in OP_MACHINE_RECIPE")
         return str(rows[0][0])
+
+    def _read_recipes(self, op_type: str, machines: set[str]) -> None:
+        """recipe_for each machine asked for, in one read while MSCHED decides: the ones bound need it next."""
+        try:
+            rows = self._query("SELECT machine_id, min(recipe_id) FROM op_machine_recipe WHERE op_type = %s "
+                               "AND machine_id = ANY(%s) GROUP BY machine_id", op_type, sorted(machines))
+        except DatabaseError as e:  # recipe_for reads them again, and says so if it cannot
+            self.log.warning("recipes for %s not read ahead: %s", op_type, e)
+            return
+        self._recipes = {(str(m), op_type): str(r) for m, r in rows}
 
     def setup_run(self, machine_id: str, recipe_id: str, op_type: str, machine_run_id: int) -> None:
         """SETUP_RUN to the machine's WC: recipe downloaded, machine set up (the CMM is homed first).

@@ -485,20 +485,26 @@ class WC(Module):
         await conv.send(message("Setup_Run_Ack", ack_code=AckCode.ACK_OK))
 
     async def _setup(self, req: Message) -> tuple[str, str] | None:
+        # The recipe is asked of the ERS first, so that the ERS looks it up while we read our table.
+        fetch = asyncio.ensure_future(self.fetch_recipe(req.recipe_id))
+        await asyncio.sleep(0)  # let it send before the (blocking) read
         try:
             ok = self._read("SELECT 1 FROM op_machine_recipe WHERE machine_id = %s AND recipe_id = %s AND op_type = %s",
                             (self.machine_id, req.recipe_id, req.op_type))
         except DatabaseUnavailable:
+            fetch.cancel()
             raise  # fatal (3.2.2): the module answers DB_Badrea and stops cleanly
         except DatabaseError as e:
+            fetch.cancel()
             return AckCode.DB_BADREA, str(e)
         if not ok:
+            fetch.cancel()
             return AckCode.REC_INVAL, f"recipe {req.recipe_id} is not for op type {req.op_type} on {self.machine_id}"
         # Listing 3: a machine set up for a run accepts no other operation until the run is over. Asked
         # now, beside the recipe's download, which does not depend on it: only the status change waits.
         accept = asyncio.ensure_future(self.set_accept_types([]))
         try:
-            refusal = await self._set_up_on_me(req)
+            refusal = await self._set_up_on_me(req, fetch)
         finally:
             accepted = await accept
         if refusal is None and not accepted:
@@ -513,9 +519,9 @@ class WC(Module):
         self.machine_run_id, self.recipe_id = req.machine_run_id, req.recipe_id
         return None
 
-    async def _set_up_on_me(self, req: Message) -> tuple[str, str] | None:
-        """The approved recipe from the ERS to the ME, which sets up with it; the refusal, or None."""
-        path, why = await self.fetch_recipe(req.recipe_id)
+    async def _set_up_on_me(self, req: Message, fetch: Awaitable[tuple[Path | None, str]]) -> tuple[str, str] | None:
+        """The approved recipe (`fetch`: from the ERS) to the ME, which sets up with it; the refusal, or None."""
+        path, why = await fetch
         if path is None:
             await self.raise_alarm("REC_INVAL", f"{self.machine_id}: recipe {req.recipe_id} refused: {why}", wait=False)
             return AckCode.REC_INVAL, why
