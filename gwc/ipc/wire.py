@@ -304,8 +304,9 @@ def kernel_filter(src: str, inc: int, interest: Iterable[str]) -> list[tuple[int
 
     It keeps exactly what the bus would not drop unread: every datagram that is too short or not of
     this version (so the bus logs it), hellos and byes for everyone, acks, msgs and hellos (answers
-    to its query) addressed to `src`, and broadcast msgs of a class in `interest` or of a conversation's later batches (a conversation the module holds is
-    received whatever its interest). It drops the module's own datagrams. Tags can collide, so it
+    to its query) addressed to `src`, and broadcast msgs of a class in `interest` or of a
+    conversation's later batches (a conversation the module holds is received whatever its
+    interest). It drops the module's own datagrams. Tags can collide, so it
     may keep a little more than needed, never less: the bus checks every datagram it reads again.
     """
     own, hi, lo = tag(src), inc >> 32, inc & 0xFFFF_FFFF
