@@ -26,9 +26,10 @@ the step is retried, after a pause, on whatever machine is up, a bounded number 
 LOT_MOVED (the operator's import and export); to the first two only once its lot is in the cell
 (imported), so that lots waiting to be imported are not woken by every run. It remembers every
 status change of the machines it works with, so a machine that went Shutdown and came up again
-while the entity waited is still known to have lost the run. Servers come and go too: a conversation with the Lot Server or MSCHED
-that finds it away, restarting or not yet started is asked again with a backoff for a bounded time
-(Timeouts.retry); every request the entity repeats that way is safe to repeat.
+while the entity waited is still known to have lost the run. Servers come and go too: a
+conversation with the Lot Server or MSCHED that finds it away, restarting or not yet started is
+asked again with a backoff for a bounded time (Timeouts.retry); every request the entity repeats
+that way is safe to repeat.
 
 It reads the tables (as role gwc_lot) and writes none. Besides its log it keeps a traveller,
 var/lots/entity-E.json: what it ran where and what it decided, for the operator (`gwc lots show E`)
