@@ -17,6 +17,7 @@ Notnow rather than left to time out (6.3.2.1 has the WC answer a failed startup 
 from __future__ import annotations
 
 import asyncio
+import gc
 import importlib
 import logging
 import os
@@ -175,6 +176,9 @@ class Module:
         await self.bus.sign_on()
         await self.on_bus()
         self.log.info("Starting: listening for %s", ", ".join(sorted(self.bus.interests)))
+        # What start-up made (modules, the catalogue, connections) lives as long as the process: out
+        # of the collector's way, so that its full collections do not stall a step for milliseconds.
+        gc.freeze()
         if start:
             await self._start()
         loop = asyncio.get_running_loop()

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import importlib.util
 import json
 import os
@@ -95,7 +96,9 @@ def run_entity(cfg: Config, entity_id: int) -> int:
             script_id, path = script_of(cfg, entity_id)
             log.info("running lot script %s (%s)", script_id, path)
             entity.traveller.update(script_id=script_id)
-            load_script(path).main(entity)
+            script = load_script(path)
+            gc.freeze()  # start-up's objects live as long as the process: out of the collector's way
+            script.main(entity)
     except GwcError as e:
         log.error("lot script of entity %d ended: %s", entity_id, e)
         return e.exit_code
