@@ -765,11 +765,8 @@ class Bus:
                     peer.last_seen = time.monotonic()
                     self.stats["beat"] += 1
                     continue
-            try:
-                env = wire.decode(data)
-            except MessageError as e:
-                self.stats["malformed"] += 1
-                self.log.warning("dropped malformed beat (%d bytes): %s", len(data), e)
+            env = self._decode(data, "beat")
+            if env is None:
                 continue
             if env.kind != "hello":
                 self.stats["malformed"] += 1
@@ -891,12 +888,18 @@ class Bus:
         if held is not None:
             self._handle(held)
 
-    def _handle(self, data: bytes) -> None:
+    def _decode(self, data: bytes, what: str) -> Envelope | None:
+        """The datagram's envelope; None (counted, logged) if it is malformed."""
         try:
-            env = wire.decode(data)
+            return wire.decode(data)
         except MessageError as e:
             self.stats["malformed"] += 1
-            self.log.warning("dropped malformed datagram (%d bytes): %s", len(data), e)
+            self.log.warning("dropped malformed %s (%d bytes): %s", what, len(data), e)
+            return None
+
+    def _handle(self, data: bytes) -> None:
+        env = self._decode(data, "datagram")
+        if env is None:
             return
         if env.inc == self.inc and env.src == self.name:
             return

@@ -93,6 +93,19 @@ def _decoded(b: bytes) -> tuple[str, int]:
     return got
 
 
+def _tagged(data: bytes, o: int, n: int, expected: int) -> str | None:
+    """The name of n bytes at o whose filter tag must be `expected` (0 and no name: None)."""
+    if not n:
+        if expected:
+            raise MessageError("a filter tag does not match its name")
+        return None
+    b = data[o:o + n]
+    name, t = _DECODED.get(b) or _decoded(b)
+    if t != expected:
+        raise MessageError("a filter tag does not match its name")
+    return name
+
+
 def _encoded(name: str) -> tuple[bytes, int]:
     got = _ENCODED.get(name)
     if got is None:
@@ -224,29 +237,12 @@ def decode(data: bytes) -> Envelope:
         e = o + lc + lk + lt + lm
         if e > n:
             raise MessageError("truncated datagram")
-        b = data[_BODY:o]
-        src, t = names.get(b) or _decoded(b)
-        if t != src_tag:
-            raise MessageError("a filter tag does not match its name")
+        src = _tagged(data, _BODY, ls, src_tag) or ""
         conv = data[o:o + lc].decode()
         o += lc
-        cls = ""
-        if lk:
-            b = data[o:o + lk]
-            cls, t = names.get(b) or _decoded(b)
-            if t != cls_tag:
-                raise MessageError("a filter tag does not match its name")
-        elif cls_tag:
-            raise MessageError("a filter tag does not match its name")
+        cls = _tagged(data, o, lk, cls_tag) or ""
         o += lk
-        to: str | None = None
-        if lt:
-            b = data[o:o + lt]
-            to, t = names.get(b) or _decoded(b)
-            if t != to_tag:
-                raise MessageError("a filter tag does not match its name")
-        elif to_tag:
-            raise MessageError("a filter tag does not match its name")
+        to = _tagged(data, o, lt, to_tag)
         o += lt
         b = data[o:e]
         msg = (names.get(b) or _decoded(b))[0]
