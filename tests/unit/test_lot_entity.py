@@ -23,8 +23,8 @@ from gwc.config import Config
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
-from gwc.lot import (LotTimeout, MachineLost, OperationEntity, RequestCancelled, RunFailed, Timeouts, read_traveller,
-                     verdict)
+from gwc.lot import (LotError, LotTimeout, MachineLost, OperationEntity, RequestCancelled, RunFailed, Timeouts,
+                     read_traveller, verdict)
 from gwc.module import NOT_STARTED
 from tests.conftest import make_config
 from tests.harness import wait_for
@@ -518,3 +518,27 @@ def test_no_request_is_left_queued_for_a_finished_entity(fake: tuple[FakeCell, O
     assert cell.when("CANCEL_RE")[0] < cell.when("SETUP_RUN")[0]  # cancelled once the winner was taken
     told = [(cls, f.get("action")) for cls, f in cell.seen if cls in ("CANCEL_RE", "ENTITY_REQ")]
     assert told[-2:] == [("CANCEL_RE", None), ("ENTITY_REQ", "completed")]  # and once more before completing
+
+
+def test_progress_reports_do_not_hold_the_operation_up_and_a_refused_one_fails_the_next_step(
+        fake: tuple[FakeCell, OperationEntity]) -> None:
+    cell, entity = fake
+    release = threading.Event()
+
+    async def entity_req(conv: Conversation, m: Message) -> None:
+        if m.action != "running":
+            return await FakeCell.entity_req(cell, conv, m)
+        await asyncio.get_running_loop().run_in_executor(None, release.wait, 10)  # a slow Lot Server
+        await conv.send(message("Entity_Ack", ack_code=AckCode.NOTNOW, state="failed",
+                                note="the operator failed the entity"))
+
+    cell.handlers["ENTITY_REQ"] = entity_req
+    operated = False
+    with pytest.raises(LotError, match="refused running"), entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", [["m1"]])  # done while the Lot Server sits on the report
+        operated = op.ok and not release.is_set()
+        release.set()
+        entity.lot_completed("PASS")  # waits for the report first: its refusal fails the script here
+    assert operated, "the operation waited for the Lot Server's answer to a progress report"
+    assert cell.actions()[-2:] == ["running", "failed"]  # and "completed" was never asked
