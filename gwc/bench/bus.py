@@ -264,29 +264,44 @@ CLIENTS = {"bare": _BareClient, "asyncio": _AsyncioClient, "bus": _BusClient}
 ROUNDS = 10
 
 
-async def _measure(cfgs: dict[str, BusConfig], n: int, window: int) -> dict[str, dict[str, Any]]:
+def _cpu_s(pid: int) -> float:
+    """CPU time process `pid` has had so far, in seconds (ns resolution: /proc/PID/schedstat)."""
+    with open(f"/proc/{pid}/schedstat") as f:
+        return int(f.read().split()[0]) / 1e9
+
+
+async def _measure(cfgs: dict[str, BusConfig], servers: dict[str, int], n: int,
+                   window: int) -> dict[str, dict[str, Any]]:
     clients = {mode: CLIENTS[mode](cfgs[mode]) for mode in MODES}  # type: ignore[abstract]
     rtt: dict[str, list[float]] = {mode: [] for mode in MODES}
+    # CPU each side spends per round trip, summed over the rounds: a round trip's time is both sides'
+    # CPU plus the wakeups between them, so this shows where it goes.
+    cpu = {mode: [0.0, 0.0] for mode in MODES}  # client, server
     rates: dict[str, float] = {}
+    me = os.getpid()
+    per_round = max(1, n // ROUNDS)
     try:
         for c in clients.values():
             await c.ready()
             for i in range(200):  # warm up
                 await c.ping(i)
-        per_round = max(1, n // ROUNDS)
         for r in range(ROUNDS):
             for mode, c in clients.items():
+                c0, s0 = _cpu_s(me), _cpu_s(servers[mode])
                 for i in range(r * per_round, (r + 1) * per_round):
                     t0 = time.perf_counter()
                     await c.ping(i)
                     rtt[mode].append((time.perf_counter() - t0) * 1e6)
+                cpu[mode][0] += _cpu_s(me) - c0
+                cpu[mode][1] += _cpu_s(servers[mode]) - s0
         for mode, c in clients.items():
             rates[mode] = await c.rate(n, window)
             await c.stop()
     finally:
         for c in clients.values():
             await c.close()
-    return {mode: {"rtt": rtt[mode], "rate": rates.get(mode, 0.0)} for mode in MODES}
+    return {mode: {"rtt": rtt[mode], "rate": rates.get(mode, 0.0),
+                   "cpu_us": [t / (per_round * ROUNDS) * 1e6 for t in cpu[mode]]} for mode in MODES}
 
 
 def _pin(which: int) -> None:
@@ -311,16 +326,16 @@ def run(n: int = 5000, window: int = 16, pin: bool = True) -> dict[str, Any]:
     """All three measurements, each against its own server process; figures in microseconds."""
     cfgs = {mode: _private_cfg() for mode in MODES}
     mask = os.sched_getaffinity(0)
-    servers = [_spawn(mode, cfgs[mode], pin) for mode in MODES]
+    servers = {mode: _spawn(mode, cfgs[mode], pin) for mode in MODES}
     if pin:
         _pin(0)
     try:
-        raw = asyncio.run(_measure(cfgs, n, window))
-        for server in servers:
+        raw = asyncio.run(_measure(cfgs, {mode: p.pid for mode, p in servers.items()}, n, window))
+        for server in servers.values():
             server.wait(10)
     finally:
         os.sched_setaffinity(0, mask)
-        for server in servers:
+        for server in servers.values():
             if server.poll() is None:
                 server.kill()
                 server.wait()
@@ -329,7 +344,8 @@ def run(n: int = 5000, window: int = 16, pin: bool = True) -> dict[str, Any]:
         s = summary(raw[mode]["rtt"])
         results[mode] = {"median_us": round(s["median"], 1), "p99_us": round(s["p99"], 1),
                          "mean_us": round(s["mean"], 1), "n": s["n"], "conversations_per_s": round(raw[mode]["rate"]),
-                         "window": window}
+                         "window": window, "client_cpu_us": round(raw[mode]["cpu_us"][0], 1),
+                         "server_cpu_us": round(raw[mode]["cpu_us"][1], 1)}
     results["ratio_median"] = round(results["bus"]["median_us"] / results["bare"]["median_us"], 2)
     results["ratio_p99"] = round(results["bus"]["p99_us"] / results["bare"]["p99_us"], 2)
     results["asyncio_ratio_median"] = round(results["asyncio"]["median_us"] / results["bare"]["median_us"], 2)
@@ -348,10 +364,12 @@ def command(count: int, window: int, pin: bool, as_json: bool) -> None:
     if as_json:
         click.echo(json.dumps(r, indent=1))
         return
-    click.echo(f"{'':7} {'median us':>10} {'p99 us':>10} {'conv/s':>10}")
+    click.echo(f"{'':7} {'median us':>10} {'p99 us':>10} {'conv/s':>10} {'CPU us per round trip':>24}")
+    click.echo(f"{'':7} {'':>10} {'':>10} {'':>10} {'client':>11} {'server':>12}")
     for mode in MODES:
         m = r[mode]
-        click.echo(f"{mode:7} {m['median_us']:>10.1f} {m['p99_us']:>10.1f} {m['conversations_per_s']:>10}")
+        click.echo(f"{mode:7} {m['median_us']:>10.1f} {m['p99_us']:>10.1f} {m['conversations_per_s']:>10} "
+                   f"{m['client_cpu_us']:>11.1f} {m['server_cpu_us']:>12.1f}")
     click.echo(f"bus/bare: median x{r['ratio_median']}, p99 x{r['ratio_p99']} (target: median within x3); "
                f"asyncio alone/bare: median x{r['asyncio_ratio_median']}")
 

@@ -333,4 +333,5 @@ def test_bench_bus_runs_and_reports_bus_and_floor(tmp_path: Path) -> None:
     for mode in ("bare", "asyncio", "bus"):
         assert r[mode]["median_us"] > 0 and r[mode]["p99_us"] >= r[mode]["median_us"]
         assert r[mode]["conversations_per_s"] > 0
+        assert r[mode]["client_cpu_us"] > 0 and r[mode]["server_cpu_us"] > 0
     assert r["ratio_median"] == round(r["bus"]["median_us"] / r["bare"]["median_us"], 2)
