@@ -216,6 +216,17 @@ create table if not exists machine_run_result (
     primary key (machine_run_id, machine_id, param)
 );
 
+-- How each run ended on each machine, written by its WC with the results and before it goes Idle:
+-- a lot that missed the Run_Complete broadcast (the WC died before sending it) reads it here.
+create table if not exists machine_run_outcome (
+    machine_run_id bigint not null,
+    machine_id     text not null references me_config,
+    ack_code       text not null check (ack_code <> ''),
+    note           text,
+    ended_at       timestamptz not null default clock_timestamp(),
+    primary key (machine_run_id, machine_id)
+);
+
 -- Alarms --------------------------------------------------------------------------------------
 
 create table if not exists alarm_description (

@@ -41,8 +41,8 @@ grant insert, update, delete on request_machines, reserved_machines, accept_type
 grant usage on sequence request_machines_seq_seq to gwc_msched;
 -- Machine Server: machine status (rows for machines that join, never deleted) and their config.
 grant insert, update on machine_status, me_config to gwc_ms;
--- WC: the results of its runs.
-grant insert, update, delete on machine_run_result to gwc_wc;
+-- WC: the results of its runs, and how each ended.
+grant insert, update, delete on machine_run_result, machine_run_outcome to gwc_wc;
 -- Lot Server: lots, their entities, where each entity is.
 grant insert, update, delete on lots, lot_entities, lot_status to gwc_ls;
 -- Cell Alarm Server: the alarm history and the known alarms.

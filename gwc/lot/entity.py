@@ -703,39 +703,67 @@ class OperationEntity:
                           timeout: float | None = None) -> dict[str, str]:
         """Wait for RUN_COMPL of this run from every machine.
 
-        MachineLost once a machine cannot complete it: since the run began there, the machine went
-        Shutdown, or Idle with no or another machine_run_id, or on to another run, and no RUN_COMPL
-        followed within lost_grace. That it is up again by now (restarted by the operator) changes
-        nothing: the status history remembers. A machine Idle after our run is how every run ends, a
-        moment before its RUN_COMPL: that one gets `answer` to come before the run counts as lost.
+        A machine has left the run when, since the run began there, it went Shutdown, or Idle with no
+        or another machine_run_id, or on to another run, and no RUN_COMPL followed within lost_grace.
+        That it is up again by now (restarted by the operator) changes nothing: the status history
+        remembers. A machine Idle after our run is how every run ends, a moment before its RUN_COMPL:
+        that one gets `answer` to come. A machine that left the run may still have completed it: its
+        WC stores the outcome in MACHINE_RUN_OUTCOME before it goes Idle, and may have died before its
+        RUN_COMPL went out. So the outcome is read there, and only a run with none is lost (MachineLost).
         """
         started = time.monotonic()
+        deadline = started + (timeout or self.timeouts.run)
+        what = f"run {machine_run_id} to complete on " + ", ".join(machines)
+        while True:
+            done, left = self._wait(lambda: self._run_ended(machine_run_id, machines, started),
+                                    deadline - time.monotonic(), what,
+                                    poll=lambda: self._read_status(machines, ENDED, machine_run_id))
+            if done:
+                self.log.info("run %d complete: %s", machine_run_id, ", ".join(f"{m} {c}" for m, c in left.items()))
+                return left
+            outcomes = self._run_outcomes(machine_run_id, list(left))
+            with self._cond:
+                for m, code in outcomes.items():
+                    self.log.warning("run %d on %s: no RUN_COMPL came, MACHINE_RUN_OUTCOME says %s", machine_run_id,
+                                     m, code)
+                    self._runs[(m, machine_run_id)] = code
+            lost = [why for m, why in left.items() if m not in outcomes]
+            if lost:
+                self.log.error("%s, and no RUN_COMPL followed nor is its outcome stored", lost[0])
+                raise MachineLost(f"{lost[0]}: the run cannot complete")
 
-        def done() -> dict[str, str] | None:
-            if all((m, machine_run_id) in self._runs for m in machines):
-                return {m: self._runs[(m, machine_run_id)] for m in machines}
-            now = time.monotonic()
-            for m in machines:
-                if (m, machine_run_id) in self._runs:
-                    continue
-                since = self._began.get((m, machine_run_id), (started, None))[0]
-                went = self._went(m, since, ENDED, machine_run_id)
-                if went is None:
-                    continue
-                when, status, run = went
-                ended = status == MachineStatus.IDLE and run == machine_run_id
-                grace = max(self.timeouts.lost_grace, self.timeouts.answer) if ended else self.timeouts.lost_grace
-                if now - when > grace:
-                    other = f" (run {run})" if run != machine_run_id else ""
-                    self.log.error("%s went %s%s during run %d and no RUN_COMPL followed within %.1fs", m, status,
-                                   other, machine_run_id, grace)
-                    raise MachineLost(f"{m} went {status}{other} during run {machine_run_id}: the run cannot complete")
-            return None
+    def _run_ended(self, machine_run_id: int, machines: Sequence[str],
+                   started: float) -> tuple[bool, dict[str, str]] | None:
+        """(under the lock) (True, machine -> ack code) once every machine's RUN_COMPL of the run came;
+        (False, machine -> why) once some left the run without one; else None."""
+        if all((m, machine_run_id) in self._runs for m in machines):
+            return True, {m: self._runs[(m, machine_run_id)] for m in machines}
+        now = time.monotonic()
+        left: dict[str, str] = {}
+        for m in machines:
+            if (m, machine_run_id) in self._runs:
+                continue
+            since = self._began.get((m, machine_run_id), (started, None))[0]
+            went = self._went(m, since, ENDED, machine_run_id)
+            if went is None:
+                continue
+            when, status, run = went
+            ended = status == MachineStatus.IDLE and run == machine_run_id
+            grace = max(self.timeouts.lost_grace, self.timeouts.answer) if ended else self.timeouts.lost_grace
+            if now - when > grace:
+                other = f" (run {run})" if run != machine_run_id else ""
+                left[m] = f"{m} went {status}{other} during run {machine_run_id}"
+        return (False, left) if left else None
 
-        codes = self._wait(done, timeout or self.timeouts.run, f"run {machine_run_id} to complete on "
-                           + ", ".join(machines), poll=lambda: self._read_status(machines, ENDED, machine_run_id))
-        self.log.info("run %d complete: %s", machine_run_id, ", ".join(f"{m} {c}" for m, c in codes.items()))
-        return codes
+    def _run_outcomes(self, machine_run_id: int, machines: Sequence[str]) -> dict[str, str]:
+        """machine -> ack code of the run as its WC stored it (MACHINE_RUN_OUTCOME); {} if unreadable."""
+        try:
+            rows = self._query("SELECT machine_id, ack_code FROM machine_run_outcome WHERE machine_run_id = %s "
+                               "AND machine_id = ANY(%s)", machine_run_id, list(machines))
+        except DatabaseError as e:
+            self.log.warning("could not read MACHINE_RUN_OUTCOME: %s", e)
+            return {}
+        return {str(m): str(code) for m, code in rows}
 
     def run_results(self, machine_id: str, machine_run_id: int) -> dict[str, str]:
         """The run's MACHINE_RUN_RESULT rows as param -> value."""

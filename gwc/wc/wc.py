@@ -156,9 +156,9 @@ class WC(Module):
         """The run MACHINE_STATUS says is running, as it really is (the ME is up and answered `me`).
 
         Its results file exists: the run ended and its RUN_COMPL was read by the WC that died (or
-        never handled): complete it from the file. The ME runs it: its RUN_COMPL will come. Neither:
-        the results are lost (stored already if the dead WC got that far): complete it without them,
-        so the lot hears and the machine is Idle again.
+        never handled): complete it from the file. The ME runs it: its RUN_COMPL will come. Neither,
+        but the dead WC stored the run (MACHINE_RUN_OUTCOME): announce it as stored. Else the results
+        are lost: complete it without them, so the lot hears and the machine is Idle again.
         """
         run_id = self.machine_run_id
         if self.status not in (S.RUNNING, S.RUN_SHUT) or run_id is None:
@@ -172,9 +172,10 @@ class WC(Module):
             await self._finish_run(run_id, code, path, note, shutdown)
         elif me.alarm_text == MeState.RUNNING and me.file_name == str(path):
             self.log.info("run %d is still in progress on the ME", run_id)
-        elif self._stored_results(run_id):
-            self.log.warning("run %d: results stored before the WC died, not announced: completing it", run_id)
-            await self._finish_run(run_id, AckCode.ACK_OK, None, None, shutdown)
+        elif (stored := self._stored_outcome(run_id)) is not None:
+            self.log.warning("run %d: stored (%s) before the WC died, not announced: completing it", run_id,
+                             stored[0])
+            await self._finish_run(run_id, stored[0], None, stored[1], shutdown)
         else:
             self.log.error("run %d: no results file and the ME is %s with no run: the results are lost", run_id,
                            me.alarm_text or "up")
@@ -581,17 +582,18 @@ class WC(Module):
             self.log.error("results file %s records an unknown outcome %r", path, outcome[0])
             return AckCode.RUN_FAIL, f"unknown outcome {outcome[0]} in the results file"
 
-    def _stored_results(self, run_id: int) -> bool:
-        """Whether MACHINE_RUN_RESULT holds results of this run (a read that fails counts as none)."""
+    def _stored_outcome(self, run_id: int) -> tuple[str, str | None] | None:
+        """(ack code, note) of this run as stored with its results (MACHINE_RUN_OUTCOME); None if it was
+        not stored (a read that fails counts as not)."""
         try:
-            row = self._read("SELECT 1 FROM machine_run_result WHERE machine_run_id = %s AND machine_id = %s LIMIT 1",
-                             (run_id, self.machine_id))
+            row = self._read("SELECT ack_code, note FROM machine_run_outcome WHERE machine_run_id = %s "
+                             "AND machine_id = %s", (run_id, self.machine_id))
         except DatabaseUnavailable:
             raise
         except DatabaseError as e:
-            self.log.error("cannot check the stored results of run %d: %s", run_id, e)
-            return False
-        return row is not None
+            self.log.error("cannot read the stored outcome of run %d: %s", run_id, e)
+            return None
+        return None if row is None else (str(row[0]), row[1])
 
     async def _run_on_me(self, req: Message) -> tuple[str, str] | None:
         if req.machine_run_id != self.machine_run_id:
@@ -624,7 +626,8 @@ class WC(Module):
 
     async def _finish_run(self, run_id: int, code: str, path: Path | None, note: str | None, shutdown: str | None,
                           tell_me: bool = True) -> None:
-        """Results into MACHINE_RUN_RESULT, file removed, Idle (Shutdown if `shutdown` says why), Run_Complete.
+        """Results into MACHINE_RUN_RESULT and the outcome into MACHINE_RUN_OUTCOME, file removed, Idle
+        (Shutdown if `shutdown` says why), Run_Complete.
 
         Idempotent, so a restarted WC may complete a run its predecessor had begun to complete: the
         insert replaces rows already stored, and the file is removed only once they are stored.
@@ -643,6 +646,12 @@ class WC(Module):
                 "VALUES (%s, %s, %s, %s) "
                 "ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value",
                 [(run_id, self.machine_id, param, value) for param, value in results.items()])
+            # With the results, before Idle: a lot that misses our Run_Complete (we die before it goes
+            # out) finds the outcome here instead of running the operation again.
+            cur.execute("INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code, note) "
+                        "VALUES (%s, %s, %s, %s) ON CONFLICT (machine_run_id, machine_id) DO UPDATE "
+                        "SET ack_code = EXCLUDED.ack_code, note = EXCLUDED.note, ended_at = clock_timestamp()",
+                        (run_id, self.machine_id, str(code), note))
 
         try:
             self.transaction(store)

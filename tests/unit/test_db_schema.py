@@ -15,7 +15,8 @@ from gwc.ipc.codes import LotState, MachineStatus
 TABLES = {
     "me_config", "op_types", "machine_status", "accept_types", "recipes", "recipe_versions", "op_machine_recipe",
     "customers", "lot_scripts", "products", "work_orders", "work_order_items", "lots", "lot_entities", "lot_status",
-    "request_machines", "reserved_machines", "machine_run_result", "alarm_description", "alarms", "max_values",
+    "request_machines", "reserved_machines", "machine_run_result", "machine_run_outcome", "alarm_description", "alarms",
+    "max_values",
 }
 
 

@@ -351,6 +351,26 @@ def test_a_machine_that_lost_its_run_is_not_waited_for_even_when_it_is_up_again(
     assert notes[0].startswith("machine lost: m1 went") and "run 101" in notes[0], notes
 
 
+def test_a_run_whose_run_compl_never_came_counts_from_the_outcome_its_wc_stored(
+        fake: tuple[FakeCell, OperationEntity]) -> None:
+    cell, entity = fake
+    cell.lose_run = [("Idle", 101)]  # the machine went Idle on our run; its RUN_COMPL never came
+
+    async def start(conv: Conversation, m: Message) -> None:  # what the WC stored before it went Idle
+        cell.sql("INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) VALUES (%s, %s, "
+                 "'RESULT', 'PASS')", m.machine_run_id, m.machine_id)
+        cell.sql("INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code) VALUES (%s, %s, 'ACK_OK')",
+                 m.machine_run_id, m.machine_id)
+        await FakeCell.start(cell, conv, m)
+
+    cell.handlers["START_RUN"] = start
+    with entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", [["m1"]])
+        entity.lot_completed("PASS")
+    assert op.tries == 1 and op.ok and op.machine_run_id == 101 and op.results == {"RESULT": "PASS"}
+
+
 def test_setup_gives_up_as_soon_as_the_machine_shuts_down_and_asks_again_once_it_is_up(
         fake: tuple[FakeCell, OperationEntity]) -> None:
     cell, entity = fake

@@ -34,6 +34,7 @@ TRY = {
     "request_machines": "delete from request_machines",
     "reserved_machines": "delete from reserved_machines",
     "machine_run_result": "delete from machine_run_result",
+    "machine_run_outcome": "delete from machine_run_outcome",
 }
 
 
