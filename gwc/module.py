@@ -67,6 +67,34 @@ def module_name(kind: str, machine: str | None = None) -> str:
     return f"{kind}:{machine}" if machine else kind
 
 
+async def ask(bus: Bus, cls: str, first: catalogue.Message, to: str | None, timeout: float | None = None,
+              *more: catalogue.Message, within: float = 0.0) -> catalogue.Message:
+    """Hold a one-question conversation with another module and return its answer.
+
+    Raises ConversationTimeout (logged) if nobody answers. The caller reads the answer's ack_code.
+    With `within` > 0, a module that is restarting (no answer, or Notnow "module not started")
+    is asked again in a new conversation, with backoff, for up to `within` seconds: only for
+    questions that are safe to ask twice.
+    """
+    deadline = time.monotonic() + within
+    pause = 0.2
+    while True:
+        try:
+            conv, batch = await bus.request(cls, first, *more, to=to, timeout=timeout)
+            conv.end()
+            answer = batch.first
+            if answer.ack_code != AckCode.NOTNOW or answer.fields.get("note") != NOT_STARTED:
+                return answer
+            if time.monotonic() + pause > deadline:
+                return answer
+        except ConversationTimeout:
+            if time.monotonic() + pause > deadline:
+                raise
+        bus.log.warning("%s did not take %s (restarting?): asking again in %.1fs", to or "nobody", cls, pause)
+        await asyncio.sleep(pause)
+        pause = min(pause * 2, 2.0)
+
+
 def _load(path: str) -> Any:
     mod, _, attr = path.partition(":")
     return getattr(importlib.import_module(mod), attr)
@@ -123,30 +151,8 @@ class Module:
 
     async def ask(self, cls: str, first: catalogue.Message, to: str | None, timeout: float | None = None,
                   *more: catalogue.Message, within: float = 0.0) -> catalogue.Message:
-        """Hold a one-question conversation with another module and return its answer.
-
-        Raises ConversationTimeout (logged) if nobody answers. The caller reads the answer's ack_code.
-        With `within` > 0, a module that is restarting (no answer, or Notnow "module not started")
-        is asked again in a new conversation, with backoff, for up to `within` seconds: only for
-        questions that are safe to ask twice.
-        """
-        deadline = time.monotonic() + within
-        pause = 0.2
-        while True:
-            try:
-                conv, batch = await self.bus.request(cls, first, *more, to=to, timeout=timeout)
-                conv.end()
-                answer = batch.first
-                if answer.ack_code != AckCode.NOTNOW or answer.fields.get("note") != NOT_STARTED:
-                    return answer
-                if time.monotonic() + pause > deadline:
-                    return answer
-            except ConversationTimeout:
-                if time.monotonic() + pause > deadline:
-                    raise
-            self.log.warning("%s did not take %s (restarting?): asking again in %.1fs", to or "nobody", cls, pause)
-            await asyncio.sleep(pause)
-            pause = min(pause * 2, 2.0)
+        """ask() on this module's bus."""
+        return await ask(self.bus, cls, first, to, timeout, *more, within=within)
 
     def idle_interest(self) -> set[str]:
         return {self.start_class, *self.always}

@@ -124,6 +124,11 @@ create table if not exists lot_entities (
 );
 create index if not exists lot_entities_lot on lot_entities (lot_id);
 
+-- The CREATE_LOT request (its request_id) that made each entity: a repeated request finds them.
+alter table lot_entities add column if not exists create_request text;
+create index if not exists lot_entities_create_request on lot_entities (create_request)
+    where create_request is not null;
+
 create table if not exists lot_status (
     entity_id  bigint primary key,
     lot_id     bigint not null,

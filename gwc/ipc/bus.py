@@ -1090,7 +1090,7 @@ class BlockingBus:
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name=f"bus-{name}", daemon=True)
         self._thread.start()
-        self.bus: Bus = self._call(self._make(name, cfg, log, interest))
+        self.bus: Bus = self.run(self._make(name, cfg, log, interest))
         self._closed = False
 
     @staticmethod
@@ -1099,7 +1099,8 @@ class BlockingBus:
         await bus.sign_on()
         return bus
 
-    def _call(self, coro: Coroutine[Any, Any, T], timeout: float | None = None) -> T:
+    def run(self, coro: Coroutine[Any, Any, T], timeout: float | None = None) -> T:
+        """Run a coroutine on the bus's loop (one that uses self.bus) and return its result."""
         fut = asyncio.run_coroutine_threadsafe(coro, self._loop)
         return fut.result(timeout)
 
@@ -1107,22 +1108,22 @@ class BlockingBus:
         self._loop.call_soon_threadsafe(fn, *args)
 
     def start(self, cls: str, *messages: Message, to: str | None = None) -> BlockingConversation:
-        return BlockingConversation(self, self._call(self.bus.start(cls, *messages, to=to)))
+        return BlockingConversation(self, self.run(self.bus.start(cls, *messages, to=to)))
 
     def request(
         self, cls: str, *messages: Message, to: str | None = None, timeout: float | None = None
     ) -> tuple[BlockingConversation, Batch]:
-        conv, batch = self._call(self.bus.request(cls, *messages, to=to, timeout=timeout))
+        conv, batch = self.run(self.bus.request(cls, *messages, to=to, timeout=timeout))
         return BlockingConversation(self, conv), batch
 
     def resume(self, conv_id: str, cls: str, peer: str) -> BlockingConversation:
         async def _resume() -> Conversation:
             return self.bus.resume(conv_id, cls, peer)
 
-        return BlockingConversation(self, self._call(_resume()))
+        return BlockingConversation(self, self.run(_resume()))
 
     def first_message(self, timeout: float | None = None) -> BlockingConversation | None:
-        conv = self._call(self.bus.first_message(timeout))
+        conv = self.run(self.bus.first_message(timeout))
         return BlockingConversation(self, conv) if conv else None
 
     def set_interest(self, classes: Iterable[str]) -> None:
@@ -1130,13 +1131,13 @@ class BlockingBus:
         async def _set() -> None:
             self.bus.set_interest(list(classes))
 
-        self._call(_set())
+        self.run(_set())
 
     def peers(self) -> dict[str, Peer]:
         async def _peers() -> dict[str, Peer]:
             return self.bus.peers()
 
-        return self._call(_peers())
+        return self.run(_peers())
 
     def close(self) -> None:
         """Flush, sign off and stop the thread. Safe to call twice."""
@@ -1144,7 +1145,7 @@ class BlockingBus:
             return
         self._closed = True
         try:
-            self._call(self.bus.close(), timeout=5)
+            self.run(self.bus.close(), timeout=5)
         finally:
             self._loop.call_soon_threadsafe(self._loop.stop)
             self._thread.join(5)
@@ -1181,13 +1182,13 @@ class BlockingConversation:
         return self.conv.peer
 
     def send(self, *messages: Message, to: str | None = _DEFAULT) -> None:
-        self._owner._call(self.conv.send(*messages, to=to))
+        self._owner.run(self.conv.send(*messages, to=to))
 
     def next_message(self, timeout: float | None = None) -> Batch:
-        return self._owner._call(self.conv.next_message(timeout))
+        return self._owner.run(self.conv.next_message(timeout))
 
     def expect(self, *names: str, timeout: float | None = None) -> Batch:
-        return self._owner._call(self.conv.expect(*names, timeout=timeout))
+        return self._owner.run(self.conv.expect(*names, timeout=timeout))
 
     def end(self) -> None:
         self._owner.call_soon(self.conv.end)

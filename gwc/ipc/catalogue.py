@@ -157,8 +157,9 @@ MESSAGE_CLASSES: dict[str, MessageClass] = {
              by="str?"),
         _msg("Maint_Done_Ack", "runs = the count before the reset", runs="int?", **ACK),
         # --- Lot Server ---
-        _msg("Create_Lot_Entity", lot_type="str?", lot_id="int?", product_id="str", quantity="int",
-             priority="int?", owner="str?", result_params="list?", script_id="str?", work_order_id="int?"),
+        _msg("Create_Lot_Entity", "request_id: the asker's id for this creation; a repeat gets what the first made",
+             lot_type="str?", lot_id="int?", product_id="str", quantity="int", priority="int?", owner="str?",
+             result_params="list?", script_id="str?", work_order_id="int?", request_id="str?"),
         _msg("Create_Lot_Ack", lot_id="int?", entity_ids="list?", **ACK),
         _msg("Entity_Request", "an entity asks (import, export, completed, failed, state)",
              entity_id="int", action="str", reason="str?", script_pid="int?"),

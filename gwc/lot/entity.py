@@ -44,6 +44,7 @@ import contextlib
 import json
 import logging
 import os
+import secrets
 import threading
 import time
 from collections.abc import Callable, Coroutine, Sequence
@@ -62,7 +63,7 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, LotState, MachineStatus
 from gwc.lot.errors import (LotError, LotTimeout, MachineLost, RequestCancelled, RequestRefused, RunFailed,
                             ScriptStopped)
-from gwc.module import NOT_STARTED
+from gwc.module import NOT_STARTED, ask
 
 T = TypeVar("T")
 S = LotState
@@ -1281,13 +1282,19 @@ def _reason(exc: BaseException) -> str:
 
 def create_lot(bus: BlockingBus, product_id: str, quantity: int, *, work_order_id: int | None = None,
                owner: str | None = None, priority: int | None = None, script_id: str | None = None,
-               lot_type: str | None = None, timeout: float = 10.0) -> tuple[int, list[int]]:
-    """CREATE_LOT: ask the Lot Server for a lot of `quantity` entities. Returns (lot_id, entity_ids)."""
-    conv, batch = bus.request("CREATE_LOT", message(
+               lot_type: str | None = None, timeout: float = 10.0, within: float = 60.0,
+               request_id: str | None = None) -> tuple[int, list[int]]:
+    """CREATE_LOT: ask the Lot Server for a lot of `quantity` entities. Returns (lot_id, entity_ids).
+
+    A Lot Server that does not answer (it died after creating the lot, or is restarting) is asked
+    again for up to `within` seconds with the same request_id, so the lot is made once: a repeat is
+    answered with what the first request made. Give request_id to make it survive this call too.
+    """
+    request_id = request_id or f"{bus.bus.name}.{secrets.token_hex(8)}"
+    ack = bus.run(ask(bus.bus, "CREATE_LOT", message(
         "Create_Lot_Entity", product_id=product_id, quantity=quantity, work_order_id=work_order_id, owner=owner,
-        priority=priority, script_id=script_id, lot_type=lot_type), to="ls", timeout=timeout)
-    conv.end()
-    ack = batch.first
+        priority=priority, script_id=script_id, lot_type=lot_type, request_id=request_id), "ls", timeout,
+        within=within))
     if ack.ack_code != AckCode.ACK_OK or ack.lot_id is None:
         raise LotError(f"the Lot Server refused to create a lot of {quantity} {product_id}: {ack.ack_code}"
                        + (f" ({ack.note})" if ack.note else ""))

@@ -153,7 +153,13 @@ class LotServer(Server, Module):
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
         params = [str(p) for p in req.result_params or []]
 
-        def create(cur: Any) -> tuple[int, list[int]] | str:
+        def create(cur: Any) -> tuple[int, list[int], bool] | str:
+            if req.request_id:  # asked again (the answer was lost, or we restarted): what the first one made
+                cur.execute("select pg_advisory_xact_lock(hashtext(%s))", (req.request_id,))
+                made = cur.execute("select lot_id, entity_id from lot_entities where create_request = %s "
+                                   "order by unit", (req.request_id,)).fetchall()
+                if made:
+                    return made[0][0], [e for _, e in made], False
             product = cur.execute("select script_id, lot_type from products where product_id = %s",
                                   (req.product_id,)).fetchone()
             if product is None:
@@ -182,20 +188,25 @@ class LotServer(Server, Module):
             ids = []
             for unit in range(first, first + req.quantity):
                 eid = db.get_new_max_value(cur, "ENTITY_ID")
-                cur.execute("insert into lot_entities (entity_id, lot_id, unit) values (%s, %s, %s)",
-                            (eid, lot_id, unit))
+                cur.execute("insert into lot_entities (entity_id, lot_id, unit, create_request) "
+                            "values (%s, %s, %s, %s)", (eid, lot_id, unit, req.request_id))
                 cur.execute("insert into lot_status (entity_id, lot_id, state) values (%s, %s, 'created')",
                             (eid, lot_id))
                 ids.append(eid)
-            return lot_id, ids
+            return lot_id, ids, True
 
         result = self.transaction(create)
         if isinstance(result, str):
             return await self.answer(conv, ack, AckCode.UNKNOWN, result)
-        lot_id, ids = result
-        self.log.info("lot %d: %d entit%s created (%s) for %s", lot_id, len(ids), "y" if len(ids) == 1 else "ies",
-                      ", ".join(map(str, ids)), req.owner or conv.peer)
-        await self.answer(conv, ack, AckCode.ACK_OK, lot_id=lot_id, entity_ids=ids)
+        lot_id, ids, new = result
+        if new:
+            self.log.info("lot %d: %d entit%s created (%s) for %s", lot_id, len(ids), "y" if len(ids) == 1 else "ies",
+                          ", ".join(map(str, ids)), req.owner or conv.peer)
+        else:
+            self.log.warning("CREATE_LOT %s asked again: lot %d, entities %s, already created", req.request_id,
+                             lot_id, ", ".join(map(str, ids)))
+        await self.answer(conv, ack, AckCode.ACK_OK, None if new else "already created", lot_id=lot_id,
+                          entity_ids=ids)
 
     async def entity_request(self, conv: Conversation) -> None:
         """ENTITY_REQ: an entity moves itself (import, export, waiting_machine, running, completed,

@@ -285,7 +285,8 @@ class Soak:
 
     def _order(self, spec: LotSpec) -> None:
         assert self.bus is not None and self.cell is not None
-        lot_id, entities = create_lot(self.bus, PRODUCT, 1, priority=spec.priority, owner="soak", timeout=5.0)
+        lot_id, entities = create_lot(self.bus, PRODUCT, 1, priority=spec.priority, owner="soak", timeout=5.0,
+                                      within=0, request_id=f"{self.bus.bus.name}.{self.bus.bus.inc:x}.{spec.index}")
         self._dispatch(lot_id, entities, spec)
 
     def _dispatch(self, lot_id: int, entities: list[int], spec: LotSpec) -> None:

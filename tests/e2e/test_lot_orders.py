@@ -133,3 +133,36 @@ def test_bad_arguments_give_one_clear_line(lot_cell: Any) -> None:
         assert proc.returncode != 0, args
         assert len(lines) == 1 and lines[0].startswith("gwc: ") and says in lines[0], (args, err)
         assert "Traceback" not in err + out
+
+
+def test_an_order_the_lot_server_answers_too_late_is_asked_again_and_its_lot_made_once(lot_cell: Any) -> None:
+    # The Lot Server is held up past the HI's deadline (the test holds the counter row its next lot
+    # id comes from): the HI asks again with the same request_id, and once let go the Lot Server
+    # makes the lot for the first request and answers the repeat with that same lot.
+    cell = lot_cell(machines=[])
+    cell.start_servers("ls")
+    order(cell, "milled_pawn=1")  # a lot made as usual: the counter row exists
+    hold = cell.db()
+    proc: subprocess.Popen[str] | None = None
+    try:
+        with hold.transaction():
+            hold.execute("SELECT value FROM max_values WHERE type = 'LOT_ID' FOR UPDATE")
+            proc = subprocess.Popen([sys.executable, "-m", "gwc", "order", "new", "--customer", "NJIT", "--no-scripts",
+                                     "milled_pawn=2", "--json"], env=cell.env(), stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True)
+            wait_for(lambda: "did not take CREATE_LOT (restarting?): asking again" in cell.log_text("hi"), 30,
+                     "the HI to ask again")
+        out, err = proc.communicate(timeout=30)
+    finally:
+        hold.close()
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    (lot,) = json.loads(out)["lots"]
+    assert len(lot["entities"]) == 2
+    wo = json.loads(out)["work_order_id"]
+    assert cell.query("SELECT lot_id FROM lots WHERE work_order_id = %s", wo) == [(lot["lot_id"],)]
+    assert cell.query("SELECT count(*) FROM lot_entities WHERE lot_id = %s", lot["lot_id"]) == [(2,)]
+    assert re.search(r"CREATE_LOT \S+ asked again: lot %d, entities .*already created" % lot["lot_id"],
+                     cell.log_text("ls"))

@@ -275,6 +275,12 @@ def test_lot_server_moves_entities_through_their_life_with_the_operators_decisio
     more = create(product_id="alum_chess_set", quantity=1, lot_id=made.lot_id)
     assert more.lot_id == made.lot_id and q1(cell, "select unit from lot_entities where entity_id = %s",
                                              more.entity_ids[0]) == (3,)
+    # asked again (its answer was lost, or the Lot Server restarted): what the first request made
+    once = create(product_id="milled_pawn", quantity=2, request_id="op.1")
+    again = create(product_id="milled_pawn", quantity=2, request_id="op.1")
+    assert (again.ack_code, again.lot_id, again.entity_ids, again.note) == (OK, once.lot_id, once.entity_ids,
+                                                                           "already created")
+    assert q1(cell, "select count(*) from lot_entities where create_request = 'op.1'") == (2,)
     assert create(product_id="nosuch", quantity=1).ack_code == AckCode.UNKNOWN
     assert create(product_id="alum_chess_set", quantity=0).ack_code == AckCode.BAD_MESSAGE
     assert create(product_id="alum_chess_set", quantity=1, lot_id=99999).ack_code == AckCode.UNKNOWN
