@@ -83,6 +83,14 @@ INVARIANTS = (
         "JOIN reserved_machines r ON r.request_key = q.request_key",
     ),
     Invariant(
+        "setup_not_reserved",
+        "a machine set up for a run is reserved for it (or gives the setup up within seconds)",
+        "SELECT m.machine_id, m.machine_run_id, m.updated_at FROM machine_status m "
+        f"WHERE m.status IN ('Setup', 'Setup_Shut') AND m.updated_at < now() - interval '{3 * STALE_S} seconds' "
+        "AND NOT EXISTS (SELECT 1 FROM reserved_machines r WHERE r.machine_id = m.machine_id "
+        "AND r.machine_run_id = m.machine_run_id)",
+    ),
+    Invariant(
         "run_on_two_machines",
         "a machine_run_id has results from one machine",
         "SELECT machine_run_id, array_agg(DISTINCT machine_id ORDER BY machine_id) AS machines "

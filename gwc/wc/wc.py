@@ -54,6 +54,8 @@ ME_DEADLINE = 1.5  # an ME silent this long after a ping is dead
 ME_ANSWER = 10.0  # longest an ME may take to acknowledge a request (not counting operator alarms)
 SERVER_TIMEOUT = 5.0  # longest a server may take to answer the WC
 SERVER_RESTART = 30.0  # how long the WC asks a restarting server again (status, accept types)
+ABANDONED_S = 10.0  # a setup whose run has not been reserved this long is given up (its lot is gone)
+SETUP_CHECK_S = 2.0  # how often a machine in Setup looks for its run's reservation
 ALL_OPERATIONS = ["*"]
 S = MachineStatus
 
@@ -80,6 +82,8 @@ class WC(Module):
         self._alarm_pending = 0  # alarms of ours waiting for the operator: ME answers may take that long
         self._start_note: str | None = None  # why the last ME_START failed, for ME_Ready's note
         self._resuming = False  # a restarted WC checking its ME and its run: nothing served meanwhile
+        self._setup_checked = 0.0  # when the run set up was last found reserved (or not) ...
+        self._unreserved_since: float | None = None  # ... and since when it is not
 
     # ----------------------------------------------------------------- module hooks
 
@@ -229,7 +233,9 @@ class WC(Module):
             return None
 
     async def on_idle(self) -> None:
-        """Watch the ME: ping it when quiet; declare it dead when a ping goes unanswered."""
+        """Give up an abandoned setup; watch the ME: ping it when quiet; declare it dead when a ping goes
+        unanswered."""
+        await self._give_up_abandoned_setup()
         if self._resuming or self.status == S.SHUTDOWN or self.me.busy or time.monotonic() - self.me.heard < ME_PING:
             return
         try:
@@ -241,6 +247,47 @@ class WC(Module):
         if answer.ack_code != AckCode.ACK_OK and self.status != S.SHUTDOWN:
             await self.me_died(f"the ME answers that it is shut down ({answer.alarm_text or answer.ack_code}): "
                                "it was restarted and lost the machine's state")
+
+    async def _give_up_abandoned_setup(self) -> None:
+        """A machine set up for a run that MSCHED no longer reserves for it goes Idle again.
+
+        The lot that set it up gave up or died between SETUP_RUN and START_RUN, and was unreserved.
+        Nobody will start that run, and the machine serves SETUP_RUN only when Idle: without this it
+        would stay in Setup for good. The run must be missing from RESERVED_MACHINES for ABANDONED_S
+        first, so a reservation is never raced.
+        """
+        run_id, now = self.machine_run_id, time.monotonic()
+        if self.status not in (S.SETUP, S.SETUP_SHUT) or run_id is None:
+            self._unreserved_since = None
+            return
+        if now - self._setup_checked < SETUP_CHECK_S:
+            return
+        self._setup_checked = now
+        try:
+            reserved = self._read("SELECT 1 FROM reserved_machines WHERE machine_id = %s AND machine_run_id = %s",
+                                  (self.machine_id, run_id)) is not None
+        except DatabaseUnavailable:
+            raise
+        except DatabaseError as e:
+            self.log.warning("cannot check the reservation of run %d: %s", run_id, e)
+            return
+        if reserved or self._unreserved_since is None:
+            self._unreserved_since = None if reserved else now
+            return
+        if now - self._unreserved_since < ABANDONED_S:
+            return
+        async with self._state_lock:
+            if self.status not in (S.SETUP, S.SETUP_SHUT) or self.machine_run_id != run_id:
+                return
+            self.log.warning("run %d is set up but not reserved any more (its lot gave up or died): giving it up",
+                             run_id)
+            self.machine_run_id = self.recipe_id = None
+            self._unreserved_since = None
+            if self.status == S.SETUP_SHUT:
+                await self._go_shutdown(f"shutdown after run {run_id} was given up")
+            else:
+                await self.change_status(S.IDLE, expect=[S.SETUP], note=f"run {run_id} given up: not reserved")
+                await self.set_accept_types(ALL_OPERATIONS)
 
     # ----------------------------------------------------------------- the ME side
 

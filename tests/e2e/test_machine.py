@@ -444,3 +444,17 @@ def test_gwc_bench_mq_reports_the_wc_me_round_trip_beside_the_bare_floor() -> No
         assert report[path]["n"] == 300 and 0 < report[path]["median_us"] <= report[path]["p99_us"], report
     assert report["wc"]["median_us"] > report["bare"]["median_us"]
     assert report["ratio_median"] > 1
+
+
+def test_a_setup_whose_run_is_not_reserved_is_given_up_and_the_machine_serves_again(machine_cell: Any) -> None:
+    # The lot that set the machine up gave up or died before START_RUN (here, as no lot holds run 31,
+    # MSCHED reserves nothing for it): nobody will start the run, so the WC gives the setup up.
+    cell, ear = machine_cell({"id": "wc3", "kind": "dummy", "run_time": 0.1})
+    start_machine(cell, "wc3", homing=False)
+    assert setup_run(cell, "wc3", 31).ack_code == OK
+    assert status(cell, "wc3")[:3] == ("Setup", "dummy_recipe", 31)
+    wait_for(lambda: status(cell, "wc3")[0] == "Idle", 30, "the setup to be given up")
+    wait_for(lambda: accepts(cell, "wc3") == ["dummy_op", "measure", "mill_chess"], T, "all operations again")
+    story(cell, "wc:wc3", "set up run 31", "run 31 is set up but not reserved any more", "status Setup -> Idle")
+    assert start_run(cell, "wc3", 31).ack_code == AckCode.NOTNOW
+    assert setup_run(cell, "wc3", 32).ack_code == OK  # and it serves the cell again

@@ -246,3 +246,16 @@ def test_entity_whose_machines_sit_idle_while_it_waits_for_its_run_is_reported(
     db_conn.execute("update machine_status set updated_at = now() - interval '1 minute'")
     b = only(check_database(db_conn), "run_lost")
     assert b.rows == [{"entity_id": 1, "machines": ["wc1"], "statuses": ["Idle"]}]
+
+
+def test_machine_set_up_for_a_run_nobody_holds_is_reported(db_conn: psycopg.Connection[Any]) -> None:
+    lot(db_conn, 1, "running", pid=subprocess.os.getpid())
+    reserve(db_conn, "wc1", 1, 100, 10)
+    db_conn.execute("update machine_status set status = 'Setup', machine_run_id = 100, updated_at = now() "
+                    "where machine_id = 'wc1'")
+    db_conn.execute("update machine_status set status = 'Setup', machine_run_id = 7, updated_at = now() "
+                    "where machine_id = 'wc2'")
+    assert check_database(db_conn) == []  # just set up: the lot's reservation may be going
+    db_conn.execute("update machine_status set updated_at = now() - interval '1 minute'")
+    b = only(check_database(db_conn), "setup_not_reserved")
+    assert [(r["machine_id"], r["machine_run_id"]) for r in b.rows] == [("wc2", 7)]
