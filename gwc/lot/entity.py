@@ -716,19 +716,20 @@ class OperationEntity:
         deadline = started + (timeout or self.timeouts.run)
         what = f"run {machine_run_id} to complete on " + ", ".join(machines)
         while True:
-            done, left = self._wait(lambda: self._run_ended(machine_run_id, machines, started),
-                                    deadline - time.monotonic(), what,
-                                    poll=lambda: self._read_status(machines, ENDED, machine_run_id))
+            done, by_machine = self._wait(lambda: self._run_ended(machine_run_id, machines, started),
+                                          max(0.0, deadline - time.monotonic()), what,
+                                          poll=lambda: self._read_status(machines, ENDED, machine_run_id))
             if done:
-                self.log.info("run %d complete: %s", machine_run_id, ", ".join(f"{m} {c}" for m, c in left.items()))
-                return left
-            outcomes = self._run_outcomes(machine_run_id, list(left))
+                self.log.info("run %d complete: %s", machine_run_id,
+                              ", ".join(f"{m} {c}" for m, c in by_machine.items()))
+                return by_machine
+            outcomes = self._run_outcomes(machine_run_id, list(by_machine))
             with self._cond:
                 for m, code in outcomes.items():
                     self.log.warning("run %d on %s: no RUN_COMPL came, MACHINE_RUN_OUTCOME says %s", machine_run_id,
                                      m, code)
                     self._runs[(m, machine_run_id)] = code
-            lost = [why for m, why in left.items() if m not in outcomes]
+            lost = [why for m, why in by_machine.items() if m not in outcomes]
             if lost:
                 self.log.error("%s, and no RUN_COMPL followed nor is its outcome stored", lost[0])
                 raise MachineLost(f"{lost[0]}: the run cannot complete")

@@ -660,16 +660,28 @@ class WC(Module):
         return None
 
     async def run_complete(self, msg: MeMessage) -> None:
-        """6.3.2.7: the ME's RUN_COMPL ends the run in progress."""
+        """6.3.2.7: the ME's RUN_COMPL ends the run in progress.
+
+        Also the run MACHINE_STATUS last named when the machine is Shutdown: its WC died mid-run and the
+        Machine Server shut the machine down (liveness) before this WC started, while the ME finished
+        the run. The part was made: its results are stored and announced, and the machine stays Shutdown.
+        """
         async with self._state_lock:
             run_id = self.machine_run_id
-            if self.status not in (S.RUNNING, S.RUN_SHUT) or run_id is None:
+            path = Path(msg.file_name) if msg.file_name else None
+            code, note = msg.ack_code or AckCode.ACK_OK, msg.alarm_text or None
+            if self.status in (S.RUNNING, S.RUN_SHUT) and run_id is not None:
+                await self._finish_run(run_id, code, path, note,
+                                       "shutdown after run" if self.status == S.RUN_SHUT else None)
+            elif (self.status == S.SHUTDOWN and run_id is not None and path == self._results_path(run_id)
+                  and path.exists()):
+                self.log.warning("run %d ended while its machine was Shutdown (its WC died mid-run): storing it",
+                                 run_id)
+                await self._finish_run(run_id, code, path, note, f"run {run_id} ended after its WC died",
+                                       tell_me=False)
+            else:
                 self.log.warning("RUN_COMPL from the ME while %s: ignored (results file %s kept)", self.status,
                                  msg.file_name or "none")
-                return
-            await self._finish_run(run_id, msg.ack_code or AckCode.ACK_OK, Path(msg.file_name) if msg.file_name
-                                   else None, msg.alarm_text or None,
-                                   "shutdown after run" if self.status == S.RUN_SHUT else None)
 
     async def _finish_run(self, run_id: int, code: str, path: Path | None, note: str | None, shutdown: str | None,
                           tell_me: bool = True) -> None:
