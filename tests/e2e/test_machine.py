@@ -342,48 +342,39 @@ def test_kill_9_of_the_me_during_a_run_is_reported_and_the_pair_rejoins_with_gwc
     assert results(cell, "wc5", 32)["RESULT"] == "PASS"
 
 
-def test_kill_9_of_the_wc_during_a_run_the_me_keeps_its_queue_and_the_restarted_wc_resumes(
-        machine_cell: Any) -> None:
-    # A liveness long enough that the Machine Server does not shut the machine down while its WC restarts.
+@pytest.mark.parametrize("liveness, after", [(30, "Idle"), (1, "Shutdown")],
+                         ids=["back-before-liveness", "shut-down-by-liveness"])
+def test_kill_9_of_the_wc_during_a_run_the_restarted_wc_stores_the_run_its_me_finished(
+        machine_cell: Any, liveness: int, after: str) -> None:
+    # The run completes with no WC: the ME's RUN_COMPL waits in the queue. With a long liveness the
+    # machine is still Running when the WC is back: it resumes the run and serves again. With a short
+    # one the Machine Server has shut the machine down meanwhile: the part was made all the same, so
+    # its results are stored and announced and the machine stays Shutdown (the soak, seed 1991,
+    # found that results file left behind).
     cell, ear = machine_cell({"id": "wc6", "kind": "dummy", "run_time": 2.0},
-                             prepare="update me_config set liveness_s = 30 where machine_id = 'wc6'")
+                             prepare=f"update me_config set liveness_s = {liveness} where machine_id = 'wc6'")
     start_machine(cell, "wc6", homing=False)
     assert setup_run(cell, "wc6", 41).ack_code == OK
     assert start_run(cell, "wc6", 41).ack_code == OK
     cell.kill("wc", "wc6")
-    # The run completes with no WC: the ME's RUN_COMPL waits in the queue.
+    if after == "Shutdown":
+        wait_for(lambda: status(cell, "wc6")[0] == "Shutdown", T, "the Machine Server to shut the machine down")
     wait_for(lambda: cell.log_has("me:wc6", "run 1 complete"), T, "the ME to finish its run")
+    results_file = cell.cfg.results_dir / "wc6" / "run-41.txt"
+    assert results_file.exists()
     cell.start("wc", "wc6", start=False)
     assert ear.wait("Run_Complete of run 41", lambda m: m.machine_run_id == 41).ack_code == OK
     assert results(cell, "wc6", 41)["RESULT"] == "PASS"
-    wait_for(lambda: status(cell, "wc6")[0] == "Idle", T, "Idle again")
-    story(cell, "wc:wc6", "Running \\(run 41\\): resuming it", "41: 5 results stored")
-    assert setup_run(cell, "wc6", 42).ack_code == OK  # and it serves the cell again
-
-
-def test_kill_9_of_the_wc_during_a_run_shut_down_by_liveness_the_restarted_wc_stores_the_finished_run(
-        machine_cell: Any) -> None:
-    # The Machine Server shuts the machine down (liveness 1 s) before the WC is back, and the ME
-    # finishes the run meanwhile: the part was made, so its results are stored and announced, and
-    # the machine stays Shutdown (the soak, seed 1991, found the results file left behind).
-    cell, ear = machine_cell({"id": "wc6", "kind": "dummy", "run_time": 2.0},
-                             prepare="update me_config set liveness_s = 1 where machine_id = 'wc6'")
-    start_machine(cell, "wc6", homing=False)
-    assert setup_run(cell, "wc6", 43).ack_code == OK
-    assert start_run(cell, "wc6", 43).ack_code == OK
-    cell.kill("wc", "wc6")
-    wait_for(lambda: status(cell, "wc6")[0] == "Shutdown", T, "the Machine Server to shut the machine down")
-    wait_for(lambda: cell.log_has("me:wc6", "run 1 complete"), T, "the ME to finish its run")
-    results_file = cell.cfg.results_dir / "wc6" / "run-43.txt"
-    assert results_file.exists()
-    cell.start("wc", "wc6", start=False)
-    assert ear.wait("Run_Complete of run 43", lambda m: m.machine_run_id == 43).ack_code == OK
-    assert results(cell, "wc6", 43)["RESULT"] == "PASS"
-    assert cell.query("select ack_code from machine_run_outcome where machine_id = 'wc6' and machine_run_id = 43") \
+    assert cell.query("select ack_code from machine_run_outcome where machine_id = 'wc6' and machine_run_id = 41") \
         == [("ACK_OK",)]
     assert not results_file.exists(), "the results file is removed once stored"
-    assert status(cell, "wc6")[0] == "Shutdown" and accepts(cell, "wc6") == []
-    story(cell, "wc:wc6", "run 43 ended while its machine was Shutdown", "43: 5 results stored")
+    wait_for(lambda: status(cell, "wc6")[0] == after, T, f"{after} after the run")
+    if after == "Idle":
+        story(cell, "wc:wc6", "Running \\(run 41\\): resuming it", "41: 5 results stored")
+        assert setup_run(cell, "wc6", 42).ack_code == OK  # and it serves the cell again
+    else:
+        assert accepts(cell, "wc6") == []
+        story(cell, "wc:wc6", "run 41 ended while its machine was Shutdown", "41: 5 results stored")
 
 
 def test_kill_9_of_both_halves_the_restarted_wc_finds_a_fresh_me_refuses_setups_and_shuts_the_machine_down(
