@@ -119,12 +119,22 @@ def spawn(cfg: Config, proc: Proc, extra_env: dict[str, str] | None = None) -> i
     if cfg.database_url:
         env["GWC_DATABASE_URL"] = cfg.database_url
     env.update(extra_env or {})
-    out = open(cfg.log_dir / (log_file_name(proc.name)[:-4] + ".out"), "ab")
-    with out:
-        child = subprocess.Popen(proc.argv, env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
-                                 start_new_session=True, cwd=str(cfg.var.resolve()))
-    info = {"pid": child.pid, "ticks": _proc_start_ticks(child.pid), "since": datetime.now().isoformat(" ", "seconds"),
-            "argv": proc.argv}
+    with open(cfg.log_dir / (log_file_name(proc.name)[:-4] + ".out"), "ab") as out:
+        child = subprocess.Popen(
+            proc.argv,
+            env=env,
+            stdin=subprocess.DEVNULL,
+            stdout=out,
+            stderr=out,
+            start_new_session=True,
+            cwd=str(cfg.var.resolve()),
+        )
+    info = {
+        "pid": child.pid,
+        "ticks": _proc_start_ticks(child.pid),
+        "since": datetime.now().isoformat(" ", "seconds"),
+        "argv": proc.argv,
+    }
     tmp = pid_file(cfg, proc.name).with_suffix(".tmp")
     tmp.write_text(json.dumps(info))
     tmp.replace(pid_file(cfg, proc.name))

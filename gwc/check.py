@@ -26,8 +26,7 @@ from gwc.ipc.bus import BlockingBus, Peer
 from gwc.ipc.codes import LotState, MachineStatus
 
 # An entity in one of these states will never ask for a machine again.
-FINISHED = (LotState.COMPLETED.value, LotState.WAITING_EXPORT.value, LotState.EXPORTED.value,
-            LotState.FAILED.value)
+FINISHED = (LotState.COMPLETED.value, LotState.WAITING_EXPORT.value, LotState.EXPORTED.value, LotState.FAILED.value)
 # A machine in one of these states is started: its WC serves SETUP_RUN.
 STARTED = (MachineStatus.IDLE.value, MachineStatus.SETUP.value, MachineStatus.RUNNING.value)
 # An entity waiting for a machine with nothing queued, or holding machines none of which has run
@@ -170,8 +169,7 @@ def check_database(conn: psycopg.Connection[Any], peers: dict[str, Peer] | None 
         if not (on_bus or alive):
             stuck.append(row)
     if stuck:
-        breaches.append(Breach("stuck_lot", "every lot entity is finished, failed, or has a living lot script",
-                               stuck))
+        breaches.append(Breach("stuck_lot", "every lot entity is finished, failed, or has a living lot script", stuck))
     return breaches
 
 
@@ -225,8 +223,9 @@ def persistent(first: list[Breach], second: list[Breach]) -> list[Breach]:
     return kept
 
 
-def check_cell(cfg: Config, conn: psycopg.Connection[Any], bus: BlockingBus | None,
-               settle: float = 0.0) -> list[Breach]:
+def check_cell(
+    cfg: Config, conn: psycopg.Connection[Any], bus: BlockingBus | None, settle: float = 0.0
+) -> list[Breach]:
     """Every invariant; with `settle` > 0, only breaches that still hold `settle` seconds later.
 
     Reads only. Give it an autocommit (or READ COMMITTED) connection, so each query sees the

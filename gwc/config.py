@@ -252,5 +252,8 @@ def private_bus(**settings: Any) -> dict[str, Any]:
     """[bus] settings of a private cell (tests, benchmarks, soaks): a multicast group and port of its
     own, so that it never hears another cell on this machine."""
     rnd = random.SystemRandom()
-    return {"group": f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
-            "port": rnd.randrange(20000, 60000), **settings}
+    return {
+        "group": f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
+        "port": rnd.randrange(20000, 60000),
+        **settings,
+    }

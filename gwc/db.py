@@ -81,8 +81,9 @@ def find_pg_bin(name: str) -> Path:
         path = bindir / name
         if os.access(path, os.X_OK):
             return path
-    raise DatabaseError(f"PostgreSQL program {name!r} not found on PATH, via pg_config or in "
-                        f"/usr/lib/postgresql/*/bin: {INSTALL_HINT}")
+    raise DatabaseError(
+        f"PostgreSQL program {name!r} not found on PATH, via pg_config or in /usr/lib/postgresql/*/bin: {INSTALL_HINT}"
+    )
 
 
 # ----------------------------------------------------------------------------- embedded cluster
@@ -96,8 +97,10 @@ def _pg_user() -> pwd.struct_passwd:
     try:
         return pwd.getpwnam(PG_OS_USER)
     except KeyError:
-        raise DatabaseError(f"running as root, the embedded cluster must run as the {PG_OS_USER!r} OS user, "
-                            f"which does not exist: {INSTALL_HINT} (it creates that user)") from None
+        raise DatabaseError(
+            f"running as root, the embedded cluster must run as the {PG_OS_USER!r} OS user, "
+            f"which does not exist: {INSTALL_HINT} (it creates that user)"
+        ) from None
 
 
 def _run_pg(argv: list[str], timeout: float = 120) -> subprocess.CompletedProcess[str]:
@@ -131,7 +134,8 @@ def _check_traversable(path: Path, user: pwd.struct_passwd) -> None:
             raise DatabaseError(
                 f"the embedded cluster runs as OS user {user.pw_name!r} (we are root), which cannot enter "
                 f"{parent} (mode {stat.filemode(parent.stat().st_mode)}): put var/ somewhere it can reach "
-                f"(GWC_VAR=/var/tmp/...), or chmod o+x {parent}")
+                f"(GWC_VAR=/var/tmp/...), or chmod o+x {parent}"
+            )
 
 
 def _socket_path(cfg: Config) -> Path:
@@ -214,8 +218,9 @@ def _prepare_dirs(cfg: Config) -> pwd.struct_passwd | None:
     cfg.run_dir.mkdir(parents=True, exist_ok=True)
     cfg.pg_dir.mkdir(parents=True, exist_ok=True)
     if len(str(_socket_path(cfg))) >= SOCKET_MAX:
-        raise DatabaseError(f"unix socket path {_socket_path(cfg)} is longer than {SOCKET_MAX - 1} bytes: "
-                            f"use a shorter var/ (GWC_VAR)")
+        raise DatabaseError(
+            f"unix socket path {_socket_path(cfg)} is longer than {SOCKET_MAX - 1} bytes: use a shorter var/ (GWC_VAR)"
+        )
     if not _as_root():
         cfg.pg_dir.chmod(0o700)
         return None
@@ -258,17 +263,30 @@ def cluster_start(cfg: Config, log: logging.Logger | None = None) -> None:
             owner = _prepare_dirs(cfg)
             if not (cfg.pg_dir / "PG_VERSION").exists():
                 log.info("initdb: creating the embedded cluster in %s", cfg.pg_dir)
-                r = _run_pg([str(find_pg_bin("initdb")), "-D", str(cfg.pg_dir), "-U", SUPERUSER,
-                             "--auth=trust", "--encoding=UTF8", "--locale=C"])
+                r = _run_pg(
+                    [
+                        str(find_pg_bin("initdb")),
+                        "-D",
+                        str(cfg.pg_dir),
+                        "-U",
+                        SUPERUSER,
+                        "--auth=trust",
+                        "--encoding=UTF8",
+                        "--locale=C",
+                    ]
+                )
                 if r.returncode != 0:
                     raise DatabaseError(f"initdb failed in {cfg.pg_dir}: {(r.stderr or r.stdout).strip()[-800:]}")
             _write_settings(cfg, owner)
             logfile = cfg.pg_dir / "server.log"
-            r = _run_pg([str(find_pg_bin("pg_ctl")), "start", "-w", "-t", "60", "-s",
-                         "-D", str(cfg.pg_dir), "-l", str(logfile)])
+            r = _run_pg(
+                [str(find_pg_bin("pg_ctl")), "start", "-w", "-t", "60", "-s", "-D", str(cfg.pg_dir), "-l", str(logfile)]
+            )
             if r.returncode != 0 or not cluster_running(cfg):
-                raise DatabaseError(f"the embedded cluster in {cfg.pg_dir} did not start: "
-                                    f"{(r.stderr or r.stdout).strip()[-400:]} | server log: {_log_tail(logfile)}")
+                raise DatabaseError(
+                    f"the embedded cluster in {cfg.pg_dir} did not start: "
+                    f"{(r.stderr or r.stdout).strip()[-400:]} | server log: {_log_tail(logfile)}"
+                )
             log.info("embedded cluster started (socket in %s)", cfg.run_dir)
         _ensure_database(cfg, log)
 
@@ -281,9 +299,11 @@ def cluster_stop(cfg: Config, log: logging.Logger | None = None) -> None:
             return
         r = _run_pg([str(find_pg_bin("pg_ctl")), "stop", "-w", "-t", "60", "-s", "-m", "fast", "-D", str(cfg.pg_dir)])
         if r.returncode != 0 and cluster_running(cfg):
-            raise DatabaseError(f"the embedded cluster in {cfg.pg_dir} did not stop: "
-                                f"{(r.stderr or r.stdout).strip()[-400:]} | server log: "
-                                f"{_log_tail(cfg.pg_dir / 'server.log')}")
+            raise DatabaseError(
+                f"the embedded cluster in {cfg.pg_dir} did not stop: "
+                f"{(r.stderr or r.stdout).strip()[-400:]} | server log: "
+                f"{_log_tail(cfg.pg_dir / 'server.log')}"
+            )
         log.info("embedded cluster stopped")
 
 
@@ -296,7 +316,8 @@ def database_url(cfg: Config) -> str:
         return cfg.database_url
     port = _port(cfg)
     return f"postgresql://{SUPERUSER}@/{DB_NAME}?host={quote(str(cfg.run_dir), safe='')}" + (
-        f"&port={port}" if port != 5432 else "")
+        f"&port={port}" if port != 5432 else ""
+    )
 
 
 def _redact(url: str) -> str:
@@ -316,8 +337,9 @@ def _one_line(e: BaseException) -> str:
 _ROLE = re.compile(r"^[a-z][a-z0-9_]*$")
 
 
-def connect(cfg: Config, role: str | None = None, log: logging.Logger | None = None,
-            attempts: int = 5) -> psycopg.Connection[Any]:
+def connect(
+    cfg: Config, role: str | None = None, log: logging.Logger | None = None, attempts: int = 5
+) -> psycopg.Connection[Any]:
     """Connect (autocommit off) as role gwc_<role>, retrying with backoff (thesis 3.2.2).
 
     Raises DatabaseUnavailable after the last try; DatabaseError at once if the role is unknown
@@ -330,12 +352,14 @@ def connect(cfg: Config, role: str | None = None, log: logging.Logger | None = N
     error: Exception | None = None
     for attempt in range(1, max(1, attempts) + 1):
         try:
-            conn = psycopg.connect(url, autocommit=False, connect_timeout=5,
-                                   application_name=f"gwc_{role}" if role else "gwc")
+            conn = psycopg.connect(
+                url, autocommit=False, connect_timeout=5, application_name=f"gwc_{role}" if role else "gwc"
+            )
         except psycopg.OperationalError as e:
             error = e
-            log.warning("database connect failed (try %d of %d) to %s: %s", attempt, attempts, _redact(url),
-                        _one_line(e))
+            log.warning(
+                "database connect failed (try %d of %d) to %s: %s", attempt, attempts, _redact(url), _one_line(e)
+            )
             if attempt < attempts:
                 time.sleep(min(0.1 * 2 ** (attempt - 1), 2.0) * random.uniform(0.8, 1.2))
             continue
@@ -345,8 +369,10 @@ def connect(cfg: Config, role: str | None = None, log: logging.Logger | None = N
                 conn.commit()
             except psycopg.Error as e:
                 conn.close()
-                raise DatabaseError(f"cannot act as database role gwc_{role}: {_one_line(e)} "
-                                    f"(has the schema been applied? try `gwc db init`)") from e
+                raise DatabaseError(
+                    f"cannot act as database role gwc_{role}: {_one_line(e)} "
+                    f"(has the schema been applied? try `gwc db init`)"
+                ) from e
         return conn
     raise DatabaseUnavailable(
         f"cannot connect to the cell database at {_redact(url)} after {attempts} tries "
@@ -357,8 +383,13 @@ def connect(cfg: Config, role: str | None = None, log: logging.Logger | None = N
 ConnectionSource = psycopg.Connection[Any] | Callable[[], psycopg.Connection[Any]]
 
 
-def transaction(conn: ConnectionSource, fn: Callable[[psycopg.Cursor[Any]], T], *, attempts: int = 3,
-                log: logging.Logger | None = None) -> T:
+def transaction(
+    conn: ConnectionSource,
+    fn: Callable[[psycopg.Cursor[Any]], T],
+    *,
+    attempts: int = 3,
+    log: logging.Logger | None = None,
+) -> T:
     """Run fn(cursor) as one transaction and commit; retry the whole step on transient failures.
 
     `conn` is a connection or, better, a function returning one (like Module.db): a broken
@@ -390,11 +421,18 @@ def transaction(conn: ConnectionSource, fn: Callable[[psycopg.Cursor[Any]], T], 
             if broken:
                 c.close()
             last = attempt == attempts or (broken and not callable(conn))
-            log.warning("database transaction failed (try %d of %d)%s: %s", attempt, attempts,
-                        ", connection lost" if broken else "", _one_line(e))
+            log.warning(
+                "database transaction failed (try %d of %d)%s: %s",
+                attempt,
+                attempts,
+                ", connection lost" if broken else "",
+                _one_line(e),
+            )
             if last:
-                raise DatabaseError(f"database step failed after {attempt} tries: {_one_line(e)}"
-                                    + (" (connection lost)" if broken else "")) from e
+                raise DatabaseError(
+                    f"database step failed after {attempt} tries: {_one_line(e)}"
+                    + (" (connection lost)" if broken else "")
+                ) from e
             time.sleep(min(0.05 * 2 ** (attempt - 1), 1.0) * random.uniform(0.5, 1.5))
         except psycopg.Error as e:
             _safe_rollback(c)
@@ -457,15 +495,18 @@ def _register_machines(cur: psycopg.Cursor[Any], cfg: Config) -> None:
         cur.execute(
             "insert into me_config (machine_id, kind, liveness_s) values (%s, %s, %s) "
             "on conflict (machine_id) do update set kind = excluded.kind, liveness_s = excluded.liveness_s",
-            (m.id, m.kind, m.liveness))
-        cur.execute("insert into machine_status (machine_id, status) values (%s, 'Shutdown') "
-                    "on conflict do nothing", (m.id,))
+            (m.id, m.kind, m.liveness),
+        )
+        cur.execute(
+            "insert into machine_status (machine_id, status) values (%s, 'Shutdown') on conflict do nothing", (m.id,)
+        )
         for recipe_id, op_type in KIND_RECIPES.get(m.kind, []):
             cur.execute(
                 "insert into op_machine_recipe (machine_id, recipe_id, op_type) "
                 "select %s, %s, %s where exists (select 1 from recipes where recipe_id = %s) "
                 "and exists (select 1 from op_types where op_type = %s) on conflict do nothing",
-                (m.id, recipe_id, op_type, recipe_id, op_type))
+                (m.id, recipe_id, op_type, recipe_id, op_type),
+            )
 
 
 def get_new_max_value(cur_or_conn: psycopg.Cursor[Any] | psycopg.Connection[Any], type: str) -> int:

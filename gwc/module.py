@@ -67,8 +67,15 @@ def module_name(kind: str, machine: str | None = None) -> str:
     return f"{kind}:{machine}" if machine else kind
 
 
-async def ask(bus: Bus, cls: str, first: catalogue.Message, to: str | None, timeout: float | None = None,
-              *more: catalogue.Message, within: float = 0.0) -> catalogue.Message:
+async def ask(
+    bus: Bus,
+    cls: str,
+    first: catalogue.Message,
+    to: str | None,
+    timeout: float | None = None,
+    *more: catalogue.Message,
+    within: float = 0.0,
+) -> catalogue.Message:
     """Hold a one-question conversation with another module and return its answer.
 
     Raises ConversationTimeout (logged) if nobody answers. The caller reads the answer's ack_code.
@@ -149,8 +156,15 @@ class Module:
     def shutdown_complete(self, note: str | None) -> catalogue.Message:
         return message("Shutdown_Complete", ack_code=AckCode.ACK_OK, note=note)
 
-    async def ask(self, cls: str, first: catalogue.Message, to: str | None, timeout: float | None = None,
-                  *more: catalogue.Message, within: float = 0.0) -> catalogue.Message:
+    async def ask(
+        self,
+        cls: str,
+        first: catalogue.Message,
+        to: str | None,
+        timeout: float | None = None,
+        *more: catalogue.Message,
+        within: float = 0.0,
+    ) -> catalogue.Message:
         """ask() on this module's bus."""
         return await ask(self.bus, cls, first, to, timeout, *more, within=within)
 
@@ -237,8 +251,9 @@ class Module:
             opener = catalogue.CONVERSATION_CLASSES[conv.cls].messages[0]
             try:
                 if head.name != opener:
-                    self.log.info("ignored %s from %s: not the opening of a conversation here", head.name,
-                                  conv.first.sender)
+                    self.log.info(
+                        "ignored %s from %s: not the opening of a conversation here", head.name, conv.first.sender
+                    )
                 elif conv.cls == self.start_class:
                     await self._startup(conv)
                 elif conv.cls == self.stop_class:
@@ -302,8 +317,13 @@ class Module:
         except Exception as e:
             # The starter waits for Startup_Complete: tell it how the startup failed, then let
             # _serve log the error (and stop the module if the database is gone).
-            failed = (AckCode.DB_BADREA if isinstance(e, DatabaseUnavailable)
-                      else AckCode.DB_BADUPD if isinstance(e, DatabaseError) else AckCode.START_FAIL)
+            failed = (
+                AckCode.DB_BADREA
+                if isinstance(e, DatabaseUnavailable)
+                else AckCode.DB_BADUPD
+                if isinstance(e, DatabaseError)
+                else AckCode.START_FAIL
+            )
             await conv.send(self.startup_complete(failed))
             raise
         await conv.send(self.startup_complete(code))
@@ -346,8 +366,13 @@ def _ack_message_of(cls: str) -> Callable[[str, str], catalogue.Message] | None:
     return None
 
 
-def run_module(kind: str, machine: str | None = None, start: bool = False, cfg: Config | None = None,
-               options: dict[str, Any] | None = None) -> int:
+def run_module(
+    kind: str,
+    machine: str | None = None,
+    start: bool = False,
+    cfg: Config | None = None,
+    options: dict[str, Any] | None = None,
+) -> int:
     """Run one module as this process until SIGTERM; returns the exit code (3 = database fatal)."""
     cfg = cfg or load_config()
     if kind in MACHINE_KINDS and not machine:
@@ -374,8 +399,11 @@ def run_module(kind: str, machine: str | None = None, start: bool = False, cfg: 
     cls = _load(BUS_MODULES[kind])
 
     async def main() -> int:
-        module = cls(cfg, name, log, **(options or {})) if machine is None else cls(cfg, name, log, machine,
-                                                                                      **(options or {}))
+        module = (
+            cls(cfg, name, log, **(options or {}))
+            if machine is None
+            else cls(cfg, name, log, machine, **(options or {}))
+        )
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, module.stop)

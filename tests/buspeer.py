@@ -50,9 +50,15 @@ class Peer:
             if conv.cls != "PING":
                 return
             if payload == "report":
-                report = {"seen": self.seen[-50:], "acted": len(self.actions), "actions": sum(self.actions.values()),
-                          "acted_twice": [c for c, k in self.actions.items() if k > 1], "stats": dict(self.bus.stats),
-                          "interest": sorted(self.bus.interests), "peers": sorted(self.bus.peers())}
+                report = {
+                    "seen": self.seen[-50:],
+                    "acted": len(self.actions),
+                    "actions": sum(self.actions.values()),
+                    "acted_twice": [c for c, k in self.actions.items() if k > 1],
+                    "stats": dict(self.bus.stats),
+                    "interest": sorted(self.bus.interests),
+                    "peers": sorted(self.bus.peers()),
+                }
                 await conv.send(message("Pong", n=msgs[0].n, payload=json.dumps(report)))
                 return
             if payload == "silent":
@@ -61,8 +67,9 @@ class Peer:
                 change = payload.split(":", 1)[1]
                 (self.bus.interest if change[0] == "+" else self.bus.no_interest)(change[1:])
             elif payload.startswith("nest:"):
-                inner, answer = await self.bus.request("PING", message("Ping", n=msgs[0].n, payload="leaf"),
-                                                       to=payload[5:], timeout=20)
+                inner, answer = await self.bus.request(
+                    "PING", message("Ping", n=msgs[0].n, payload="leaf"), to=payload[5:], timeout=20
+                )
                 inner.end()
             self.actions[conv.id] += 1
             await conv.send(*[message("Pong", n=m.n, payload=m.payload) for m in msgs])

@@ -93,8 +93,9 @@ def database_url(pg_cluster: PgCluster) -> Iterator[str]:
     """A fresh database with schema and seed, cloned for this test and dropped after it (use as GWC_DATABASE_URL)."""
     name = f"gwc_t_{uuid.uuid4().hex[:12]}"
     with pg_cluster.admin() as conn:
-        conn.execute(sql.SQL("create database {} template {}").format(
-            sql.Identifier(name), sql.Identifier(pg_cluster.template)))
+        conn.execute(
+            sql.SQL("create database {} template {}").format(sql.Identifier(name), sql.Identifier(pg_cluster.template))
+        )
     yield pg_cluster.url(name)
     with pg_cluster.admin() as conn:
         conn.execute(sql.SQL("drop database if exists {} with (force)").format(sql.Identifier(name)))

@@ -55,14 +55,17 @@ def write_cell_config(
     bus_cfg = private_bus(peer_timeout=1.5, heartbeat=0.2, **(bus or {}))
     if faults:
         bus_cfg["faults"] = faults
-    return write_config(var / "etc" / "cell.toml", {
-        "cell": {"name": "test", "var": str(var), "policy": policy},
-        "bus": bus_cfg,
-        "database": {"url": database_url or ""},
-        "log": {"level": level},
-        "module": [{"name": m} for m in modules],
-        "machine": list(machines),
-    })
+    return write_config(
+        var / "etc" / "cell.toml",
+        {
+            "cell": {"name": "test", "var": str(var), "policy": policy},
+            "bus": bus_cfg,
+            "database": {"url": database_url or ""},
+            "log": {"level": level},
+            "module": [{"name": m} for m in modules],
+            "machine": list(machines),
+        },
+    )
 
 
 class CellHarness:
@@ -89,14 +92,28 @@ class CellHarness:
     def _xname(self, name: str) -> str:
         return f"{self.tag}-{name.replace(':', '-')}"
 
-    def start(self, kind: str, machine: str | None = None, start: bool = True, timeout: float = 20.0,
-              extra_args: tuple[str, ...] = ()) -> int:
+    def start(
+        self,
+        kind: str,
+        machine: str | None = None,
+        start: bool = True,
+        timeout: float = 20.0,
+        extra_args: tuple[str, ...] = (),
+    ) -> int:
         """Start one module as a process; return its pid once it is on the bus (and started, if asked)."""
         name = module_name(kind, machine)
         harness = self
         on_bus = kind not in ("me", "cmmsim")
-        args = [sys.executable, "-m", "gwc", "run", kind, *(["--machine", machine] if machine else []),
-                *(["--start"] if start and on_bus else []), *extra_args]
+        args = [
+            sys.executable,
+            "-m",
+            "gwc",
+            "run",
+            kind,
+            *(["--machine", machine] if machine else []),
+            *(["--start"] if start and on_bus else []),
+            *extra_args,
+        ]
 
         class Starter(ProcessStarter):
             env = harness.env()

@@ -18,7 +18,19 @@ def percentile(values: Sequence[float], p: float) -> float:
 def summary(values: Sequence[float]) -> dict[str, float]:
     """Median, p99, mean, min, max and count of a sample."""
     if not values:
-        return {"n": 0, "median": float("nan"), "p99": float("nan"), "mean": float("nan"),
-                "min": float("nan"), "max": float("nan")}
-    return {"n": len(values), "median": statistics.median(values), "p99": percentile(values, 99),
-            "mean": statistics.fmean(values), "min": min(values), "max": max(values)}
+        return {
+            "n": 0,
+            "median": float("nan"),
+            "p99": float("nan"),
+            "mean": float("nan"),
+            "min": float("nan"),
+            "max": float("nan"),
+        }
+    return {
+        "n": len(values),
+        "median": statistics.median(values),
+        "p99": percentile(values, 99),
+        "mean": statistics.fmean(values),
+        "min": min(values),
+        "max": max(values),
+    }

@@ -1,7 +1,8 @@
 """`gwc bench bus`: request->reply round trips over the bus, beside the bare multicast floor.
 
 Real processes: this one (the client) and one `python -m gwc.bench.bus --serve MODE ...` per mode
-(the servers); the client interleaves the modes in rounds. `bus` mode holds PING conversations through gwc.ipc.bus (one asyncio loop a side,
+(the servers); the client interleaves the modes in rounds. `bus` mode holds PING conversations
+through gwc.ipc.bus (one asyncio loop a side,
 reliability, ordering, membership all on); `bare` mode bounces datagrams on a plain multicast
 socket, blocking, nothing else: the floor no bus on this medium can beat; `asyncio` mode is the bare
 ping-pong through one asyncio loop a side, to show what asyncio alone costs. All run in the same
@@ -135,7 +136,7 @@ class _BareClient:
                 self._ping(0)
                 self._pong()
                 return
-            except socket.timeout:
+            except TimeoutError:
                 if time.monotonic() > deadline:
                     raise GwcError("bare bench server did not answer within 20s") from None
 
@@ -166,7 +167,7 @@ class _BareClient:
 
 def _expire(fut: asyncio.Future[None]) -> None:
     if not fut.done():
-        fut.set_exception(asyncio.TimeoutError())
+        fut.set_exception(TimeoutError())
 
 
 class _AsyncioClient:
@@ -190,7 +191,7 @@ class _AsyncioClient:
             try:
                 await self.ping(0, 0.5)
                 return
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 if time.monotonic() > deadline:
                     raise GwcError("asyncio bench server did not answer within 20s") from None
 
@@ -270,8 +271,9 @@ def _cpu_s(pid: int) -> float:
         return int(f.read().split()[0]) / 1e9
 
 
-async def _measure(cfgs: dict[str, BusConfig], servers: dict[str, int], n: int,
-                   window: int) -> dict[str, dict[str, Any]]:
+async def _measure(
+    cfgs: dict[str, BusConfig], servers: dict[str, int], n: int, window: int
+) -> dict[str, dict[str, Any]]:
     clients = {mode: CLIENTS[mode](cfgs[mode]) for mode in MODES}  # type: ignore[abstract]
     rtt: dict[str, list[float]] = {mode: [] for mode in MODES}
     # CPU each side spends per round trip, summed over the rounds: a round trip's time is both sides'
@@ -300,8 +302,14 @@ async def _measure(cfgs: dict[str, BusConfig], servers: dict[str, int], n: int,
     finally:
         for c in clients.values():
             await c.close()
-    return {mode: {"rtt": rtt[mode], "rate": rates.get(mode, 0.0),
-                   "cpu_us": [t / (per_round * ROUNDS) * 1e6 for t in cpu[mode]]} for mode in MODES}
+    return {
+        mode: {
+            "rtt": rtt[mode],
+            "rate": rates.get(mode, 0.0),
+            "cpu_us": [t / (per_round * ROUNDS) * 1e6 for t in cpu[mode]],
+        }
+        for mode in MODES
+    }
 
 
 def _pin(which: int) -> None:
@@ -313,8 +321,21 @@ def _pin(which: int) -> None:
 
 
 def _spawn(mode: str, cfg: BusConfig, pin: bool) -> subprocess.Popen[bytes]:
-    return subprocess.Popen([sys.executable, "-m", "gwc.bench.bus", "--serve", mode, "--group", cfg.group,
-                             "--port", str(cfg.port), *(["--pin"] if pin else [])], stdin=subprocess.DEVNULL)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "gwc.bench.bus",
+            "--serve",
+            mode,
+            "--group",
+            cfg.group,
+            "--port",
+            str(cfg.port),
+            *(["--pin"] if pin else []),
+        ],
+        stdin=subprocess.DEVNULL,
+    )
 
 
 def _private_cfg() -> BusConfig:
@@ -342,10 +363,16 @@ def run(n: int = 5000, window: int = 16, pin: bool = True) -> dict[str, Any]:
     results: dict[str, Any] = {}
     for mode in MODES:
         s = summary(raw[mode]["rtt"])
-        results[mode] = {"median_us": round(s["median"], 1), "p99_us": round(s["p99"], 1),
-                         "mean_us": round(s["mean"], 1), "n": s["n"], "conversations_per_s": round(raw[mode]["rate"]),
-                         "window": window, "client_cpu_us": round(raw[mode]["cpu_us"][0], 1),
-                         "server_cpu_us": round(raw[mode]["cpu_us"][1], 1)}
+        results[mode] = {
+            "median_us": round(s["median"], 1),
+            "p99_us": round(s["p99"], 1),
+            "mean_us": round(s["mean"], 1),
+            "n": s["n"],
+            "conversations_per_s": round(raw[mode]["rate"]),
+            "window": window,
+            "client_cpu_us": round(raw[mode]["cpu_us"][0], 1),
+            "server_cpu_us": round(raw[mode]["cpu_us"][1], 1),
+        }
     results["ratio_median"] = round(results["bus"]["median_us"] / results["bare"]["median_us"], 2)
     results["ratio_p99"] = round(results["bus"]["p99_us"] / results["bare"]["p99_us"], 2)
     results["asyncio_ratio_median"] = round(results["asyncio"]["median_us"] / results["bare"]["median_us"], 2)
@@ -355,8 +382,12 @@ def run(n: int = 5000, window: int = 16, pin: bool = True) -> dict[str, Any]:
 @click.command("bus")
 @click.option("-n", "count", default=5000, show_default=True, help="Round trips measured (after 200 warm-up).")
 @click.option("--window", default=16, show_default=True, help="Conversations in flight for the rate measurement.")
-@click.option("--pin/--no-pin", default=True, show_default=True,
-              help="Put client and server on different CPUs (both modes alike).")
+@click.option(
+    "--pin/--no-pin",
+    default=True,
+    show_default=True,
+    help="Put client and server on different CPUs (both modes alike).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print JSON for machines.")
 def command(count: int, window: int, pin: bool, as_json: bool) -> None:
     """Bus request->reply round trip (median, p99) and conversations/s, beside bare multicast UDP."""
@@ -368,10 +399,14 @@ def command(count: int, window: int, pin: bool, as_json: bool) -> None:
     click.echo(f"{'':7} {'':>10} {'':>10} {'':>10} {'client':>11} {'server':>12}")
     for mode in MODES:
         m = r[mode]
-        click.echo(f"{mode:7} {m['median_us']:>10.1f} {m['p99_us']:>10.1f} {m['conversations_per_s']:>10} "
-                   f"{m['client_cpu_us']:>11.1f} {m['server_cpu_us']:>12.1f}")
-    click.echo(f"bus/bare: median x{r['ratio_median']}, p99 x{r['ratio_p99']} (target: median within x3); "
-               f"asyncio alone/bare: median x{r['asyncio_ratio_median']}")
+        click.echo(
+            f"{mode:7} {m['median_us']:>10.1f} {m['p99_us']:>10.1f} {m['conversations_per_s']:>10} "
+            f"{m['client_cpu_us']:>11.1f} {m['server_cpu_us']:>12.1f}"
+        )
+    click.echo(
+        f"bus/bare: median x{r['ratio_median']}, p99 x{r['ratio_p99']} (target: median within x3); "
+        f"asyncio alone/bare: median x{r['asyncio_ratio_median']}"
+    )
 
 
 def _main() -> None:

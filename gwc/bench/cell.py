@@ -21,6 +21,7 @@ machine's cycle has to dwarf.
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import os
@@ -88,14 +89,24 @@ def phases(path: Path) -> dict[str, float]:
             if name not in marks and rx.search(text):
                 marks[name] = t
     names = [n for n, _ in PHASES]
-    return {f"{a}->{b}": marks[b] - marks[a] for a, b in zip(names, names[1:]) if a in marks and b in marks}
+    return {f"{a}->{b}": marks[b] - marks[a] for a, b in itertools.pairwise(names) if a in marks and b in marks}
 
 
 class CellBench:
     """One run of the benchmark on its own private cell (see the module docstring)."""
 
-    def __init__(self, var: Path, machines: int, lots: int, solo: int, deaths: int, database_url: str | None,
-                 log: logging.Logger, say: Callable[[str], None], kernel_filter: bool = True) -> None:
+    def __init__(
+        self,
+        var: Path,
+        machines: int,
+        lots: int,
+        solo: int,
+        deaths: int,
+        database_url: str | None,
+        log: logging.Logger,
+        say: Callable[[str], None],
+        kernel_filter: bool = True,
+    ) -> None:
         self.var = var.resolve()
         self.n = machines
         self.m = lots
@@ -114,15 +125,21 @@ class CellBench:
 
     def run(self) -> dict[str, Any]:
         try:
-            self.say(f"starting a private cell: {self.n} machines with runs of 0 s"
-                     + (f", 2 with runs of {SLOW_RUN:g} s for the death trials" if self.slow else ""))
+            self.say(
+                f"starting a private cell: {self.n} machines with runs of 0 s"
+                + (f", 2 with runs of {SLOW_RUN:g} s for the death trials" if self.slow else "")
+            )
             self.cell.start()
             self.conn = db.connect(self.cell.cfg, role="hi", log=self.log)
             self.conn.autocommit = True
-            self.conn.execute("INSERT INTO lot_scripts (script_id, path) VALUES (%s, %s) ON CONFLICT DO NOTHING",
-                              (SCRIPT_ID, SCRIPT_PATH))
-            self.conn.execute("INSERT INTO products (product_id, script_id) VALUES (%s, %s) ON CONFLICT DO NOTHING",
-                              (PRODUCT, SCRIPT_ID))
+            self.conn.execute(
+                "INSERT INTO lot_scripts (script_id, path) VALUES (%s, %s) ON CONFLICT DO NOTHING",
+                (SCRIPT_ID, SCRIPT_PATH),
+            )
+            self.conn.execute(
+                "INSERT INTO products (product_id, script_id) VALUES (%s, %s) ON CONFLICT DO NOTHING",
+                (PRODUCT, SCRIPT_ID),
+            )
             result = self._lots()
             if self.solo:
                 result.update(self._solo())
@@ -149,8 +166,12 @@ class CellBench:
         """Import and export what of `entities` waits; return their states. (Only theirs: the operator
         looks every 10 ms, and reading every lot's row would load the cell it measures.)"""
         assert self.conn is not None and self.cell.bus is not None
-        states = {int(e): str(s) for e, s in self.conn.execute(
-            "SELECT entity_id, state FROM lot_status WHERE entity_id = ANY(%s)", (entities,))}
+        states = {
+            int(e): str(s)
+            for e, s in self.conn.execute(
+                "SELECT entity_id, state FROM lot_status WHERE entity_id = ANY(%s)", (entities,)
+            )
+        }
         for e, s in states.items():
             action = {LotState.WAITING_IMPORT.value: "import", LotState.WAITING_EXPORT.value: "export"}.get(s)
             if action and (e, action) not in decided:
@@ -189,9 +210,15 @@ class CellBench:
             time.sleep(POLL)
         wall = last - began
         overhead, parts = self._timings(entities)
-        return {"machines": self.n, "lots": self.m, "failed": len(failed), "seconds": wall,
-                "lots_per_s": self.m / wall if wall > 0 else float("nan"),
-                "loaded_overhead_ms": summary(overhead), "loaded_phases_ms": parts}
+        return {
+            "machines": self.n,
+            "lots": self.m,
+            "failed": len(failed),
+            "seconds": wall,
+            "lots_per_s": self.m / wall if wall > 0 else float("nan"),
+            "loaded_overhead_ms": summary(overhead),
+            "loaded_phases_ms": parts,
+        }
 
     def _timings(self, entities: list[int]) -> tuple[list[float], dict[str, dict[str, float]]]:
         """Each lot's operation (request to unreserve, ms; lots that needed one try) and its phases."""
@@ -207,8 +234,9 @@ class CellBench:
                 parts.setdefault(k, []).append(v * 1000)
         return overhead, {k: summary(v) for k, v in parts.items()}
 
-    def _wait_states(self, entities: list[int], states: tuple[str, ...], decided: set[tuple[int, str]],
-                     what: str, poll: float = POLL) -> dict[int, str]:
+    def _wait_states(
+        self, entities: list[int], states: tuple[str, ...], decided: set[tuple[int, str]], what: str, poll: float = POLL
+    ) -> dict[int, str]:
         deadline = time.monotonic() + LOT_TIMEOUT
         while True:
             now = self._operator(decided, entities)
@@ -235,13 +263,13 @@ class CellBench:
             self._wait_states(batch, (LotState.WAITING_IMPORT.value,), set(never), "waiting_import")
             for e in batch:
                 decided = {x for x in never if x[0] != e}
-                states = self._wait_states([e], (LotState.WAITING_EXPORT.value, LotState.FAILED.value), decided,
-                                           "waiting_export", SOLO_POLL)
+                states = self._wait_states(
+                    [e], (LotState.WAITING_EXPORT.value, LotState.FAILED.value), decided, "waiting_export", SOLO_POLL
+                )
                 failed += states[e] == LotState.FAILED
                 self._wait_states([e], FINAL, decided, "exported")
         overhead, parts = self._timings(entities)
-        return {"solo_lots": len(entities), "solo_failed": failed, "overhead_ms": summary(overhead),
-                "phases_ms": parts}
+        return {"solo_lots": len(entities), "solo_failed": failed, "overhead_ms": summary(overhead), "phases_ms": parts}
 
     # ----------------------------------------------------------------- deaths
 
@@ -258,7 +286,9 @@ class CellBench:
                 self._operator(decided, [entity])
                 row = self.conn.execute(
                     "SELECT r.machine_id FROM reserved_machines r JOIN machine_status s USING (machine_id) "
-                    "WHERE r.entity_id = %s AND s.status = 'Running'", (entity,)).fetchone()
+                    "WHERE r.entity_id = %s AND s.status = 'Running'",
+                    (entity,),
+                ).fetchone()
                 victim = row[0] if row else None
                 if time.monotonic() > deadline:
                     raise GwcError(f"death trial {k + 1}: the lot's run never started (entity {entity})")
@@ -277,8 +307,9 @@ class CellBench:
                         rerouted = t
                         break
                 if time.monotonic() > deadline:
-                    raise GwcError(f"death trial {k + 1}: entity {entity} was not given {other} after {victim} "
-                                   f"died (see {path})")
+                    raise GwcError(
+                        f"death trial {k + 1}: entity {entity} was not given {other} after {victim} died (see {path})"
+                    )
                 time.sleep(POLL * 5)
             times.append(rerouted - killed_at)
             self.say(f"  trial {k + 1}: {victim} killed, lot on {other} after {rerouted - killed_at:.2f}s")
@@ -316,17 +347,36 @@ def _ms(s: dict[str, float]) -> str:
 @click.command("cell")
 @click.option("--machines", type=int, default=10, show_default=True, help="Dummy machines (runs take no time).")
 @click.option("--lots", type=int, default=500, show_default=True, help="Lots to run.")
-@click.option("--solo", type=int, default=100, show_default=True,
-              help="Then this many lots one at a time, for the cell's own cost per lot (0: skip).")
-@click.option("--deaths", type=int, default=3, show_default=True,
-              help="Death trials (0: none): kill the machine a lot runs on, time until it has the alternative.")
-@click.option("--dir", "where", type=click.Path(file_okay=False, path_type=Path),
-              help="The private cell's folder (default: var/bench-cell); emptied first.")
-@click.option("--kernel-filter/--no-kernel-filter", default=True, show_default=True,
-              help="The bus's kernel filter (docs/protocol.md): off shows what it saves.")
+@click.option(
+    "--solo",
+    type=int,
+    default=100,
+    show_default=True,
+    help="Then this many lots one at a time, for the cell's own cost per lot (0: skip).",
+)
+@click.option(
+    "--deaths",
+    type=int,
+    default=3,
+    show_default=True,
+    help="Death trials (0: none): kill the machine a lot runs on, time until it has the alternative.",
+)
+@click.option(
+    "--dir",
+    "where",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="The private cell's folder (default: var/bench-cell); emptied first.",
+)
+@click.option(
+    "--kernel-filter/--no-kernel-filter",
+    default=True,
+    show_default=True,
+    help="The bus's kernel filter (docs/protocol.md): off shows what it saves.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
-def command(machines: int, lots: int, solo: int, deaths: int, where: Path | None, kernel_filter: bool,
-            as_json: bool) -> None:
+def command(
+    machines: int, lots: int, solo: int, deaths: int, where: Path | None, kernel_filter: bool, as_json: bool
+) -> None:
     """Run lots through a private cell of N dummy machines: lots/s, the cell's overhead per lot
     (machine request to unreserve, median and p99) and the time from a machine's death to the
     first lot served by its alternative. Uses $GWC_DATABASE_URL if set, else an embedded cluster
@@ -334,22 +384,36 @@ def command(machines: int, lots: int, solo: int, deaths: int, where: Path | None
     if machines < 1 or lots < 1 or solo < 0 or deaths < 0:
         raise click.BadParameter("--machines and --lots must be at least 1, --solo and --deaths at least 0")
     cfg, log = context()
-    bench = CellBench(where or cfg.var / "bench-cell", machines, lots, solo, deaths,
-                      os.environ.get("GWC_DATABASE_URL"), log, (lambda s: None) if as_json else click.echo,
-                      kernel_filter)
+    bench = CellBench(
+        where or cfg.var / "bench-cell",
+        machines,
+        lots,
+        solo,
+        deaths,
+        os.environ.get("GWC_DATABASE_URL"),
+        log,
+        (lambda s: None) if as_json else click.echo,
+        kernel_filter,
+    )
     result = bench.run()
     if as_json:
         click.echo(json.dumps(result, indent=1))
         return
-    click.echo(f"{result['lots']} lots on {result['machines']} machines in {result['seconds']:.1f}s: "
-               f"{result['lots_per_s']:.2f} lots/s ({result['failed']} failed)")
-    click.echo(f"  overhead per lot with {machines} lots at once, request to unreserve (ms): "
-               f"{_ms(result['loaded_overhead_ms'])}")
+    click.echo(
+        f"{result['lots']} lots on {result['machines']} machines in {result['seconds']:.1f}s: "
+        f"{result['lots_per_s']:.2f} lots/s ({result['failed']} failed)"
+    )
+    click.echo(
+        f"  overhead per lot with {machines} lots at once, request to unreserve (ms): "
+        f"{_ms(result['loaded_overhead_ms'])}"
+    )
     for k, v in result["loaded_phases_ms"].items():
         click.echo(f"    {k:22s} (ms): {_ms(v)}")
     if "overhead_ms" in result:
-        click.echo(f"overhead per lot, one lot at a time, request to unreserve (ms): {_ms(result['overhead_ms'])} "
-                   f"({result['solo_failed']} failed)")
+        click.echo(
+            f"overhead per lot, one lot at a time, request to unreserve (ms): {_ms(result['overhead_ms'])} "
+            f"({result['solo_failed']} failed)"
+        )
         for k, v in result["phases_ms"].items():
             click.echo(f"    {k:22s} (ms): {_ms(v)}")
     if "death_to_reroute_s" in result:

@@ -57,8 +57,10 @@ def _bare(prefix: str, n: int) -> list[float]:
     machine = "bare"
     to_me, from_me = queue_names(prefix, machine)
     outq, inq = open_queue(to_me), open_queue(from_me)
-    server = subprocess.Popen([sys.executable, "-m", "gwc.bench.mq", "--serve", "--prefix", prefix,
-                               "--machine", machine], stdin=subprocess.DEVNULL)
+    server = subprocess.Popen(
+        [sys.executable, "-m", "gwc.bench.mq", "--serve", "--prefix", prefix, "--machine", machine],
+        stdin=subprocess.DEVNULL,
+    )
     try:
         record = bytes(LAYOUT_SIZE)
         rtt = []
@@ -119,12 +121,22 @@ def run(n: int = 5000) -> dict[str, Any]:
     prefix_me: str | None = None
     try:
         cfg_path = var / "etc" / "cell.toml"
-        cfg = write_config(cfg_path, {"cell": {"name": "bench", "var": str(var)}, "log": {"level": "warning"},
-                                      "machine": [{"id": "bench", "kind": "dummy"}]})
+        cfg = write_config(
+            cfg_path,
+            {
+                "cell": {"name": "bench", "var": str(var)},
+                "log": {"level": "warning"},
+                "machine": [{"id": "bench", "kind": "dummy"}],
+            },
+        )
         prefix_me = cfg.ipc_prefix
         env = dict(os.environ, GWC_CONFIG=str(cfg_path), GWC_VAR=str(var))
-        me = subprocess.Popen([sys.executable, "-m", "gwc", "run", "me", "--machine", "bench"], env=env,
-                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+        me = subprocess.Popen(
+            [sys.executable, "-m", "gwc", "run", "me", "--machine", "bench"],
+            env=env,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+        )
         with Channel(cfg.ipc_prefix, "bench", "wc", LOG) as ch:
             ch.send(MeMessage(MessageId.ME_START, seq=2**31))
             try:
@@ -149,8 +161,12 @@ def run(n: int = 5000) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name, rtt in results.items():
         s = summary(rtt)
-        out[name] = {"median_us": round(s["median"], 1), "p99_us": round(s["p99"], 1), "mean_us": round(s["mean"], 1),
-                     "n": n}
+        out[name] = {
+            "median_us": round(s["median"], 1),
+            "p99_us": round(s["p99"], 1),
+            "mean_us": round(s["mean"], 1),
+            "n": n,
+        }
     out["ratio_median"] = round(out["wc"]["median_us"] / out["bare"]["median_us"], 2)
     out["ratio_p99"] = round(out["wc"]["p99_us"] / out["bare"]["p99_us"], 2)
     return out
@@ -169,8 +185,11 @@ def command(count: int, as_json: bool) -> None:
         return
     click.echo(f"WC<->ME round trip, {count} requests, one at a time (microseconds)")
     click.echo(f"  {'':34} {'median':>8} {'p99':>8} {'mean':>8}")
-    labels = {"bare": "bare posix_ipc ping-pong", "channel": "Channel -> dummy ME (blocking)",
-              "wc": "WC (MeLink, asyncio) -> dummy ME"}
+    labels = {
+        "bare": "bare posix_ipc ping-pong",
+        "channel": "Channel -> dummy ME (blocking)",
+        "wc": "WC (MeLink, asyncio) -> dummy ME",
+    }
     for key, label in labels.items():
         row = r[key]
         click.echo(f"  {label:34} {row['median_us']:8.1f} {row['p99_us']:8.1f} {row['mean_us']:8.1f}")

@@ -63,10 +63,16 @@ class Result:
 
     def as_dict(self) -> dict[str, Any]:
         lat = summary(self.latencies_ms)
-        return {"queued": self.queued, "machines": self.machines, "decisions": self.decisions,
-                "seconds": round(self.seconds, 3), "decisions_per_s": round(self.rate, 1),
-                "free_to_bound_median_ms": round(lat["median"], 3), "free_to_bound_p99_ms": round(lat["p99"], 3),
-                "latency_samples": lat["n"]}
+        return {
+            "queued": self.queued,
+            "machines": self.machines,
+            "decisions": self.decisions,
+            "seconds": round(self.seconds, 3),
+            "decisions_per_s": round(self.rate, 1),
+            "free_to_bound_median_ms": round(lat["median"], 3),
+            "free_to_bound_p99_ms": round(lat["p99"], 3),
+            "latency_samples": lat["n"],
+        }
 
 
 # ----------------------------------------------------------------------------- a scratch cell
@@ -84,19 +90,26 @@ def _prepare(url: str, machines: list[str], entities: int) -> None:
         conn.execute("insert into machine_status (machine_id, status) select unnest(%s::text[]), 'Idle'", (machines,))
         conn.execute("insert into accept_types (machine_id, op_type) select unnest(%s::text[]), %s", (machines, OP))
         conn.execute("insert into lots (lot_id, product_id) values (1, 'alum_chess_set')")
-        conn.execute("insert into lot_entities (entity_id, lot_id) select g, 1 from generate_series(1, %s) g",
-                     (entities,))
-        conn.execute("insert into lot_status (entity_id, lot_id, state) "
-                     "select g, 1, 'waiting_machine' from generate_series(1, %s) g", (entities,))
+        conn.execute(
+            "insert into lot_entities (entity_id, lot_id) select g, 1 from generate_series(1, %s) g", (entities,)
+        )
+        conn.execute(
+            "insert into lot_status (entity_id, lot_id, state) "
+            "select g, 1, 'waiting_machine' from generate_series(1, %s) g",
+            (entities,),
+        )
 
 
 def _bench_config(tmp: Path, url: str, level: str) -> Config:
-    cfg = write_config(tmp / "etc" / "cell.toml", {
-        "cell": {"name": "bench", "var": str(tmp / "var"), "policy": "fifo"},
-        "bus": private_bus(heartbeat=0.25, peer_timeout=3.0),
-        "database": {"url": url},
-        "log": {"level": level},
-    })
+    cfg = write_config(
+        tmp / "etc" / "cell.toml",
+        {
+            "cell": {"name": "bench", "var": str(tmp / "var"), "policy": "fifo"},
+            "bus": private_bus(heartbeat=0.25, peer_timeout=3.0),
+            "database": {"url": url},
+            "log": {"level": level},
+        },
+    )
     # The scratch cell's own var/ and database, whatever GWC_VAR / GWC_DATABASE_URL say.
     return dataclasses.replace(cfg, var=tmp / "var", database_url=url)
 
@@ -139,8 +152,12 @@ class Bench:
     async def request(self, entity: int, machines: list[str]) -> Conversation:
         async with self.sem:
             conv, batch = await self.bus.request(
-                "MACH_REQ", message("Machine_Request", entity_id=entity, op_type=OP, num_machines=len(machines)),
-                *[message("Machine_Entry", machine_id=m) for m in machines], to="msched", timeout=T)
+                "MACH_REQ",
+                message("Machine_Request", entity_id=entity, op_type=OP, num_machines=len(machines)),
+                *[message("Machine_Entry", machine_id=m) for m in machines],
+                to="msched",
+                timeout=T,
+            )
         if batch.first.ack_code != AckCode.ACK_OK:
             raise GwcError(f"bench: request of entity {entity} refused: {batch.first.ack_code} {batch.first.note}")
         self.acked += 1
@@ -175,8 +192,7 @@ class Bench:
             self.held[entity] = got
 
 
-async def _run(cfg: Config, url: str, queued: int, n_machines: int, decisions: int, samples: int,
-               log: Any) -> Result:
+async def _run(cfg: Config, url: str, queued: int, n_machines: int, decisions: int, samples: int, log: Any) -> Result:
     machines = [f"bm{i:03d}" for i in range(n_machines)]
     bus = Bus(f"bench.{os.getpid()}", cfg.bus, log)
     await bus.sign_on()
@@ -206,8 +222,10 @@ async def _run(cfg: Config, url: str, queued: int, n_machines: int, decisions: i
         deadline = time.monotonic() + 600
         while bench.acked < queued + n_machines:
             if time.monotonic() > deadline or bench.errors:
-                raise GwcError(f"bench: only {bench.acked - n_machines} of {queued} requests were queued "
-                               f"({bench.errors[0] if bench.errors else 'too slow'})")
+                raise GwcError(
+                    f"bench: only {bench.acked - n_machines} of {queued} requests were queued "
+                    f"({bench.errors[0] if bench.errors else 'too slow'})"
+                )
             await asyncio.sleep(0.05)
         with psycopg.connect(url, autocommit=True) as conn:
             in_queue = conn.execute("select count(distinct request_key) from request_machines").fetchone()[0]
@@ -231,10 +249,12 @@ async def _run(cfg: Config, url: str, queued: int, n_machines: int, decisions: i
         with psycopg.connect(url, autocommit=True) as conn:
             for _ in range(samples):
                 row = conn.execute(
-                    "select r.entity_id from request_machines q join reserved_machines r on r.machine_id = q.machine_id "
+                    "select r.entity_id from request_machines q "
+                    "join reserved_machines r on r.machine_id = q.machine_id "
                     "where r.entity_id = any(%s) and not exists (select 1 from request_machines u "
                     "where u.request_key = q.request_key and u.machine_id <> q.machine_id) order by q.seq limit 1",
-                    (sorted(bench.held),)).fetchone()
+                    (sorted(bench.held),),
+                ).fetchone()
                 if row is None:
                     break
                 lat += await _sample(bus, bench, int(row[0]))
@@ -260,8 +280,7 @@ async def _sample(bus: Bus, bench: Bench, e: int) -> list[float]:
     return [(t1 - t0) * 1000]
 
 
-def run_size(cfg: Config, log: Any, queued: int, n_machines: int, decisions: int, samples: int,
-             level: str) -> Result:
+def run_size(cfg: Config, log: Any, queued: int, n_machines: int, decisions: int, samples: int, level: str) -> Result:
     """One measurement on its own scratch database and MSCHED."""
     if cfg.embedded:
         db.cluster_start(cfg, log)
@@ -276,14 +295,21 @@ def run_size(cfg: Config, log: Any, queued: int, n_machines: int, decisions: int
         bcfg = _bench_config(tmp, url, level)
         db.init_schema(bcfg, log)
         _prepare(url, [f"bm{i:03d}" for i in range(n_machines)], n_machines + queued + 10)
-        env = dict(os.environ, GWC_CONFIG=str(bcfg.path), GWC_VAR=str(bcfg.var), GWC_DATABASE_URL=url,
-                   PYTHONUNBUFFERED="1")
+        env = dict(
+            os.environ, GWC_CONFIG=str(bcfg.path), GWC_VAR=str(bcfg.var), GWC_DATABASE_URL=url, PYTHONUNBUFFERED="1"
+        )
         bcfg.var.mkdir(parents=True, exist_ok=True)
         with open(tmp / "msched.out", "wb") as out:
-            proc = subprocess.Popen([sys.executable, "-m", "gwc", "run", "msched", "--start"], env=env,
-                                    stdout=out, stderr=out, stdin=subprocess.DEVNULL)
-        return asyncio.run(_run(bcfg, url, queued, n_machines, decisions, samples,
-                                open_log("bench", bcfg.log_dir, "warning")))
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "gwc", "run", "msched", "--start"],
+                env=env,
+                stdout=out,
+                stderr=out,
+                stdin=subprocess.DEVNULL,
+            )
+        return asyncio.run(
+            _run(bcfg, url, queued, n_machines, decisions, samples, open_log("bench", bcfg.log_dir, "warning"))
+        )
     finally:
         if proc is not None:
             proc.send_signal(signal.SIGTERM)
@@ -298,8 +324,9 @@ def run_size(cfg: Config, log: Any, queued: int, n_machines: int, decisions: int
 
 
 @click.command("sched")
-@click.option("--queued", "sizes", default="1000,10000", show_default=True,
-              help="Queue sizes to measure, comma-separated.")
+@click.option(
+    "--queued", "sizes", default="1000,10000", show_default=True, help="Queue sizes to measure, comma-separated."
+)
 @click.option("--machines", "n_machines", default=100, show_default=True)
 @click.option("--decisions", default=2000, show_default=True, help="Bindings timed per queue size.")
 @click.option("--samples", default=200, show_default=True, help="Free-to-bound latency samples per size.")
@@ -320,8 +347,12 @@ def command(sizes: str, n_machines: int, decisions: int, samples: int, level: st
     if as_json:
         click.echo(json.dumps(results, indent=1))
         return
-    click.echo(f"{'queued':>8} {'machines':>8} {'decisions':>9} {'dec/s':>8} {'free->bound median ms':>22} "
-               f"{'p99 ms':>8} {'samples':>7}")
+    click.echo(
+        f"{'queued':>8} {'machines':>8} {'decisions':>9} {'dec/s':>8} {'free->bound median ms':>22} "
+        f"{'p99 ms':>8} {'samples':>7}"
+    )
     for r in results:
-        click.echo(f"{r['queued']:>8} {r['machines']:>8} {r['decisions']:>9} {r['decisions_per_s']:>8} "
-                   f"{r['free_to_bound_median_ms']:>22} {r['free_to_bound_p99_ms']:>8} {r['latency_samples']:>7}")
+        click.echo(
+            f"{r['queued']:>8} {r['machines']:>8} {r['decisions']:>9} {r['decisions_per_s']:>8} "
+            f"{r['free_to_bound_median_ms']:>22} {r['free_to_bound_p99_ms']:>8} {r['latency_samples']:>7}"
+        )

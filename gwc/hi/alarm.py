@@ -42,7 +42,8 @@ def alarm_list(show_all: bool, as_json: bool) -> None:
     with db.connect(cfg, role="hi", log=log) as conn:
         cur = conn.execute(
             "select alarm_no, alarm_id, known, machine_id, alarm_text, raised_by, raised_at, cleared_by, cleared_at "
-            "from alarms" + ("" if show_all else " where cleared_at is null") + " order by alarm_no")
+            "from alarms" + ("" if show_all else " where cleared_at is null") + " order by alarm_no"
+        )
         names = [d.name for d in cur.description or []]
         rows = [dict(zip(names, r)) for r in cur.fetchall()]
     for r in rows:
@@ -60,8 +61,12 @@ def alarm_clear(alarm_no: int, by: str | None) -> None:
     """Clear a pending alarm: the machine waiting on it continues."""
     cfg, log = context()
     with hi_bus(cfg, log) as bus:
-        conv, batch = bus.request("ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=alarm_no,
-                                                           cleared_by=by or operator()), to="cas", timeout=TIMEOUT)
+        conv, batch = bus.request(
+            "ALARM_CLR_REQ",
+            message("Alarm_Clear_Request", alarm_no=alarm_no, cleared_by=by or operator()),
+            to="cas",
+            timeout=TIMEOUT,
+        )
         conv.end()
     ack = batch.first
     if ack.ack_code != AckCode.ACK_OK:

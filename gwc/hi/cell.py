@@ -89,8 +89,11 @@ def status(as_json: bool) -> None:
 @click.argument("module", type=click.Choice(sorted([*BUS_MODULES, *MACHINE_PROCESSES])))
 @click.option("--machine", "machine", help="Machine id, for wc, me and cmmsim.")
 @click.option("--start", "start_now", is_flag=True, help="Start at once, without waiting for a STARTUP conversation.")
-@click.option("--clean", is_flag=True, help="msched only: empty the request and reservation tables at start "
-                                            "(the thesis's behaviour).")
+@click.option(
+    "--clean",
+    is_flag=True,
+    help="msched only: empty the request and reservation tables at start (the thesis's behaviour).",
+)
 def run(module: str, machine: str | None, start_now: bool, clean: bool) -> None:
     """Run one cell module in the foreground as this process (gwc start uses this)."""
     options = {"clean": True} if clean else None

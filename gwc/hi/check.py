@@ -14,8 +14,13 @@ from gwc.hi import context
 
 @click.command("check")
 @click.option("--no-bus", is_flag=True, help="Check the database only, not the live modules on the bus.")
-@click.option("--settle", type=float, default=3.0, show_default=True,
-              help="Look again after this many seconds and report only what still breaches (0: one snapshot).")
+@click.option(
+    "--settle",
+    type=float,
+    default=3.0,
+    show_default=True,
+    help="Look again after this many seconds and report only what still breaches (0: one snapshot).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the breaches as JSON.")
 def check(no_bus: bool, settle: float, as_json: bool) -> None:
     """Check the cell's invariants; exit 0 only when every one holds.

@@ -88,8 +88,7 @@ class Demo:
             if self.bus is not None:
                 self.bus.close()
             if keep:
-                self.say("leaving the cell running (--keep): stop it with "
-                         f"`GWC_CONFIG={cfg.path} gwc stop`")
+                self.say(f"leaving the cell running (--keep): stop it with `GWC_CONFIG={cfg.path} gwc stop`")
             else:
                 self.say("stopping the cell")
                 cell.stop_cell(cfg, self.log, say=lambda s: self.say(f"stop: {s}"))
@@ -101,9 +100,11 @@ class Demo:
             time.sleep(self.cfg.bus.heartbeat * 2)  # a window for hellos, not a wait for a condition
             others = sorted(p for p in bus.peers() if not p.startswith("hi."))
         if others:
-            raise GwcError(f"another cell is running on bus {self.cfg.bus.group}:{self.cfg.bus.port} "
-                           f"({', '.join(others[:6])}): stop it, or give the demonstration another [bus] port "
-                           f"in {self.cfg.path}")
+            raise GwcError(
+                f"another cell is running on bus {self.cfg.bus.group}:{self.cfg.bus.port} "
+                f"({', '.join(others[:6])}): stop it, or give the demonstration another [bus] port "
+                f"in {self.cfg.path}"
+            )
 
     def _fresh_database(self) -> None:
         """The demo's own cluster gets a new database each run, so every run starts from the seed."""
@@ -125,20 +126,24 @@ class Demo:
         order = enter_order(self.cfg, self.log, self.bus, "NJIT", items, note="section 7 demonstration")
         entities = [e for lot in order["lots"] for e in lot["entities"]]
         for lot in order["lots"]:
-            self.say(f"work order {order['work_order_id']}: lot {lot['lot_id']} of {lot['quantity']} "
-                     f"{lot['product_id']}, entities {', '.join(map(str, lot['entities']))}, one lot script each")
+            self.say(
+                f"work order {order['work_order_id']}: lot {lot['lot_id']} of {lot['quantity']} "
+                f"{lot['product_id']}, entities {', '.join(map(str, lot['entities']))}, one lot script each"
+            )
         deadline = time.monotonic() + self.timeout
         # While lots run: once the first mill has done a run, a second mill joins and the first leaves.
         if self.pawns:
-            self._wait(lambda: self.machines.get(first_mill, ("",))[0] == "Running" or self._runs_on(first_mill) > 0,
-                       deadline, f"a run on {first_mill}")
+            self._wait(
+                lambda: self.machines.get(first_mill, ("",))[0] == "Running" or self._runs_on(first_mill) > 0,
+                deadline,
+                f"a run on {first_mill}",
+            )
             self.say(f"operator: start machine {spare_mill} while lots run")
             self.say(f"machine {spare_mill}: {cell.startup(self.bus, f'wc:{spare_mill}', 'ME_START', timeout=60)}")
             self.say(f"operator: stop machine {first_mill} while lots run")
             done = cell.shutdown(self.bus, f"wc:{first_mill}", "ME_SHUT", timeout=60)
             self.say(f"machine {first_mill}: {done} (a machine in a run finishes it first)")
-        self._wait(lambda: all(self.states.get(e) in FINAL for e in entities), deadline,
-                   "every lot to be exported")
+        self._wait(lambda: all(self.states.get(e) in FINAL for e in entities), deadline, "every lot to be exported")
         return self._report(entities)
 
     def _wait(self, predicate: Callable[[], bool], deadline: float, what: str) -> None:
@@ -166,22 +171,25 @@ class Demo:
     def _look(self, conn: psycopg.Connection[Any]) -> None:
         assert self.bus is not None
         for alarm_no, alarm_id, machine_id, text in conn.execute(
-                "SELECT alarm_no, alarm_id, machine_id, alarm_text FROM alarms WHERE cleared_at IS NULL "
-                "ORDER BY alarm_no").fetchall():
+            "SELECT alarm_no, alarm_id, machine_id, alarm_text FROM alarms WHERE cleared_at IS NULL ORDER BY alarm_no"
+        ).fetchall():
             if alarm_no in self.cleared:
                 continue
             self.cleared.add(alarm_no)
             self.say(f"alarm {alarm_no} {alarm_id} on {machine_id or '-'}: {text}")
             if alarm_id == "HOME_CMM":
                 self.say(f"operator: pushes the start button on the CMM (clears alarm {alarm_no})")
-                conv, batch = self.bus.request("ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=alarm_no,
-                                                                         cleared_by=BY), to="cas")
+                conv, batch = self.bus.request(
+                    "ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=alarm_no, cleared_by=BY), to="cas"
+                )
                 conv.end()
                 if batch.first.ack_code != AckCode.ACK_OK:
                     self.errors.append(f"alarm {alarm_no} could not be cleared: {batch.first.ack_code}")
         for mid, status, run_id, recipe in conn.execute(
-                "SELECT machine_id, status, machine_run_id, recipe_id FROM machine_status "
-                "WHERE machine_id = ANY(%s) ORDER BY 1", ([m.id for m in self.cfg.machines],)).fetchall():
+            "SELECT machine_id, status, machine_run_id, recipe_id FROM machine_status "
+            "WHERE machine_id = ANY(%s) ORDER BY 1",
+            ([m.id for m in self.cfg.machines],),
+        ).fetchall():
             if self.machines.get(mid, (None, None))[0] != status:
                 what = f" (run {run_id}, recipe {recipe})" if status in ("Setup", "Running") else ""
                 if mid in self.machines or status != "Shutdown":
@@ -189,8 +197,9 @@ class Demo:
             self.machines[mid] = (status, run_id)
         line_read = False
         for entity, lot, product, state, reason in conn.execute(
-                "SELECT s.entity_id, s.lot_id, l.product_id, s.state, s.reason FROM lot_status s "
-                "JOIN lots l USING (lot_id) ORDER BY s.entity_id").fetchall():
+            "SELECT s.entity_id, s.lot_id, l.product_id, s.state, s.reason FROM lot_status s "
+            "JOIN lots l USING (lot_id) ORDER BY s.entity_id"
+        ).fetchall():
             if self.states.get(entity) == state:
                 continue
             self.states[entity] = state
@@ -221,31 +230,37 @@ class Demo:
 
     def _runs_on(self, machine_id: str) -> int:
         with db.connect(self.cfg, role="hi", log=self.log) as conn:
-            row = conn.execute("SELECT count(DISTINCT machine_run_id) FROM machine_run_result WHERE machine_id = %s",
-                               (machine_id,)).fetchone()
+            row = conn.execute(
+                "SELECT count(DISTINCT machine_run_id) FROM machine_run_result WHERE machine_id = %s", (machine_id,)
+            ).fetchone()
         return int(row[0]) if row else 0
 
     def _report(self, entities: list[int]) -> bool:
         problems: list[str] = []
         with db.connect(self.cfg, role="hi", log=self.log) as conn:
-            lots = conn.execute("SELECT s.entity_id, l.product_id, s.state, s.reason FROM lot_status s "
-                                "JOIN lots l USING (lot_id) WHERE s.entity_id = ANY(%s) ORDER BY 1",
-                                (entities,)).fetchall()
-            runs = conn.execute("SELECT machine_run_id, machine_id, string_agg(param || '=' || coalesce(value, ''), "
-                                "' ' ORDER BY param), min(recorded_at) FROM machine_run_result "
-                                "GROUP BY machine_run_id, machine_id ORDER BY 1").fetchall()
+            lots = conn.execute(
+                "SELECT s.entity_id, l.product_id, s.state, s.reason FROM lot_status s "
+                "JOIN lots l USING (lot_id) WHERE s.entity_id = ANY(%s) ORDER BY 1",
+                (entities,),
+            ).fetchall()
+            runs = conn.execute(
+                "SELECT machine_run_id, machine_id, string_agg(param || '=' || coalesce(value, ''), "
+                "' ' ORDER BY param), min(recorded_at) FROM machine_run_result "
+                "GROUP BY machine_run_id, machine_id ORDER BY 1"
+            ).fetchall()
             breaches = check_database(conn)
         self.say("results of each lot:")
         for entity, product, state, reason in lots:
             trav = read_traveller(self.cfg, entity) or {}
-            path = " -> ".join(f"{s['op_type']}@{','.join(s['machines'])}#{s['machine_run_id']}"
-                               for s in trav.get("steps", []))
+            path = " -> ".join(
+                f"{s['op_type']}@{','.join(s['machines'])}#{s['machine_run_id']}" for s in trav.get("steps", [])
+            )
             self.say(f"  entity {entity:>3} {product:<15} {state:<9} {reason or ''}")
             if path:
                 self.say(f"      runs: {path}")
             if state != LotState.EXPORTED:
                 problems.append(f"entity {entity} is {state}: {reason}")
-            elif not reason or not reason.split(":")[0].split()[0] in ("PASS", "FAIL", "SCRAP"):
+            elif not reason or reason.split(":")[0].split()[0] not in ("PASS", "FAIL", "SCRAP"):
                 problems.append(f"entity {entity} has no result")
         self.say("machine run results (MACHINE_RUN_RESULT):")
         for run_id, mid, results, _ in runs:
@@ -259,17 +274,28 @@ class Demo:
                 self.say(f"PROBLEM: {p}")
             self.say("demonstration FAILED")
             return False
-        self.say(f"demonstration succeeded: {len(entities)} lots exported, {len(runs)} machine runs, "
-                 f"every invariant holds")
+        self.say(
+            f"demonstration succeeded: {len(entities)} lots exported, {len(runs)} machine runs, every invariant holds"
+        )
         return True
 
 
 @click.command("demo")
-@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=DEMO_CONFIG,
-              show_default=True, help="The demonstration cell's configuration.")
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=DEMO_CONFIG,
+    show_default=True,
+    help="The demonstration cell's configuration.",
+)
 @click.option("--chess", default=2, show_default=True, help="Aluminium chess sets to order (measured on the CMM).")
-@click.option("--pawns", default=3, show_default=True, help="Pawns to order (milled, then measured; re-milled if "
-                                                             "out of tolerance).")
+@click.option(
+    "--pawns",
+    default=3,
+    show_default=True,
+    help="Pawns to order (milled, then measured; re-milled if out of tolerance).",
+)
 @click.option("--timeout", default=100.0, show_default=True, help="Seconds the lots may take in all.")
 @click.option("--keep", is_flag=True, help="Leave the cell running at the end (to look around with gwc commands).")
 def demo(config_path: Path, chess: int, pawns: int, timeout: float, keep: bool) -> None:

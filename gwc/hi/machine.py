@@ -38,8 +38,12 @@ def _on_bus(bus: BlockingBus, name: str, timeout: float) -> bool:
 
 @machine_group.command("start")
 @click.argument("machine_id")
-@click.option("--timeout", default=600.0, show_default=True,
-              help="Seconds to wait for the machine (a homing alarm waits for the operator).")
+@click.option(
+    "--timeout",
+    default=600.0,
+    show_default=True,
+    help="Seconds to wait for the machine (a homing alarm waits for the operator).",
+)
 def machine_start(machine_id: str, timeout: float) -> None:
     """Start machine MACHINE_ID: its processes if they are down, then ME_START (Shutdown -> Idle)."""
     cfg, log = context()
@@ -48,8 +52,10 @@ def machine_start(machine_id: str, timeout: float) -> None:
     with cell.hi_bus(cfg, log) as bus:
         if not _on_bus(bus, wc, SEE_WC):
             cell.start_procs(cfg, cell.machine_procs(cfg, machine_id), bus, click.echo)
-        click.echo(f"{wc}: ME_START (a machine that must be homed raises its alarm now: "
-                   "`gwc alarm list`, then `gwc alarm clear N` once it is done)")
+        click.echo(
+            f"{wc}: ME_START (a machine that must be homed raises its alarm now: "
+            "`gwc alarm list`, then `gwc alarm clear N` once it is done)"
+        )
         click.echo(f"{wc}: {cell.startup(bus, wc, 'ME_START', timeout=timeout)}")
 
 
@@ -77,7 +83,8 @@ def machine_status(as_json: bool) -> None:
             "select s.machine_id, c.kind, s.status, s.recipe_id, s.machine_run_id, s.start_time, s.end_time, "
             "coalesce((select string_agg(a.op_type, ',' order by a.op_type) from accept_types a "
             "          where a.machine_id = s.machine_id), '') as accepts, s.note "
-            "from machine_status s join me_config c using (machine_id) order by s.machine_id")
+            "from machine_status s join me_config c using (machine_id) order by s.machine_id"
+        )
         names = [d.name for d in cur.description or []]
         rows = [dict(zip(names, r)) for r in cur.fetchall()]
     with cell.hi_bus(cfg, log) as bus:
@@ -89,8 +96,22 @@ def machine_status(as_json: bool) -> None:
         r["wc"] = "on bus" if module_name("wc", r["machine_id"]) in peers else "-"
         for k in ("start_time", "end_time"):
             r[k] = r[k].strftime("%Y-%m-%d %H:%M:%S") if r[k] else None
-    table(rows, ["machine_id", "kind", "status", "recipe_id", "machine_run_id", "start_time", "end_time",
-                 "accepts", "wc", "note"], as_json)
+    table(
+        rows,
+        [
+            "machine_id",
+            "kind",
+            "status",
+            "recipe_id",
+            "machine_run_id",
+            "start_time",
+            "end_time",
+            "accepts",
+            "wc",
+            "note",
+        ],
+        as_json,
+    )
 
 
 commands = [machine_group]

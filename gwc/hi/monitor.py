@@ -47,8 +47,13 @@ def record_of(env: wire.Envelope, bus: str, now: float) -> dict[str, Any]:
     }
 
 
-def matches(rec: dict[str, Any], classes: tuple[str, ...], modules: tuple[str, ...], machines: tuple[str, ...],
-            machine_convs: set[str] | None = None) -> bool:
+def matches(
+    rec: dict[str, Any],
+    classes: tuple[str, ...],
+    modules: tuple[str, ...],
+    machines: tuple[str, ...],
+    machine_convs: set[str] | None = None,
+) -> bool:
     """The filters: any of the classes, any of the modules (sender, addressee or initiator), any machine.
 
     A message about a machine (its machine_id, or its WC as a party) matches, and so does every later
@@ -59,8 +64,9 @@ def matches(rec: dict[str, Any], classes: tuple[str, ...], modules: tuple[str, .
     if modules and not {rec["from"], rec["to"], rec["initiator"]} & set(modules):
         return False
     if machines:
-        involved = {rec["fields"].get("machine_id")} | {m[3:] for m in (rec["from"], rec["to"], rec["initiator"])
-                                                        if m and m.startswith("wc:")}
+        involved = {rec["fields"].get("machine_id")} | {
+            m[3:] for m in (rec["from"], rec["to"], rec["initiator"]) if m and m.startswith("wc:")
+        }
         if involved & set(machines):
             if machine_convs is not None:
                 machine_convs.add(rec["conv"])
@@ -73,12 +79,19 @@ def line_of(rec: dict[str, Any]) -> str:
     fields = " ".join(f"{k}={v}" for k, v in rec["fields"].items() if k != "ack_code")
     code = f" [{rec['ack_code']}]" if rec["ack_code"] else ""
     more = f" (+{rec['more']})" if rec["more"] else ""
-    return (f"{rec['time'][11:]} {rec['bus']} {rec['class']:<13} {rec['conv']:<28} {rec['from']} -> "
-            f"{rec['to'] or '*'}  {rec['message']}{more}{code} {fields}").rstrip()
+    return (
+        f"{rec['time'][11:]} {rec['bus']} {rec['class']:<13} {rec['conv']:<28} {rec['from']} -> "
+        f"{rec['to'] or '*'}  {rec['message']}{more}{code} {fields}"
+    ).rstrip()
 
 
-def watch(cfg: BusConfig, emit: Callable[[dict[str, Any]], None], stop: Callable[[], bool],
-          show_acks: bool = False, ready: Callable[[], None] = lambda: None) -> dict[str, int]:
+def watch(
+    cfg: BusConfig,
+    emit: Callable[[dict[str, Any]], None],
+    stop: Callable[[], bool],
+    show_acks: bool = False,
+    ready: Callable[[], None] = lambda: None,
+) -> dict[str, int]:
     """Listen to the group until stop() says so; emit each new msg once (and acks, if asked)."""
     sock = open_socket(cfg)
     ready()
@@ -106,8 +119,16 @@ def watch(cfg: BusConfig, emit: Callable[[dict[str, Any]], None], stop: Callable
                     if rec is not None and env.src not in rec["acked_by"]:
                         rec["acked_by"].append(env.src)
                         if show_acks:
-                            emit({"time": datetime.now().isoformat(" ", "milliseconds"), "bus": cfg.name,
-                                  "ack": seq, "of": rec["message"], "conv": rec["conv"], "by": env.src})
+                            emit(
+                                {
+                                    "time": datetime.now().isoformat(" ", "milliseconds"),
+                                    "bus": cfg.name,
+                                    "ack": seq,
+                                    "of": rec["message"],
+                                    "conv": rec["conv"],
+                                    "by": env.src,
+                                }
+                            )
             if env.kind != "msg":
                 continue
             key = (env.src, env.inc, env.seq)
@@ -127,12 +148,20 @@ def watch(cfg: BusConfig, emit: Callable[[dict[str, Any]], None], stop: Callable
 
 def render_catalogue() -> str:
     """docs/conversations.md, generated from the catalogue so that the two cannot drift apart."""
-    out = ["# Conversations", "",
-           "Generated from `gwc/ipc/catalogue.py` by `gwc monitor --catalogue` (a test checks this file matches):",
-           "edit the catalogue, then regenerate this file; never edit it by hand.", "",
-           "A conversation is opened by its first listed message; the others may follow in it, in either direction.",
-           "Field types: `str`, `int`, `float`, `bool`, `list`, `dict`; `?` marks a nullable field (absent or null).",
-           "", "## Conversation classes", "", "| Class | Answered by | Messages | What it is for |", "|---|---|---|---|"]
+    out = [
+        "# Conversations",
+        "",
+        "Generated from `gwc/ipc/catalogue.py` by `gwc monitor --catalogue` (a test checks this file matches):",
+        "edit the catalogue, then regenerate this file; never edit it by hand.",
+        "",
+        "A conversation is opened by its first listed message; the others may follow in it, in either direction.",
+        "Field types: `str`, `int`, `float`, `bool`, `list`, `dict`; `?` marks a nullable field (absent or null).",
+        "",
+        "## Conversation classes",
+        "",
+        "| Class | Answered by | Messages | What it is for |",
+        "|---|---|---|---|",
+    ]
     for c in catalogue.CONVERSATION_CLASSES.values():
         out.append(f"| `{c.name}` | {c.answered_by} | {', '.join(c.messages)} | {c.doc} |")
     out += ["", "## Message classes", "", "| Message | Fields | What it says |", "|---|---|---|"]
@@ -141,8 +170,15 @@ def render_catalogue() -> str:
         out.append(f"| `{m.name}` | {fields} | {m.doc} |")
     from gwc.ipc.codes import AckCode
 
-    out += ["", "## Ack codes", "", "Carried in `ack_code` by every acknowledgement.", "", "| Code | Python |",
-            "|---|---|"]
+    out += [
+        "",
+        "## Ack codes",
+        "",
+        "Carried in `ack_code` by every acknowledgement.",
+        "",
+        "| Code | Python |",
+        "|---|---|",
+    ]
     out += [f"| `{a.value}` | `AckCode.{a.name}` |" for a in AckCode]
     return "\n".join(out) + "\n"
 
@@ -150,16 +186,31 @@ def render_catalogue() -> str:
 @click.command("monitor")
 @click.option("--class", "classes", multiple=True, help="Only these conversation classes (repeatable).")
 @click.option("--module", "modules", multiple=True, help="Only conversations this module sends, receives or opened.")
-@click.option("--machine", "machines", multiple=True,
-              help="Only conversations about this machine (from the first message naming it or its WC).")
+@click.option(
+    "--machine",
+    "machines",
+    multiple=True,
+    help="Only conversations about this machine (from the first message naming it or its WC).",
+)
 @click.option("--record", "record", type=click.File("a"), help="Also append each message as a JSON line to FILE.")
 @click.option("--acks", "show_acks", is_flag=True, help="Also show each transport acknowledgement as it comes.")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON lines instead of text.")
 @click.option("--count", type=int, help="Stop after this many messages.")
 @click.option("--duration", type=float, help="Stop after this many seconds.")
-@click.option("--catalogue", "show_catalogue", is_flag=True, help="Print the conversation catalogue (markdown) and exit.")
-def monitor(classes: tuple[str, ...], modules: tuple[str, ...], machines: tuple[str, ...], record: TextIO | None,
-            show_acks: bool, as_json: bool, count: int | None, duration: float | None, show_catalogue: bool) -> None:
+@click.option(
+    "--catalogue", "show_catalogue", is_flag=True, help="Print the conversation catalogue (markdown) and exit."
+)
+def monitor(
+    classes: tuple[str, ...],
+    modules: tuple[str, ...],
+    machines: tuple[str, ...],
+    record: TextIO | None,
+    show_acks: bool,
+    as_json: bool,
+    count: int | None,
+    duration: float | None,
+    show_catalogue: bool,
+) -> None:
     """Watch every conversation on the cell bus, live and decoded (the Conversation Monitor)."""
     if show_catalogue:
         click.echo(render_catalogue(), nl=False)

@@ -97,8 +97,16 @@ def script_alive(cfg: Config, entity_id: int, pid: int | None) -> str:
 # ----------------------------------------------------------------------------- work orders (WOEN, WOSU)
 
 
-def enter_order(cfg: Config, log: logging.Logger, bus: BlockingBus, customer: str, items: list[tuple[str, int]],
-                note: str | None = None, priority: int | None = None, start_scripts: bool = True) -> dict[str, Any]:
+def enter_order(
+    cfg: Config,
+    log: logging.Logger,
+    bus: BlockingBus,
+    customer: str,
+    items: list[tuple[str, int]],
+    note: str | None = None,
+    priority: int | None = None,
+    start_scripts: bool = True,
+) -> dict[str, Any]:
     """Work Order Entry: the order, its lots (CREATE_LOT), one lot script process per entity."""
     with hi_conn(cfg, log) as conn:
         if not conn.execute("SELECT 1 FROM customers WHERE customer_id = %s", (customer,)).fetchone():
@@ -116,11 +124,14 @@ def enter_order(cfg: Config, log: logging.Logger, bus: BlockingBus, customer: st
 
         def write(cur: psycopg.Cursor[Any]) -> int:
             wo = db.get_new_max_value(cur, "WORK_ORDER")
-            cur.execute("INSERT INTO work_orders (work_order_id, customer_id, note) VALUES (%s, %s, %s)",
-                        (wo, customer, note))
+            cur.execute(
+                "INSERT INTO work_orders (work_order_id, customer_id, note) VALUES (%s, %s, %s)", (wo, customer, note)
+            )
             for product, qty in items:
-                cur.execute("INSERT INTO work_order_items (work_order_id, product_id, quantity) VALUES (%s, %s, %s)",
-                            (wo, product, qty))
+                cur.execute(
+                    "INSERT INTO work_order_items (work_order_id, product_id, quantity) VALUES (%s, %s, %s)",
+                    (wo, product, qty),
+                )
             return wo
 
         wo = db.transaction(conn, write, log=log)
@@ -136,8 +147,9 @@ def enter_order(cfg: Config, log: logging.Logger, bus: BlockingBus, customer: st
             for e in entities:
                 pids[e] = spawn_lot_script(cfg, e)
                 log.info("entity %d: lot script started (pid %d)", e, pids[e])
-        lots.append({"lot_id": lot_id, "product_id": product, "quantity": qty, "entities": entities,
-                     "script_pids": pids})
+        lots.append(
+            {"lot_id": lot_id, "product_id": product, "quantity": qty, "entities": entities, "script_pids": pids}
+        )
     return {"work_order_id": wo, "customer_id": customer, "lots": lots}
 
 
@@ -150,12 +162,16 @@ def order() -> None:
 @click.option("--customer", "-c", required=True, help="Customer id (see `gwc customer list`).")
 @click.option("--note", help="A note kept with the order.")
 @click.option("--priority", type=int, help="Priority of its lots (default 20; used by the priority policy).")
-@click.option("--no-scripts", is_flag=True, help="Create the lots but start no lot scripts (start them by hand "
-                                                  "with `python -m gwc.lot.run --entity E`).")
+@click.option(
+    "--no-scripts",
+    is_flag=True,
+    help="Create the lots but start no lot scripts (start them by hand with `python -m gwc.lot.run --entity E`).",
+)
 @click.argument("items", nargs=-1, required=True, metavar="PRODUCT=QTY...")
 @json_option
-def order_new(customer: str, note: str | None, priority: int | None, no_scripts: bool, items: tuple[str, ...],
-              as_json: bool) -> None:
+def order_new(
+    customer: str, note: str | None, priority: int | None, no_scripts: bool, items: tuple[str, ...], as_json: bool
+) -> None:
     """Enter a work order: one lot per product, one entity (and lot script process) per unit.
 
     Example: gwc order new --customer NJIT alum_chess_set=2 milled_pawn=3
@@ -209,8 +225,11 @@ def order_status(states: dict[str, int] | None) -> str:
 def list_orders(cfg: Config, log: logging.Logger, work_order: int | None = None) -> list[dict[str, Any]]:
     with hi_conn(cfg, log) as conn:
         where = " WHERE w.work_order_id = %s" if work_order is not None else ""
-        rows = rows_of(conn, ORDER_STATUS_SQL + where + " ORDER BY w.work_order_id",
-                       *([work_order] if work_order is not None else []))
+        rows = rows_of(
+            conn,
+            ORDER_STATUS_SQL + where + " ORDER BY w.work_order_id",
+            *([work_order] if work_order is not None else []),
+        )
     for r in rows:
         r["status"] = order_status(r["states"])
         r["lots"] = ", ".join(f"{n} {s}" for s, n in sorted((r.pop("states") or {}).items()))
@@ -239,8 +258,10 @@ def order_show(work_order: int, as_json: bool) -> None:
         click.echo(json.dumps({**orders[0], "entities": entities}, default=str, indent=1))
         return
     o = orders[0]
-    click.echo(f"work order {o['work_order']} for {o['customer']} ({o['customer_name'] or '-'}), "
-               f"entered {o['created']}: {o['status']}")
+    click.echo(
+        f"work order {o['work_order']} for {o['customer']} ({o['customer_name'] or '-'}), "
+        f"entered {o['created']}: {o['status']}"
+    )
     click.echo(f"items: {o['items']}" + (f"; note: {o['note']}" if o["note"] else ""))
     table(entities, ["entity", "lot", "product", "state", "script", "result"])
 
@@ -257,8 +278,9 @@ SELECT s.entity_id AS entity, s.lot_id AS lot, l.work_order_id AS work_order, l.
 """
 
 
-def list_lots(cfg: Config, log: logging.Logger, work_order: int | None = None, state: str | None = None,
-              entity: int | None = None) -> list[dict[str, Any]]:
+def list_lots(
+    cfg: Config, log: logging.Logger, work_order: int | None = None, state: str | None = None, entity: int | None = None
+) -> list[dict[str, Any]]:
     sql, params = LOTS_SQL, []
     for col, value in (("l.work_order_id", work_order), ("s.state", state), ("s.entity_id", entity)):
         if value is not None:
@@ -293,14 +315,18 @@ def lots(entity: int | None, work_order: int | None, state: str | None, as_json:
         click.echo(json.dumps({**rows[0], "steps": trav.get("steps", [])}, default=str, indent=1))
         return
     r = rows[0]
-    click.echo(f"entity {entity}: lot {r['lot']}, work order {r['work_order']}, {r['product']} for {r['owner']}: "
-               f"{r['state']} since {r['since']}")
+    click.echo(
+        f"entity {entity}: lot {r['lot']}, work order {r['work_order']}, {r['product']} for {r['owner']}: "
+        f"{r['state']} since {r['since']}"
+    )
     click.echo(f"lot script: {trav.get('script_id', '-')} (pid {r['script']}); log {cfg.log_dir}/lot-{entity}.log")
     if r["result"]:
         click.echo(f"result: {r['result']}")
     for step in trav.get("steps", []):
-        click.echo(f"  {step['at']}  {step['op_type']} on {', '.join(step['machines'])} "
-                   f"(run {step['machine_run_id']}): {step['note']}")
+        click.echo(
+            f"  {step['at']}  {step['op_type']} on {', '.join(step['machines'])} "
+            f"(run {step['machine_run_id']}): {step['note']}"
+        )
         for run in step.get("runs", []):
             res = ", ".join(f"{k}={v}" for k, v in run["results"].items()) or "no results"
             click.echo(f"      {run['machine_id']} {run['recipe_id']} {run['ack_code']}: {res}")
@@ -367,10 +393,15 @@ def customer_add(customer_id: str, name: str | None) -> None:
     """Add a customer, or rename one."""
     cfg, log = context()
     with hi_conn(cfg, log) as conn:
-        db.transaction(conn, lambda cur: cur.execute(
-            "INSERT INTO customers (customer_id, name) VALUES (%s, %s) "
-            "ON CONFLICT (customer_id) DO UPDATE SET name = coalesce(excluded.name, customers.name)",
-            (customer_id, name)), log=log)
+        db.transaction(
+            conn,
+            lambda cur: cur.execute(
+                "INSERT INTO customers (customer_id, name) VALUES (%s, %s) "
+                "ON CONFLICT (customer_id) DO UPDATE SET name = coalesce(excluded.name, customers.name)",
+                (customer_id, name),
+            ),
+            log=log,
+        )
     click.echo(f"customer {customer_id} saved")
 
 
@@ -395,8 +426,11 @@ def product_list(as_json: bool) -> None:
     """Every product and its lot script."""
     cfg, log = context()
     with hi_conn(cfg, log) as conn:
-        rows = rows_of(conn, "SELECT p.product_id AS product, p.description, p.script_id AS script, s.path "
-                             "FROM products p LEFT JOIN lot_scripts s USING (script_id) ORDER BY 1")
+        rows = rows_of(
+            conn,
+            "SELECT p.product_id AS product, p.description, p.script_id AS script, s.path "
+            "FROM products p LEFT JOIN lot_scripts s USING (script_id) ORDER BY 1",
+        )
     table(rows, ["product", "script", "path", "description"], as_json)
 
 
@@ -408,8 +442,9 @@ def script() -> None:
 @script.command("register")
 @click.argument("script_id")
 @click.argument("path", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--product", "products", multiple=True, help="Product made by this script (created if new; repeat "
-                                                            "for several).")
+@click.option(
+    "--product", "products", multiple=True, help="Product made by this script (created if new; repeat for several)."
+)
 @click.option("--description", help="What the script does.")
 def script_register(script_id: str, path: Path, products: tuple[str, ...], description: str | None) -> None:
     """Register a lot script file (it must define main(entity)) and the products it makes."""
@@ -423,19 +458,22 @@ def script_register(script_id: str, path: Path, products: tuple[str, ...], descr
         stored = str(full)
 
     def write(cur: psycopg.Cursor[Any]) -> None:
-        cur.execute("INSERT INTO lot_scripts (script_id, path, description) VALUES (%s, %s, %s) "
-                    "ON CONFLICT (script_id) DO UPDATE SET path = excluded.path, "
-                    "description = coalesce(excluded.description, lot_scripts.description)",
-                    (script_id, stored, description))
+        cur.execute(
+            "INSERT INTO lot_scripts (script_id, path, description) VALUES (%s, %s, %s) "
+            "ON CONFLICT (script_id) DO UPDATE SET path = excluded.path, "
+            "description = coalesce(excluded.description, lot_scripts.description)",
+            (script_id, stored, description),
+        )
         for p in products:
-            cur.execute("INSERT INTO products (product_id, description, script_id) VALUES (%s, %s, %s) "
-                        "ON CONFLICT (product_id) DO UPDATE SET script_id = excluded.script_id",
-                        (p, description, script_id))
+            cur.execute(
+                "INSERT INTO products (product_id, description, script_id) VALUES (%s, %s, %s) "
+                "ON CONFLICT (product_id) DO UPDATE SET script_id = excluded.script_id",
+                (p, description, script_id),
+            )
 
     with hi_conn(cfg, log) as conn:
         db.transaction(conn, write, log=log)
-    click.echo(f"lot script {script_id} registered ({stored})"
-               + (f" for {', '.join(products)}" if products else ""))
+    click.echo(f"lot script {script_id} registered ({stored})" + (f" for {', '.join(products)}" if products else ""))
 
 
 @script.command("list")
@@ -444,9 +482,12 @@ def script_list(as_json: bool) -> None:
     """Every registered lot script and the products it makes."""
     cfg, log = context()
     with hi_conn(cfg, log) as conn:
-        rows = rows_of(conn, "SELECT s.script_id AS script, s.path, s.description, "
-                             "(SELECT string_agg(product_id, ', ' ORDER BY product_id) FROM products p "
-                             "WHERE p.script_id = s.script_id) AS products FROM lot_scripts s ORDER BY 1")
+        rows = rows_of(
+            conn,
+            "SELECT s.script_id AS script, s.path, s.description, "
+            "(SELECT string_agg(product_id, ', ' ORDER BY product_id) FROM products p "
+            "WHERE p.script_id = s.script_id) AS products FROM lot_scripts s ORDER BY 1",
+        )
     table(rows, ["script", "path", "products", "description"], as_json)
 
 

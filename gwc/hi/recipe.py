@@ -66,12 +66,15 @@ def recipe_add(recipe_id: str, file: Path, description: str | None, approve: boo
         content = file.read_text()
     except (OSError, UnicodeDecodeError) as e:
         raise GwcError(f"cannot read {file} as text: {e}") from e
-    ack = _ask_ers("RECIPE_PUT", message("Recipe_Store", recipe_id=recipe_id, content=content, by=operator(),
-                                         description=description))
+    ack = _ask_ers(
+        "RECIPE_PUT",
+        message("Recipe_Store", recipe_id=recipe_id, content=content, by=operator(), description=description),
+    )
     click.echo(f"{recipe_id} v{ack.version} stored (sha256 {ack.checksum[:12]})" + _note(ack))
     if approve:
-        appr = _ask_ers("RECIPE_APPR", message("Recipe_Approve", recipe_id=recipe_id, version=ack.version,
-                                               by=operator()))
+        appr = _ask_ers(
+            "RECIPE_APPR", message("Recipe_Approve", recipe_id=recipe_id, version=ack.version, by=operator())
+        )
         click.echo(f"{recipe_id} v{appr.version} approved")
 
 
@@ -96,13 +99,16 @@ def _rows(cfg: Config, sql: str, *params: Any) -> list[dict[str, Any]]:
 def recipe_list(as_json: bool) -> None:
     """Every recipe: its versions, the approved one, whether its file is intact, its machines."""
     cfg, _ = context()
-    rows = _rows(cfg, """
+    rows = _rows(
+        cfg,
+        """
         select r.recipe_id, r.description, count(v.version) as versions, a.version as approved, a.checksum,
                (select string_agg(distinct m.machine_id, ' ' order by m.machine_id) from op_machine_recipe m
                  where m.recipe_id = r.recipe_id) as machines
         from recipes r left join recipe_versions v using (recipe_id)
         left join recipe_versions a on a.recipe_id = r.recipe_id and a.approved
-        group by r.recipe_id, r.description, a.version, a.checksum order by r.recipe_id""")
+        group by r.recipe_id, r.description, a.version, a.checksum order by r.recipe_id""",
+    )
     for r in rows:
         r["file"] = file_state(cfg, r["recipe_id"], r["approved"], r["checksum"]) if r["approved"] else None
         r["checksum"] = r["checksum"][:12] if r["checksum"] else None
@@ -115,15 +121,21 @@ def recipe_list(as_json: bool) -> None:
 def recipe_show(recipe_id: str, version: int | None) -> None:
     """The versions of RECIPE_ID, then the content of one (as stored: the original)."""
     cfg, _ = context()
-    rows = _rows(cfg, "select version, approved, checksum, created_by, created_at, note, content "
-                      "from recipe_versions where recipe_id = %s order by version", recipe_id)
+    rows = _rows(
+        cfg,
+        "select version, approved, checksum, created_by, created_at, note, content "
+        "from recipe_versions where recipe_id = %s order by version",
+        recipe_id,
+    )
     if not rows:
         raise GwcError(f"no recipe {recipe_id!r} (see `gwc recipe list`)")
     for r in rows:
         r["file"] = file_state(cfg, recipe_id, r["version"], r["checksum"])
         r["created_at"] = r["created_at"].strftime("%Y-%m-%d %H:%M:%S")
-    table([{**r, "checksum": r["checksum"][:12], "approved": "yes" if r["approved"] else ""} for r in rows],
-          ["version", "approved", "checksum", "file", "created_by", "created_at", "note"])
+    table(
+        [{**r, "checksum": r["checksum"][:12], "approved": "yes" if r["approved"] else ""} for r in rows],
+        ["version", "approved", "checksum", "file", "created_by", "created_at", "note"],
+    )
     chosen = next((r for r in rows if (r["version"] == version if version else r["approved"])), None)
     if chosen is None:
         raise GwcError(f"recipe {recipe_id} has no " + (f"version {version}" if version else "approved version"))

@@ -72,9 +72,12 @@ def cancel(request_key: int | None, entity_id: int | None) -> None:
     cfg, log = context()
     what = f"request {request_key}" if request_key is not None else f"the requests of entity {entity_id}"
     with hi_bus(cfg, log) as bus:
-        conv, batch = bus.request("CANCEL_RE", message("Cancel_Request", request_key=request_key, entity_id=entity_id,
-                                                        by=f"hi.{cfg.cell_name}"),
-                                  to="msched", timeout=CANCEL_TIMEOUT)
+        conv, batch = bus.request(
+            "CANCEL_RE",
+            message("Cancel_Request", request_key=request_key, entity_id=entity_id, by=f"hi.{cfg.cell_name}"),
+            to="msched",
+            timeout=CANCEL_TIMEOUT,
+        )
         conv.end()
     ack = batch.first
     if ack.ack_code == AckCode.REQ_KEY_U:

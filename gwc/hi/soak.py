@@ -18,15 +18,34 @@ from gwc.soak.plan import ACTION_WEIGHTS
 @click.option("--minutes", type=float, default=2.0, show_default=True, help="How long lots and faults keep coming.")
 @click.option("--seed", type=int, default=1, show_default=True, help="Seed of the lots and the faults.")
 @click.option("--machines", type=int, default=6, show_default=True, help="Dummy machines in the private cell.")
-@click.option("--only", "kinds", multiple=True, type=click.Choice(sorted(ACTION_WEIGHTS)),
-              help="Only these fault kinds (repeatable; default: all).")
-@click.option("--replay", type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="Run again the scenario recorded in this actions.jsonl (its seed and options).")
-@click.option("--dir", "where", type=click.Path(file_okay=False, path_type=Path),
-              help="The soak's folder (default: var/soak): actions.jsonl, report.json, the private cell.")
+@click.option(
+    "--only",
+    "kinds",
+    multiple=True,
+    type=click.Choice(sorted(ACTION_WEIGHTS)),
+    help="Only these fault kinds (repeatable; default: all).",
+)
+@click.option(
+    "--replay",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Run again the scenario recorded in this actions.jsonl (its seed and options).",
+)
+@click.option(
+    "--dir",
+    "where",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="The soak's folder (default: var/soak): actions.jsonl, report.json, the private cell.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
-def soak(minutes: float, seed: int, machines: int, kinds: tuple[str, ...], replay: Path | None,
-         where: Path | None, as_json: bool) -> None:
+def soak(
+    minutes: float,
+    seed: int,
+    machines: int,
+    kinds: tuple[str, ...],
+    replay: Path | None,
+    where: Path | None,
+    as_json: bool,
+) -> None:
     """Run lots through a private cell of MSCHED, the servers and dummy machines while a seeded
     driver kill -9s WCs, MEs, machine pairs, MSCHED and the servers, stops machines through the HI
     and turns on the bus fault injector. Exit 0 only when every lot finished or failed with a
@@ -40,9 +59,17 @@ def soak(minutes: float, seed: int, machines: int, kinds: tuple[str, ...], repla
     options = dict(seed=seed, minutes=minutes, machines=machines, kinds=tuple(kinds))
     if replay is not None:
         h = read_header(replay)
-        options = dict(seed=h["seed"], minutes=h["minutes"], machines=h["machines"], kinds=tuple(h["kinds"]),
-                       run_time=h["run_time"], lot_every=h["lot_every"], action_every=tuple(h["action_every"]),
-                       max_active=h["max_active"], script_path=h["script_path"])
+        options = dict(
+            seed=h["seed"],
+            minutes=h["minutes"],
+            machines=h["machines"],
+            kinds=tuple(h["kinds"]),
+            run_time=h["run_time"],
+            lot_every=h["lot_every"],
+            action_every=tuple(h["action_every"]),
+            max_active=h["max_active"],
+            script_path=h["script_path"],
+        )
         click.echo(f"replaying {replay}: seed {h['seed']}, {h['minutes']:g} min")
     opts = SoakOptions(var=(where or cfg.var / "soak"), database_url=os.environ.get("GWC_DATABASE_URL"), **options)
     if replay is not None and replay.resolve() == (opts.var / "actions.jsonl").resolve():

@@ -104,10 +104,21 @@ class _Pending:
     __init__ (default factories, keyword handling) costs more than the rest of the bookkeeping.
     """
 
-    __slots__ = ("data", "waiting", "first_sent", "rto", "batch", "conv", "cls", "msg", "to", "base")
+    __slots__ = ("base", "batch", "cls", "conv", "data", "first_sent", "msg", "rto", "to", "waiting")
 
-    def __init__(self, data: bytes, waiting: set[str], first_sent: float, rto: float, batch: list[int],
-                 conv: str, cls: str, msg: str, to: str | None, base: int) -> None:
+    def __init__(
+        self,
+        data: bytes,
+        waiting: set[str],
+        first_sent: float,
+        rto: float,
+        batch: list[int],
+        conv: str,
+        cls: str,
+        msg: str,
+        to: str | None,
+        base: int,
+    ) -> None:
         self.data = data
         self.waiting = waiting
         self.first_sent = first_sent
@@ -143,7 +154,7 @@ class _Outgoing:
 class _Stream:
     """Per (conversation, sender, incarnation): reorder buffer and the batch being assembled."""
 
-    __slots__ = ("next_idx", "buffer", "batch", "touched", "gap_since")
+    __slots__ = ("batch", "buffer", "gap_since", "next_idx", "touched")
 
     def __init__(self, next_idx: int, touched: float) -> None:
         self.next_idx = next_idx
@@ -222,7 +233,7 @@ class Conversation:
             waiter = self._waiter = bus._waiter(t)
             try:
                 batch = await waiter
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 who = self.peer or f"any module listening to {self.cls}"
                 err = ConversationTimeout(f"{self.cls} conversation {self.id}: no answer from {who} within {t:.1f}s")
                 bus.stats["timeouts"] += 1
@@ -360,7 +371,7 @@ class Bus:
             self._flushed = self._loop.create_future()
             try:
                 await asyncio.wait_for(self._flushed, flush)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 self.log.warning("closing with %d datagram(s) unacknowledged", len(self._pending))
         for timer in (self._heartbeat, self._ack_timer, self._rtx_timer, self._deadline_timer):
             if timer is not None:
@@ -405,8 +416,9 @@ class Bus:
         code = wire.kernel_filter(self.name, self.inc, self._interest)
         program = ctypes.create_string_buffer(b"".join(struct.pack("HBBI", *c) for c in code))
         try:  # struct sock_fprog {unsigned short len; struct sock_filter *filter;}: the kernel copies the program
-            self._sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER,
-                                  struct.pack("HP", len(code), ctypes.addressof(program)))
+            self._sock.setsockopt(
+                socket.SOL_SOCKET, SO_ATTACH_FILTER, struct.pack("HP", len(code), ctypes.addressof(program))
+            )
         except OSError as e:  # not Linux, or filters forbidden: the bus drops the same datagrams itself
             self.log.warning("no kernel filter on the bus socket (%s): every datagram wakes this module", e)
             self._kernel_filter = False
@@ -484,7 +496,7 @@ class Bus:
             self._incoming_waiters.append(waiter)
             try:
                 conv = await waiter
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 return None
             finally:
                 self._deadlines.pop(waiter, None)
@@ -524,7 +536,7 @@ class Bus:
             if deadline <= now:
                 del self._deadlines[waiter]
                 if not waiter.done():
-                    waiter.set_exception(asyncio.TimeoutError())
+                    waiter.set_exception(TimeoutError())
             elif deadline < nxt:
                 nxt = deadline
         self._deadline_at = nxt
@@ -582,12 +594,44 @@ class Bus:
         # Encode everything before sending anything: an oversize batch fails whole, at the sender.
         try:
             if n == 1:  # the usual case, without the batch's numbering
-                datas = [encode(own, "msg", seq + 1, conv_id, cls, start, 0, 0, base, to, messages[0].name,
-                                messages[0].fields, acks, to_inc)]
+                datas = [
+                    encode(
+                        own,
+                        "msg",
+                        seq + 1,
+                        conv_id,
+                        cls,
+                        start,
+                        0,
+                        0,
+                        base,
+                        to,
+                        messages[0].name,
+                        messages[0].fields,
+                        acks,
+                        to_inc,
+                    )
+                ]
             else:
-                datas = [encode(own, "msg", seq + 1 + i, conv_id, cls, start + i, n - 1 if i == 0 else 0, i, base, to,
-                                m.name, m.fields, acks if i == 0 else (), to_inc if i == 0 else 0)
-                         for i, m in enumerate(messages)]
+                datas = [
+                    encode(
+                        own,
+                        "msg",
+                        seq + 1 + i,
+                        conv_id,
+                        cls,
+                        start + i,
+                        n - 1 if i == 0 else 0,
+                        i,
+                        base,
+                        to,
+                        m.name,
+                        m.fields,
+                        acks if i == 0 else (),
+                        to_inc if i == 0 else 0,
+                    )
+                    for i, m in enumerate(messages)
+                ]
         except MessageError:
             if acks:
                 self._acks_due.setdefault((to, to_inc), []).extend(acks)  # type: ignore[arg-type]
@@ -608,18 +652,25 @@ class Bus:
             pending, first_due = self._pending, self._due_first
             for i, data in enumerate(datas):
                 seq += 1
-                pending[seq] = _Pending(data, set(waiting) if i else waiting, now, rto, batch, conv_id, cls,
-                                        messages[i].name, to, base)
+                pending[seq] = _Pending(
+                    data, set(waiting) if i else waiting, now, rto, batch, conv_id, cls, messages[i].name, to, base
+                )
                 first_due.append((now + rto, seq))
             if self._rtx_timer is None or now + rto < self._rtx_at:
                 self._arm_retransmit(now + rto)
         elif to is None:
-            self.log.log(TRACE, "%s: nobody listens to %s yet", cls, messages[0].name,
-                         extra={"conv": f"{conv_id} {cls}"})
+            self.log.log(
+                TRACE, "%s: nobody listens to %s yet", cls, messages[0].name, extra={"conv": f"{conv_id} {cls}"}
+            )
         self.stats["sent"] += n
         if self.log.isEnabledFor(TRACE):
-            self.log.log(TRACE, "sent %s to %s", ", ".join(m.name for m in messages), to or "all",
-                         extra={"conv": f"{conv_id} {cls}"})
+            self.log.log(
+                TRACE,
+                "sent %s to %s",
+                ", ".join(m.name for m in messages),
+                to or "all",
+                extra={"conv": f"{conv_id} {cls}"},
+            )
         return out.next_idx
 
     def _transmit(self, data: bytes) -> None:
@@ -676,7 +727,10 @@ class Bus:
             self.stats["gave_up"] += 1
             self.log.warning(
                 "gave up on %s seq %d: no ack from %s within %.1fs",
-                p.msg, seq, ", ".join(sorted(p.waiting)), self.cfg.retry_deadline,
+                p.msg,
+                seq,
+                ", ".join(sorted(p.waiting)),
+                self.cfg.retry_deadline,
                 extra={"conv": f"{p.conv} {p.cls}"},
             )
             self._done(seq)
@@ -724,12 +778,18 @@ class Bus:
         due, self._acks_due = self._acks_due, {}
         for (src, inc), seqs in due.items():
             for i in range(0, len(seqs), 1000):
-                self._raw_send(Envelope(kind="ack", src=self.name, inc=self.inc, to=src, to_inc=inc,
-                                        acks=tuple(seqs[i:i + 1000])))
+                self._raw_send(
+                    Envelope(
+                        kind="ack", src=self.name, inc=self.inc, to=src, to_inc=inc, acks=tuple(seqs[i : i + 1000])
+                    )
+                )
 
     def _hello(self, query: bool = False, to: str | None = None) -> None:
-        self._raw_send(Envelope(kind="hello", src=self.name, inc=self.inc, interest=tuple(sorted(self._interest)),
-                                query=query, to=to))
+        self._raw_send(
+            Envelope(
+                kind="hello", src=self.name, inc=self.inc, interest=tuple(sorted(self._interest)), query=query, to=to
+            )
+        )
 
     async def _beat(self) -> None:
         """Every heartbeat: read the beats that came, send ours, then look for who went silent."""
@@ -784,8 +844,12 @@ class Bus:
         if self._sock is None:
             return
         try:
-            self._sock.sendto(wire.encode(Envelope(kind="hello", src=self.name, inc=self.inc,
-                                                   interest=tuple(sorted(self._interest)))), self._beat_dest)
+            self._sock.sendto(
+                wire.encode(
+                    Envelope(kind="hello", src=self.name, inc=self.inc, interest=tuple(sorted(self._interest)))
+                ),
+                self._beat_dest,
+            )
         except OSError as e:  # lost like a dropped datagram: the next beat makes up for it
             self.stats["send_lost"] += 1
             self.log.debug("beat not sent: %s", e)
@@ -980,16 +1044,16 @@ class Bus:
         seen.new.add(seq)
         if conv is None and self._is_ended(conv_id):
             self.stats["late"] += 1
-            self.log.warning("late %s from %s in ended conversation: dropped", env.msg, src,
-                             extra={"conv": f"{conv_id} {env.cls}"})
+            self.log.warning(
+                "late %s from %s in ended conversation: dropped", env.msg, src, extra={"conv": f"{conv_id} {env.cls}"}
+            )
             return
         try:
             msg: Message | None = catalogue.check(env.cls, env.msg, env.fields)
         except MessageError as e:
             # Still take its place in the order, so the messages after it are not held up forever.
             self.stats["invalid"] += 1
-            self.log.warning("dropped invalid %s from %s: %s", env.msg, src, e,
-                             extra={"conv": f"{conv_id} {env.cls}"})
+            self.log.warning("dropped invalid %s from %s: %s", env.msg, src, e, extra={"conv": f"{conv_id} {env.cls}"})
             msg = None
         skey = (conv_id, src, inc)
         streams = self._streams
@@ -1002,8 +1066,14 @@ class Bus:
             streams.move_to_end(skey)
         idx = env.idx
         if idx < st.next_idx:  # a new seq for a place already passed: never sent by a well-behaved peer
-            self.log.warning("dropped %s from %s: idx %d is behind the stream (%d)", env.msg, src, idx,
-                             st.next_idx, extra={"conv": f"{conv_id} {env.cls}"})
+            self.log.warning(
+                "dropped %s from %s: idx %d is behind the stream (%d)",
+                env.msg,
+                src,
+                idx,
+                st.next_idx,
+                extra={"conv": f"{conv_id} {env.cls}"},
+            )
             return
         if idx == st.next_idx and not env.more and not env.part and not st.buffer and not st.batch:
             st.next_idx += 1  # the usual case: a one-message batch, in order, nothing waiting
@@ -1048,14 +1118,22 @@ class Bus:
             self._gaps.pop(skey, None)
         if lost:
             self.stats["gaps"] += 1
-            self.log.warning("%d message(s) from %s never arrived (the sender gave up on them); going on",
-                             lost, skey[1], extra={"conv": skey[0]})
+            self.log.warning(
+                "%d message(s) from %s never arrived (the sender gave up on them); going on",
+                lost,
+                skey[1],
+                extra={"conv": skey[0]},
+            )
 
     def _deliver(self, head: Envelope, conv: Conversation | None, msgs: tuple[Message | None, ...]) -> None:
         for m in msgs:
             if m is None:
-                self.log.warning("dropped a batch of %d from %s: it holds an invalid message", len(msgs), head.src,
-                                 extra={"conv": f"{head.conv} {head.cls}"})
+                self.log.warning(
+                    "dropped a batch of %d from %s: it holds an invalid message",
+                    len(msgs),
+                    head.src,
+                    extra={"conv": f"{head.conv} {head.cls}"},
+                )
                 return
         self.stats["delivered"] += 1
         batch = Batch(head.src, msgs)  # type: ignore[arg-type]
@@ -1066,8 +1144,13 @@ class Bus:
             return
         if head.msg != catalogue.CONVERSATION_CLASSES[head.cls].messages[0]:
             self.stats["stray"] += 1
-            self.log.warning("stray %s from %s: not the opening of %s and no such conversation here", head.msg,
-                             head.src, head.cls, extra={"conv": f"{head.conv} {head.cls}"})
+            self.log.warning(
+                "stray %s from %s: not the opening of %s and no such conversation here",
+                head.msg,
+                head.src,
+                head.cls,
+                extra={"conv": f"{head.conv} {head.cls}"},
+            )
             return
         conv = Conversation(self, head.conv, head.cls, head.src, first=batch)
         self._convs[conv.id] = conv
@@ -1128,6 +1211,7 @@ class BlockingBus:
 
     def set_interest(self, classes: Iterable[str]) -> None:
         """Change the interest filter; returns once it applies (unknown classes raise here)."""
+
         async def _set() -> None:
             self.bus.set_interest(list(classes))
 

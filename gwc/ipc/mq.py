@@ -75,11 +75,13 @@ class MeMessage:
     alarm_text: str = ""
     seq: int = 0
 
-    def reply(self, ack_code: AckCode | None = AckCode.ACK_OK, message_id: MessageId | None = None,
-              **fields: str) -> MeMessage:
+    def reply(
+        self, ack_code: AckCode | None = AckCode.ACK_OK, message_id: MessageId | None = None, **fields: str
+    ) -> MeMessage:
         """The answer to this request: same seq, same id unless told otherwise (Listing 7)."""
-        return replace(self, message_id=message_id if message_id is not None else self.message_id,
-                       ack_code=ack_code, **fields)
+        return replace(
+            self, message_id=message_id if message_id is not None else self.message_id, ack_code=ack_code, **fields
+        )
 
     def describe(self) -> str:
         parts = [self.message_id.name, f"seq {self.seq}"]
@@ -95,8 +97,10 @@ class MeMessage:
 # Lookup tables: packing and unpacking a record is on every round trip, so no enum calls there.
 _IDS = {m.value: m for m in MessageId}
 _ACK_OUT: dict[object, bytes] = {None: b"", **{c: c.value.encode("ascii") for c in AckCode}}
-_ACK_IN: dict[bytes, AckCode | None] = {b"\0" * ACK_CODE_SIZE: None,
-                                        **{c.value.encode("ascii").ljust(ACK_CODE_SIZE, b"\0"): c for c in AckCode}}
+_ACK_IN: dict[bytes, AckCode | None] = {
+    b"\0" * ACK_CODE_SIZE: None,
+    **{c.value.encode("ascii").ljust(ACK_CODE_SIZE, b"\0"): c for c in AckCode},
+}
 
 
 def _field(name: str, value: str, size: int) -> bytes:
@@ -104,8 +108,10 @@ def _field(name: str, value: str, size: int) -> bytes:
         raise QueueError(f"queue field {name} must be text, got {type(value).__name__}")
     data = value.encode("utf-8")
     if len(data) > size:
-        raise QueueError(f"queue field {name} is {len(data)} bytes, its slot holds {size}: refused "
-                         f"(nothing is truncated): {value[:60]!r}...")
+        raise QueueError(
+            f"queue field {name} is {len(data)} bytes, its slot holds {size}: refused "
+            f"(nothing is truncated): {value[:60]!r}..."
+        )
     if b"\0" in data:
         raise QueueError(f"queue field {name} contains a NUL byte: refused")
     return data
@@ -121,10 +127,16 @@ def pack(msg: MeMessage) -> bytes:
         raise QueueError(f"unknown ack code {msg.ack_code!r}")
     if not 0 <= msg.seq < 2**32:
         raise QueueError(f"sequence number {msg.seq} does not fit 32 bits")
-    body = _BODY.pack(MAGIC, VERSION, mid, msg.seq, ack,
-                      _field("recipe_id", msg.recipe_id, RECIPE_ID_SIZE) if msg.recipe_id else b"",
-                      _field("file_name", msg.file_name, FILE_NAME_SIZE) if msg.file_name else b"",
-                      _field("alarm_text", msg.alarm_text, ALARM_TEXT_SIZE) if msg.alarm_text else b"")
+    body = _BODY.pack(
+        MAGIC,
+        VERSION,
+        mid,
+        msg.seq,
+        ack,
+        _field("recipe_id", msg.recipe_id, RECIPE_ID_SIZE) if msg.recipe_id else b"",
+        _field("file_name", msg.file_name, FILE_NAME_SIZE) if msg.file_name else b"",
+        _field("alarm_text", msg.alarm_text, ALARM_TEXT_SIZE) if msg.alarm_text else b"",
+    )
     return body + _CRC.pack(zlib.crc32(body))
 
 
@@ -144,13 +156,15 @@ def unpack(data: bytes) -> MeMessage:
     """A record back from its bytes; QueueError naming what is wrong with a garbled one."""
     if len(data) != LAYOUT_SIZE:
         raise QueueError(f"garbled record: {len(data)} bytes, expected {LAYOUT_SIZE}")
-    body, (crc,) = data[: _BODY.size], _CRC.unpack(data[_BODY.size:])
+    body, (crc,) = data[: _BODY.size], _CRC.unpack(data[_BODY.size :])
     magic, version, mid, seq, ack, recipe, file_name, alarm = _BODY.unpack(body)
     if magic != MAGIC:
         raise QueueError(f"garbled record: magic {magic!r}, expected {MAGIC!r}")
     if version != VERSION:
-        raise QueueError(f"record of layout version {version}, this program speaks {VERSION}: "
-                         "run the same GWC version on both halves")
+        raise QueueError(
+            f"record of layout version {version}, this program speaks {VERSION}: "
+            "run the same GWC version on both halves"
+        )
     if zlib.crc32(body) != crc:
         raise QueueError("garbled record: CRC mismatch")
     message_id = _IDS.get(mid)
@@ -158,8 +172,14 @@ def unpack(data: bytes) -> MeMessage:
         raise QueueError(f"garbled record: unknown message id {mid}")
     if ack not in _ACK_IN:
         raise QueueError(f"garbled record: unknown ack code {ack.rstrip(bytes(1))!r}")
-    return MeMessage(message_id, _text("file_name", file_name), _text("recipe_id", recipe), _ACK_IN[ack],
-                     _text("alarm_text", alarm), seq)
+    return MeMessage(
+        message_id,
+        _text("file_name", file_name),
+        _text("recipe_id", recipe),
+        _ACK_IN[ack],
+        _text("alarm_text", alarm),
+        seq,
+    )
 
 
 def queue_names(prefix: str, machine_id: str) -> tuple[str, str]:
@@ -194,15 +214,18 @@ def remove_queues(prefix: str, machine_ids: list[str]) -> list[str]:
 def open_queue(name: str, max_messages: int = MAX_MESSAGES) -> posix_ipc.MessageQueue:
     """Create the queue or open the one the other half created; refuse one of another layout."""
     try:
-        q = posix_ipc.MessageQueue(name, posix_ipc.O_CREAT, mode=0o600, max_messages=max_messages,
-                                   max_message_size=LAYOUT_SIZE)
+        q = posix_ipc.MessageQueue(
+            name, posix_ipc.O_CREAT, mode=0o600, max_messages=max_messages, max_message_size=LAYOUT_SIZE
+        )
     except (posix_ipc.Error, OSError, ValueError) as e:
         raise QueueError(f"cannot open message queue {name}: {e} (queue limits: /proc/sys/fs/mqueue)") from e
     if q.max_message_size != LAYOUT_SIZE:
         size = q.max_message_size
         q.close()
-        raise QueueError(f"message queue {name} exists with messages of {size} bytes, not {LAYOUT_SIZE}: "
-                         "left by another GWC version; remove it with `gwc stop`")
+        raise QueueError(
+            f"message queue {name} exists with messages of {size} bytes, not {LAYOUT_SIZE}: "
+            "left by another GWC version; remove it with `gwc stop`"
+        )
     return q
 
 
@@ -213,8 +236,9 @@ class Channel:
     other only receives (the WC's reader thread does exactly that).
     """
 
-    def __init__(self, prefix: str, machine_id: str, side: Side, log: logging.Logger,
-                 max_messages: int = MAX_MESSAGES) -> None:
+    def __init__(
+        self, prefix: str, machine_id: str, side: Side, log: logging.Logger, max_messages: int = MAX_MESSAGES
+    ) -> None:
         if side not in ("wc", "me"):
             raise QueueError(f"a channel side is 'wc' or 'me', not {side!r}")
         self.machine_id = machine_id
@@ -267,8 +291,10 @@ class Channel:
         try:
             q.send(data, timeout=max(0.0, timeout))
         except posix_ipc.BusyError:
-            raise QueueFull(f"queue {self.out_name} is full ({q.max_messages} records waiting): "
-                             f"the {self._peer} is not reading; {msg.message_id.name} not sent") from None
+            raise QueueFull(
+                f"queue {self.out_name} is full ({q.max_messages} records waiting): "
+                f"the {self._peer} is not reading; {msg.message_id.name} not sent"
+            ) from None
         except posix_ipc.Error as e:
             raise QueueError(f"sending {msg.message_id.name} on {self.out_name} failed: {e}") from e
         if self.log.isEnabledFor(TRACE):

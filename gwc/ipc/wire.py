@@ -99,7 +99,7 @@ def _tagged(data: bytes, o: int, n: int, expected: int) -> str | None:
         if expected:
             raise MessageError("a filter tag does not match its name")
         return None
-    b = data[o:o + n]
+    b = data[o : o + n]
     name, t = _DECODED.get(b) or _decoded(b)
     if t != expected:
         raise MessageError("a filter tag does not match its name")
@@ -121,9 +121,13 @@ _dumps = json.JSONEncoder(separators=(",", ":"), ensure_ascii=False, allow_nan=F
 # The C encoder and scanner behind json.dumps/json.loads, called directly: the Python layers around
 # them (a new encoder object per call, whitespace regexes) cost more than the work on a small object.
 # No circular-reference bookkeeping: a cyclic value ends in RecursionError, refused like any other.
-_c_encode = json.encoder.c_make_encoder(
-    None, _dumps.__self__.default, json.encoder.encode_basestring, None, ":", ",", False, False, False
-) if json.encoder.c_make_encoder else None
+_c_encode = (
+    json.encoder.c_make_encoder(
+        None, _dumps.__self__.default, json.encoder.encode_basestring, None, ":", ",", False, False, False
+    )
+    if json.encoder.c_make_encoder
+    else None
+)
 _scan = json.JSONDecoder().scan_once
 
 
@@ -151,14 +155,44 @@ def origin(src: str, inc: int) -> Origin:
 
 def encode(env: Envelope) -> bytes:
     """Serialise one envelope; refuse what cannot fit one datagram (or the layout)."""
-    return encode_parts(origin(env.src, env.inc), env.kind, env.seq, env.conv, env.cls, env.idx, env.more,
-                        env.part, env.base, env.to, env.msg, env.fields, env.acks, env.to_inc, env.interest,
-                        env.query)
+    return encode_parts(
+        origin(env.src, env.inc),
+        env.kind,
+        env.seq,
+        env.conv,
+        env.cls,
+        env.idx,
+        env.more,
+        env.part,
+        env.base,
+        env.to,
+        env.msg,
+        env.fields,
+        env.acks,
+        env.to_inc,
+        env.interest,
+        env.query,
+    )
 
 
-def encode_parts(orig: Origin, kind: str, seq: int, conv: str, cls: str, idx: int, more: int, part: int, base: int,
-                 to: str | None, msg: str, fields: dict[str, Any], acks: Iterable[int] = (), to_inc: int = 0,
-                 interest: Iterable[str] = (), query: bool = False) -> bytes:
+def encode_parts(
+    orig: Origin,
+    kind: str,
+    seq: int,
+    conv: str,
+    cls: str,
+    idx: int,
+    more: int,
+    part: int,
+    base: int,
+    to: str | None,
+    msg: str,
+    fields: dict[str, Any],
+    acks: Iterable[int] = (),
+    to_inc: int = 0,
+    interest: Iterable[str] = (),
+    query: bool = False,
+) -> bytes:
     """encode() from the parts, for the bus's hot path (no Envelope made just to be read).
 
     orig is origin(src, inc) of the sender.
@@ -191,9 +225,25 @@ def encode_parts(orig: Origin, kind: str, seq: int, conv: str, cls: str, idx: in
                 parts += (bytes([len(name)]), name)
         if fields:
             parts.append(_json(fields).encode())
-        parts[1] = _AFTER_PREFIX.pack(ttag, ktag if k else 0, _KIND_CODE[kind], QUERY if query else 0, seq, idx,
-                                      more, part, base, to_inc, len(src), len(c), len(k), len(t), len(m), len(acks),
-                                      len(interest))  # type: ignore[arg-type]
+        parts[1] = _AFTER_PREFIX.pack(
+            ttag,
+            ktag if k else 0,
+            _KIND_CODE[kind],
+            QUERY if query else 0,
+            seq,
+            idx,
+            more,
+            part,
+            base,
+            to_inc,
+            len(src),
+            len(c),
+            len(k),
+            len(t),
+            len(m),
+            len(acks),
+            len(interest),
+        )  # type: ignore[arg-type]
     except MessageError:
         raise
     except (TypeError, ValueError, RecursionError, KeyError, struct.error) as e:
@@ -229,8 +279,9 @@ def decode(data: bytes) -> Envelope:
         raise MessageError(f"unknown wire version {data[3] if n > 3 else None}")
     names = _DECODED
     try:
-        (inc, src_tag, to_tag, cls_tag, kind, flags, seq, idx, more, part, base, to_inc, ls, lc, lk, lt, lm, na,
-         ni) = _FIXED.unpack_from(data, 4)
+        (inc, src_tag, to_tag, cls_tag, kind, flags, seq, idx, more, part, base, to_inc, ls, lc, lk, lt, lm, na, ni) = (
+            _FIXED.unpack_from(data, 4)
+        )
         if ls > MAX_NAME or lc > MAX_NAME or lk > MAX_NAME or lt > MAX_NAME or lm > MAX_NAME:
             raise MessageError(f"a name is longer than {MAX_NAME} bytes")
         o = _BODY + ls
@@ -238,7 +289,7 @@ def decode(data: bytes) -> Envelope:
         if e > n:
             raise MessageError("truncated datagram")
         src = _tagged(data, _BODY, ls, src_tag) or ""
-        conv = data[o:o + lc].decode()
+        conv = data[o : o + lc].decode()
         o += lc
         cls = _tagged(data, o, lk, cls_tag) or ""
         o += lk
@@ -285,8 +336,25 @@ def decode(data: bytes) -> Envelope:
             raise MessageError("only the first message of a batch (part 0) says how many follow")
         if base > idx:
             raise MessageError("base is beyond idx")
-    return Envelope(KINDS[kind], src, inc, seq, conv, cls, idx, more, part, base, to, msg, fields, acks, to_inc,
-                    interest, bool(flags))
+    return Envelope(
+        KINDS[kind],
+        src,
+        inc,
+        seq,
+        conv,
+        cls,
+        idx,
+        more,
+        part,
+        base,
+        to,
+        msg,
+        fields,
+        acks,
+        to_inc,
+        interest,
+        bool(flags),
+    )
 
 
 # Classic BPF (Linux's SO_ATTACH_FILTER), as (code, jt, jf, k): what kernel_filter is made of.
@@ -309,24 +377,38 @@ def kernel_filter(src: str, inc: int, interest: Iterable[str]) -> list[tuple[int
     u = UDP_HEADER
     # (instruction, label to jump to when true, when false); None falls through.
     prog: list[tuple[tuple[int, int], str | None, str | None] | str] = [
-        ((_LD_LEN, 0), None, None), ((_JGE, u + _BODY), None, "keep"),
-        ((_LD_W, u), None, None), ((_JEQ, int.from_bytes(HEADER, "big")), None, "keep"),
-        ((_LD_W, u + OFF_INC), None, None), ((_JEQ, hi), None, "not_own"),
-        ((_LD_W, u + OFF_INC + 4), None, None), ((_JEQ, lo), None, "not_own"),
-        ((_LD_W, u + OFF_SRC_TAG), None, None), ((_JEQ, own), "drop", None),
+        ((_LD_LEN, 0), None, None),
+        ((_JGE, u + _BODY), None, "keep"),
+        ((_LD_W, u), None, None),
+        ((_JEQ, int.from_bytes(HEADER, "big")), None, "keep"),
+        ((_LD_W, u + OFF_INC), None, None),
+        ((_JEQ, hi), None, "not_own"),
+        ((_LD_W, u + OFF_INC + 4), None, None),
+        ((_JEQ, lo), None, "not_own"),
+        ((_LD_W, u + OFF_SRC_TAG), None, None),
+        ((_JEQ, own), "drop", None),
         "not_own",
-        ((_LD_B, u + OFF_KIND), None, None), ((_JEQ, _KIND_CODE["msg"]), "msg", None),
+        ((_LD_B, u + OFF_KIND), None, None),
+        ((_JEQ, _KIND_CODE["msg"]), "msg", None),
         # ack, hello, bye: addressed to us, or to nobody in particular (a hello or bye for everyone)
-        ((_LD_W, u + OFF_TO_TAG), None, None), ((_JEQ, own), "keep", None), ((_JEQ, 0), "keep", "drop"),
+        ((_LD_W, u + OFF_TO_TAG), None, None),
+        ((_JEQ, own), "keep", None),
+        ((_JEQ, 0), "keep", "drop"),
         "msg",
-        ((_LD_W, u + OFF_TO_TAG), None, None), ((_JEQ, own), "keep", None), ((_JEQ, 0), None, "drop"),
-        ((_LD_W, u + OFF_PART), None, None), ((_TAX, 0), None, None),
-        ((_LD_W, u + OFF_IDX), None, None), ((_SUB_X, 0), None, None),
+        ((_LD_W, u + OFF_TO_TAG), None, None),
+        ((_JEQ, own), "keep", None),
+        ((_JEQ, 0), None, "drop"),
+        ((_LD_W, u + OFF_PART), None, None),
+        ((_TAX, 0), None, None),
+        ((_LD_W, u + OFF_IDX), None, None),
+        ((_SUB_X, 0), None, None),
         ((_JEQ, 0), None, "keep"),  # idx - part > 0: a later batch of a conversation begun before
         ((_LD_W, u + OFF_CLS_TAG), None, None),
         *(((_JEQ, t), "keep", None) for t in sorted({tag(c) for c in interest})),
-        "drop", ((_RET, 0), None, None),
-        "keep", ((_RET, _WHOLE), None, None),
+        "drop",
+        ((_RET, 0), None, None),
+        "keep",
+        ((_RET, _WHOLE), None, None),
     ]
     where: dict[str, int] = {}  # label -> index of the instruction after it
     n = 0

@@ -1,10 +1,35 @@
 """gwc.lot: the operation-entity library lot scripts are written with (see gwc/lot/entity.py, docs/lot-scripts.md)."""
 
-from gwc.lot.entity import (MachineRequest, Operation, OperationEntity, Reservation, Run, Timeouts, create_lot,
-                            read_traveller, traveller_path, verdict)
-from gwc.lot.errors import (LotError, LotTimeout, MachineLost, RequestCancelled, RequestRefused, RunFailed,
-                            ScriptStopped)
+from gwc.lot.entity import (
+    MachineRequest,
+    Operation,
+    OperationEntity,
+    Reservation,
+    Run,
+    Timeouts,
+    create_lot,
+    read_traveller,
+    traveller_path,
+    verdict,
+)
+from gwc.lot.errors import LotError, LotTimeout, MachineLost, RequestCancelled, RequestRefused, RunFailed, ScriptStopped
 
-__all__ = ["LotError", "LotTimeout", "MachineLost", "MachineRequest", "Operation", "OperationEntity",
-           "RequestCancelled", "RequestRefused", "Reservation", "Run", "RunFailed", "ScriptStopped", "Timeouts",
-           "create_lot", "read_traveller", "traveller_path", "verdict"]
+__all__ = [
+    "LotError",
+    "LotTimeout",
+    "MachineLost",
+    "MachineRequest",
+    "Operation",
+    "OperationEntity",
+    "RequestCancelled",
+    "RequestRefused",
+    "Reservation",
+    "Run",
+    "RunFailed",
+    "ScriptStopped",
+    "Timeouts",
+    "create_lot",
+    "read_traveller",
+    "traveller_path",
+    "verdict",
+]

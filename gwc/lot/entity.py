@@ -61,8 +61,7 @@ from gwc.errors import BusError, ConversationTimeout, DatabaseError, GwcError
 from gwc.ipc.bus import Batch, BlockingBus, Bus, Conversation, Peer
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, LotState, MachineStatus
-from gwc.lot.errors import (LotError, LotTimeout, MachineLost, RequestCancelled, RequestRefused, RunFailed,
-                            ScriptStopped)
+from gwc.lot.errors import LotError, LotTimeout, MachineLost, RequestCancelled, RequestRefused, RunFailed, ScriptStopped
 from gwc.module import NOT_STARTED, ask
 
 T = TypeVar("T")
@@ -292,8 +291,9 @@ class MachineRequest:
 class OperationEntity:
     """One operation entity: a lot script's handle on the cell (see the module docstring)."""
 
-    def __init__(self, cfg: Config, entity_id: int, log: logging.Logger, timeouts: Timeouts | None = None,
-                 max_tries: int = 3) -> None:
+    def __init__(
+        self, cfg: Config, entity_id: int, log: logging.Logger, timeouts: Timeouts | None = None, max_tries: int = 3
+    ) -> None:
         self.cfg = cfg
         self.entity_id = int(entity_id)
         self.name = f"lot:{self.entity_id}"
@@ -341,8 +341,12 @@ class OperationEntity:
         try:
             if self.state in (S.COMPLETED, S.WAITING_EXPORT, S.EXPORTED):
                 if exc is not None:  # its work is done: the lot stays as it is, the operator exports it
-                    self.log.warning("lot script of entity %d stopped after its lot completed (%s): entity stays %s",
-                                     self.entity_id, _reason(exc), self.state)
+                    self.log.warning(
+                        "lot script of entity %d stopped after its lot completed (%s): entity stays %s",
+                        self.entity_id,
+                        _reason(exc),
+                        self.state,
+                    )
             elif exc is not None:
                 self.fail(_reason(exc))
             elif self.state != S.FAILED:
@@ -356,8 +360,9 @@ class OperationEntity:
         if self.state in (S.FAILED, S.EXPORTED):
             self._failed = True  # nothing of ours to clean up
             raise LotError(f"entity {self.entity_id} is already {self.state}: nothing to do")
-        self._bus = BlockingBus(self.name, self.cfg.bus, self.log,
-                                interest=LISTENS if self.state in IMPORTED else WAITING_LISTENS)
+        self._bus = BlockingBus(
+            self.name, self.cfg.bus, self.log, interest=LISTENS if self.state in IMPORTED else WAITING_LISTENS
+        )
         self._bus.call_soon(self._watch_peers, self._bus.bus)
         self._bus.peers()  # returns after _watch_peers ran (the bus thread runs callbacks in order)
         self._spawn(self._listen())
@@ -365,10 +370,17 @@ class OperationEntity:
         self._reporter = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"{self.name}-reports")
         self._reporter.submit(lambda: None)
         ack = self.entity_request("attach", script_pid=os.getpid())
-        self.log.info("entity %d attached (lot %s, product %s, state %s, pid %d)", self.entity_id, self.lot_id,
-                      self.product_id, ack.state, os.getpid())
-        self.traveller.update(lot_id=self.lot_id, product_id=self.product_id, pid=os.getpid(),
-                              started=_now(), state=self.state)
+        self.log.info(
+            "entity %d attached (lot %s, product %s, state %s, pid %d)",
+            self.entity_id,
+            self.lot_id,
+            self.product_id,
+            ack.state,
+            os.getpid(),
+        )
+        self.traveller.update(
+            lot_id=self.lot_id, product_id=self.product_id, pid=os.getpid(), started=_now(), state=self.state
+        )
         self._save()
 
     def close(self) -> None:
@@ -414,8 +426,14 @@ class OperationEntity:
 
     # ----------------------------------------------------------------- the Lot Server
 
-    def entity_request(self, action: str, reason: str | None = None, script_pid: int | None = None,
-                       timeout: float | None = None, within: float | None = None) -> Message:
+    def entity_request(
+        self,
+        action: str,
+        reason: str | None = None,
+        script_pid: int | None = None,
+        timeout: float | None = None,
+        within: float | None = None,
+    ) -> Message:
         """ENTITY_REQ: ask the Lot Server to move this entity (import, export, completed, failed ...).
 
         Asked again while the Lot Server is away or not started (see `_ask`). Every action is safe to
@@ -445,16 +463,30 @@ class OperationEntity:
         for report in reports:
             report.result()
 
-    def _entity_request(self, action: str, reason: str | None = None, script_pid: int | None = None,
-                        timeout: float | None = None, within: float | None = None,
-                        keep_state: bool = False) -> Message:
-        ack = self._ask("ENTITY_REQ", message("Entity_Request", entity_id=self.entity_id, action=action,
-                                              reason=reason, script_pid=script_pid), "ls", timeout, within)
+    def _entity_request(
+        self,
+        action: str,
+        reason: str | None = None,
+        script_pid: int | None = None,
+        timeout: float | None = None,
+        within: float | None = None,
+        keep_state: bool = False,
+    ) -> Message:
+        ack = self._ask(
+            "ENTITY_REQ",
+            message("Entity_Request", entity_id=self.entity_id, action=action, reason=reason, script_pid=script_pid),
+            "ls",
+            timeout,
+            within,
+        )
         if ack.ack_code == AckCode.NOTNOW and ack.state in ALREADY.get(action, ()):
             self.log.info("entity %d: %s already done (the entity is %s)", self.entity_id, action, ack.state)
         elif ack.ack_code != AckCode.ACK_OK:
-            raise LotError(f"the Lot Server refused {action} for entity {self.entity_id}: {ack.ack_code}"
-                           + (f" ({ack.note})" if ack.note else "") + (f", entity is {ack.state}" if ack.state else ""))
+            raise LotError(
+                f"the Lot Server refused {action} for entity {self.entity_id}: {ack.ack_code}"
+                + (f" ({ack.note})" if ack.note else "")
+                + (f", entity is {ack.state}" if ack.state else "")
+            )
         if ack.lot_id is not None:
             self.lot_id = ack.lot_id
         if ack.state and not keep_state:  # a report's answer comes after the script has moved on
@@ -517,13 +549,16 @@ class OperationEntity:
 
     def qualified_machines(self, op_type: str, up_only: bool = True) -> list[str]:
         """Machines with a recipe for op_type (OP_MACHINE_RECIPE), those that are up if `up_only`."""
-        sql = ("SELECT DISTINCT r.machine_id FROM op_machine_recipe r JOIN machine_status s USING (machine_id) "
-               "WHERE r.op_type = %s" + (" AND s.status = ANY(%s)" if up_only else "") + " ORDER BY 1")
+        sql = (
+            "SELECT DISTINCT r.machine_id FROM op_machine_recipe r JOIN machine_status s USING (machine_id) "
+            "WHERE r.op_type = %s" + (" AND s.status = ANY(%s)" if up_only else "") + " ORDER BY 1"
+        )
         rows = self._query(sql, op_type, *([list(UP)] if up_only else []))
         return [r[0] for r in rows]
 
-    def request_machines(self, op_type: str, alternatives: Sequence[Sequence[str]],
-                         priority: int | None = None) -> MachineRequest:
+    def request_machines(
+        self, op_type: str, alternatives: Sequence[Sequence[str]], priority: int | None = None
+    ) -> MachineRequest:
         """MACH_REQ: one request per alternative (all machines of an alternative are needed).
 
         Returns once MSCHED acknowledged each (queued with a request_key, or NO_MACHINE). All of them
@@ -540,16 +575,23 @@ class OperationEntity:
         for alt in alts:
             self._spawn(self._request(alt, priority if priority is not None else self.priority))
         self._read_recipes(op_type, {m for a in alts for m in a.machines})
-        self._wait(lambda: all(a.ack is not None or a.done for a in alts),
-                   self.timeouts.retry + self.timeouts.answer + 1, f"MSCHED's answer to the request for {op_type}")
+        self._wait(
+            lambda: all(a.ack is not None or a.done for a in alts),
+            self.timeouts.retry + self.timeouts.answer + 1,
+            f"MSCHED's answer to the request for {op_type}",
+        )
         for a in alts:
             if a.ack is not None and a.ack.ack_code == AckCode.ACK_OK:
                 self.log.info("request %s for %s (%s) queued", a.key, op_type, a.describe())
             elif a.sibling_cancelled:
                 self.log.info("request for %s (%s) not queued: another alternative is bound", op_type, a.describe())
             else:
-                self.log.warning("request for %s (%s) refused: %s", op_type, a.describe(),
-                                 a.error or (a.ack.ack_code if a.ack else "no answer"))
+                self.log.warning(
+                    "request for %s (%s) refused: %s",
+                    op_type,
+                    a.describe(),
+                    a.error or (a.ack.ack_code if a.ack else "no answer"),
+                )
         return request
 
     def wait_for_machines(self, request: MachineRequest, timeout: float | None = None) -> Reservation:
@@ -583,10 +625,14 @@ class OperationEntity:
             if any(not a.done for a in alts if a is not got):  # a sibling may still be queued: end it
                 self._cancel_leftovers("after taking an alternative", request)
             assert got.comp is not None
-            res = Reservation(request.op_type, int(got.comp.machine_run_id or 0), got.key,
-                              got.reserved or got.machines)
-            self.log.info("got machine_run_id %d on %s for %s (request %s)", res.machine_run_id,
-                          ", ".join(res.machines), res.op_type, res.request_key)
+            res = Reservation(request.op_type, int(got.comp.machine_run_id or 0), got.key, got.reserved or got.machines)
+            self.log.info(
+                "got machine_run_id %d on %s for %s (request %s)",
+                res.machine_run_id,
+                ", ".join(res.machines),
+                res.op_type,
+                res.request_key,
+            )
             self.report(S.RUNNING)
             return res
         cancelled = [a for a in alts if a.comp is not None and a.comp.ack_code == AckCode.REQ_CANCEL]
@@ -600,8 +646,13 @@ class OperationEntity:
         codes = sorted({(a.comp or a.ack).ack_code for a in alts if a.comp or a.ack})
         raise RequestRefused(f"no machine for {request.op_type} ({request.describe()}): {', '.join(codes)}")
 
-    def reserve(self, op_type: str, alternatives: Sequence[Sequence[str]] | None = None,
-                priority: int | None = None, timeout: float | None = None) -> Reservation:
+    def reserve(
+        self,
+        op_type: str,
+        alternatives: Sequence[Sequence[str]] | None = None,
+        priority: int | None = None,
+        timeout: float | None = None,
+    ) -> Reservation:
         """Request machines and wait for them; when none can serve now, wait for one to come up and ask again.
 
         Without alternatives, each machine qualified for op_type that is up is one alternative.
@@ -623,27 +674,44 @@ class OperationEntity:
             self._wait_machine_up(op_type, alternatives, deadline)
         raise AssertionError("unreachable")
 
-    def cancel_requests(self, request_key: int | None = None, timeout: float | None = None,
-                        within: float | None = None) -> int:
+    def cancel_requests(
+        self, request_key: int | None = None, timeout: float | None = None, within: float | None = None
+    ) -> int:
         """CANCEL_RE: cancel one request, or all of the entity's. Returns how many were cancelled."""
-        ack = self._ask("CANCEL_RE", message("Cancel_Request", request_key=request_key,
-                                             entity_id=None if request_key else self.entity_id, by=self.name),
-                        "msched", timeout, within)
+        ack = self._ask(
+            "CANCEL_RE",
+            message(
+                "Cancel_Request",
+                request_key=request_key,
+                entity_id=None if request_key else self.entity_id,
+                by=self.name,
+            ),
+            "msched",
+            timeout,
+            within,
+        )
         if ack.ack_code not in (AckCode.ACK_OK, AckCode.REQ_KEY_U):
             raise LotError(f"MSCHED refused to cancel the requests of entity {self.entity_id}: {ack.ack_code}")
         return int(ack.cancelled or 0)
 
-    def unreserve(self, machine_id: str | None = None, timeout: float | None = None,
-                  within: float | None = None) -> int:
+    def unreserve(
+        self, machine_id: str | None = None, timeout: float | None = None, within: float | None = None
+    ) -> int:
         """UNRESERVE: free one reserved machine, or all of the entity's. Returns how many were freed."""
-        ack = self._ask("UNRESERVE", message("Unreserve_Me", entity_id=self.entity_id, machine_id=machine_id,
-                                             by=self.name), "msched", timeout, within)
+        ack = self._ask(
+            "UNRESERVE",
+            message("Unreserve_Me", entity_id=self.entity_id, machine_id=machine_id, by=self.name),
+            "msched",
+            timeout,
+            within,
+        )
         if ack.ack_code == AckCode.NOT_RESERVED:
             self.log.info("unreserve %s: nothing reserved", machine_id or "all")
             return 0
         if ack.ack_code != AckCode.ACK_OK:
-            raise LotError(f"MSCHED refused to unreserve {machine_id or 'the machines'} of entity "
-                           f"{self.entity_id}: {ack.ack_code}")
+            raise LotError(
+                f"MSCHED refused to unreserve {machine_id or 'the machines'} of entity {self.entity_id}: {ack.ack_code}"
+            )
         self.log.info("unreserved %s (%s freed)", machine_id or "all machines", ack.freed)
         return int(ack.freed or 0)
 
@@ -653,8 +721,11 @@ class OperationEntity:
         known = self._recipes.pop((machine_id, op_type), None)
         if known is not None:
             return known
-        rows = self._query("SELECT recipe_id FROM op_machine_recipe WHERE machine_id = %s AND op_type = %s "
-                           "ORDER BY recipe_id", machine_id, op_type)
+        rows = self._query(
+            "SELECT recipe_id FROM op_machine_recipe WHERE machine_id = %s AND op_type = %s ORDER BY recipe_id",
+            machine_id,
+            op_type,
+        )
         if not rows:
             raise RunFailed(f"no recipe for {op_type} on {machine_id} in OP_MACHINE_RECIPE")
         return str(rows[0][0])
@@ -662,8 +733,12 @@ class OperationEntity:
     def _read_recipes(self, op_type: str, machines: set[str]) -> None:
         """recipe_for each machine asked for, in one read while MSCHED decides: the ones bound need it next."""
         try:
-            rows = self._query("SELECT machine_id, min(recipe_id) FROM op_machine_recipe WHERE op_type = %s "
-                               "AND machine_id = ANY(%s) GROUP BY machine_id", op_type, sorted(machines))
+            rows = self._query(
+                "SELECT machine_id, min(recipe_id) FROM op_machine_recipe WHERE op_type = %s "
+                "AND machine_id = ANY(%s) GROUP BY machine_id",
+                op_type,
+                sorted(machines),
+            )
         except DatabaseError as e:  # recipe_for reads them again, and says so if it cannot
             self.log.warning("recipes for %s not read ahead: %s", op_type, e)
             return
@@ -678,30 +753,51 @@ class OperationEntity:
         self.log.info("setting up run %d on %s with recipe %s", machine_run_id, machine_id, recipe_id)
         with self._cond:  # the run's life on this machine begins: what happens to it from now on counts
             self._began[(machine_id, machine_run_id)] = (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
-        ack = self._ask_wc("SETUP_RUN", message("Setup_Run", machine_id=machine_id, recipe_id=recipe_id,
-                                                op_type=op_type, machine_run_id=machine_run_id,
-                                                entity_id=self.entity_id), machine_id, machine_run_id,
-                           self.timeouts.setup)
+        ack = self._ask_wc(
+            "SETUP_RUN",
+            message(
+                "Setup_Run",
+                machine_id=machine_id,
+                recipe_id=recipe_id,
+                op_type=op_type,
+                machine_run_id=machine_run_id,
+                entity_id=self.entity_id,
+            ),
+            machine_id,
+            machine_run_id,
+            self.timeouts.setup,
+        )
         if ack.ack_code != AckCode.ACK_OK:
             self._raise_if_lost(machine_id, machine_run_id, ack)
-            raise RunFailed(f"{machine_id} refused to set up run {machine_run_id} ({recipe_id}): {ack.ack_code}"
-                            + (f" ({ack.note})" if ack.note else ""))
+            raise RunFailed(
+                f"{machine_id} refused to set up run {machine_run_id} ({recipe_id}): {ack.ack_code}"
+                + (f" ({ack.note})" if ack.note else "")
+            )
 
     def start_run(self, machine_id: str, machine_run_id: int) -> None:
         """START_RUN to the machine's WC: run what was set up (MachineLost if the machine goes meanwhile)."""
         with self._cond:
-            self._began.setdefault((machine_id, machine_run_id),
-                                   (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}")))
-        ack = self._ask_wc("START_RUN", message("Start_Run", machine_id=machine_id, machine_run_id=machine_run_id),
-                           machine_id, machine_run_id, self.timeouts.answer)
+            self._began.setdefault(
+                (machine_id, machine_run_id), (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
+            )
+        ack = self._ask_wc(
+            "START_RUN",
+            message("Start_Run", machine_id=machine_id, machine_run_id=machine_run_id),
+            machine_id,
+            machine_run_id,
+            self.timeouts.answer,
+        )
         if ack.ack_code != AckCode.ACK_OK:
             self._raise_if_lost(machine_id, machine_run_id, ack)
-            raise RunFailed(f"{machine_id} refused to start run {machine_run_id}: {ack.ack_code}"
-                            + (f" ({ack.note})" if ack.note else ""))
+            raise RunFailed(
+                f"{machine_id} refused to start run {machine_run_id}: {ack.ack_code}"
+                + (f" ({ack.note})" if ack.note else "")
+            )
         self.log.info("run %d started on %s", machine_run_id, machine_id)
 
-    def wait_run_complete(self, machine_run_id: int, machines: Sequence[str],
-                          timeout: float | None = None) -> dict[str, str]:
+    def wait_run_complete(
+        self, machine_run_id: int, machines: Sequence[str], timeout: float | None = None
+    ) -> dict[str, str]:
         """Wait for RUN_COMPL of this run from every machine.
 
         A machine has left the run when, since the run began there, it went Shutdown, or Idle with no
@@ -716,26 +812,32 @@ class OperationEntity:
         deadline = started + (timeout or self.timeouts.run)
         what = f"run {machine_run_id} to complete on " + ", ".join(machines)
         while True:
-            done, by_machine = self._wait(lambda: self._run_ended(machine_run_id, machines, started),
-                                          max(0.0, deadline - time.monotonic()), what,
-                                          poll=lambda: self._read_status(machines, ENDED, machine_run_id))
+            done, by_machine = self._wait(
+                lambda: self._run_ended(machine_run_id, machines, started),
+                max(0.0, deadline - time.monotonic()),
+                what,
+                poll=lambda: self._read_status(machines, ENDED, machine_run_id),
+            )
             if done:
-                self.log.info("run %d complete: %s", machine_run_id,
-                              ", ".join(f"{m} {c}" for m, c in by_machine.items()))
+                self.log.info(
+                    "run %d complete: %s", machine_run_id, ", ".join(f"{m} {c}" for m, c in by_machine.items())
+                )
                 return by_machine
             outcomes = self._run_outcomes(machine_run_id, list(by_machine))
             with self._cond:
                 for m, code in outcomes.items():
-                    self.log.warning("run %d on %s: no RUN_COMPL came, MACHINE_RUN_OUTCOME says %s", machine_run_id,
-                                     m, code)
+                    self.log.warning(
+                        "run %d on %s: no RUN_COMPL came, MACHINE_RUN_OUTCOME says %s", machine_run_id, m, code
+                    )
                     self._runs[(m, machine_run_id)] = code
             lost = [why for m, why in by_machine.items() if m not in outcomes]
             if lost:
                 self.log.error("%s, and no RUN_COMPL followed nor is its outcome stored", lost[0])
                 raise MachineLost(f"{lost[0]}: the run cannot complete")
 
-    def _run_ended(self, machine_run_id: int, machines: Sequence[str],
-                   started: float) -> tuple[bool, dict[str, str]] | None:
+    def _run_ended(
+        self, machine_run_id: int, machines: Sequence[str], started: float
+    ) -> tuple[bool, dict[str, str]] | None:
         """(under the lock) (True, machine -> ack code) once every machine's RUN_COMPL of the run came;
         (False, machine -> why) once some left the run without one; else None."""
         if all((m, machine_run_id) in self._runs for m in machines):
@@ -760,8 +862,12 @@ class OperationEntity:
     def _run_outcomes(self, machine_run_id: int, machines: Sequence[str]) -> dict[str, str]:
         """machine -> ack code of the run as its WC stored it (MACHINE_RUN_OUTCOME); {} if unreadable."""
         try:
-            rows = self._query("SELECT machine_id, ack_code FROM machine_run_outcome WHERE machine_run_id = %s "
-                               "AND machine_id = ANY(%s)", machine_run_id, list(machines))
+            rows = self._query(
+                "SELECT machine_id, ack_code FROM machine_run_outcome WHERE machine_run_id = %s "
+                "AND machine_id = ANY(%s)",
+                machine_run_id,
+                list(machines),
+            )
         except DatabaseError as e:
             self.log.warning("could not read MACHINE_RUN_OUTCOME: %s", e)
             return {}
@@ -769,16 +875,20 @@ class OperationEntity:
 
     def run_results(self, machine_id: str, machine_run_id: int) -> dict[str, str]:
         """The run's MACHINE_RUN_RESULT rows as param -> value."""
-        rows = self._query("SELECT param, value FROM machine_run_result WHERE machine_run_id = %s AND machine_id = %s "
-                           "ORDER BY param", machine_run_id, machine_id)
+        rows = self._query(
+            "SELECT param, value FROM machine_run_result WHERE machine_run_id = %s AND machine_id = %s ORDER BY param",
+            machine_run_id,
+            machine_id,
+        )
         return {str(p): ("" if v is None else str(v)) for p, v in rows}
 
     def run_on(self, reservation: Reservation, recipes: str | dict[str, str] | None = None) -> list[Run]:
         """Set up and start the run on each reserved machine, wait for them all, read the results."""
         return self._results(reservation, *self._run(reservation, recipes))
 
-    def _run(self, reservation: Reservation, recipes: str | dict[str, str] | None
-             ) -> tuple[dict[str, str], dict[str, str]]:
+    def _run(
+        self, reservation: Reservation, recipes: str | dict[str, str] | None
+    ) -> tuple[dict[str, str], dict[str, str]]:
         """run_on without reading the results: the recipe and the ack code of each machine's run."""
         run_id, op_type = reservation.machine_run_id, reservation.op_type
         chosen = {}
@@ -793,8 +903,13 @@ class OperationEntity:
         run_id = reservation.machine_run_id
         return [Run(m, chosen[m], run_id, codes[m], self.run_results(m, run_id)) for m in reservation.machines]
 
-    def operate(self, op_type: str, alternatives: Sequence[Sequence[str]] | None = None,
-                recipes: str | dict[str, str] | None = None, priority: int | None = None) -> Operation:
+    def operate(
+        self,
+        op_type: str,
+        alternatives: Sequence[Sequence[str]] | None = None,
+        recipes: str | dict[str, str] | None = None,
+        priority: int | None = None,
+    ) -> Operation:
         """One operation, start to end: reserve machines, run, unreserve, read the results (they are in
         the tables: the machines need not wait for the entity to read them).
 
@@ -831,8 +946,9 @@ class OperationEntity:
         with self._cond:
             return name in self._peer_inc
 
-    def _ask(self, cls: str, first: Message, to: str, timeout: float | None = None,
-             within: float | None = None) -> Message:
+    def _ask(
+        self, cls: str, first: Message, to: str, timeout: float | None = None, within: float | None = None
+    ) -> Message:
         """One conversation with a server (ls, msched): its answer.
 
         A server away from the bus, not started (Notnow "module not started": it is restarting) or
@@ -862,8 +978,9 @@ class OperationEntity:
             pause = backoff.next()
             if pause is None:
                 self.log.error("%s to %s: %s; gave up after %d tries", cls, to, why, backoff.tries)
-                raise LotTimeout(f"entity {self.entity_id}: {cls} to {to} failed: {why} "
-                                 f"(asked {backoff.tries} times)") from error
+                raise LotTimeout(
+                    f"entity {self.entity_id}: {cls} to {to} failed: {why} (asked {backoff.tries} times)"
+                ) from error
             self.log.warning("%s to %s: %s; asking again in %.1fs", cls, to, why, pause)
             time.sleep(pause)
 
@@ -882,14 +999,17 @@ class OperationEntity:
                 return True
             why = self._lost(machine_id, machine_run_id)
             if why:
-                self.log.error("%s of run %d: %s; not waiting for wc:%s's answer", cls, machine_run_id, why,
-                               machine_id)
+                self.log.error("%s of run %d: %s; not waiting for wc:%s's answer", cls, machine_run_id, why, machine_id)
                 raise MachineLost(f"{why} ({cls} of run {machine_run_id})")
             return False
 
         try:
-            self._wait(answered, timeout + 1, f"wc:{machine_id}'s answer to {cls}",
-                       poll=lambda: self._read_status([machine_id], SHUT, None))
+            self._wait(
+                answered,
+                timeout + 1,
+                f"wc:{machine_id}'s answer to {cls}",
+                poll=lambda: self._read_status([machine_id], SHUT, None),
+            )
         except BaseException:
             self._abandon(call)
             raise
@@ -996,10 +1116,18 @@ class OperationEntity:
                     why = "msched is not on the bus"
                 else:
                     conv = await bus.start(
-                        "MACH_REQ", message("Machine_Request", entity_id=self.entity_id, op_type=alt.op_type,
-                                            num_machines=len(alt.machines), priority=priority,
-                                            alt_group=group.alt_group if group else None),
-                        *[message("Machine_Entry", machine_id=m) for m in alt.machines], to="msched")
+                        "MACH_REQ",
+                        message(
+                            "Machine_Request",
+                            entity_id=self.entity_id,
+                            op_type=alt.op_type,
+                            num_machines=len(alt.machines),
+                            priority=priority,
+                            alt_group=group.alt_group if group else None,
+                        ),
+                        *[message("Machine_Entry", machine_id=m) for m in alt.machines],
+                        to="msched",
+                    )
                     try:
                         batch = await conv.next_message(self.timeouts.answer)
                     except ConversationTimeout:
@@ -1013,10 +1141,12 @@ class OperationEntity:
                     conv = None
                 pause = backoff.next()
                 if pause is None:
-                    raise LotTimeout(f"MACH_REQ for {alt.op_type} ({alt.describe()}): {why} "
-                                     f"(asked {backoff.tries} times)")
-                self.log.warning("MACH_REQ for %s (%s): %s; asking again in %.1fs", alt.op_type, alt.describe(),
-                                 why, pause)
+                    raise LotTimeout(
+                        f"MACH_REQ for {alt.op_type} ({alt.describe()}): {why} (asked {backoff.tries} times)"
+                    )
+                self.log.warning(
+                    "MACH_REQ for %s (%s): %s; asking again in %.1fs", alt.op_type, alt.describe(), why, pause
+                )
                 await asyncio.sleep(pause)
             while not alt.done:
                 assert conv is not None
@@ -1051,8 +1181,7 @@ class OperationEntity:
             self._cond.notify_all()
         for m in surplus:  # bound after the entity took another alternative: give it back
             self.log.warning("%s was bound after another alternative was taken: giving it back", m)
-            await self._tell("UNRESERVE", message("Unreserve_Me", entity_id=self.entity_id, machine_id=m,
-                                                  by=self.name))
+            await self._tell("UNRESERVE", message("Unreserve_Me", entity_id=self.entity_id, machine_id=m, by=self.name))
         if queued:  # queued after the entity took another alternative: it must not wait there
             self.log.warning("request %s was queued after another alternative was taken: cancelling it", alt.key)
             await self._tell("CANCEL_RE", message("Cancel_Request", request_key=alt.key, by=self.name))
@@ -1072,8 +1201,11 @@ class OperationEntity:
         another request of the entity is still being asked for). Belt and braces: a failure is logged."""
         try:
             if request is not None and any(r is not request for r in self._requests):
-                n = sum(self.cancel_requests(a.key, within=self.timeouts.cleanup)
-                        for a in request.alternatives if a.key is not None and not a.done and a is not request.winner)
+                n = sum(
+                    self.cancel_requests(a.key, within=self.timeouts.cleanup)
+                    for a in request.alternatives
+                    if a.key is not None and not a.done and a is not request.winner
+                )
             else:
                 n = self.cancel_requests(within=self.timeouts.cleanup)
         except GwcError as e:
@@ -1084,8 +1216,13 @@ class OperationEntity:
 
     # ----------------------------------------------------------------- internals: waiting
 
-    def _wait(self, predicate: Callable[[], T | None | bool], timeout: float, what: str,
-              poll: Callable[[], None] | None = None) -> T:
+    def _wait(
+        self,
+        predicate: Callable[[], T | bool | None],
+        timeout: float,
+        what: str,
+        poll: Callable[[], None] | None = None,
+    ) -> T:
         """Wait until predicate() (called under the lock) is truthy; LotTimeout naming `what` after timeout.
 
         `poll`, if given, runs every POLL seconds outside the lock: a fallback read of the tables. Not
@@ -1125,16 +1262,19 @@ class OperationEntity:
             if state == S.FAILED:
                 raise LotError(f"entity {self.entity_id} was marked failed while waiting for {action}")
             if time.monotonic() > deadline:
-                raise LotTimeout(f"entity {self.entity_id}: the operator did not {action} the lot within "
-                                 f"{timeout:.0f}s (it is {state})")
+                raise LotTimeout(
+                    f"entity {self.entity_id}: the operator did not {action} the lot within "
+                    f"{timeout:.0f}s (it is {state})"
+                )
 
     def _wait_machine_up(self, op_type: str, alternatives: Sequence[Sequence[str]] | None, deadline: float) -> None:
         """Until a machine can serve the operation again: every machine of one alternative is up (without
         alternatives: one machine qualified for op_type is)."""
         while time.monotonic() < deadline:
             if alternatives:
-                up = {r[0] for r in self._query("SELECT machine_id FROM machine_status WHERE status = ANY(%s)",
-                                                list(UP))}
+                up = {
+                    r[0] for r in self._query("SELECT machine_id FROM machine_status WHERE status = ANY(%s)", list(UP))
+                }
                 if any(a and set(a) <= up for a in alternatives):
                     return
             elif self.qualified_machines(op_type):
@@ -1156,13 +1296,15 @@ class OperationEntity:
         changes.append((time.monotonic(), status, None if machine_run_id is None else int(machine_run_id)))
         del changes[:-HISTORY]
 
-    def _went(self, machine_id: str, since: float, statuses: Sequence[str],
-              machine_run_id: int | None = None) -> tuple[float, str, int | None] | None:
+    def _went(
+        self, machine_id: str, since: float, statuses: Sequence[str], machine_run_id: int | None = None
+    ) -> tuple[float, str, int | None] | None:
         """(under the lock) The first change of the machine, since `since`, into one of `statuses` or, if
         machine_run_id is given, to another run: (when, status, its machine_run_id)."""
         for when, status, run in self._history.get(machine_id, ()):
-            if when >= since and (status in statuses or
-                                  (machine_run_id is not None and run is not None and run != machine_run_id)):
+            if when >= since and (
+                status in statuses or (machine_run_id is not None and run is not None and run != machine_run_id)
+            ):
                 return when, status, run
         return None
 
@@ -1185,8 +1327,10 @@ class OperationEntity:
         """Fallback for a missed UPD_ME_ST: a machine found in one of `statuses` (or, if machine_run_id is
         given, on another run) in MACHINE_STATUS is noted as having changed now."""
         try:
-            rows = self._query("SELECT machine_id, status, machine_run_id FROM machine_status "
-                               "WHERE machine_id = ANY(%s)", list(machines))
+            rows = self._query(
+                "SELECT machine_id, status, machine_run_id FROM machine_status WHERE machine_id = ANY(%s)",
+                list(machines),
+            )
         except DatabaseError as e:
             self.log.warning("could not read MACHINE_STATUS: %s", e)
             return
@@ -1229,7 +1373,9 @@ class OperationEntity:
     def _read_lot(self) -> None:
         row = self._query_one(
             "SELECT s.state, s.lot_id, l.product_id, l.priority, l.work_order_id FROM lot_status s "
-            "JOIN lots l USING (lot_id) WHERE s.entity_id = %s", self.entity_id)
+            "JOIN lots l USING (lot_id) WHERE s.entity_id = %s",
+            self.entity_id,
+        )
         if row is None:
             raise LotError(f"unknown lot entity {self.entity_id}: the Lot Server has no LOT_STATUS row for it")
         self._set_state(row[0])
@@ -1240,10 +1386,17 @@ class OperationEntity:
         self.traveller["state"] = str(state)
 
     def _record(self, op_type: str, res: Reservation, runs: list[Run], note: str) -> None:
-        self.traveller["steps"].append({
-            "op_type": op_type, "machine_run_id": res.machine_run_id, "request_key": res.request_key,
-            "machines": res.machines, "runs": [asdict(r) for r in runs], "note": note, "at": _now(),
-        })
+        self.traveller["steps"].append(
+            {
+                "op_type": op_type,
+                "machine_run_id": res.machine_run_id,
+                "request_key": res.request_key,
+                "machines": res.machines,
+                "runs": [asdict(r) for r in runs],
+                "note": note,
+                "at": _now(),
+            }
+        )
         self._save()
 
     def _save(self) -> None:
@@ -1281,10 +1434,20 @@ def _reason(exc: BaseException) -> str:
     return f"lot script error: {type(exc).__name__}: {exc}"
 
 
-def create_lot(bus: BlockingBus, product_id: str, quantity: int, *, work_order_id: int | None = None,
-               owner: str | None = None, priority: int | None = None, script_id: str | None = None,
-               lot_type: str | None = None, timeout: float = 10.0, within: float = 60.0,
-               request_id: str | None = None) -> tuple[int, list[int]]:
+def create_lot(
+    bus: BlockingBus,
+    product_id: str,
+    quantity: int,
+    *,
+    work_order_id: int | None = None,
+    owner: str | None = None,
+    priority: int | None = None,
+    script_id: str | None = None,
+    lot_type: str | None = None,
+    timeout: float = 10.0,
+    within: float = 60.0,
+    request_id: str | None = None,
+) -> tuple[int, list[int]]:
     """CREATE_LOT: ask the Lot Server for a lot of `quantity` entities. Returns (lot_id, entity_ids).
 
     A Lot Server that does not answer (it died after creating the lot, or is restarting) is asked
@@ -1292,15 +1455,44 @@ def create_lot(bus: BlockingBus, product_id: str, quantity: int, *, work_order_i
     answered with what the first request made. Give request_id to make it survive this call too.
     """
     request_id = request_id or f"{bus.bus.name}.{secrets.token_hex(8)}"
-    ack = bus.run(ask(bus.bus, "CREATE_LOT", message(
-        "Create_Lot_Entity", product_id=product_id, quantity=quantity, work_order_id=work_order_id, owner=owner,
-        priority=priority, script_id=script_id, lot_type=lot_type, request_id=request_id), "ls", timeout,
-        within=within))
+    ack = bus.run(
+        ask(
+            bus.bus,
+            "CREATE_LOT",
+            message(
+                "Create_Lot_Entity",
+                product_id=product_id,
+                quantity=quantity,
+                work_order_id=work_order_id,
+                owner=owner,
+                priority=priority,
+                script_id=script_id,
+                lot_type=lot_type,
+                request_id=request_id,
+            ),
+            "ls",
+            timeout,
+            within=within,
+        )
+    )
     if ack.ack_code != AckCode.ACK_OK or ack.lot_id is None:
-        raise LotError(f"the Lot Server refused to create a lot of {quantity} {product_id}: {ack.ack_code}"
-                       + (f" ({ack.note})" if ack.note else ""))
+        raise LotError(
+            f"the Lot Server refused to create a lot of {quantity} {product_id}: {ack.ack_code}"
+            + (f" ({ack.note})" if ack.note else "")
+        )
     return int(ack.lot_id), [int(e) for e in ack.entity_ids or []]
 
 
-__all__ = ["MachineRequest", "Operation", "OperationEntity", "Reservation", "Run", "ScriptStopped", "Timeouts",
-           "create_lot", "read_traveller", "traveller_path", "verdict"]
+__all__ = [
+    "MachineRequest",
+    "Operation",
+    "OperationEntity",
+    "Reservation",
+    "Run",
+    "ScriptStopped",
+    "Timeouts",
+    "create_lot",
+    "read_traveller",
+    "traveller_path",
+    "verdict",
+]

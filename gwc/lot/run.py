@@ -25,10 +25,9 @@ from gwc import db
 from gwc.cell import Proc, pid_file, spawn
 from gwc.config import PROJECT_ROOT, Config, load_config
 from gwc.errors import GwcError
+from gwc.log import open_log
 from gwc.lot.entity import OperationEntity
 from gwc.lot.errors import LotError, ScriptStopped
-from gwc.log import open_log
-
 
 SWITCH_INTERVAL = 0.0005  # seconds
 
@@ -40,12 +39,15 @@ def script_of(cfg: Config, entity_id: int) -> tuple[str, Path]:
             "SELECT coalesce(l.script_id, p.script_id), ls.path FROM lot_status s JOIN lots l USING (lot_id) "
             "LEFT JOIN products p ON p.product_id = l.product_id "
             "LEFT JOIN lot_scripts ls ON ls.script_id = coalesce(l.script_id, p.script_id) "
-            "WHERE s.entity_id = %s", (entity_id,)).fetchone()
+            "WHERE s.entity_id = %s",
+            (entity_id,),
+        ).fetchone()
     if row is None:
         raise LotError(f"unknown lot entity {entity_id}")
     if row[0] is None or row[1] is None:
-        raise LotError(f"entity {entity_id}: its lot and product name no lot script (register one with "
-                       f"`gwc script register`)")
+        raise LotError(
+            f"entity {entity_id}: its lot and product name no lot script (register one with `gwc script register`)"
+        )
     return str(row[0]), resolve_path(str(row[1]))
 
 

@@ -189,7 +189,7 @@ class CmmMachine(MachineSide):
         if unknown:
             raise ConfigError(f"machine {spec.id}: unknown serial setting(s) {', '.join(sorted(unknown))}")
         if not isinstance(settings.get("port"), str) or not settings["port"]:
-            raise ConfigError(f"machine {spec.id}: serial.port is required (a device, a pyserial URL, or \"sim\")")
+            raise ConfigError(f'machine {spec.id}: serial.port is required (a device, a pyserial URL, or "sim")')
         self.settings = settings
         self.answer_timeout = float(settings.get("timeout", 5.0))  # type: ignore[arg-type]
         self.run_timeout = self.options.get("run_timeout", float, 120.0)
@@ -217,8 +217,11 @@ class CmmMachine(MachineSide):
             port = self._port()
             self._ser = open_serial(self.settings, port)
             self._line = serial_stream(self._ser, f"CMM line {port}")
-            self.log.info("serial line to the CMM open: %s (%s)", port,
-                          ", ".join(f"{k}={v}" for k, v in self.settings.items() if k != "port"))
+            self.log.info(
+                "serial line to the CMM open: %s (%s)",
+                port,
+                ", ".join(f"{k}={v}" for k, v in self.settings.items() if k != "port"),
+            )
         return self._line
 
     def drop_line(self, why: str) -> None:
@@ -303,8 +306,11 @@ class CmmMachine(MachineSide):
             return RunOutcome(AckCode.RUN_FAIL, {"RESULT": "NONE"}, note=f"line lost: {e}")
         if rec is None:
             if time.monotonic() > self._run_deadline:
-                return RunOutcome(AckCode.RUN_FAIL, {"RESULT": "NONE"},
-                                  note=f"no PASS!/FAIL! from the CMM within {self.run_timeout:.0f}s")
+                return RunOutcome(
+                    AckCode.RUN_FAIL,
+                    {"RESULT": "NONE"},
+                    note=f"no PASS!/FAIL! from the CMM within {self.run_timeout:.0f}s",
+                )
             return None
         if rec in ("PASS!", "FAIL!"):
             self.log.info("the CMM answered %s", rec)

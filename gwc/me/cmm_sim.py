@@ -47,7 +47,7 @@ class PtyEnd:
     def write(self, data: bytes) -> None:
         view = memoryview(data)
         while view:
-            view = view[os.write(self.master, view):]
+            view = view[os.write(self.master, view) :]
 
     def close(self) -> None:
         # The slave end stays open in here until now, so the master never sees a hang-up when
@@ -71,8 +71,7 @@ class CmmSimulator:
             raise ConfigError(f"machine {spec.id}: sim.measure_time must be a number of seconds") from None
         self.pattern = str(sim.get("pattern", "P")).upper()
         if self.measure_time < 0 or not self.pattern or set(self.pattern) - {"P", "F"}:
-            raise ConfigError(f"machine {spec.id}: sim needs measure_time >= 0 and a pattern of P and F, "
-                              f"got {sim!r}")
+            raise ConfigError(f"machine {spec.id}: sim needs measure_time >= 0 and a pattern of P and F, got {sim!r}")
         self.port = sim.get("port")
         self.programs: dict[str, bytes] = {}
         self.part: str | None = None

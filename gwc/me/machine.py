@@ -165,8 +165,13 @@ class MachineSide:
         # outlive either half so that nothing is lost across a restart (a request this new ME cannot
         # serve yet is refused Notnow, and an answer the WC no longer waits for is dropped by its seq).
         self.channel.open()
-        self.log.info("%s ME of %s ready on %s (homing alarm: %s)", self.kind, self.spec.id, self.channel.in_name,
-                      self.homing_alarm or "none")
+        self.log.info(
+            "%s ME of %s ready on %s (homing alarm: %s)",
+            self.kind,
+            self.spec.id,
+            self.channel.in_name,
+            self.homing_alarm or "none",
+        )
         try:
             while not stop.is_set():
                 self._flush()
@@ -248,8 +253,13 @@ class MachineSide:
         # A started ME tells its state, and while running the results file of its run: a restarted
         # WC learns whether the run it resumes is still going (gwc.wc.wc.WC._resume).
         running = self.state == MeState.RUNNING and self.results_path is not None
-        self.answer(msg, AckCode.ACK_OK, alarm_text=self.state.value, recipe_id=self.recipe_id,
-                    file_name=str(self.results_path) if running else "")
+        self.answer(
+            msg,
+            AckCode.ACK_OK,
+            alarm_text=self.state.value,
+            recipe_id=self.recipe_id,
+            file_name=str(self.results_path) if running else "",
+        )
 
     def _me_start(self, msg: MeMessage) -> None:
         if self.state == MeState.RUNNING:
@@ -339,8 +349,12 @@ class MachineSide:
             return
         self.state = MeState.IDLE
         assert self.results_path is not None
-        results = {"RECIPE": self.recipe_id, "RUN_NO": str(self.run_no),
-                   "RUN_TIME": f"{time.monotonic() - self.run_started:.3f}", **outcome.results}
+        results = {
+            "RECIPE": self.recipe_id,
+            "RUN_NO": str(self.run_no),
+            "RUN_TIME": f"{time.monotonic() - self.run_started:.3f}",
+            **outcome.results,
+        }
         if outcome.note:
             results.setdefault("NOTE", outcome.note)
         file_name = str(self.results_path)
@@ -350,10 +364,24 @@ class MachineSide:
             self.log.error("run %d: cannot write results file %s: %s", self.run_no, self.results_path, e)
             outcome, file_name = RunOutcome(AckCode.RUN_FAIL), ""
         level = logging.INFO if outcome.ack_code == AckCode.ACK_OK else logging.WARNING
-        self.log.log(level, "run %d complete: %s, %d results in %s%s", self.run_no, outcome.ack_code, len(results),
-                     file_name or "(none)", f" ({outcome.note})" if outcome.note else "")
-        self.send(MeMessage(MessageId.RUN_COMPL, file_name=file_name, recipe_id=self.recipe_id,
-                            ack_code=outcome.ack_code, alarm_text=brief(outcome.note)))
+        self.log.log(
+            level,
+            "run %d complete: %s, %d results in %s%s",
+            self.run_no,
+            outcome.ack_code,
+            len(results),
+            file_name or "(none)",
+            f" ({outcome.note})" if outcome.note else "",
+        )
+        self.send(
+            MeMessage(
+                MessageId.RUN_COMPL,
+                file_name=file_name,
+                recipe_id=self.recipe_id,
+                ack_code=outcome.ack_code,
+                alarm_text=brief(outcome.note),
+            )
+        )
 
     def _download(self, msg: MeMessage) -> None:
         self._need(MeState.IDLE, MeState.SETUP, MeState.SHUTDOWN, what="download a recipe")

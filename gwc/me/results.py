@@ -19,6 +19,7 @@ from pathlib import Path
 
 OUTCOME = "# outcome "  # the comment line that carries the run's ack code and note
 
+
 def read_results(path: Path | str) -> dict[str, str]:
     """The param/value pairs of a results file, in file order; ValueError saying which line is wrong."""
     results: dict[str, str] = {}
@@ -40,7 +41,7 @@ def read_outcome(path: Path | str) -> tuple[str, str] | None:
     """The (ack code, note) the ME recorded for its run, or None if the file records none."""
     for line in Path(path).read_text(encoding="utf-8").splitlines():
         if line.startswith(OUTCOME):
-            code, _, note = line[len(OUTCOME):].strip().partition(" ")
+            code, _, note = line[len(OUTCOME) :].strip().partition(" ")
             return code, note.strip()
     return None
 

@@ -95,9 +95,12 @@ class Msched(Module):
         if owed:
             self.log.info("resending %d answer(s) not acknowledged before the restart", len(owed))
             self._dispatch(owed)
-        queued, reserved = self.transaction(lambda cur: cur.execute(
-            "select (select count(distinct request_key) from request_machines), "
-            "(select count(*) from reserved_machines)").fetchone())
+        queued, reserved = self.transaction(
+            lambda cur: cur.execute(
+                "select (select count(distinct request_key) from request_machines), "
+                "(select count(*) from reserved_machines)"
+            ).fetchone()
+        )
         self.log.info("policy %s; %d request(s) queued, %d machine(s) reserved", self.policy.name, queued, reserved)
         return AckCode.ACK_OK
 
@@ -120,8 +123,9 @@ class Msched(Module):
     async def _lock(self) -> bool:
         """One MSCHED per database: a session lock, freed by PostgreSQL when its holder dies."""
         for _ in range(LOCK_TRIES):
-            if self.transaction(lambda cur: cur.execute(
-                    "select pg_try_advisory_lock(hashtext('gwc.msched'))").fetchone()[0]):
+            if self.transaction(
+                lambda cur: cur.execute("select pg_try_advisory_lock(hashtext('gwc.msched'))").fetchone()[0]
+            ):
                 return True
             await asyncio.sleep(0.1)
         return False
@@ -145,19 +149,35 @@ class Msched(Module):
         waiter: asyncio.Future[Outcome] = asyncio.get_running_loop().create_future()
         self._waiters[conv.id] = waiter  # before the step: the pass in it may already bind the request
         try:
-            queued: store.Queued = await self._submit(lambda s: s.queue_request(
-                head.entity_id, head.op_type, machines, head.priority, conv.peer, conv.id, head.alt_group))
+            queued: store.Queued = await self._submit(
+                lambda s: s.queue_request(
+                    head.entity_id, head.op_type, machines, head.priority, conv.peer, conv.id, head.alt_group
+                )
+            )
         except BaseException:
             self._waiters.pop(conv.id, None)
             raise
         if queued.ack_code != AckCode.ACK_OK:
             self._waiters.pop(conv.id, None)
-            self.log.info("request of entity %s for %s (%s)%s refused: %s %s", head.entity_id, head.op_type,
-                          " AND ".join(machines), _group(head), queued.ack_code, queued.note)
+            self.log.info(
+                "request of entity %s for %s (%s)%s refused: %s %s",
+                head.entity_id,
+                head.op_type,
+                " AND ".join(machines),
+                _group(head),
+                queued.ack_code,
+                queued.note,
+            )
             await conv.send(message("Machine_Req_Ack", ack_code=queued.ack_code, note=queued.note))
             return
-        self.log.info("request %d of entity %s for %s (%s)%s queued", queued.request_key, head.entity_id,
-                      head.op_type, " AND ".join(machines), _group(head))
+        self.log.info(
+            "request %d of entity %s for %s (%s)%s queued",
+            queued.request_key,
+            head.entity_id,
+            head.op_type,
+            " AND ".join(machines),
+            _group(head),
+        )
         await conv.send(message("Machine_Req_Ack", ack_code=AckCode.ACK_OK, request_key=queued.request_key))
         await self._tell(conv, await waiter)
 
@@ -166,14 +186,25 @@ class Msched(Module):
         assert conv.first is not None
         m = conv.first.first
         if m.request_key is None and m.entity_id is None:
-            await conv.send(message("Cancel_Req_Ack", ack_code=AckCode.BAD_MESSAGE,
-                                    note="Cancel_Request needs a request_key or an entity_id"))
+            await conv.send(
+                message(
+                    "Cancel_Req_Ack",
+                    ack_code=AckCode.BAD_MESSAGE,
+                    note="Cancel_Request needs a request_key or an entity_id",
+                )
+            )
             return
         n = await self._submit(lambda s: s.cancel(m.request_key, m.entity_id, m.by or conv.peer))
         what = f"request {m.request_key}" if m.request_key is not None else f"the requests of entity {m.entity_id}"
         self.log.info("cancel %s by %s: %d cancelled", what, m.by or conv.peer, n)
-        await conv.send(message("Cancel_Req_Ack", ack_code=AckCode.ACK_OK if n else AckCode.REQ_KEY_U, cancelled=n,
-                                note=None if n else f"nothing waiting to cancel for {what}"))
+        await conv.send(
+            message(
+                "Cancel_Req_Ack",
+                ack_code=AckCode.ACK_OK if n else AckCode.REQ_KEY_U,
+                cancelled=n,
+                note=None if n else f"nothing waiting to cancel for {what}",
+            )
+        )
 
     async def unreserve(self, conv: Conversation) -> None:
         """UNRESERVE: free machines of an entity, then schedule them (in the same step)."""
@@ -184,8 +215,14 @@ class Msched(Module):
             self.log.info("entity %s freed %s (by %s)", m.entity_id, ", ".join(freed), m.by or conv.peer)
             await conv.send(message("Unreserve_Me_Ack", ack_code=AckCode.ACK_OK, freed=len(freed)))
         else:
-            await conv.send(message("Unreserve_Me_Ack", ack_code=AckCode.NOT_RESERVED, freed=0,
-                                    note=f"{m.machine_id or 'no machine'} is not reserved by entity {m.entity_id}"))
+            await conv.send(
+                message(
+                    "Unreserve_Me_Ack",
+                    ack_code=AckCode.NOT_RESERVED,
+                    freed=0,
+                    note=f"{m.machine_id or 'no machine'} is not reserved by entity {m.entity_id}",
+                )
+            )
 
     async def update_me_status(self, conv: Conversation) -> None:
         """UPD_ME_ST (broadcast by the Machine Server): a machine went down, or came up."""
@@ -202,8 +239,11 @@ class Msched(Module):
         assert conv.first is not None
         m = conv.first.first
         if not all(isinstance(t, str) and t for t in m.op_types):
-            await conv.send(message("Chg_Accept_Type_Ack", ack_code=AckCode.BAD_MESSAGE,
-                                    note="op_types must be a list of op type names"))
+            await conv.send(
+                message(
+                    "Chg_Accept_Type_Ack", ack_code=AckCode.BAD_MESSAGE, note="op_types must be a list of op type names"
+                )
+            )
             return
         code, note = await self._submit(lambda s: s.set_accept_types(m.machine_id, m.op_types))
         self.log.info("accept types of %s: %s %s", m.machine_id, code, note)
@@ -270,8 +310,13 @@ class Msched(Module):
         for (_, fut), result in zip(ops, results):
             if fut is not None and not fut.done():
                 fut.set_result(result)
-        self.log.log(TRACE, "step of %d change(s): %d outcome(s) in %.2f ms", len(ops), len(outcomes),
-                     (time.perf_counter() - started) * 1000)
+        self.log.log(
+            TRACE,
+            "step of %d change(s): %d outcome(s) in %.2f ms",
+            len(ops),
+            len(outcomes),
+            (time.perf_counter() - started) * 1000,
+        )
         self._dispatch(outcomes)
 
     # ------------------------------------------------------------------ telling the entities
@@ -279,11 +324,17 @@ class Msched(Module):
     def _dispatch(self, outcomes: list[Outcome]) -> None:
         for o in outcomes:
             if o.ack_code == AckCode.ACK_OK:
-                self.log.info("request %d bound: entity %d gets %s, machine_run_id %d", o.request_key, o.entity_id,
-                              ", ".join(o.machines), o.machine_run_id)
+                self.log.info(
+                    "request %d bound: entity %d gets %s, machine_run_id %d",
+                    o.request_key,
+                    o.entity_id,
+                    ", ".join(o.machines),
+                    o.machine_run_id,
+                )
             else:
-                self.log.info("request %d of entity %d ends %s (%s)", o.request_key, o.entity_id, o.ack_code,
-                              o.note or "")
+                self.log.info(
+                    "request %d of entity %d ends %s (%s)", o.request_key, o.entity_id, o.ack_code, o.note or ""
+                )
             self._acks[o.request_key] = asyncio.get_running_loop().create_future()
             waiter = self._waiters.pop(o.reply_conv or "", None)
             if waiter is not None and not waiter.done():
@@ -294,16 +345,25 @@ class Msched(Module):
                 self._tasks.add(task)
                 task.add_done_callback(self._tasks.discard)
             else:
-                self.log.warning("request %d has no conversation to answer in: outcome %s not told",
-                                 o.request_key, o.ack_code)
+                self.log.warning(
+                    "request %d has no conversation to answer in: outcome %s not told", o.request_key, o.ack_code
+                )
                 self._told(o)
 
     async def _tell(self, conv: Conversation, o: Outcome) -> None:
         """Send the Machine_Req_Comp (and Reserved_Machine list) and wait, with a deadline, for its ack."""
         ok = o.ack_code == AckCode.ACK_OK
-        msgs: list[Message] = [message("Machine_Req_Comp", ack_code=o.ack_code, entity_id=o.entity_id,
-                                       machine_run_id=o.machine_run_id, request_key=o.request_key,
-                                       num_machines=len(o.machines) if ok else 0, note=o.note)]
+        msgs: list[Message] = [
+            message(
+                "Machine_Req_Comp",
+                ack_code=o.ack_code,
+                entity_id=o.entity_id,
+                machine_run_id=o.machine_run_id,
+                request_key=o.request_key,
+                num_machines=len(o.machines) if ok else 0,
+                note=o.note,
+            )
+        ]
         if ok:
             msgs += [message("Reserved_Machine", machine_id=m) for m in o.machines]
         try:
@@ -312,12 +372,21 @@ class Msched(Module):
             if answer.name != "Request_Comp_Ack":
                 self.log.warning("request %d: expected Request_Comp_Ack, got %s", o.request_key, answer.name)
             elif answer.ack_code != AckCode.ACK_OK:
-                self.log.warning("request %d: entity %d answered %s %s", o.request_key, o.entity_id,
-                                 answer.ack_code, answer.note or "")
+                self.log.warning(
+                    "request %d: entity %d answered %s %s",
+                    o.request_key,
+                    o.entity_id,
+                    answer.ack_code,
+                    answer.note or "",
+                )
         except GwcError as e:
-            self.log.warning("request %d: entity %d did not acknowledge its Machine_Req_Comp (%s)%s", o.request_key,
-                             o.entity_id, e, ": its machines stay reserved until it (or the Lot Server) frees them"
-                             if ok else "")
+            self.log.warning(
+                "request %d: entity %d did not acknowledge its Machine_Req_Comp (%s)%s",
+                o.request_key,
+                o.entity_id,
+                e,
+                ": its machines stay reserved until it (or the Lot Server) frees them" if ok else "",
+            )
         finally:
             conv.end()
         self._told(o)  # not when cancelled (MSCHED stopping): the next start tells it again

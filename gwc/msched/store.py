@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import Any
 
 import psycopg
@@ -31,8 +31,7 @@ from gwc.msched.policy import Candidate, Policy
 # A machine in one of these states is up: it can be bound (when it is free and accepts the op type).
 UP = (MachineStatus.IDLE.value, MachineStatus.SETUP.value, MachineStatus.RUNNING.value)
 # An entity in one of these states will never use a machine again.
-FINISHED = (LotState.COMPLETED.value, LotState.WAITING_EXPORT.value, LotState.EXPORTED.value,
-            LotState.FAILED.value)
+FINISHED = (LotState.COMPLETED.value, LotState.WAITING_EXPORT.value, LotState.EXPORTED.value, LotState.FAILED.value)
 
 _OUTCOME_COLS = "request_key, entity_id, ack_code, machines, machine_run_id, note, reply_to, reply_conv"
 
@@ -43,8 +42,10 @@ def _live(entity: str, finished: str) -> str:
     `finished` is the query parameter holding FINISHED. One definition for the pass (never bind a
     request of a finished entity) and for the sweep that ends such requests.
     """
-    return (f"exists (select 1 from lot_status s join lot_entities e on e.entity_id = s.entity_id "
-            f"where s.entity_id = {entity} and e.destroyed_at is null and s.state <> all({finished}))")
+    return (
+        f"exists (select 1 from lot_status s join lot_entities e on e.entity_id = s.entity_id "
+        f"where s.entity_id = {entity} and e.destroyed_at is null and s.state <> all({finished}))"
+    )
 
 
 # For each trigger machine, the first few requests in the policy's order whose every machine is
@@ -117,8 +118,16 @@ class Step:
 
     # ------------------------------------------------------------------ conversations
 
-    def queue_request(self, entity_id: int, op_type: str, machines: Sequence[str], priority: int | None,
-                      reply_to: str | None, reply_conv: str | None, alt_group: str | None = None) -> Queued:
+    def queue_request(
+        self,
+        entity_id: int,
+        op_type: str,
+        machines: Sequence[str],
+        priority: int | None,
+        reply_to: str | None,
+        reply_conv: str | None,
+        alt_group: str | None = None,
+    ) -> Queued:
         """Machine_Request: check it and put it in REQUEST_MACHINES (6.2.4.3).
 
         A request whose alternative group (entity, alt_group) was bound already is refused
@@ -136,7 +145,8 @@ class Step:
             "       (select request_key from satisfied_alt_groups where entity_id = %(entity)s "
             "        and alt_group = %(group)s), "
             "       exists (select 1 from op_types where op_type = %(op)s)",
-            {"conv": reply_conv, "entity": entity_id, "group": alt_group, "op": op_type}).fetchone()
+            {"conv": reply_conv, "entity": entity_id, "group": alt_group, "op": op_type},
+        ).fetchone()
         assert row is not None
         repeat, ent, satisfied_by, op_known = row
         if repeat is not None:
@@ -145,29 +155,47 @@ class Step:
             return Queued(AckCode.UNKNOWN, note=f"entity {entity_id} is not known to the Lot Server")
         alive, state, lot_priority = ent
         if alive != "true" or state is None or state in FINISHED:
-            return Queued(AckCode.NOTNOW, note=f"entity {entity_id} is {state or 'without a lot status'}: "
-                                               f"it cannot ask for machines")
+            return Queued(
+                AckCode.NOTNOW,
+                note=f"entity {entity_id} is {state or 'without a lot status'}: it cannot ask for machines",
+            )
         if satisfied_by is not None:
             return Queued(AckCode.REQ_CANCEL, note=f"alternative {satisfied_by} already satisfied")
         if not op_known:
             return Queued(AckCode.UNKNOWN, note=f"op type {op_type!r} is not known")
-        status = dict(cur.execute(
-            "select c.machine_id, s.status from me_config c left join machine_status s on s.machine_id = c.machine_id "
-            "where c.machine_id = any(%s)", (list(machines),)).fetchall())
+        status = dict(
+            cur.execute(
+                "select c.machine_id, s.status from me_config c "
+                "left join machine_status s on s.machine_id = c.machine_id "
+                "where c.machine_id = any(%s)",
+                (list(machines),),
+            ).fetchall()
+        )
         for m in machines:
             if m not in status:
                 return Queued(AckCode.NO_MACHINE, note=f"machine {m} does not exist (ME_CONFIG)")
             if status[m] not in UP:
                 return Queued(AckCode.NO_MACHINE, note=f"machine {m} is {status[m] or 'without a status'}")
-        key = int(cur.execute(
-            "with k (key, at) as (select get_new_max_value('MACH_R_KEY'), clock_timestamp()) "
-            "insert into request_machines (request_key, entity_id, machine_id, op_type, priority, reply_to, reply_conv, "
-            "                              requested_at, slots, alt_group) "
-            "select k.key, %s, m, %s, %s, %s, %s, k.at, %s, %s "
-            "from k, unnest(%s::text[]) with ordinality as u (m, i) order by i "
-            "returning request_key",
-            (entity_id, op_type, int(lot_priority) if priority is None else priority, reply_to, reply_conv,
-             [f"{m}:{op_type}" for m in machines], alt_group, list(machines))).fetchone()[0])
+        key = int(
+            cur.execute(
+                "with k (key, at) as (select get_new_max_value('MACH_R_KEY'), clock_timestamp()) "
+                "insert into request_machines (request_key, entity_id, machine_id, op_type, priority, reply_to, "
+                "                              reply_conv, requested_at, slots, alt_group) "
+                "select k.key, %s, m, %s, %s, %s, %s, k.at, %s, %s "
+                "from k, unnest(%s::text[]) with ordinality as u (m, i) order by i "
+                "returning request_key",
+                (
+                    entity_id,
+                    op_type,
+                    int(lot_priority) if priority is None else priority,
+                    reply_to,
+                    reply_conv,
+                    [f"{m}:{op_type}" for m in machines],
+                    alt_group,
+                    list(machines),
+                ),
+            ).fetchone()[0]
+        )
         self.triggers.update(machines)
         return Queued(AckCode.ACK_OK, key)
 
@@ -206,8 +234,12 @@ class Step:
         if cur.execute("select 1 from me_config where machine_id = %s", (machine_id,)).fetchone() is None:
             return AckCode.UNKNOWN, f"machine {machine_id} does not exist (ME_CONFIG)"
         if list(op_types) == ["*"]:
-            wanted = {r[0] for r in cur.execute(
-                "select distinct op_type from op_machine_recipe where machine_id = %s", (machine_id,))}
+            wanted = {
+                r[0]
+                for r in cur.execute(
+                    "select distinct op_type from op_machine_recipe where machine_id = %s", (machine_id,)
+                )
+            }
         else:
             wanted = set(op_types)
             known = {r[0] for r in cur.execute("select op_type from op_types where op_type = any(%s)", (list(wanted),))}
@@ -215,11 +247,15 @@ class Step:
                 return AckCode.UNKNOWN, f"op type(s) {', '.join(sorted(wanted - known))} not known"
         old = {r[0] for r in cur.execute("select op_type from accept_types where machine_id = %s", (machine_id,))}
         if old - wanted:
-            cur.execute("delete from accept_types where machine_id = %s and op_type = any(%s)",
-                        (machine_id, sorted(old - wanted)))
+            cur.execute(
+                "delete from accept_types where machine_id = %s and op_type = any(%s)",
+                (machine_id, sorted(old - wanted)),
+            )
         if wanted - old:
-            cur.execute("insert into accept_types (machine_id, op_type) select %s, unnest(%s::text[])",
-                        (machine_id, sorted(wanted - old)))
+            cur.execute(
+                "insert into accept_types (machine_id, op_type) select %s, unnest(%s::text[])",
+                (machine_id, sorted(wanted - old)),
+            )
             self.triggers.add(machine_id)
         return AckCode.ACK_OK, f"{machine_id} accepts {', '.join(sorted(wanted)) or 'nothing'}"
 
@@ -236,7 +272,9 @@ class Step:
         """
         rows = self.cur.execute(
             "select q.request_key, q.machine_id from request_machines q join machine_status s on s.machine_id = "
-            "q.machine_id where s.status = %s", (MachineStatus.SHUTDOWN.value,)).fetchall()
+            "q.machine_id where s.status = %s",
+            (MachineStatus.SHUTDOWN.value,),
+        ).fetchall()
         if not rows:
             return 0
         keys = sorted({r[0] for r in rows})
@@ -264,8 +302,12 @@ class Step:
                 cur.execute(f"delete from {table}")
             owed: list[Outcome] = []
         else:
-            owed = [Outcome.of(r) for r in cur.execute(
-                f"select {_OUTCOME_COLS} from request_outcomes where not held order by decided_at, request_key")]
+            owed = [
+                Outcome.of(r)
+                for r in cur.execute(
+                    f"select {_OUTCOME_COLS} from request_outcomes where not held order by decided_at, request_key"
+                )
+            ]
         self.end_finished()  # entities that finished while MSCHED was away
         self.machines_down()
         self.full = True
@@ -285,31 +327,46 @@ class Step:
         linger (e.g. an alternative sent without alt_group that arrived just after its sibling was
         bound). How many requests ended.
         """
-        ended = self._end_queued(f"not {_live('request_machines.entity_id', '%s')}", [list(FINISHED)],
-                                 AckCode.REQ_CANCEL, "entity finished")
+        ended = self._end_queued(
+            f"not {_live('request_machines.entity_id', '%s')}", [list(FINISHED)], AckCode.REQ_CANCEL, "entity finished"
+        )
         self._settle({o.entity_id for o in ended})
-        self.cur.execute(f"delete from satisfied_alt_groups g where not {_live('g.entity_id', '%s')}",
-                         (list(FINISHED),))
+        self.cur.execute(
+            f"delete from satisfied_alt_groups g where not {_live('g.entity_id', '%s')}", (list(FINISHED),)
+        )
         return len(ended)
 
     # ------------------------------------------------------------------ the scheduling pass
 
     def usable_slots(self) -> set[tuple[str, str]]:
         """(machine, op_type) of every machine up, unreserved, and accepting that op type."""
-        return set(self.cur.execute(
-            "select s.machine_id, a.op_type from machine_status s join accept_types a on a.machine_id = s.machine_id "
-            "where s.status = any(%s) and not exists (select 1 from reserved_machines r "
-            "where r.machine_id = s.machine_id)", (list(UP),)).fetchall())
+        return set(
+            self.cur.execute(
+                "select s.machine_id, a.op_type from machine_status s "
+                "join accept_types a on a.machine_id = s.machine_id "
+                "where s.status = any(%s) and not exists (select 1 from reserved_machines r "
+                "where r.machine_id = s.machine_id)",
+                (list(UP),),
+            ).fetchall()
+        )
 
     def candidates(self, trig: set[str], usable: set[tuple[str, str]]) -> list[Candidate]:
         # prepare=False: planned for these machines each time; a generic (prepared) plan of this
         # query walked every request of the queue (70 ms instead of 1 with 10,000 queued).
         query = _CANDIDATES.format(key=self.policy.sql_key(), live=_live("q.entity_id", "%(finished)s"))
-        rows = self.cur.execute(query,
-                                {"trig": sorted(trig), "usable": sorted(f"{m}:{op}" for m, op in usable),
-                                 "finished": list(FINISHED), "per": self.per_machine}, prepare=False).fetchall()
-        unique = {int(k): Candidate(int(k), int(e), op, int(p), int(s), at, tuple(ms))
-                  for k, e, op, p, s, at, ms in rows}
+        rows = self.cur.execute(
+            query,
+            {
+                "trig": sorted(trig),
+                "usable": sorted(f"{m}:{op}" for m, op in usable),
+                "finished": list(FINISHED),
+                "per": self.per_machine,
+            },
+            prepare=False,
+        ).fetchall()
+        unique = {
+            int(k): Candidate(int(k), int(e), op, int(p), int(s), at, tuple(ms)) for k, e, op, p, s, at, ms in rows
+        }
         return list(unique.values())
 
     def schedule(self) -> list[Outcome]:
@@ -335,7 +392,7 @@ class Step:
             taken: set[str] = set()
             entities: set[int] = set()
             chosen: list[Candidate] = []
-            for c in self.policy.order(cands, datetime.now(timezone.utc)):
+            for c in self.policy.order(cands, datetime.now(UTC)):
                 if c.entity_id in entities or taken.intersection(c.machines):
                     continue  # an earlier (older, or more urgent) request took a machine, or the entity is served
                 chosen.append(c)
@@ -351,8 +408,12 @@ class Step:
     def _bind(self, chosen: list[Candidate]) -> list[Outcome]:
         """Reserve the chosen requests' machines and end their entities' requests, in two round trips."""
         cur = self.cur
-        run_ids = [int(r[0]) for r in cur.execute(
-            "select get_new_max_value('MACH_R_ID') from generate_series(1, %s) order by 1", (len(chosen),))]
+        run_ids = [
+            int(r[0])
+            for r in cur.execute(
+                "select get_new_max_value('MACH_R_ID') from generate_series(1, %s) order by 1", (len(chosen),)
+            )
+        ]
         flat = [(m, c.entity_id, rid, c.request_key) for c, rid in zip(chosen, run_ids) for m in c.machines]
         machines, m_entities, m_run_ids, m_keys = (list(col) for col in zip(*flat))
         # One statement: reserve; the bound request ends ACK_OK, the entity's other requests (its
@@ -384,16 +445,25 @@ class Step:
             "        from b where o.held and o.entity_id = b.entity_id "
             f"       returning {', '.join('o.' + c for c in _OUTCOME_COLS.split(', '))}) "
             f"select {_OUTCOME_COLS} from ended union all select {_OUTCOME_COLS} from released",
-            {"entities": [c.entity_id for c in chosen], "keys": [c.request_key for c in chosen], "run_ids": run_ids,
-             "machines": machines, "m_entities": m_entities, "m_run_ids": m_run_ids, "m_keys": m_keys}).fetchall()
+            {
+                "entities": [c.entity_id for c in chosen],
+                "keys": [c.request_key for c in chosen],
+                "run_ids": run_ids,
+                "machines": machines,
+                "m_entities": m_entities,
+                "m_run_ids": m_run_ids,
+                "m_keys": m_keys,
+            },
+        ).fetchall()
         ended = [Outcome.of(r) for r in rows]
         self.outcomes += ended
         return [o for o in ended if o.ack_code == AckCode.ACK_OK]
 
     # ------------------------------------------------------------------ moving requests out of the queue
 
-    def _end_queued(self, cond: str, params: Sequence[Any], ack_code: str, note: str | None,
-                    held: bool = False) -> list[Outcome]:
+    def _end_queued(
+        self, cond: str, params: Sequence[Any], ack_code: str, note: str | None, held: bool = False
+    ) -> list[Outcome]:
         """Move the queued requests matching cond to REQUEST_OUTCOMES; those not held are to be told."""
         rows = self.cur.execute(
             f"with gone as (delete from request_machines where {cond} returning *) "
@@ -401,7 +471,9 @@ class Step:
             "                              reply_to, reply_conv) "
             "select request_key, min(entity_id), min(op_type), array_agg(machine_id order by seq), %s, %s, %s, "
             "       min(reply_to), min(reply_conv) "
-            f"from gone group by request_key returning {_OUTCOME_COLS}", [*params, ack_code, note, held]).fetchall()
+            f"from gone group by request_key returning {_OUTCOME_COLS}",
+            [*params, ack_code, note, held],
+        ).fetchall()
         ended = [Outcome.of(r) for r in rows]
         if not held:
             self.outcomes += ended
@@ -411,7 +483,9 @@ class Step:
         """Held outcomes matching cond become ack_code (note, if given) and are to be told."""
         rows = self.cur.execute(
             f"update request_outcomes set held = false, ack_code = %s, note = coalesce(%s, note) "
-            f"where held and {cond} returning {_OUTCOME_COLS}", [ack_code, note, *params]).fetchall()
+            f"where held and {cond} returning {_OUTCOME_COLS}",
+            [ack_code, note, *params],
+        ).fetchall()
         ended = [Outcome.of(r) for r in rows]
         self.outcomes += ended
         return ended
@@ -421,11 +495,16 @@ class Step:
         if entities:
             self._release_held(
                 "entity_id = any(%s) and not exists (select 1 from request_machines q "
-                "where q.entity_id = request_outcomes.entity_id)", [sorted(entities)], AckCode.NO_MACHINE, None)
+                "where q.entity_id = request_outcomes.entity_id)",
+                [sorted(entities)],
+                AckCode.NO_MACHINE,
+                None,
+            )
 
 
-def run_step(cur: psycopg.Cursor[Any], policy: Policy,
-             ops: Sequence[Callable[[Step], Any]]) -> tuple[list[Any], list[Outcome]]:
+def run_step(
+    cur: psycopg.Cursor[Any], policy: Policy, ops: Sequence[Callable[[Step], Any]]
+) -> tuple[list[Any], list[Outcome]]:
     """Apply ops in order, then one scheduling pass; return each op's result and the outcomes to tell."""
     step = Step(cur, policy)
     results = [op(step) for op in ops]

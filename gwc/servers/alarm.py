@@ -42,22 +42,30 @@ class AlarmServer(Server, Module):
             return await self.answer(conv, "Alarm_Ack", AckCode.BAD_MESSAGE, "alarm_id and raised_by must be given")
 
         def record(cur: Any) -> tuple[int, bool, str]:
-            row = cur.execute("select alarm_text from alarm_description where alarm_id = %s",
-                              (req.alarm_id,)).fetchone()
+            row = cur.execute(
+                "select alarm_text from alarm_description where alarm_id = %s", (req.alarm_id,)
+            ).fetchone()
             known = row is not None
             text = req.alarm_text or (row[0] if known else f"unknown alarm {req.alarm_id}")
             no = db.get_new_max_value(cur, "ALARM_NO")
-            cur.execute("insert into alarms (alarm_no, alarm_id, known, machine_id, alarm_text, raised_by) "
-                        "values (%s, %s, %s, %s, %s, %s)",
-                        (no, req.alarm_id, known, req.machine_id, text, req.raised_by))
+            cur.execute(
+                "insert into alarms (alarm_no, alarm_id, known, machine_id, alarm_text, raised_by) "
+                "values (%s, %s, %s, %s, %s, %s)",
+                (no, req.alarm_id, known, req.machine_id, text, req.raised_by),
+            )
             return no, known, text
 
         no, known, text = self.transaction(record)
         if known:
             self.log.info("alarm %d %s from %s pending: %s", no, req.alarm_id, req.raised_by, text)
         else:
-            self.log.warning("alarm %d %s from %s is not in ALARM_DESCRIPTION: recorded as unknown: %s", no,
-                             req.alarm_id, req.raised_by, text)
+            self.log.warning(
+                "alarm %d %s from %s is not in ALARM_DESCRIPTION: recorded as unknown: %s",
+                no,
+                req.alarm_id,
+                req.raised_by,
+                text,
+            )
         await self.answer(conv, "Alarm_Ack", AckCode.ACK_OK, alarm_no=no, known=known)
         await self.event(f"alarm {no} {req.alarm_id}{'' if known else ' (unknown)'}: {text}")
 
@@ -68,12 +76,16 @@ class AlarmServer(Server, Module):
             return await self.answer(conv, "Alarm_Clear_Ack", AckCode.BAD_MESSAGE, "cleared_by must be given")
 
         def clear(cur: Any) -> tuple[Any, ...] | None:
-            row = cur.execute("select alarm_id, machine_id, cleared_by, cleared_at from alarms where alarm_no = %s "
-                              "for update", (req.alarm_no,)).fetchone()
+            row = cur.execute(
+                "select alarm_id, machine_id, cleared_by, cleared_at from alarms where alarm_no = %s for update",
+                (req.alarm_no,),
+            ).fetchone()
             if row is None or row[3] is not None:
                 return row
-            cur.execute("update alarms set cleared_by = %s, cleared_at = now() where alarm_no = %s",
-                        (req.cleared_by, req.alarm_no))
+            cur.execute(
+                "update alarms set cleared_by = %s, cleared_at = now() where alarm_no = %s",
+                (req.cleared_by, req.alarm_no),
+            )
             return row
 
         row = self.transaction(clear)
@@ -81,10 +93,22 @@ class AlarmServer(Server, Module):
             return await self.answer(conv, "Alarm_Clear_Ack", AckCode.UNKNOWN, f"no alarm number {req.alarm_no}")
         alarm_id, machine_id, by, at = row
         if at is not None:
-            return await self.answer(conv, "Alarm_Clear_Ack", AckCode.NOTNOW,
-                                     f"alarm {req.alarm_no} was already cleared by {by} at {at:%Y-%m-%d %H:%M:%S}")
+            return await self.answer(
+                conv,
+                "Alarm_Clear_Ack",
+                AckCode.NOTNOW,
+                f"alarm {req.alarm_no} was already cleared by {by} at {at:%Y-%m-%d %H:%M:%S}",
+            )
         self.log.info("alarm %d %s cleared by %s", req.alarm_no, alarm_id, req.cleared_by)
         await self.answer(conv, "Alarm_Clear_Ack", AckCode.ACK_OK)
-        await self.broadcast("ALARM_CLE", message("Alarm_Clear", alarm_no=req.alarm_no, alarm_id=alarm_id,
-                                                  machine_id=machine_id, cleared_by=req.cleared_by))
+        await self.broadcast(
+            "ALARM_CLE",
+            message(
+                "Alarm_Clear",
+                alarm_no=req.alarm_no,
+                alarm_id=alarm_id,
+                machine_id=machine_id,
+                cleared_by=req.cleared_by,
+            ),
+        )
         await self.event(f"alarm {req.alarm_no} {alarm_id} cleared by {req.cleared_by}")

@@ -37,8 +37,9 @@ class Server:
         assert conv.first is not None
         return conv.first.first
 
-    async def answer(self, conv: Conversation, name: str, code: str = AckCode.ACK_OK, note: str | None = None,
-                     **fields: Any) -> None:
+    async def answer(
+        self, conv: Conversation, name: str, code: str = AckCode.ACK_OK, note: str | None = None, **fields: Any
+    ) -> None:
         """Answer a conversation; a refusal (any code but ACK_OK) is logged with its reason first."""
         if code != AckCode.ACK_OK:
             self.log.info("refused %s from %s: %s (%s)", conv.cls, conv.peer, code, note or "-")
@@ -63,8 +64,13 @@ class Server:
         """Send an alarm to the CAS (ALARM_SEND); its alarm_no, or None (logged) if it was not taken."""
         try:
             conv, batch = await self.bus.request(
-                "ALARM_SEND", message("Alarm_Send", alarm_id=alarm_id, alarm_text=text[:500], machine_id=machine_id,
-                                      raised_by=self.name), to="cas", timeout=SERVER_TIMEOUT)
+                "ALARM_SEND",
+                message(
+                    "Alarm_Send", alarm_id=alarm_id, alarm_text=text[:500], machine_id=machine_id, raised_by=self.name
+                ),
+                to="cas",
+                timeout=SERVER_TIMEOUT,
+            )
             conv.end()
         except GwcError as e:  # ConversationTimeout among them
             self.log.error("alarm %s (%s) not taken by the Cell Alarm Server: %s", alarm_id, text, e)

@@ -44,22 +44,30 @@ ACTIONS: dict[str, tuple[LotState | None, frozenset[LotState]]] = {
     "state": (None, frozenset(L)),
     "destroy": (None, frozenset({L.CREATED, L.EXPORTED, L.FAILED})),
 }
-DECISIONS = {"IMPORT_LOT": ("import", L.WAITING_IMPORT, L.IMPORTED),
-             "EXPORT_LOT": ("export", L.WAITING_EXPORT, L.EXPORTED)}
+DECISIONS = {
+    "IMPORT_LOT": ("import", L.WAITING_IMPORT, L.IMPORTED),
+    "EXPORT_LOT": ("export", L.WAITING_EXPORT, L.EXPORTED),
+}
 
 
 def _new_lot_for(cur: Any, entity_id: int, old_lot: int) -> int:
     """Move an entity into a new lot, a copy of its old one (6.1.1: re-imported, a new lot_id)."""
     lot_id = db.get_new_max_value(cur, "LOT_ID")
-    cur.execute("insert into lots (lot_id, lot_type, work_order_id, product_id, quantity, priority, owner, "
-                "script_id, result_params) select %s, lot_type, work_order_id, product_id, 1, priority, owner, "
-                "script_id, result_params from lots where lot_id = %s", (lot_id, old_lot))
+    cur.execute(
+        "insert into lots (lot_id, lot_type, work_order_id, product_id, quantity, priority, owner, "
+        "script_id, result_params) select %s, lot_type, work_order_id, product_id, 1, priority, owner, "
+        "script_id, result_params from lots where lot_id = %s",
+        (lot_id, old_lot),
+    )
     # lot_status names (entity, lot) of lot_entities: out, move the entity, back in, in this one transaction.
-    st = cur.execute("delete from lot_status where entity_id = %s returning state, reason, script_pid",
-                     (entity_id,)).fetchone()
+    st = cur.execute(
+        "delete from lot_status where entity_id = %s returning state, reason, script_pid", (entity_id,)
+    ).fetchone()
     cur.execute("update lot_entities set lot_id = %s, unit = 1 where entity_id = %s", (lot_id, entity_id))
-    cur.execute("insert into lot_status (entity_id, lot_id, state, reason, script_pid) values (%s, %s, %s, %s, %s)",
-                (entity_id, lot_id, *st))
+    cur.execute(
+        "insert into lot_status (entity_id, lot_id, state, reason, script_pid) values (%s, %s, %s, %s, %s)",
+        (entity_id, lot_id, *st),
+    )
     return lot_id
 
 
@@ -87,11 +95,16 @@ class LotServer(Server, Module):
 
     async def on_startup(self) -> str:
         """Watch the scripts of entities at work (they had a script when we were last up)."""
+
         def attached(cur: Any) -> list[int]:
-            return [r[0] for r in cur.execute(
-                "select s.entity_id from lot_status s join lot_entities e using (entity_id) "
-                "where s.script_pid is not null and e.destroyed_at is null and s.state <> all(%s)",
-                ([str(s) for s in FINISHED],)).fetchall()]
+            return [
+                r[0]
+                for r in cur.execute(
+                    "select s.entity_id from lot_status s join lot_entities e using (entity_id) "
+                    "where s.script_pid is not null and e.destroyed_at is null and s.state <> all(%s)",
+                    ([str(s) for s in FINISHED],),
+                ).fetchall()
+            ]
 
         now = time.monotonic()
         self.watched = {e: now for e in self.transaction(attached)}
@@ -122,21 +135,27 @@ class LotServer(Server, Module):
         reason = f"lot script died ({why})"
 
         def fail(cur: Any) -> bool:
-            row = cur.execute("select s.state from lot_status s join lot_entities e using (entity_id) "
-                              "where s.entity_id = %s and e.destroyed_at is null for update of s",
-                              (entity_id,)).fetchone()
+            row = cur.execute(
+                "select s.state from lot_status s join lot_entities e using (entity_id) "
+                "where s.entity_id = %s and e.destroyed_at is null for update of s",
+                (entity_id,),
+            ).fetchone()
             if row is None or L(row[0]) in FINISHED:
                 return False
-            cur.execute("update lot_status set state = 'failed', reason = %s, updated_at = now() "
-                        "where entity_id = %s", (reason, entity_id))
+            cur.execute(
+                "update lot_status set state = 'failed', reason = %s, updated_at = now() where entity_id = %s",
+                (reason, entity_id),
+            )
             return True
 
         if not self.transaction(fail):
             return
         self.log.warning("entity %d failed: %s; asking msched to cancel and unreserve", entity_id, reason)
         await self.event(f"entity {entity_id} failed: {reason}")
-        for cls, msg in (("CANCEL_RE", message("Cancel_Request", entity_id=entity_id, by=self.name)),
-                         ("UNRESERVE", message("Unreserve_Me", entity_id=entity_id, by=self.name))):
+        for cls, msg in (
+            ("CANCEL_RE", message("Cancel_Request", entity_id=entity_id, by=self.name)),
+            ("UNRESERVE", message("Unreserve_Me", entity_id=entity_id, by=self.name)),
+        ):
             try:
                 answer = await self.ask(cls, msg, "msched", SERVER_TIMEOUT)
                 self.log.info("%s for entity %d: %s %s", cls, entity_id, answer.ack_code, answer.note or "")
@@ -156,42 +175,67 @@ class LotServer(Server, Module):
         def create(cur: Any) -> tuple[int, list[int], bool] | str:
             if req.request_id:  # asked again (the answer was lost, or we restarted): what the first one made
                 cur.execute("select pg_advisory_xact_lock(hashtext(%s))", (req.request_id,))
-                made = cur.execute("select lot_id, entity_id from lot_entities where create_request = %s "
-                                   "order by unit", (req.request_id,)).fetchall()
+                made = cur.execute(
+                    "select lot_id, entity_id from lot_entities where create_request = %s order by unit",
+                    (req.request_id,),
+                ).fetchall()
                 if made:
                     return made[0][0], [e for _, e in made], False
-            product = cur.execute("select script_id, lot_type from products where product_id = %s",
-                                  (req.product_id,)).fetchone()
+            product = cur.execute(
+                "select script_id, lot_type from products where product_id = %s", (req.product_id,)
+            ).fetchone()
             if product is None:
                 return f"no product {req.product_id!r}"
             script_id = req.script_id or product[0]
-            if req.script_id and not cur.execute("select 1 from lot_scripts where script_id = %s",
-                                                 (req.script_id,)).fetchone():
+            if (
+                req.script_id
+                and not cur.execute("select 1 from lot_scripts where script_id = %s", (req.script_id,)).fetchone()
+            ):
                 return f"no lot script {req.script_id!r}"
-            if req.work_order_id is not None and not cur.execute(
-                    "select 1 from work_orders where work_order_id = %s", (req.work_order_id,)).fetchone():
+            if (
+                req.work_order_id is not None
+                and not cur.execute(
+                    "select 1 from work_orders where work_order_id = %s", (req.work_order_id,)
+                ).fetchone()
+            ):
                 return f"no work order {req.work_order_id}"
             if req.lot_id is not None:
                 lot = cur.execute("select lot_id from lots where lot_id = %s for update", (req.lot_id,)).fetchone()
                 if lot is None:
                     return f"no lot {req.lot_id}"
                 lot_id = req.lot_id
-                first = cur.execute("select coalesce(max(unit), 0) + 1 from lot_entities where lot_id = %s",
-                                    (lot_id,)).fetchone()[0]
+                first = cur.execute(
+                    "select coalesce(max(unit), 0) + 1 from lot_entities where lot_id = %s", (lot_id,)
+                ).fetchone()[0]
                 cur.execute("update lots set quantity = quantity + %s where lot_id = %s", (req.quantity, lot_id))
             else:
                 lot_id, first = db.get_new_max_value(cur, "LOT_ID"), 1
-                cur.execute("insert into lots (lot_id, lot_type, work_order_id, product_id, quantity, priority, "
-                            "owner, script_id, result_params) values (%s, %s, %s, %s, %s, coalesce(%s, 20), %s, "
-                            "%s, %s)", (lot_id, req.lot_type or product[1], req.work_order_id, req.product_id,
-                                        req.quantity, req.priority, req.owner, script_id, params))
+                cur.execute(
+                    "insert into lots (lot_id, lot_type, work_order_id, product_id, quantity, priority, "
+                    "owner, script_id, result_params) values (%s, %s, %s, %s, %s, coalesce(%s, 20), %s, "
+                    "%s, %s)",
+                    (
+                        lot_id,
+                        req.lot_type or product[1],
+                        req.work_order_id,
+                        req.product_id,
+                        req.quantity,
+                        req.priority,
+                        req.owner,
+                        script_id,
+                        params,
+                    ),
+                )
             ids = []
             for unit in range(first, first + req.quantity):
                 eid = db.get_new_max_value(cur, "ENTITY_ID")
-                cur.execute("insert into lot_entities (entity_id, lot_id, unit, create_request) "
-                            "values (%s, %s, %s, %s)", (eid, lot_id, unit, req.request_id))
-                cur.execute("insert into lot_status (entity_id, lot_id, state) values (%s, %s, 'created')",
-                            (eid, lot_id))
+                cur.execute(
+                    "insert into lot_entities (entity_id, lot_id, unit, create_request) values (%s, %s, %s, %s)",
+                    (eid, lot_id, unit, req.request_id),
+                )
+                cur.execute(
+                    "insert into lot_status (entity_id, lot_id, state) values (%s, %s, 'created')", (eid, lot_id)
+                )
                 ids.append(eid)
             return lot_id, ids, True
 
@@ -200,13 +244,22 @@ class LotServer(Server, Module):
             return await self.answer(conv, ack, AckCode.UNKNOWN, result)
         lot_id, ids, new = result
         if new:
-            self.log.info("lot %d: %d entit%s created (%s) for %s", lot_id, len(ids), "y" if len(ids) == 1 else "ies",
-                          ", ".join(map(str, ids)), req.owner or conv.peer)
+            self.log.info(
+                "lot %d: %d entit%s created (%s) for %s",
+                lot_id,
+                len(ids),
+                "y" if len(ids) == 1 else "ies",
+                ", ".join(map(str, ids)),
+                req.owner or conv.peer,
+            )
         else:
-            self.log.warning("CREATE_LOT %s asked again: lot %d, entities %s, already created", req.request_id,
-                             lot_id, ", ".join(map(str, ids)))
-        await self.answer(conv, ack, AckCode.ACK_OK, None if new else "already created", lot_id=lot_id,
-                          entity_ids=ids)
+            self.log.warning(
+                "CREATE_LOT %s asked again: lot %d, entities %s, already created",
+                req.request_id,
+                lot_id,
+                ", ".join(map(str, ids)),
+            )
+        await self.answer(conv, ack, AckCode.ACK_OK, None if new else "already created", lot_id=lot_id, entity_ids=ids)
 
     async def entity_request(self, conv: Conversation) -> None:
         """ENTITY_REQ: an entity moves itself (import, export, waiting_machine, running, completed,
@@ -214,8 +267,9 @@ class LotServer(Server, Module):
         req = self.request(conv)
         ack = "Entity_Ack"
         if req.action not in ACTIONS:
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE,
-                                     f"action {req.action!r} is not one of {', '.join(ACTIONS)}")
+            return await self.answer(
+                conv, ack, AckCode.BAD_MESSAGE, f"action {req.action!r} is not one of {', '.join(ACTIONS)}"
+            )
         if req.action == "failed" and not (req.reason or "").strip():
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "failed needs a reason")
         if req.action == "attach" and not (req.script_pid or 0) > 0:
@@ -223,9 +277,11 @@ class LotServer(Server, Module):
         target, allowed = ACTIONS[req.action]
 
         def step(cur: Any) -> tuple[str, int | None, LotState | None, str | None]:
-            row = cur.execute("select s.lot_id, s.state, e.destroyed_at from lot_status s "
-                              "join lot_entities e using (entity_id) where s.entity_id = %s for update of s",
-                              (req.entity_id,)).fetchone()
+            row = cur.execute(
+                "select s.lot_id, s.state, e.destroyed_at from lot_status s "
+                "join lot_entities e using (entity_id) where s.entity_id = %s for update of s",
+                (req.entity_id,),
+            ).fetchone()
             if row is None or (row[2] is not None and req.action != "state"):
                 return AckCode.UNKNOWN, None, None, f"no entity {req.entity_id}" + (" (destroyed)" if row else "")
             lot_id, state = row[0], L(row[1])
@@ -233,8 +289,10 @@ class LotServer(Server, Module):
                 return AckCode.NOTNOW, lot_id, state, f"entity {req.entity_id} is {state}: cannot {req.action}"
             note = "destroyed" if row[2] is not None else None
             if req.action == "attach":
-                cur.execute("update lot_status set script_pid = %s, updated_at = now() where entity_id = %s",
-                            (req.script_pid, req.entity_id))
+                cur.execute(
+                    "update lot_status set script_pid = %s, updated_at = now() where entity_id = %s",
+                    (req.script_pid, req.entity_id),
+                )
             elif req.action == "destroy":
                 cur.execute("update lot_entities set destroyed_at = now() where entity_id = %s", (req.entity_id,))
                 note = "destroyed"
@@ -242,8 +300,10 @@ class LotServer(Server, Module):
                 if state == L.EXPORTED:  # back after an export: a new lot (6.1.1)
                     old, lot_id = lot_id, _new_lot_for(cur, req.entity_id, lot_id)
                     note = f"re-imported entity: lot {old} -> lot {lot_id}"
-                cur.execute("update lot_status set state = %s, reason = %s, updated_at = now() where entity_id = %s",
-                            (target.value, req.reason, req.entity_id))
+                cur.execute(
+                    "update lot_status set state = %s, reason = %s, updated_at = now() where entity_id = %s",
+                    (target.value, req.reason, req.entity_id),
+                )
                 state = target
             return AckCode.ACK_OK, lot_id, state, note
 
@@ -273,15 +333,19 @@ class LotServer(Server, Module):
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"{conv.cls} decides {action}, not {req.action!r}")
 
         def step(cur: Any) -> tuple[str, int | None, str | None]:
-            row = cur.execute("select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
-                              "where s.entity_id = %s and e.destroyed_at is null for update of s",
-                              (req.entity_id,)).fetchone()
+            row = cur.execute(
+                "select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
+                "where s.entity_id = %s and e.destroyed_at is null for update of s",
+                (req.entity_id,),
+            ).fetchone()
             if row is None:
                 return AckCode.UNKNOWN, None, f"no entity {req.entity_id}"
             if row[1] != waiting:
                 return AckCode.NOTNOW, row[0], f"entity {req.entity_id} is {row[1]}, not {waiting}"
-            cur.execute("update lot_status set state = %s, updated_at = now() where entity_id = %s",
-                        (moved.value, req.entity_id))
+            cur.execute(
+                "update lot_status set state = %s, updated_at = now() where entity_id = %s",
+                (moved.value, req.entity_id),
+            )
             return AckCode.ACK_OK, row[0], None
 
         code, lot_id, note = self.transaction(step)
@@ -309,9 +373,11 @@ class LotServer(Server, Module):
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "merge needs another entity (other_entity_id)")
 
         def lookup(cur: Any, eid: int) -> tuple[int, str] | None:
-            return cur.execute("select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
-                               "where s.entity_id = %s and e.destroyed_at is null for update of s",
-                               (eid,)).fetchone()
+            return cur.execute(
+                "select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
+                "where s.entity_id = %s and e.destroyed_at is null for update of s",
+                (eid,),
+            ).fetchone()
 
         def step(cur: Any) -> tuple[str, list[int] | None, str | None]:
             me = lookup(cur, req.entity_id)
@@ -319,22 +385,24 @@ class LotServer(Server, Module):
             if me is None or (req.action == "merge" and other is None):
                 missing = req.entity_id if me is None else req.other_entity_id
                 return AckCode.UNKNOWN, None, f"no entity {missing}"
-            for eid, (lot, state) in ((req.entity_id, me), (req.other_entity_id, other or me)):
+            for eid, (_lot, state) in ((req.entity_id, me), (req.other_entity_id, other or me)):
                 if state not in still:
                     return AckCode.NOTNOW, None, f"entity {eid} is {state}: only created or imported ones"
             if req.action == "merge":
                 if other[0] != me[0] or other[1] != me[1]:  # type: ignore[index]
                     return AckCode.NOTNOW, None, "only entities of one lot and one state merge"
-                cur.execute("update lot_entities set destroyed_at = now() where entity_id = %s",
-                            (req.other_entity_id,))
+                cur.execute("update lot_entities set destroyed_at = now() where entity_id = %s", (req.other_entity_id,))
                 return AckCode.ACK_OK, [req.entity_id], f"entity {req.other_entity_id} merged into {req.entity_id}"
             ids = [req.entity_id]
             for _ in range(n):
                 eid = db.get_new_max_value(cur, "ENTITY_ID")
-                cur.execute("insert into lot_entities (entity_id, lot_id, parent_entity_id) values (%s, %s, %s)",
-                            (eid, me[0], req.entity_id))
-                cur.execute("insert into lot_status (entity_id, lot_id, state) values (%s, %s, %s)",
-                            (eid, me[0], me[1]))
+                cur.execute(
+                    "insert into lot_entities (entity_id, lot_id, parent_entity_id) values (%s, %s, %s)",
+                    (eid, me[0], req.entity_id),
+                )
+                cur.execute(
+                    "insert into lot_status (entity_id, lot_id, state) values (%s, %s, %s)", (eid, me[0], me[1])
+                )
                 ids.append(eid)
             return AckCode.ACK_OK, ids, None
 

@@ -105,12 +105,15 @@ class MachineServer(Server, Module):
                 self.log.error("machine %s: maintenance_every = %r is not a positive whole number: ignored", m.id, n)
 
         def load(cur: Any) -> list[tuple[str, str, float]]:
-            cur.execute("insert into machine_status (machine_id, status) select machine_id, 'Shutdown' "
-                        "from me_config on conflict do nothing")
+            cur.execute(
+                "insert into machine_status (machine_id, status) select machine_id, 'Shutdown' "
+                "from me_config on conflict do nothing"
+            )
             for mid, n in every.items():
                 cur.execute("update machine_status set maintenance_every = %s where machine_id = %s", (n, mid))
-            return cur.execute("select s.machine_id, s.status, c.liveness_s from machine_status s "
-                               "join me_config c using (machine_id)").fetchall()
+            return cur.execute(
+                "select s.machine_id, s.status, c.liveness_s from machine_status s join me_config c using (machine_id)"
+            ).fetchall()
 
         now = time.monotonic()
         self.machines = {mid: _Watch(S(status), float(live), now) for mid, status, live in self.transaction(load)}
@@ -140,12 +143,15 @@ class MachineServer(Server, Module):
         self.log.error("%s", note)
 
         def shut(cur: Any) -> tuple[str, int | None] | None:
-            row = cur.execute("select status from machine_status where machine_id = %s for update",
-                              (machine_id,)).fetchone()
+            row = cur.execute(
+                "select status from machine_status where machine_id = %s for update", (machine_id,)
+            ).fetchone()
             if row is None or row[0] == S.SHUTDOWN:
                 return None
-            run = cur.execute(_UPDATE, {"status": S.SHUTDOWN.value, "recipe_id": None, "run": None, "note": note,
-                                        "machine_id": machine_id}).fetchone()
+            run = cur.execute(
+                _UPDATE,
+                {"status": S.SHUTDOWN.value, "recipe_id": None, "run": None, "note": note, "machine_id": machine_id},
+            ).fetchone()
             return row[0], run[0]
 
         changed = self.transaction(shut)
@@ -153,8 +159,17 @@ class MachineServer(Server, Module):
         if changed is None:
             return
         previous, run = changed
-        await self.broadcast("UPD_ME_ST", message("Update_ME_Status", machine_id=machine_id, status=S.SHUTDOWN.value,
-                                                  previous=previous, machine_run_id=run, note=note))
+        await self.broadcast(
+            "UPD_ME_ST",
+            message(
+                "Update_ME_Status",
+                machine_id=machine_id,
+                status=S.SHUTDOWN.value,
+                previous=previous,
+                machine_run_id=run,
+                note=note,
+            ),
+        )
         self.spawn(self._alarm("WC_SILENT", note, machine_id))
 
     async def _alarm(self, alarm_id: str, text: str, machine_id: str) -> None:
@@ -170,13 +185,17 @@ class MachineServer(Server, Module):
             status = S(req.status)
             expect = None if req.expect is None else {S(s) for s in req.expect}
         except (ValueError, TypeError):
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE,
-                                     f"status {req.status!r} or expect {req.expect!r} is not a machine status "
-                                     f"({', '.join(S)})")
+            return await self.answer(
+                conv,
+                ack,
+                AckCode.BAD_MESSAGE,
+                f"status {req.status!r} or expect {req.expect!r} is not a machine status ({', '.join(S)})",
+            )
 
         def step(cur: Any) -> tuple[str, str | None, int | None] | None:
-            row = cur.execute("select status from machine_status where machine_id = %s for update",
-                              (req.machine_id,)).fetchone()
+            row = cur.execute(
+                "select status from machine_status where machine_id = %s for update", (req.machine_id,)
+            ).fetchone()
             if row is None:
                 return None
             current = S(row[0])
@@ -184,8 +203,16 @@ class MachineServer(Server, Module):
                 return current, f"machine {req.machine_id} is {current}, not {' or '.join(sorted(expect))}", None
             if status not in TRANSITIONS[current]:
                 return current, f"machine {req.machine_id} cannot go from {current} to {status}", None
-            run = cur.execute(_UPDATE, {"status": status.value, "recipe_id": req.recipe_id, "run": req.machine_run_id,
-                                        "note": req.note, "machine_id": req.machine_id}).fetchone()
+            run = cur.execute(
+                _UPDATE,
+                {
+                    "status": status.value,
+                    "recipe_id": req.recipe_id,
+                    "run": req.machine_run_id,
+                    "note": req.note,
+                    "machine_id": req.machine_id,
+                },
+            ).fetchone()
             return current, None, run[0]
 
         result = self.transaction(step)
@@ -203,9 +230,17 @@ class MachineServer(Server, Module):
         self.log.info("%s: %s -> %s%s", req.machine_id, previous, status, f" ({req.note})" if req.note else "")
         await self.answer(conv, ack, AckCode.ACK_OK, status=status.value, previous=previous.value)
         if status != previous:
-            await self.broadcast("UPD_ME_ST", message(
-                "Update_ME_Status", machine_id=req.machine_id, status=status.value, previous=previous.value,
-                machine_run_id=run, note=req.note))
+            await self.broadcast(
+                "UPD_ME_ST",
+                message(
+                    "Update_ME_Status",
+                    machine_id=req.machine_id,
+                    status=status.value,
+                    previous=previous.value,
+                    machine_run_id=run,
+                    note=req.note,
+                ),
+            )
 
     def _liveness(self, machine_id: str) -> float:
         def read(cur: Any) -> float:
@@ -218,15 +253,26 @@ class MachineServer(Server, Module):
         req = self.request(conv)
 
         def read(cur: Any) -> tuple[Any, ...] | None:
-            return cur.execute("select status, recipe_id, machine_run_id, note from machine_status "
-                               "where machine_id = %s", (req.machine_id,)).fetchone()
+            return cur.execute(
+                "select status, recipe_id, machine_run_id, note from machine_status where machine_id = %s",
+                (req.machine_id,),
+            ).fetchone()
 
         row = self.transaction(read)
         if row is None:
-            return await self.answer(conv, "Status_Reply", AckCode.UNKNOWN, f"no machine {req.machine_id!r}",
-                                     machine_id=req.machine_id)
-        await self.answer(conv, "Status_Reply", AckCode.ACK_OK, row[3], machine_id=req.machine_id, status=row[0],
-                          recipe_id=row[1], machine_run_id=row[2])
+            return await self.answer(
+                conv, "Status_Reply", AckCode.UNKNOWN, f"no machine {req.machine_id!r}", machine_id=req.machine_id
+            )
+        await self.answer(
+            conv,
+            "Status_Reply",
+            AckCode.ACK_OK,
+            row[3],
+            machine_id=req.machine_id,
+            status=row[0],
+            recipe_id=row[1],
+            machine_run_id=row[2],
+        )
 
     async def run_complete(self, conv: Conversation) -> None:
         """RUN_COMPL (broadcast by a WC): count the run, a failed one as scrap; maintenance due?"""
@@ -238,18 +284,27 @@ class MachineServer(Server, Module):
                 "update machine_status set runs_since_maintenance = runs_since_maintenance + 1, "
                 "scrap_count = scrap_count + %s where machine_id = %s "
                 "returning runs_since_maintenance, maintenance_every",
-                (1 if failed else 0, done.machine_id)).fetchone()
+                (1 if failed else 0, done.machine_id),
+            ).fetchone()
 
         row = self.transaction(count)
         if row is None:
             self.log.warning("Run_Complete for unknown machine %s ignored", done.machine_id)
             return
         runs, every = row
-        self.log.info("%s: run %s %s; %d runs since maintenance", done.machine_id, done.machine_run_id,
-                      "failed (scrap)" if failed else "complete", runs)
+        self.log.info(
+            "%s: run %s %s; %d runs since maintenance",
+            done.machine_id,
+            done.machine_run_id,
+            "failed (scrap)" if failed else "complete",
+            runs,
+        )
         if every is not None and runs == every:
-            self.spawn(self._alarm("MAINT_DUE", f"{done.machine_id}: maintenance is due ({runs} runs since the last)",
-                                   done.machine_id))
+            self.spawn(
+                self._alarm(
+                    "MAINT_DUE", f"{done.machine_id}: maintenance is due ({runs} runs since the last)", done.machine_id
+                )
+            )
 
     async def maintenance_done(self, conv: Conversation) -> None:
         """MAINT_DONE: the operator maintained a machine; the run count starts again."""
@@ -259,7 +314,9 @@ class MachineServer(Server, Module):
             return cur.execute(
                 "update machine_status m set runs_since_maintenance = 0, updated_at = now() "
                 "from machine_status old where m.machine_id = %s and old.machine_id = m.machine_id "
-                "returning old.runs_since_maintenance", (req.machine_id,)).fetchone()
+                "returning old.runs_since_maintenance",
+                (req.machine_id,),
+            ).fetchone()
 
         row = self.transaction(reset)
         if row is None:

@@ -74,6 +74,7 @@ class RecipeServer(Server, Module):
 
     async def on_startup(self) -> str:
         """Give every version its library file if it has none (first start, a new var/)."""
+
         def versions(cur: Any) -> list[tuple[str, int, bytes]]:
             return cur.execute("select recipe_id, version, content from recipe_versions").fetchall()
 
@@ -103,11 +104,17 @@ class RecipeServer(Server, Module):
 
         def read(cur: Any) -> tuple[Any, ...]:
             known = cur.execute("select 1 from recipes where recipe_id = %s", (req.recipe_id,)).fetchone()
-            row = cur.execute("select version, checksum, content from recipe_versions "
-                              "where recipe_id = %s and approved", (req.recipe_id,)).fetchone()
-            bound = req.machine_id is None or cur.execute(
-                "select 1 from op_machine_recipe where recipe_id = %s and machine_id = %s",
-                (req.recipe_id, req.machine_id)).fetchone()
+            row = cur.execute(
+                "select version, checksum, content from recipe_versions where recipe_id = %s and approved",
+                (req.recipe_id,),
+            ).fetchone()
+            bound = (
+                req.machine_id is None
+                or cur.execute(
+                    "select 1 from op_machine_recipe where recipe_id = %s and machine_id = %s",
+                    (req.recipe_id, req.machine_id),
+                ).fetchone()
+            )
             return bool(known), row, bool(bound)
 
         known, row, bound = self.transaction(read)
@@ -116,60 +123,86 @@ class RecipeServer(Server, Module):
         if row is None:
             return await self.answer(conv, ack, AckCode.REC_INVAL, f"recipe {req.recipe_id} has no approved version")
         if not bound:
-            return await self.answer(conv, ack, AckCode.REC_INVAL,
-                                     f"recipe {req.recipe_id} is not for machine {req.machine_id}")
+            return await self.answer(
+                conv, ack, AckCode.REC_INVAL, f"recipe {req.recipe_id} is not for machine {req.machine_id}"
+            )
         version, checksum, original = row
         data = self._file(req.recipe_id, version, bytes(original))
         if len(data) > MAX_RECIPE:
-            return await self.answer(conv, ack, AckCode.REC_INVAL,
-                                     f"recipe {req.recipe_id} v{version} is {len(data)} bytes, over {MAX_RECIPE}")
+            return await self.answer(
+                conv,
+                ack,
+                AckCode.REC_INVAL,
+                f"recipe {req.recipe_id} v{version} is {len(data)} bytes, over {MAX_RECIPE}",
+            )
         try:
             text = data.decode()
         except UnicodeDecodeError:
-            return await self.answer(conv, ack, AckCode.REC_INVAL,
-                                     f"recipe {req.recipe_id} v{version} library file is not UTF-8 text")
+            return await self.answer(
+                conv, ack, AckCode.REC_INVAL, f"recipe {req.recipe_id} v{version} library file is not UTF-8 text"
+            )
         if sha256(data) != checksum:
-            self.log.warning("recipe %s v%d: library file differs from what was approved; sent as it is, "
-                             "the machine will refuse it", req.recipe_id, version)
+            self.log.warning(
+                "recipe %s v%d: library file differs from what was approved; sent as it is, the machine will refuse it",
+                req.recipe_id,
+                version,
+            )
         self.log.info("recipe %s v%d to %s", req.recipe_id, version, req.machine_id or conv.peer)
-        await self.answer(conv, ack, AckCode.ACK_OK, recipe_id=req.recipe_id, version=version, checksum=checksum,
-                          content=text)
+        await self.answer(
+            conv, ack, AckCode.ACK_OK, recipe_id=req.recipe_id, version=version, checksum=checksum, content=text
+        )
 
     async def store(self, conv: Conversation) -> None:
         """RECIPE_PUT: new content becomes a new, unapproved version (content equal to the latest: that one)."""
         req = self.request(conv)
         ack = "Recipe_Store_Ack"
         if not RECIPE_ID.match(req.recipe_id):
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE,
-                                     f"recipe id {req.recipe_id!r}: letters, digits, _ . - only (64 at most)")
+            return await self.answer(
+                conv, ack, AckCode.BAD_MESSAGE, f"recipe id {req.recipe_id!r}: letters, digits, _ . - only (64 at most)"
+            )
         content = req.content.encode()
         if len(content) > MAX_RECIPE:
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE,
-                                     f"recipe is {len(content)} bytes, over the limit of {MAX_RECIPE}")
+            return await self.answer(
+                conv, ack, AckCode.BAD_MESSAGE, f"recipe is {len(content)} bytes, over the limit of {MAX_RECIPE}"
+            )
         checksum = sha256(content)
 
         def put(cur: Any) -> tuple[int, bool]:
-            cur.execute("insert into recipes (recipe_id, description) values (%s, %s) on conflict do nothing",
-                        (req.recipe_id, req.description))
+            cur.execute(
+                "insert into recipes (recipe_id, description) values (%s, %s) on conflict do nothing",
+                (req.recipe_id, req.description),
+            )
             cur.execute("select 1 from recipes where recipe_id = %s for update", (req.recipe_id,))
             if req.description:
-                cur.execute("update recipes set description = %s where recipe_id = %s",
-                            (req.description, req.recipe_id))
-            last = cur.execute("select version, checksum from recipe_versions where recipe_id = %s "
-                               "order by version desc limit 1", (req.recipe_id,)).fetchone()
+                cur.execute(
+                    "update recipes set description = %s where recipe_id = %s", (req.description, req.recipe_id)
+                )
+            last = cur.execute(
+                "select version, checksum from recipe_versions where recipe_id = %s order by version desc limit 1",
+                (req.recipe_id,),
+            ).fetchone()
             if last is not None and last[1] == checksum:
                 return last[0], False
             version = (last[0] if last else 0) + 1
-            cur.execute("insert into recipe_versions (recipe_id, version, content, checksum, created_by) "
-                        "values (%s, %s, %s, %s, %s)", (req.recipe_id, version, content, checksum, req.by))
+            cur.execute(
+                "insert into recipe_versions (recipe_id, version, content, checksum, created_by) "
+                "values (%s, %s, %s, %s, %s)",
+                (req.recipe_id, version, content, checksum, req.by),
+            )
             return version, True
 
         version, new = self.transaction(put)
         if new:
             _write(version_path(self.cfg, req.recipe_id, version), content)
             self.log.info("recipe %s v%d stored (from %s)", req.recipe_id, version, req.by or conv.peer)
-        await self.answer(conv, ack, AckCode.ACK_OK, None if new else f"same as v{version}: nothing new stored",
-                          version=version, checksum=checksum)
+        await self.answer(
+            conv,
+            ack,
+            AckCode.ACK_OK,
+            None if new else f"same as v{version}: nothing new stored",
+            version=version,
+            checksum=checksum,
+        )
 
     async def approve(self, conv: Conversation) -> None:
         """RECIPE_APPR: approve a version; an edited library file is stored as a new version, approved."""
@@ -180,8 +213,11 @@ class RecipeServer(Server, Module):
 
         def appr(cur: Any) -> tuple[int, str, str | None, tuple[int, bytes] | None, bytes | None] | str:
             cur.execute("select 1 from recipes where recipe_id = %s for update", (req.recipe_id,))
-            rows = cur.execute("select version, checksum, content, approved from recipe_versions "
-                               "where recipe_id = %s order by version", (req.recipe_id,)).fetchall()
+            rows = cur.execute(
+                "select version, checksum, content, approved from recipe_versions "
+                "where recipe_id = %s order by version",
+                (req.recipe_id,),
+            ).fetchall()
             if not rows:
                 return f"no recipe {req.recipe_id!r} (or it has no versions)"
             chosen = rows[-1] if req.version is None else next((r for r in rows if r[0] == req.version), None)
@@ -196,19 +232,25 @@ class RecipeServer(Server, Module):
                 restore = (version, content)
                 new = rows[-1][0] + 1
                 note = f"library file of v{version} was edited: stored as v{new}, approved; v{version} restored"
-                cur.execute("insert into recipe_versions (recipe_id, version, content, checksum, created_by, note) "
-                            "values (%s, %s, %s, %s, %s, %s)",
-                            (req.recipe_id, new, on_disk, sha256(on_disk), req.by, f"edit of v{version}"))
+                cur.execute(
+                    "insert into recipe_versions (recipe_id, version, content, checksum, created_by, note) "
+                    "values (%s, %s, %s, %s, %s, %s)",
+                    (req.recipe_id, new, on_disk, sha256(on_disk), req.by, f"edit of v{version}"),
+                )
                 version, checksum, new_file, approved = new, sha256(on_disk), on_disk, False
             else:
                 if on_disk is None:
                     restore = (version, content)
                 if approved:
                     note = f"v{version} was already approved"
-            cur.execute("update recipe_versions set approved = false where recipe_id = %s and approved "
-                        "and version <> %s", (req.recipe_id, version))
-            cur.execute("update recipe_versions set approved = true where recipe_id = %s and version = %s",
-                        (req.recipe_id, version))
+            cur.execute(
+                "update recipe_versions set approved = false where recipe_id = %s and approved and version <> %s",
+                (req.recipe_id, version),
+            )
+            cur.execute(
+                "update recipe_versions set approved = true where recipe_id = %s and version = %s",
+                (req.recipe_id, version),
+            )
             return version, checksum, note, restore, new_file
 
         result = self.transaction(appr)
@@ -219,7 +261,8 @@ class RecipeServer(Server, Module):
             _write(version_path(self.cfg, req.recipe_id, version), new_file)
         if restore is not None:
             _write(version_path(self.cfg, req.recipe_id, restore[0]), restore[1])
-        self.log.info("recipe %s v%d approved by %s%s", req.recipe_id, version, req.by or conv.peer,
-                      f" ({note})" if note else "")
+        self.log.info(
+            "recipe %s v%d approved by %s%s", req.recipe_id, version, req.by or conv.peer, f" ({note})" if note else ""
+        )
         await self.answer(conv, ack, AckCode.ACK_OK, note, version=version, checksum=checksum)
         await self.event(f"recipe {req.recipe_id} v{version} approved by {req.by or conv.peer}")

@@ -36,8 +36,9 @@ def _describe(cls: str, msg: Message) -> str:
     if cls == "LOT_MOVED":
         return f"entity {msg.entity_id} (lot {msg.lot_id}) {msg.action}ed"
     if cls == "RUN_COMPL":
-        return f"{msg.machine_id} run {msg.machine_run_id} " + ("complete" if msg.ack_code == AckCode.ACK_OK
-                                                                 else f"failed ({msg.ack_code})")
+        return f"{msg.machine_id} run {msg.machine_run_id} " + (
+            "complete" if msg.ack_code == AckCode.ACK_OK else f"failed ({msg.ack_code})"
+        )
     return str(msg.text)
 
 
@@ -62,16 +63,25 @@ class StatusLineServer(Server, Module):
 
     def read(self) -> dict[str, Any]:
         """What waits for the operator, from the owners' tables."""
+
         def q(cur: Any) -> dict[str, Any]:
-            waiting = dict(cur.execute(
-                "select s.state, array_agg(s.entity_id order by s.entity_id) from lot_status s "
-                "join lot_entities e using (entity_id) where e.destroyed_at is null "
-                "and s.state in ('waiting_import', 'waiting_export') group by s.state").fetchall())
+            waiting = dict(
+                cur.execute(
+                    "select s.state, array_agg(s.entity_id order by s.entity_id) from lot_status s "
+                    "join lot_entities e using (entity_id) where e.destroyed_at is null "
+                    "and s.state in ('waiting_import', 'waiting_export') group by s.state"
+                ).fetchall()
+            )
             pending = cur.execute("select count(*) from alarms where cleared_at is null").fetchone()[0]
-            newest = cur.execute("select alarm_no, alarm_text, known from alarms where cleared_at is null "
-                                 "order by alarm_no desc limit 1").fetchone()
-            return {"imports": list(waiting.get("waiting_import", [])),
-                    "exports": list(waiting.get("waiting_export", [])), "alarms": int(pending), "newest": newest}
+            newest = cur.execute(
+                "select alarm_no, alarm_text, known from alarms where cleared_at is null order by alarm_no desc limit 1"
+            ).fetchone()
+            return {
+                "imports": list(waiting.get("waiting_import", [])),
+                "exports": list(waiting.get("waiting_export", [])),
+                "alarms": int(pending),
+                "newest": newest,
+            }
 
         return self.transaction(q)
 
@@ -89,5 +99,13 @@ class StatusLineServer(Server, Module):
 
     async def status_line(self, conv: Conversation) -> None:
         r = self.read()
-        await conv.send(message("Status_Line", text=self.line(r), imports=len(r["imports"]),
-                                exports=len(r["exports"]), alarms=r["alarms"], last_event=self.last_event))
+        await conv.send(
+            message(
+                "Status_Line",
+                text=self.line(r),
+                imports=len(r["imports"]),
+                exports=len(r["exports"]),
+                alarms=r["alarms"],
+                last_event=self.last_event,
+            )
+        )

@@ -17,10 +17,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-
 from gwc import db
-from gwc.cell import (Proc, cell_procs, hi_bus, pid_file, read_pid, spawn, start_procs, startup, stop_cell,
-                      wait_on_bus)
+from gwc.cell import Proc, cell_procs, hi_bus, pid_file, read_pid, spawn, start_procs, startup, stop_cell, wait_on_bus
 from gwc.config import SERVER_MODULES, Config, private_bus, write_config
 from gwc.errors import GwcError, ModuleError
 from gwc.ipc.bus import BlockingBus
@@ -30,9 +28,15 @@ UP_TIMEOUT = 30.0  # a restarted module must be back on the bus within this (mac
 HI_TIMEOUT = 60.0  # one `gwc machine start|stop` command
 
 
-def config_doc(var: Path, database_url: str | None, machines: list[dict[str, Any]], policy: str,
-               bus: dict[str, Any], faults: dict[str, Any] | None = None,
-               db_settings: dict[str, Any] | None = None) -> dict[str, Any]:
+def config_doc(
+    var: Path,
+    database_url: str | None,
+    machines: list[dict[str, Any]],
+    policy: str,
+    bus: dict[str, Any],
+    faults: dict[str, Any] | None = None,
+    db_settings: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """cell.toml of a private cell; the same document with `faults` is the fault-injected variant."""
     database: dict[str, Any] = {"url": database_url or ""}
     if db_settings:
@@ -50,17 +54,27 @@ def config_doc(var: Path, database_url: str | None, machines: list[dict[str, Any
 class PrivateCell:
     """A whole cell (servers, MSCHED, dummy machines) under `var`, on a bus group of its own."""
 
-    def __init__(self, var: Path, machines: list[dict[str, Any]], log: logging.Logger,
-                 database_url: str | None = None, policy: str = "priority",
-                 db_settings: dict[str, Any] | None = None, bus: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        var: Path,
+        machines: list[dict[str, Any]],
+        log: logging.Logger,
+        database_url: str | None = None,
+        policy: str = "priority",
+        db_settings: dict[str, Any] | None = None,
+        bus: dict[str, Any] | None = None,
+    ) -> None:
         self.var = var.resolve()
         self.log = log
         self.machines = [m["id"] for m in machines]
         # Not the soak's seed: two soaks of one seed may run side by side.
         self._bus_cfg = private_bus(**{"heartbeat": 0.25, "peer_timeout": 1.5, **(bus or {})})
-        self._text_args = dict(var=self.var, database_url=database_url, machines=machines, policy=policy,
-                               db_settings=db_settings)
-        self.cfg: Config = write_config(self.var / "etc" / "cell.toml", config_doc(bus=self._bus_cfg, **self._text_args))
+        self._text_args = dict(
+            var=self.var, database_url=database_url, machines=machines, policy=policy, db_settings=db_settings
+        )
+        self.cfg: Config = write_config(
+            self.var / "etc" / "cell.toml", config_doc(bus=self._bus_cfg, **self._text_args)
+        )
         self.bus: BlockingBus | None = None
 
     # ----------------------------------------------------------------- whole cell
@@ -87,8 +101,7 @@ class PrivateCell:
             self.bus = None
 
     def env(self, config: Path | None = None) -> dict[str, str]:
-        env = dict(os.environ, GWC_CONFIG=str(config or self.cfg.path), GWC_VAR=str(self.var),
-                   PYTHONUNBUFFERED="1")
+        env = dict(os.environ, GWC_CONFIG=str(config or self.cfg.path), GWC_VAR=str(self.var), PYTHONUNBUFFERED="1")
         if self.cfg.database_url:
             env["GWC_DATABASE_URL"] = self.cfg.database_url
         return env
@@ -149,8 +162,14 @@ class PrivateCell:
     def hi(self, *args: str) -> str:
         """Run one Human Interface command against this cell; its output. ModuleError if it fails."""
         try:
-            r = subprocess.run([sys.executable, "-m", "gwc", *args], env=self.env(), capture_output=True, text=True,
-                               timeout=HI_TIMEOUT, cwd=str(self.var))
+            r = subprocess.run(
+                [sys.executable, "-m", "gwc", *args],
+                env=self.env(),
+                capture_output=True,
+                text=True,
+                timeout=HI_TIMEOUT,
+                cwd=str(self.var),
+            )
         except subprocess.TimeoutExpired:
             raise ModuleError(f"gwc {' '.join(args)} did not finish within {HI_TIMEOUT:.0f}s") from None
         out = (r.stdout + r.stderr).strip().replace("\n", " | ")
@@ -189,8 +208,11 @@ class PrivateCell:
             left += [f"queue {q}" for q in queue_names(self.cfg.ipc_prefix, m) if queue_exists(q)]
         mq = Path("/dev/mqueue")
         if mq.is_dir():
-            left += [f"queue /{p.name}" for p in mq.iterdir() if p.name.startswith(self.cfg.ipc_prefix[1:])
-                     and f"queue /{p.name}" not in left]
+            left += [
+                f"queue /{p.name}"
+                for p in mq.iterdir()
+                if p.name.startswith(self.cfg.ipc_prefix[1:]) and f"queue /{p.name}" not in left
+            ]
         if self.cfg.embedded and db.cluster_running(self.cfg):
             left.append(f"database cluster in {self.cfg.pg_dir} still running")
         run = self.cfg.run_dir

@@ -74,9 +74,17 @@ class SoakOptions:
     script_path: str = SCRIPT_PATH  # the lot script the soak's product runs (a test may break it)
 
     def header(self) -> dict[str, Any]:
-        return {"seed": self.seed, "minutes": self.minutes, "machines": self.machines, "run_time": self.run_time,
-                "lot_every": self.lot_every, "action_every": list(self.action_every), "kinds": list(self.kinds),
-                "max_active": self.max_active, "script_path": self.script_path}
+        return {
+            "seed": self.seed,
+            "minutes": self.minutes,
+            "machines": self.machines,
+            "run_time": self.run_time,
+            "lot_every": self.lot_every,
+            "action_every": list(self.action_every),
+            "kinds": list(self.kinds),
+            "max_active": self.max_active,
+            "script_path": self.script_path,
+        }
 
 
 @dataclass
@@ -104,12 +112,14 @@ class SoakReport:
         return {**asdict(self), "clean": self.clean}
 
     def summary(self) -> list[str]:
-        lines = [f"soak seed {self.seed}, {self.minutes:g} min: {'CLEAN' if self.clean else 'NOT CLEAN'} "
-                 f"({self.seconds:.0f}s)",
-                 f"lots: {self.lots_planned} planned, {self.lots_created} created, "
-                 f"{self.redispatched} restarted by the operator; "
-                 + ", ".join(f"{k} {v}" for k, v in sorted(self.states.items())),
-                 "faults: " + (", ".join(f"{k} {v}" for k, v in sorted(self.faults.items())) or "none")]
+        lines = [
+            f"soak seed {self.seed}, {self.minutes:g} min: {'CLEAN' if self.clean else 'NOT CLEAN'} "
+            f"({self.seconds:.0f}s)",
+            f"lots: {self.lots_planned} planned, {self.lots_created} created, "
+            f"{self.redispatched} restarted by the operator; "
+            + ", ".join(f"{k} {v}" for k, v in sorted(self.states.items())),
+            "faults: " + (", ".join(f"{k} {v}" for k, v in sorted(self.faults.items())) or "none"),
+        ]
         lines += [f"  failed {n}x: {why}" for why, n in sorted(self.failures.items(), key=lambda x: -x[1])[:10]]
         if self.error:
             lines.append(f"ERROR: {self.error}")
@@ -124,8 +134,14 @@ class SoakReport:
 
 def plan_header(opts: SoakOptions, plan: Plan) -> dict[str, Any]:
     """The first line of actions.jsonl: every option `--replay` needs, and what the plan holds."""
-    return {"event": "plan", **opts.header(), "machine_ids": list(plan.machines), "planned_lots": len(plan.lots),
-            "planned_faults": len(plan.actions), "at": _now()}
+    return {
+        "event": "plan",
+        **opts.header(),
+        "machine_ids": list(plan.machines),
+        "planned_lots": len(plan.lots),
+        "planned_faults": len(plan.actions),
+        "at": _now(),
+    }
 
 
 def read_header(actions: Path) -> dict[str, Any]:
@@ -160,8 +176,13 @@ class Soak:
         self.plan: Plan = make_plan(opts.seed, opts.minutes, tuple(machines), opts.lot_every, opts.action_every)
         if opts.kinds:
             kept = [a for a in self.plan.actions if a.kind in opts.kinds]
-            self.plan = Plan(self.plan.seed, self.plan.minutes, self.plan.machines, self.plan.lots,
-                             [Action(i, a.at, a.kind, a.target, a.downtime, a.seed) for i, a in enumerate(kept)])
+            self.plan = Plan(
+                self.plan.seed,
+                self.plan.minutes,
+                self.plan.machines,
+                self.plan.lots,
+                [Action(i, a.at, a.kind, a.target, a.downtime, a.seed) for i, a in enumerate(kept)],
+            )
         self.report = SoakReport(opts.seed, opts.minutes, lots_planned=len(self.plan.lots))
         self.cell: PrivateCell | None = None
         self.bus: BlockingBus | None = None
@@ -203,8 +224,10 @@ class Soak:
             self._register_product()
             observer = threading.Thread(target=self._observe, name="soak-observer", daemon=True)
             observer.start()
-            self.say(f"running {len(self.plan.lots)} lots and {len(self.plan.actions)} faults for "
-                     f"{self.opts.minutes:g} min (seed {self.opts.seed})")
+            self.say(
+                f"running {len(self.plan.lots)} lots and {len(self.plan.actions)} faults for "
+                f"{self.opts.minutes:g} min (seed {self.opts.seed})"
+            )
             self.t0 = time.monotonic()
             self._chaos_phase()
             self.say("chaos over: repairing everything and waiting for the lots to finish")
@@ -233,12 +256,16 @@ class Soak:
         """The soak's lot script and product, registered as the HI registers any (it owns those tables)."""
         assert self.conn is not None
         with self.conn.transaction():
-            self.conn.execute("INSERT INTO lot_scripts (script_id, path, description) VALUES (%s, %s, %s) "
-                              "ON CONFLICT (script_id) DO UPDATE SET path = EXCLUDED.path",
-                              (SCRIPT_ID, self.opts.script_path, "the chaos soak's lot"))
-            self.conn.execute("INSERT INTO products (product_id, description, script_id) VALUES (%s, %s, %s) "
-                              "ON CONFLICT (product_id) DO UPDATE SET script_id = EXCLUDED.script_id",
-                              (PRODUCT, "a part the soak makes", SCRIPT_ID))
+            self.conn.execute(
+                "INSERT INTO lot_scripts (script_id, path, description) VALUES (%s, %s, %s) "
+                "ON CONFLICT (script_id) DO UPDATE SET path = EXCLUDED.path",
+                (SCRIPT_ID, self.opts.script_path, "the chaos soak's lot"),
+            )
+            self.conn.execute(
+                "INSERT INTO products (product_id, description, script_id) VALUES (%s, %s, %s) "
+                "ON CONFLICT (product_id) DO UPDATE SET script_id = EXCLUDED.script_id",
+                (PRODUCT, "a part the soak makes", SCRIPT_ID),
+            )
 
     def _observe(self) -> None:
         """Thread: count every RUN_COMPL on the bus, to find a run reported twice."""
@@ -285,16 +312,28 @@ class Soak:
 
     def _order(self, spec: LotSpec) -> None:
         assert self.bus is not None and self.cell is not None
-        lot_id, entities = create_lot(self.bus, PRODUCT, 1, priority=spec.priority, owner="soak", timeout=5.0,
-                                      within=0, request_id=f"{self.bus.bus.name}.{self.bus.bus.inc:x}.{spec.index}")
+        lot_id, entities = create_lot(
+            self.bus,
+            PRODUCT,
+            1,
+            priority=spec.priority,
+            owner="soak",
+            timeout=5.0,
+            within=0,
+            request_id=f"{self.bus.bus.name}.{self.bus.bus.inc:x}.{spec.index}",
+        )
         self._dispatch(lot_id, entities, spec)
 
     def _dispatch(self, lot_id: int, entities: list[int], spec: LotSpec) -> None:
         assert self.cell is not None
         plan_dir = self.cell.cfg.var / "soak"
         plan_dir.mkdir(parents=True, exist_ok=True)
-        body = {"index": spec.index, "alternatives": spec.alternatives, "priority": spec.priority,
-                "op_type": spec.op_type}
+        body = {
+            "index": spec.index,
+            "alternatives": spec.alternatives,
+            "priority": spec.priority,
+            "op_type": spec.op_type,
+        }
         (plan_dir / f"lot-{lot_id}.json").write_text(json.dumps(body))
         for e in entities:
             self.entities[e] = spec.index
@@ -325,8 +364,10 @@ class Soak:
     def _decide(self, now: float) -> None:
         """Import what waits to be imported, export what waits to be exported."""
         assert self.conn is not None and self.bus is not None
-        waiting = self.conn.execute("SELECT entity_id, state FROM lot_status WHERE state IN (%s, %s) ORDER BY 1",
-                                    (LotState.WAITING_IMPORT.value, LotState.WAITING_EXPORT.value)).fetchall()
+        waiting = self.conn.execute(
+            "SELECT entity_id, state FROM lot_status WHERE state IN (%s, %s) ORDER BY 1",
+            (LotState.WAITING_IMPORT.value, LotState.WAITING_EXPORT.value),
+        ).fetchall()
         for entity, state in waiting:
             if now - self.decided.get(entity, -REDECIDE) < REDECIDE:
                 continue
@@ -342,16 +383,22 @@ class Soak:
         `gwc lots`: its script died before the Lot Server heard of it (the server was down), or the
         answer to its order was lost so nobody started one."""
         assert self.conn is not None and self.cell is not None
-        rows = self.conn.execute("SELECT entity_id, lot_id FROM lot_status WHERE state = 'created' "
-                                 "AND updated_at < now() - interval '15 seconds' ORDER BY 1").fetchall()
+        rows = self.conn.execute(
+            "SELECT entity_id, lot_id FROM lot_status WHERE state = 'created' "
+            "AND updated_at < now() - interval '15 seconds' ORDER BY 1"
+        ).fetchall()
         for entity, lot_id in rows:
             e = int(entity)
             if self.cell.alive(f"lot:{e}") or now - self.redispatched.get(e, -REDISPATCH) < REDISPATCH:
                 continue
             self.redispatched[e] = now
             known = e in self.entities
-            self.log.warning("operator: entity %d of lot %s is created with no script running (%s): starting it",
-                             e, lot_id, "its script died unheard" if known else "its order's answer was lost")
+            self.log.warning(
+                "operator: entity %d of lot %s is created with no script running (%s): starting it",
+                e,
+                lot_id,
+                "its script died unheard" if known else "its order's answer was lost",
+            )
             self.report.redispatched += 1
             pid = spawn_lot_script(self.cell.cfg, e)
             self._record("lot", self.entities.get(e, -1), "redispatch", str(e), detail=f"lot {lot_id}, pid {pid}")
@@ -445,8 +492,7 @@ class Soak:
                     self.cell.kill(action.target)
                     detail = f"healed: restarted pid {self.cell.restart(action.target)} without faults"
                 else:
-                    pids = [f"{n} pid {self.cell.restart(n)}" for n in self._procs_of(action)
-                            if not self.cell.alive(n)]
+                    pids = [f"{n} pid {self.cell.restart(n)}" for n in self._procs_of(action) if not self.cell.alive(n)]
                     detail = "restarted " + (", ".join(pids) or "nothing")
                 break
             except GwcError as e:
@@ -494,7 +540,7 @@ class Soak:
         states = Counter(str(r[2]) for r in rows)
         self.report.states = dict(states)
         problems = self.report.lot_problems
-        for entity, lot_id, state, reason in rows:
+        for entity, _lot_id, state, reason in rows:
             if state not in FINAL_STATES:
                 problems.append(f"{self._lot_name(entity)} is {state}: neither exported nor failed")
             elif state == LotState.FAILED and not (reason or "").strip():
@@ -515,8 +561,10 @@ class Soak:
             trav = read_traveller(self.cell.cfg, e) or {}
             done = [s for s in trav.get("steps", []) if s.get("runs")]
             if len(done) > 1:
-                problems.append(f"{self._lot_name(e)} ran {len(done)} times: runs "
-                                + ", ".join(str(s["machine_run_id"]) for s in done))
+                problems.append(
+                    f"{self._lot_name(e)} ran {len(done)} times: runs "
+                    + ", ".join(str(s["machine_run_id"]) for s in done)
+                )
             for s in trav.get("steps", []):
                 run_id = int(s["machine_run_id"])
                 if run_id in owner and owner[run_id] != e:
@@ -533,10 +581,18 @@ class Soak:
             return f"entity {entity} (of an order whose answer was lost)"
         return f"lot #{index} (entity {entity})"
 
-    def _record(self, event: str, index: int, kind: str, target: str, detail: str = "",
-                planned: float | None = None) -> None:
-        entry = {"event": event, "index": index, "kind": kind, "target": target,
-                 "t": round(self._elapsed(), 3), "at": _now(), "detail": detail}
+    def _record(
+        self, event: str, index: int, kind: str, target: str, detail: str = "", planned: float | None = None
+    ) -> None:
+        entry = {
+            "event": event,
+            "index": index,
+            "kind": kind,
+            "target": target,
+            "t": round(self._elapsed(), 3),
+            "at": _now(),
+            "detail": detail,
+        }
         if planned is not None:
             entry["planned"] = planned
         if event != "lot":

@@ -63,15 +63,26 @@ class Plan:
     actions: list[Action] = field(default_factory=list)
 
     def header(self) -> dict[str, Any]:
-        return {"seed": self.seed, "minutes": self.minutes, "machines": list(self.machines),
-                "lots": len(self.lots), "actions": len(self.actions)}
+        return {
+            "seed": self.seed,
+            "minutes": self.minutes,
+            "machines": list(self.machines),
+            "lots": len(self.lots),
+            "actions": len(self.actions),
+        }
 
     def as_dict(self) -> dict[str, Any]:
         return {**self.header(), "lots": [asdict(x) for x in self.lots], "actions": [asdict(a) for a in self.actions]}
 
 
-def make_plan(seed: int, minutes: float, machines: tuple[str, ...], lot_every: float = 2.0,
-              action_every: tuple[float, float] = (6.0, 14.0), warmup: float = 5.0) -> Plan:
+def make_plan(
+    seed: int,
+    minutes: float,
+    machines: tuple[str, ...],
+    lot_every: float = 2.0,
+    action_every: tuple[float, float] = (6.0, 14.0),
+    warmup: float = 5.0,
+) -> Plan:
     """The plan of a soak of `minutes`: lots about every `lot_every` s, a fault every `action_every` s."""
     rnd = random.Random(seed)
     duration = minutes * 60.0

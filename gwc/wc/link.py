@@ -27,8 +27,9 @@ class MeDied(GwcError):
 
 
 class MeLink:
-    def __init__(self, channel: Channel, log: logging.Logger,
-                 on_unsolicited: Callable[[MeMessage], None] = lambda msg: None) -> None:
+    def __init__(
+        self, channel: Channel, log: logging.Logger, on_unsolicited: Callable[[MeMessage], None] = lambda msg: None
+    ) -> None:
         self.channel = channel
         self.log = log
         self.on_unsolicited = on_unsolicited

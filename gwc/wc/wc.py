@@ -122,8 +122,9 @@ class WC(Module):
         # which takes the state lock before _resume looks at the run).
         self.me.start(self._loop)
         if self.status != S.SHUTDOWN:
-            self.log.warning("machine %s is %s (run %s): resuming it", self.machine_id, self.status,
-                             self.machine_run_id)
+            self.log.warning(
+                "machine %s is %s (run %s): resuming it", self.machine_id, self.status, self.machine_run_id
+            )
             self._resuming = True
             self._spawn(self._resume())
 
@@ -140,8 +141,10 @@ class WC(Module):
             except (MeDied, QueueError) as e:
                 answer, why = None, f"no ME answers: {e}"
             else:
-                why = (f"the ME answers that it is shut down ({answer.alarm_text or answer.ack_code}): it was "
-                       "restarted and lost the machine's state")
+                why = (
+                    f"the ME answers that it is shut down ({answer.alarm_text or answer.ack_code}): it was "
+                    "restarted and lost the machine's state"
+                )
             async with self._state_lock:
                 if answer is None or answer.ack_code != AckCode.ACK_OK:
                     if self.status != S.SHUTDOWN:  # (a RUN_COMPL that waited may have shut it down)
@@ -150,8 +153,9 @@ class WC(Module):
                 await self._reconcile_run(answer)
                 self.started = self.status in (S.IDLE, S.SETUP, S.RUNNING)
                 self.bus.set_interest(self.busy_interest() if self.started else self.idle_interest())
-                self.log.info("machine %s resumed: %s, the ME is %s", self.machine_id, self.status,
-                              answer.alarm_text or "up")
+                self.log.info(
+                    "machine %s resumed: %s, the ME is %s", self.machine_id, self.status, answer.alarm_text or "up"
+                )
         finally:
             self._resuming = False
             self.me.heard = time.monotonic()
@@ -171,20 +175,24 @@ class WC(Module):
         shutdown = "shutdown after run" if self.status == S.RUN_SHUT else None
         if path.exists():
             code, note = self._outcome_in(path)
-            self.log.warning("run %d ended while no WC handled it: completing it from its results file %s",
-                             run_id, path)
+            self.log.warning(
+                "run %d ended while no WC handled it: completing it from its results file %s", run_id, path
+            )
             await self._finish_run(run_id, code, path, note, shutdown)
         elif me.alarm_text == MeState.RUNNING and me.file_name == str(path):
             self.log.info("run %d is still in progress on the ME", run_id)
         elif (stored := self._stored_outcome(run_id)) is not None:
-            self.log.warning("run %d: stored (%s) before the WC died, not announced: completing it", run_id,
-                             stored[0])
+            self.log.warning("run %d: stored (%s) before the WC died, not announced: completing it", run_id, stored[0])
             await self._finish_run(run_id, stored[0], None, stored[1], shutdown)
         else:
-            self.log.error("run %d: no results file and the ME is %s with no run: the results are lost", run_id,
-                           me.alarm_text or "up")
-            await self._finish_run(run_id, AckCode.RUN_FAIL, None,
-                                   "results lost: the run ended while its WC was down", shutdown)
+            self.log.error(
+                "run %d: no results file and the ME is %s with no run: the results are lost",
+                run_id,
+                me.alarm_text or "up",
+            )
+            await self._finish_run(
+                run_id, AckCode.RUN_FAIL, None, "results lost: the run ended while its WC was down", shutdown
+            )
 
     async def on_startup(self) -> str:
         """6.3.2.1: ME_START to the ME (homing alarm passed on and cleared), Idle, all operations."""
@@ -200,8 +208,9 @@ class WC(Module):
         try:
             answer = await self.me_request(MeMessage(MessageId.ME_START))
         except (MeDied, QueueError) as e:
-            await self.raise_alarm("ME_DIED", f"machine side of {self.machine_id} did not answer ME_START: {e}",
-                                   wait=False)
+            await self.raise_alarm(
+                "ME_DIED", f"machine side of {self.machine_id} did not answer ME_START: {e}", wait=False
+            )
             return AckCode.START_FAIL, f"the ME did not start: {e}"
         if answer.ack_code != AckCode.ACK_OK:
             return AckCode.START_FAIL, f"the ME refused ME_START: {answer.ack_code} {answer.alarm_text}"
@@ -245,8 +254,10 @@ class WC(Module):
                 await self.me_died(str(e))
             return
         if answer.ack_code != AckCode.ACK_OK and self.status != S.SHUTDOWN:
-            await self.me_died(f"the ME answers that it is shut down ({answer.alarm_text or answer.ack_code}): "
-                               "it was restarted and lost the machine's state")
+            await self.me_died(
+                f"the ME answers that it is shut down ({answer.alarm_text or answer.ack_code}): "
+                "it was restarted and lost the machine's state"
+            )
 
     async def _give_up_abandoned_setup(self) -> None:
         """A machine set up for a run that MSCHED no longer reserves for it goes Idle again.
@@ -264,8 +275,13 @@ class WC(Module):
             return
         self._setup_checked = now
         try:
-            reserved = self._read("SELECT 1 FROM reserved_machines WHERE machine_id = %s AND machine_run_id = %s",
-                                  (self.machine_id, run_id)) is not None
+            reserved = (
+                self._read(
+                    "SELECT 1 FROM reserved_machines WHERE machine_id = %s AND machine_run_id = %s",
+                    (self.machine_id, run_id),
+                )
+                is not None
+            )
         except DatabaseUnavailable:
             raise
         except DatabaseError as e:
@@ -279,8 +295,9 @@ class WC(Module):
         async with self._state_lock:
             if self.status not in (S.SETUP, S.SETUP_SHUT) or self.machine_run_id != run_id:
                 return
-            self.log.warning("run %d is set up but not reserved any more (its lot gave up or died): giving it up",
-                             run_id)
+            self.log.warning(
+                "run %d is set up but not reserved any more (its lot gave up or died): giving it up", run_id
+            )
             self.machine_run_id = self.recipe_id = None
             self._unreserved_since = None
             if self.status == S.SETUP_SHUT:
@@ -362,8 +379,9 @@ class WC(Module):
     # ----------------------------------------------------------------- asking the servers
 
     def _read_status(self) -> tuple[MachineStatus, int | None, str | None]:
-        row = self._read("SELECT status, machine_run_id, recipe_id FROM machine_status WHERE machine_id = %s",
-                         (self.machine_id,))
+        row = self._read(
+            "SELECT status, machine_run_id, recipe_id FROM machine_status WHERE machine_id = %s", (self.machine_id,)
+        )
         return (MachineStatus(row[0]), row[1], row[2]) if row else (S.SHUTDOWN, None, None)
 
     def _read(self, sql: str, params: tuple[Any, ...]) -> tuple[Any, ...] | None:
@@ -378,14 +396,24 @@ class WC(Module):
                 self._conn.close()
             raise DatabaseError(f"database read failed: {' '.join(str(e).split())}") from e
 
-    async def change_status(self, status: MachineStatus, expect: list[MachineStatus] | None = None,
-                            **fields: Any) -> bool:
+    async def change_status(
+        self, status: MachineStatus, expect: list[MachineStatus] | None = None, **fields: Any
+    ) -> bool:
         """Ask the Machine Server to change our status; keep our copy in step when it agrees."""
         try:
-            answer = await self.ask("CHG_STATUS", message(
-                "Change_Status", machine_id=self.machine_id, status=status,
-                expect=[str(s) for s in expect] if expect else None, **fields), "ms", SERVER_TIMEOUT,
-                within=SERVER_RESTART)
+            answer = await self.ask(
+                "CHG_STATUS",
+                message(
+                    "Change_Status",
+                    machine_id=self.machine_id,
+                    status=status,
+                    expect=[str(s) for s in expect] if expect else None,
+                    **fields,
+                ),
+                "ms",
+                SERVER_TIMEOUT,
+                within=SERVER_RESTART,
+            )
         except ConversationTimeout:
             self.log.error("Machine Server did not answer the change to %s", status)
             return False
@@ -402,9 +430,13 @@ class WC(Module):
 
     async def set_accept_types(self, op_types: list[str]) -> bool:
         try:
-            answer = await self.ask("ACC_TYP_C", message("Chg_Accept_Type", machine_id=self.machine_id,
-                                                         op_types=op_types), "msched", SERVER_TIMEOUT,
-                                  within=SERVER_RESTART)
+            answer = await self.ask(
+                "ACC_TYP_C",
+                message("Chg_Accept_Type", machine_id=self.machine_id, op_types=op_types),
+                "msched",
+                SERVER_TIMEOUT,
+                within=SERVER_RESTART,
+            )
         except ConversationTimeout:
             self.log.error("MSCHED did not answer the accept-type change to %s", op_types or "none")
             return False
@@ -418,9 +450,18 @@ class WC(Module):
         """6.3.2.8: pass an alarm to the CAS; when `wait`, hold until the operator clears it."""
         while True:
             try:
-                answer = await self.ask("ALARM_SEND", message("Alarm_Send", alarm_id=alarm_id, alarm_text=text,
-                                                              machine_id=self.machine_id, raised_by=self.name),
-                                        "cas", SERVER_TIMEOUT)
+                answer = await self.ask(
+                    "ALARM_SEND",
+                    message(
+                        "Alarm_Send",
+                        alarm_id=alarm_id,
+                        alarm_text=text,
+                        machine_id=self.machine_id,
+                        raised_by=self.name,
+                    ),
+                    "cas",
+                    SERVER_TIMEOUT,
+                )
                 break
             except ConversationTimeout:
                 if not wait:
@@ -463,8 +504,14 @@ class WC(Module):
             self.log.info("the ME raises alarm %s", alarm_id)
             text = self._alarm_text(alarm_id)
             cleared = await self.raise_alarm(alarm_id, text, wait=True)
-            self.me.send(MeMessage(MessageId.ME_START_WAIT, alarm_text=alarm_id, seq=msg.seq,
-                                   ack_code=AckCode.ACK_OK if cleared else AckCode.START_FAIL))
+            self.me.send(
+                MeMessage(
+                    MessageId.ME_START_WAIT,
+                    alarm_text=alarm_id,
+                    seq=msg.seq,
+                    ack_code=AckCode.ACK_OK if cleared else AckCode.START_FAIL,
+                )
+            )
         except QueueError as e:
             self.log.error("could not tell the ME its alarm was cleared: %s", e)
         finally:
@@ -507,8 +554,13 @@ class WC(Module):
         except QueueError as e:
             return None, (AckCode.START_FAIL, str(e))
 
-    async def _serve_step(self, conv: Conversation, ack: str, allowed: tuple[MachineStatus, ...],
-                          work: Callable[[Message], Awaitable[tuple[str, str] | None]]) -> bool:
+    async def _serve_step(
+        self,
+        conv: Conversation,
+        ack: str,
+        allowed: tuple[MachineStatus, ...],
+        work: Callable[[Message], Awaitable[tuple[str, str] | None]],
+    ) -> bool:
         """One of 6.3.2's steps: the state checked and the work done under the state lock, refusals
         answered with `ack`. True when it was done (the caller answers ACK_OK)."""
         assert conv.first is not None
@@ -537,8 +589,10 @@ class WC(Module):
         fetch = asyncio.ensure_future(self.fetch_recipe(req.recipe_id))
         await asyncio.sleep(0)  # let it send before the (blocking) read
         try:
-            ok = self._read("SELECT 1 FROM op_machine_recipe WHERE machine_id = %s AND recipe_id = %s AND op_type = %s",
-                            (self.machine_id, req.recipe_id, req.op_type))
+            ok = self._read(
+                "SELECT 1 FROM op_machine_recipe WHERE machine_id = %s AND recipe_id = %s AND op_type = %s",
+                (self.machine_id, req.recipe_id, req.op_type),
+            )
         except DatabaseUnavailable:
             fetch.cancel()
             raise  # fatal (3.2.2): the module answers DB_Badrea and stops cleanly
@@ -557,8 +611,9 @@ class WC(Module):
             accepted = await accept
         if refusal is None and not accepted:
             refusal = AckCode.DB_BADUPD, "MSCHED did not take the accept types"
-        if refusal is None and not await self.change_status(S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id,
-                                                            machine_run_id=req.machine_run_id):
+        if refusal is None and not await self.change_status(
+            S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id, machine_run_id=req.machine_run_id
+        ):
             refusal = AckCode.DB_BADUPD, "the Machine Server refused the change to Setup"
         if refusal is not None:
             if accepted:
@@ -573,8 +628,9 @@ class WC(Module):
         if path is None:
             await self.raise_alarm("REC_INVAL", f"{self.machine_id}: recipe {req.recipe_id} refused: {why}", wait=False)
             return AckCode.REC_INVAL, why
-        answer, refusal = await self._ask_me(MeMessage(MessageId.SETUP_RUN, file_name=str(path),
-                                                       recipe_id=req.recipe_id))
+        answer, refusal = await self._ask_me(
+            MeMessage(MessageId.SETUP_RUN, file_name=str(path), recipe_id=req.recipe_id)
+        )
         if answer is None:
             return refusal
         if answer.ack_code != AckCode.ACK_OK:
@@ -584,8 +640,12 @@ class WC(Module):
     async def fetch_recipe(self, recipe_id: str) -> tuple[Path | None, str]:
         """The approved version from the ERS, checksum verified, written where the ME can read it."""
         try:
-            reply = await self.ask("RECIPE_GET", message("Recipe_Fetch", recipe_id=recipe_id,
-                                                         machine_id=self.machine_id), "ers", SERVER_TIMEOUT)
+            reply = await self.ask(
+                "RECIPE_GET",
+                message("Recipe_Fetch", recipe_id=recipe_id, machine_id=self.machine_id),
+                "ers",
+                SERVER_TIMEOUT,
+            )
         except ConversationTimeout:
             return None, "the Equipment Recipe Server did not answer"
         if reply.ack_code != AckCode.ACK_OK or reply.content is None:
@@ -633,8 +693,10 @@ class WC(Module):
         """(ack code, note) of this run as stored with its results (MACHINE_RUN_OUTCOME); None if it was
         not stored (a read that fails counts as not)."""
         try:
-            row = self._read("SELECT ack_code, note FROM machine_run_outcome WHERE machine_run_id = %s "
-                             "AND machine_id = %s", (run_id, self.machine_id))
+            row = self._read(
+                "SELECT ack_code, note FROM machine_run_outcome WHERE machine_run_id = %s AND machine_id = %s",
+                (run_id, self.machine_id),
+            )
         except DatabaseUnavailable:
             raise
         except DatabaseError as e:
@@ -646,16 +708,18 @@ class WC(Module):
         if req.machine_run_id != self.machine_run_id:
             return AckCode.START_FAIL, f"set up for run {self.machine_run_id}, not {req.machine_run_id}"
         results = self._results_path(req.machine_run_id)
-        answer, refusal = await self._ask_me(MeMessage(MessageId.START_RUN, file_name=str(results),
-                                                      recipe_id=self.recipe_id or ""))
+        answer, refusal = await self._ask_me(
+            MeMessage(MessageId.START_RUN, file_name=str(results), recipe_id=self.recipe_id or "")
+        )
         if answer is None:
             return refusal
         if answer.ack_code != AckCode.ACK_OK:
             return AckCode.START_FAIL, f"ME refused to start: {answer.ack_code} {answer.alarm_text}"
         # The status now, not at the check: a shutdown may have come while the ME was starting.
         target = S.RUN_SHUT if self.status == S.SETUP_SHUT else S.RUNNING
-        if not await self.change_status(target, expect=[self.status], machine_run_id=req.machine_run_id,
-                                        recipe_id=self.recipe_id):
+        if not await self.change_status(
+            target, expect=[self.status], machine_run_id=req.machine_run_id, recipe_id=self.recipe_id
+        ):
             return AckCode.DB_BADUPD, f"the Machine Server refused the change to {target}"
         return None
 
@@ -671,20 +735,29 @@ class WC(Module):
             path = Path(msg.file_name) if msg.file_name else None
             code, note = msg.ack_code or AckCode.ACK_OK, msg.alarm_text or None
             if self.status in (S.RUNNING, S.RUN_SHUT) and run_id is not None:
-                await self._finish_run(run_id, code, path, note,
-                                       "shutdown after run" if self.status == S.RUN_SHUT else None)
-            elif (self.status == S.SHUTDOWN and run_id is not None and path == self._results_path(run_id)
-                  and path.exists()):
-                self.log.warning("run %d ended while its machine was Shutdown (its WC died mid-run): storing it",
-                                 run_id)
-                await self._finish_run(run_id, code, path, note, f"run {run_id} ended after its WC died",
-                                       tell_me=False)
+                await self._finish_run(
+                    run_id, code, path, note, "shutdown after run" if self.status == S.RUN_SHUT else None
+                )
+            elif (
+                self.status == S.SHUTDOWN
+                and run_id is not None
+                and path == self._results_path(run_id)
+                and path.exists()
+            ):
+                self.log.warning(
+                    "run %d ended while its machine was Shutdown (its WC died mid-run): storing it", run_id
+                )
+                await self._finish_run(run_id, code, path, note, f"run {run_id} ended after its WC died", tell_me=False)
             else:
-                self.log.warning("RUN_COMPL from the ME while %s: ignored (results file %s kept)", self.status,
-                                 msg.file_name or "none")
+                self.log.warning(
+                    "RUN_COMPL from the ME while %s: ignored (results file %s kept)",
+                    self.status,
+                    msg.file_name or "none",
+                )
 
-    async def _finish_run(self, run_id: int, code: str, path: Path | None, note: str | None, shutdown: str | None,
-                          tell_me: bool = True) -> None:
+    async def _finish_run(
+        self, run_id: int, code: str, path: Path | None, note: str | None, shutdown: str | None, tell_me: bool = True
+    ) -> None:
         """Results into MACHINE_RUN_RESULT and the outcome into MACHINE_RUN_OUTCOME, file removed, Idle
         (Shutdown if `shutdown` says why), Run_Complete.
 
@@ -704,13 +777,16 @@ class WC(Module):
                 "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) "
                 "VALUES (%s, %s, %s, %s) "
                 "ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value",
-                [(run_id, self.machine_id, param, value) for param, value in results.items()])
+                [(run_id, self.machine_id, param, value) for param, value in results.items()],
+            )
             # With the results, before Idle: a lot that misses our Run_Complete (we die before it goes
             # out) finds the outcome here instead of running the operation again.
-            cur.execute("INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code, note) "
-                        "VALUES (%s, %s, %s, %s) ON CONFLICT (machine_run_id, machine_id) DO UPDATE "
-                        "SET ack_code = EXCLUDED.ack_code, note = EXCLUDED.note, ended_at = clock_timestamp()",
-                        (run_id, self.machine_id, str(code), note))
+            cur.execute(
+                "INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code, note) "
+                "VALUES (%s, %s, %s, %s) ON CONFLICT (machine_run_id, machine_id) DO UPDATE "
+                "SET ack_code = EXCLUDED.ack_code, note = EXCLUDED.note, ended_at = clock_timestamp()",
+                (run_id, self.machine_id, str(code), note),
+            )
 
         try:
             self.transaction(store)
@@ -722,8 +798,9 @@ class WC(Module):
             if path is not None:
                 path.unlink(missing_ok=True)
         if code != AckCode.ACK_OK:
-            await self.raise_alarm("RUN_FAIL", f"{self.machine_id}: run {run_id} failed ({code}"
-                                   f"{': ' + note if note else ''})", wait=False)
+            await self.raise_alarm(
+                "RUN_FAIL", f"{self.machine_id}: run {run_id} failed ({code}{': ' + note if note else ''})", wait=False
+            )
         self.machine_run_id = self.recipe_id = None
         if shutdown is not None:
             await self._go_shutdown(shutdown, tell_me=tell_me)
@@ -735,8 +812,10 @@ class WC(Module):
 
     async def _announce_run(self, run_id: int, code: str, note: str | None) -> None:
         self.log.info("run %d complete (%s)%s", run_id, code, f": {note}" if note else "")
-        conv = await self.bus.start("RUN_COMPL", message("Run_Complete", machine_id=self.machine_id,
-                                                         machine_run_id=run_id, ack_code=code, note=note))
+        conv = await self.bus.start(
+            "RUN_COMPL",
+            message("Run_Complete", machine_id=self.machine_id, machine_run_id=run_id, ack_code=code, note=note),
+        )
         conv.end()
 
     async def download(self, conv: Conversation) -> None:
@@ -772,13 +851,23 @@ class WC(Module):
             return await self._refuse_now(conv, "Upload_Ack", *refusal)
         assert content is not None
         try:
-            stored = await self.ask("RECIPE_PUT", message("Recipe_Store", recipe_id=req.recipe_id, content=content,
-                                                          by=self.name), "ers", SERVER_TIMEOUT)
+            stored = await self.ask(
+                "RECIPE_PUT",
+                message("Recipe_Store", recipe_id=req.recipe_id, content=content, by=self.name),
+                "ers",
+                SERVER_TIMEOUT,
+            )
         except ConversationTimeout:
-            return await self._refuse_now(conv, "Upload_Ack", AckCode.TIMEOUT,
-                                          "the Equipment Recipe Server did not answer")
-        self.log.info("recipe %s uploaded from %s: ERS says %s, version %s", req.recipe_id, self.machine_id,
-                      stored.ack_code, stored.version)
+            return await self._refuse_now(
+                conv, "Upload_Ack", AckCode.TIMEOUT, "the Equipment Recipe Server did not answer"
+            )
+        self.log.info(
+            "recipe %s uploaded from %s: ERS says %s, version %s",
+            req.recipe_id,
+            self.machine_id,
+            stored.ack_code,
+            stored.version,
+        )
         await conv.send(message("Upload_Ack", ack_code=stored.ack_code, version=stored.version, note=stored.note))
 
     async def _upload(self, req: Message) -> tuple[tuple[str, str] | None, str | None]:

@@ -29,9 +29,15 @@ def make_cell(xprocess: Any, tmp_path: Path, database_url: str) -> Iterator[Any]
 @pytest.fixture
 def cell(make_cell: Any) -> CellHarness:
     """A private cell with the default test machines: wc1, wc2 (dummy) and cmm_wc (CMM simulator)."""
-    return make_cell(machines=[
-        {"id": "wc1", "kind": "dummy", "run_time": 0.2},
-        {"id": "wc2", "kind": "dummy", "run_time": 0.2},
-        {"id": "cmm_wc", "kind": "cmm", "serial": {"port": "sim", "baudrate": 9600, "timeout": 5.0},
-         "sim": {"measure_time": 0.2, "pattern": "P"}},
-    ])
+    return make_cell(
+        machines=[
+            {"id": "wc1", "kind": "dummy", "run_time": 0.2},
+            {"id": "wc2", "kind": "dummy", "run_time": 0.2},
+            {
+                "id": "cmm_wc",
+                "kind": "cmm",
+                "serial": {"port": "sim", "baudrate": 9600, "timeout": 5.0},
+                "sim": {"measure_time": 0.2, "pattern": "P"},
+            },
+        ]
+    )

@@ -24,8 +24,9 @@ from tests.harness import CellHarness, wait_for
 
 def gwc(cell: CellHarness, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
     """Run a `gwc` command against this cell, as the operator would."""
-    return subprocess.run([sys.executable, "-m", "gwc", *args], env=cell.env(), capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "gwc", *args], env=cell.env(), capture_output=True, text=True, timeout=timeout
+    )
 
 
 def ok(result: subprocess.CompletedProcess[str]) -> str:
@@ -37,10 +38,12 @@ def ok(result: subprocess.CompletedProcess[str]) -> str:
 def clear_homing_alarms(cell: CellHarness, machine_id: str) -> int:
     """Push the CMM's start button: clear its pending HOME_CMM alarms. Returns how many."""
     n = 0
-    for (alarm_no,) in cell.query("SELECT alarm_no FROM alarms WHERE cleared_at IS NULL AND machine_id = %s "
-                                  "AND alarm_id = 'HOME_CMM'", machine_id):
-        conv, batch = cell.bus.request("ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=alarm_no,
-                                                                 cleared_by="test operator"), to="cas")
+    for (alarm_no,) in cell.query(
+        "SELECT alarm_no FROM alarms WHERE cleared_at IS NULL AND machine_id = %s AND alarm_id = 'HOME_CMM'", machine_id
+    ):
+        conv, batch = cell.bus.request(
+            "ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=alarm_no, cleared_by="test operator"), to="cas"
+        )
         conv.end()
         assert batch.first.ack_code == AckCode.ACK_OK
         n += 1
@@ -88,6 +91,7 @@ def state(cell: CellHarness, entity: int) -> tuple[str, str | None]:
 
 def wait_state(cell: CellHarness, entity: int, *states: str, timeout: float = 20) -> str:
     """Wait for the entity to reach one of `states`; fail at once if it fails unexpectedly."""
+
     def reached() -> str | None:
         st, reason = state(cell, entity)
         if st == "failed" and "failed" not in states:
@@ -99,6 +103,7 @@ def wait_state(cell: CellHarness, entity: int, *states: str, timeout: float = 20
 
 def import_export_all(cell: CellHarness, entities: list[int], timeout: float = 40) -> None:
     """Be the operator: import each entity that waits for it, export each finished one, until all are out."""
+
     def step() -> bool:
         states = {e: state(cell, e)[0] for e in entities}
         failed = [e for e, s in states.items() if s == "failed"]

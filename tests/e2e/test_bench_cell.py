@@ -14,9 +14,30 @@ import pytest
 @pytest.mark.timeout(600)
 def test_bench_cell_runs_lots_and_a_death_trial_and_reports_them(tmp_path: Path, database_url: str) -> None:
     env = dict(os.environ, GWC_DATABASE_URL=database_url, GWC_VAR=str(tmp_path / "var"))
-    r = subprocess.run([sys.executable, "-m", "gwc", "bench", "cell", "--machines", "2", "--lots", "6",
-                        "--solo", "3", "--deaths", "1", "--dir", str(tmp_path / "bench"), "--json"],
-                       env=env, capture_output=True, text=True, timeout=540)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "gwc",
+            "bench",
+            "cell",
+            "--machines",
+            "2",
+            "--lots",
+            "6",
+            "--solo",
+            "3",
+            "--deaths",
+            "1",
+            "--dir",
+            str(tmp_path / "bench"),
+            "--json",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=540,
+    )
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     result = json.loads(r.stdout)
     assert result["lots"] == 6 and result["failed"] == 0

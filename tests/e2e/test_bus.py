@@ -39,8 +39,7 @@ class BusLab:
 
     def __init__(self, xprocess: Any, var: Path, faults: dict[str, float] | None = None) -> None:
         self.xprocess = xprocess
-        self.cfg: Config = write_cell_config(var, None, modules=(), faults=faults,
-                                             bus={"reply_timeout": 15.0})
+        self.cfg: Config = write_cell_config(var, None, modules=(), faults=faults, bus={"reply_timeout": 15.0})
         self.tag = f"b{os.getpid()}-{random.randrange(1 << 30):x}"
         self.log = open_log("test", self.cfg.log_dir, "note")
         self.bus = BlockingBus(f"test.{self.tag}", self.cfg.bus, self.log, interest=())
@@ -48,8 +47,12 @@ class BusLab:
 
     def start_peer(self, name: str, interest: str = "PING") -> None:
         lab = self
-        env = dict(os.environ, GWC_CONFIG=str(self.cfg.path), PYTHONUNBUFFERED="1",
-                   PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+        env = dict(
+            os.environ,
+            GWC_CONFIG=str(self.cfg.path),
+            PYTHONUNBUFFERED="1",
+            PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+        )
 
         class Starter(ProcessStarter):
             terminate_on_interrupt = True
@@ -130,7 +133,9 @@ def test_reply_reaches_only_the_initiators_conversation(make_lab: Any) -> None:
         assert heard.first.sender == lab.bus.bus.name
         assert other.first_message(timeout=0.5) is None
         watcher = lab.report("watcher")
-        assert [s[2] for s in watcher["seen"] if s[0] == "PING" and s[2] != [0]] == [[1]]  # not n=2, which was sent to echo
+        assert [s[2] for s in watcher["seen"] if s[0] == "PING" and s[2] != [0]] == [
+            [1]
+        ]  # not n=2, which was sent to echo
     finally:
         other.close()
 
@@ -232,10 +237,14 @@ def _mutations(valid: bytes, rnd: random.Random) -> Iterator[bytes]:
     yield wire.HEADER + b"\0" * 20  # truncated
     yield valid + b"[" * 50_000  # nesting bomb in the fields
     yield valid[:-1] + b',"x":' + b"9" * 5000 + b"}"  # huge integer in the fields
-    yield wire.encode(wire.Envelope(kind="msg", src="x", inc=1, seq=1, conv="x.1.1", cls="NOPE", msg="Ping",
-                                    to="fz"))  # unknown class
-    yield wire.encode(wire.Envelope(kind="msg", src="x", inc=1, seq=2, conv="x.1.2", cls="PING", msg="Ping",
-                                    fields={"n": "one"}, to="fz"))  # wrong field type
+    yield wire.encode(
+        wire.Envelope(kind="msg", src="x", inc=1, seq=1, conv="x.1.1", cls="NOPE", msg="Ping", to="fz")
+    )  # unknown class
+    yield wire.encode(
+        wire.Envelope(
+            kind="msg", src="x", inc=1, seq=2, conv="x.1.2", cls="PING", msg="Ping", fields={"n": "one"}, to="fz"
+        )
+    )  # wrong field type
     yield wire.encode(wire.Envelope(kind="hello", src="x", inc=1, interest=("\0", "é" * 100)))  # classes unknown
     yield valid + b" " * wire.MAX_DATAGRAM  # oversized
     for _ in range(400):
@@ -268,8 +277,19 @@ def test_fuzzed_datagrams_are_dropped_and_the_module_keeps_answering(make_lab: A
     lab = make_lab()
     lab.start_peer("fz")
     rnd = random.Random(1991)
-    valid = wire.encode(wire.Envelope(kind="msg", src="fuzzer", inc=5, seq=1, conv="fuzzer.5.1", cls="PING",
-                                      msg="Ping", to="fz", fields={"n": 1, "payload": "leaf"}))
+    valid = wire.encode(
+        wire.Envelope(
+            kind="msg",
+            src="fuzzer",
+            inc=5,
+            seq=1,
+            conv="fuzzer.5.1",
+            cls="PING",
+            msg="Ping",
+            to="fz",
+            fields={"n": 1, "payload": "leaf"},
+        )
+    )
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(lab.cfg.bus.interface))
     try:
@@ -305,8 +325,12 @@ def test_monitor_shows_and_records_conversations_decoded_with_filters(make_lab: 
         conv, _ = lab.bus.request("PING", message("Ping", n=99), to="sched", timeout=15)
         conv.end()
         conv, answer = lab.bus.request(
-            "MACH_REQ", message("Machine_Request", entity_id=3, op_type="op", num_machines=1),
-            message("Machine_Entry", machine_id="wc7"), to="sched", timeout=15)
+            "MACH_REQ",
+            message("Machine_Request", entity_id=3, op_type="op", num_machines=1),
+            message("Machine_Entry", machine_id="wc7"),
+            to="sched",
+            timeout=15,
+        )
         conv.end()
         outs = [p.communicate(timeout=30)[0] for p in procs]
     finally:
@@ -326,8 +350,12 @@ def test_monitor_shows_and_records_conversations_decoded_with_filters(make_lab: 
 
 
 def test_bench_bus_runs_and_reports_bus_and_floor(tmp_path: Path) -> None:
-    out = subprocess.run([sys.executable, "-m", "gwc", "bench", "bus", "-n", "300", "--json"], capture_output=True,
-                         text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "gwc", "bench", "bus", "-n", "300", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     r = json.loads(out.stdout)
     for mode in ("bare", "asyncio", "bus"):

@@ -23,8 +23,13 @@ Make = Callable[..., Awaitable[Bus]]
 
 def private_cfg(**kw: Any) -> BusConfig:
     rnd = random.Random()
-    return BusConfig(group=f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
-                     port=rnd.randrange(20000, 60000), heartbeat=0.1, peer_timeout=1.0, **kw)
+    return BusConfig(
+        group=f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
+        port=rnd.randrange(20000, 60000),
+        heartbeat=0.1,
+        peer_timeout=1.0,
+        **kw,
+    )
 
 
 async def until(predicate: Callable[[], Any], what: str, timeout: float = 10.0) -> None:
@@ -58,25 +63,34 @@ def run(test: Callable[[Make, BusConfig], Awaitable[None]], **cfg: Any) -> None:
 
 
 async def known(a: Bus, *others: Bus) -> None:
-    await until(lambda: all(o.name in a.peers() for o in others) and all(a.name in o.peers() for o in others),
-                "peers to see each other")
+    await until(
+        lambda: all(o.name in a.peers() for o in others) and all(a.name in o.peers() for o in others),
+        "peers to see each other",
+    )
 
 
 def test_a_conversation_ended_and_resumed_in_the_same_incarnation_goes_on() -> None:
     """MSCHED's pattern: answer Machine_Req_Ack, end; later resume and send Machine_Req_Comp."""
+
     async def t(make: Make, cfg: BusConfig) -> None:
         lot, sched = await make("lot:1"), await make("msched", ("MACH_REQ",))
         await known(lot, sched)
-        conv = await lot.start("MACH_REQ", message("Machine_Request", entity_id=1, op_type="x", num_machines=1),
-                               message("Machine_Entry", machine_id="wc1"), to="msched")
+        conv = await lot.start(
+            "MACH_REQ",
+            message("Machine_Request", entity_id=1, op_type="x", num_machines=1),
+            message("Machine_Entry", machine_id="wc1"),
+            to="msched",
+        )
         inc = await sched.first_message(5)
         assert inc is not None and [m.name for m in inc.first.messages] == ["Machine_Request", "Machine_Entry"]
         await inc.send(message("Machine_Req_Ack", ack_code="ACK_OK", request_key=5))
         inc.end()
         assert (await conv.next_message(5)).first.request_key == 5
         again = sched.resume(conv.id, "MACH_REQ", "lot:1")
-        await again.send(message("Machine_Req_Comp", ack_code="ACK_OK", entity_id=1, num_machines=1),
-                         message("Reserved_Machine", machine_id="wc1"))
+        await again.send(
+            message("Machine_Req_Comp", ack_code="ACK_OK", entity_id=1, num_machines=1),
+            message("Reserved_Machine", machine_id="wc1"),
+        )
         comp = await conv.next_message(5)
         assert [m.name for m in comp.messages] == ["Machine_Req_Comp", "Reserved_Machine"]
         await conv.send(message("Request_Comp_Ack", entity_id=1, ack_code="ACK_OK"))
@@ -89,8 +103,12 @@ def test_a_restarted_module_resumes_a_conversation_and_both_sides_go_on() -> Non
     async def t(make: Make, cfg: BusConfig) -> None:
         lot, sched = await make("lot:2"), await make("msched", ("MACH_REQ",))
         await known(lot, sched)
-        conv = await lot.start("MACH_REQ", message("Machine_Request", entity_id=2, op_type="x", num_machines=1),
-                               message("Machine_Entry", machine_id="wc1"), to="msched")
+        conv = await lot.start(
+            "MACH_REQ",
+            message("Machine_Request", entity_id=2, op_type="x", num_machines=1),
+            message("Machine_Entry", machine_id="wc1"),
+            to="msched",
+        )
         inc = await sched.first_message(5)
         await inc.send(message("Machine_Req_Ack", ack_code="ACK_OK", request_key=9))
         await conv.next_message(5)
@@ -166,6 +184,7 @@ def test_a_repeated_datagram_is_acknowledged_again_but_delivered_once() -> None:
 
 def test_many_messages_received_then_one_sent_back_still_fits_a_datagram() -> None:
     """Acks due ride on the next msg only up to a limit; the rest go in ack datagrams."""
+
     async def t(make: Make, cfg: BusConfig) -> None:
         a, b = await make("a", ()), await make("b")
         await known(a, b)
@@ -223,6 +242,7 @@ def test_closing_the_bus_fails_every_waiter_at_once() -> None:
 
 def test_liveness_survives_lost_hellos_when_other_traffic_flows() -> None:
     """Under the fault injector a peer's hellos can all be lost; any datagram from it proves life."""
+
     async def t(make: Make, cfg: BusConfig) -> None:
         a, b = await make("a", ()), await make("b")
         await known(a, b)
@@ -253,10 +273,32 @@ def test_invalid_message_in_a_batch_drops_the_batch_not_the_stream(caplog: Any) 
         inc = await b.first_message(5)
         assert inc is not None
         # A follower that does not fit its class (as from a buggy or older sender), then a good batch.
-        bad = wire.Envelope(kind="msg", src="a", inc=a.inc, seq=a._seq + 1, conv=conv.id, cls="PING", idx=1,
-                            more=1, to="b", msg="Ping", fields={"n": 2})
-        bad2 = wire.Envelope(kind="msg", src="a", inc=a.inc, seq=a._seq + 2, conv=conv.id, cls="PING", idx=2,
-                             part=1, to="b", msg="Ping", fields={"n": "three"})
+        bad = wire.Envelope(
+            kind="msg",
+            src="a",
+            inc=a.inc,
+            seq=a._seq + 1,
+            conv=conv.id,
+            cls="PING",
+            idx=1,
+            more=1,
+            to="b",
+            msg="Ping",
+            fields={"n": 2},
+        )
+        bad2 = wire.Envelope(
+            kind="msg",
+            src="a",
+            inc=a.inc,
+            seq=a._seq + 2,
+            conv=conv.id,
+            cls="PING",
+            idx=2,
+            part=1,
+            to="b",
+            msg="Ping",
+            fields={"n": "three"},
+        )
         a._seq += 2
         a._out[conv.id].next_idx = 3
         a._transmit(wire.encode(bad))

@@ -25,8 +25,9 @@ MACHINES = [{"id": "wc1", "kind": "dummy", "run_time": 0.1}, {"id": "wc2", "kind
 
 
 def gwc(env: dict[str, str], *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "gwc", *args], env=env, capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "gwc", *args], env=env, capture_output=True, text=True, timeout=timeout
+    )
 
 
 @pytest.fixture
@@ -56,8 +57,11 @@ def test_start_status_kill_stop_leaves_nothing_behind(cell_env) -> None:
     assert "STARTUP" in (cfg.log_dir / "msched.log").read_text()
 
     os.kill(pids["msched"], signal.SIGKILL)
-    wait_for(lambda: {r["module"]: r["alive"] for r in json.loads(gwc(env, "status", "--json").stdout)}["msched"]
-             == "no", 10, "gwc status to show msched dead")
+    wait_for(
+        lambda: {r["module"]: r["alive"] for r in json.loads(gwc(env, "status", "--json").stdout)}["msched"] == "no",
+        10,
+        "gwc status to show msched dead",
+    )
 
     assert gwc(env, "start").returncode == 0  # idempotent: restarts only what is missing
     again = {r["module"]: r for r in json.loads(gwc(env, "status", "--json").stdout)}
@@ -67,8 +71,13 @@ def test_start_status_kill_stop_leaves_nothing_behind(cell_env) -> None:
     stopped = gwc(env, "stop")
     assert stopped.returncode == 0, stopped.stderr
     for pid in pids.values():
-        wait_for(lambda: not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2],
-                 10, f"pid {pid} to be gone")
+        wait_for(
+            lambda pid=pid: (
+                not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2]
+            ),
+            10,
+            f"pid {pid} to be gone",
+        )
     assert not list(cfg.run_dir.glob("*.pid"))
     for m in MACHINES:
         assert not any(queue_exists(q) for q in queue_names(cfg.ipc_prefix, m["id"]))

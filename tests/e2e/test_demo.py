@@ -25,7 +25,7 @@ def demo_env() -> Iterator[tuple[Path, dict[str, str]]]:
     var.chmod(0o755)
     text = (PROJECT_ROOT / "etc" / "demo.toml").read_text()
     rnd = random.Random()
-    text = re.sub(r'(?m)^group = .*$', f'group = "239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}"', text)
+    text = re.sub(r"(?m)^group = .*$", f'group = "239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}"', text)
     text = re.sub(r"(?m)^port = 47110$", f"port = {rnd.randrange(20000, 60000)}", text)
     config = var / "demo.toml"
     config.write_text(text)
@@ -34,25 +34,44 @@ def demo_env() -> Iterator[tuple[Path, dict[str, str]]]:
     try:
         yield config, env
     finally:
-        subprocess.run([sys.executable, "-m", "gwc", "stop"], env={**env, "GWC_CONFIG": str(config)},
-                       capture_output=True, timeout=120)
+        subprocess.run(
+            [sys.executable, "-m", "gwc", "stop"],
+            env={**env, "GWC_CONFIG": str(config)},
+            capture_output=True,
+            timeout=120,
+        )
         shutil.rmtree(var, ignore_errors=True)
 
 
 def test_demo_runs_section_7_from_fresh_state_and_exits_0(demo_env: tuple[Path, dict[str, str]]) -> None:
     config, env = demo_env
     t0 = time.monotonic()
-    result = subprocess.run([sys.executable, "-m", "gwc", "demo", "--config", str(config)], env=env,
-                            capture_output=True, text=True, timeout=150)
+    result = subprocess.run(
+        [sys.executable, "-m", "gwc", "demo", "--config", str(config)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=150,
+    )
     took = time.monotonic() - t0
     out = result.stdout
     assert result.returncode == 0, f"exit {result.returncode}\n{out[-6000:]}\n{result.stderr[-2000:]}"
     assert took < 120, f"the demonstration took {took:.0f}s"
     assert "Traceback" not in out + result.stderr
-    for told in ("alarm 1 HOME_CMM", "work order entry", "status line: IMPORT", "operator: import entity",
-                 "operator: export entity", "start machine wc2 while lots run", "stop machine mazak while lots run",
-                 "results of each lot:",
-                 "machine run results", "RESULT=PASS", "demonstration succeeded", "stop: database: stopped"):
+    for told in (
+        "alarm 1 HOME_CMM",
+        "work order entry",
+        "status line: IMPORT",
+        "operator: import entity",
+        "operator: export entity",
+        "start machine wc2 while lots run",
+        "stop machine mazak while lots run",
+        "results of each lot:",
+        "machine run results",
+        "RESULT=PASS",
+        "demonstration succeeded",
+        "stop: database: stopped",
+    ):
         assert told in out, f"the demonstration does not say {told!r}:\n{out[-4000:]}"
     lots = re.findall(r"entity +\d+ (alum_chess_set|milled_pawn) +exported +(PASS|FAIL|SCRAP)", out)
     assert len(lots) == 5, out[-4000:]

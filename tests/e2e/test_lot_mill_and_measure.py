@@ -9,8 +9,18 @@ from __future__ import annotations
 from typing import Any
 
 from gwc.cell import shutdown
-from tests.e2e.lotkit import (cell_with_machines, gwc, holdings, import_export_all, lot_cell, lot_log, ok, order,
-                              state, steps, wait_state)  # noqa: F401 (lot_cell is a fixture)
+from tests.e2e.lotkit import (
+    cell_with_machines,
+    gwc,
+    holdings,
+    import_export_all,
+    lot_log,
+    ok,
+    order,
+    state,
+    steps,
+    wait_state,
+)
 from tests.harness import CellHarness, wait_for
 
 
@@ -18,8 +28,12 @@ def machines(pattern: str, mazak_time: float, wc2_time: float) -> list[dict[str,
     return [
         {"id": "mazak", "kind": "dummy", "run_time": mazak_time},
         {"id": "wc2", "kind": "dummy", "run_time": wc2_time},
-        {"id": "cmm_wc", "kind": "cmm", "serial": {"port": "sim", "baudrate": 9600, "timeout": 5.0},
-         "sim": {"measure_time": 0.2, "pattern": pattern}},
+        {
+            "id": "cmm_wc",
+            "kind": "cmm",
+            "serial": {"port": "sim", "baudrate": 9600, "timeout": 5.0},
+            "sim": {"measure_time": 0.2, "pattern": pattern},
+        },
     ]
 
 
@@ -27,8 +41,7 @@ def status(cell: CellHarness, machine_id: str) -> str:
     return cell.query("SELECT status FROM machine_status WHERE machine_id = %s", machine_id)[0][0]
 
 
-def test_pawns_go_to_the_other_mill_when_the_mazak_stops_and_are_re_milled_when_out_of_tolerance(
-        lot_cell: Any) -> None:
+def test_pawns_go_to_the_other_mill_when_the_mazak_stops_and_are_re_milled_when_out_of_tolerance(lot_cell: Any) -> None:
     # The Mazak is the faster mill: left alone it would take the third pawn. The CMM finds the first
     # pawn it measures out of tolerance (FAIL), the others within (PASS).
     cell = cell_with_machines(lot_cell(machines=machines("FPPPPP", 2.0, 3.0)), "cmm_wc", "mazak", "wc2")
@@ -36,8 +49,9 @@ def test_pawns_go_to_the_other_mill_when_the_mazak_stops_and_are_re_milled_when_
     for e in pawns:
         wait_state(cell, e, "waiting_import")
     ok(gwc(cell, "import", "--all"))
-    wait_for(lambda: status(cell, "mazak") == "Running" and status(cell, "wc2") == "Running", 20,
-             "both mills to mill a pawn")
+    wait_for(
+        lambda: status(cell, "mazak") == "Running" and status(cell, "wc2") == "Running", 20, "both mills to mill a pawn"
+    )
     queued = wait_for(lambda: [e for e in pawns if holdings(cell, e)[0]], 15, "the third pawn's request")
     assert holdings(cell, queued[0])[0] == 2, "the third pawn asks for either mill (two alternatives)"
     # The operator stops the Mazak mid-run (as `gwc machine stop mazak` does): it finishes its pawn, then
@@ -64,6 +78,9 @@ def test_pawns_go_to_the_other_mill_when_the_mazak_stops_and_are_re_milled_when_
         assert state(cell, e)[0] == "exported" and state(cell, e)[1].startswith("PASS"), state(cell, e)
         for step in st:  # each decision was made from MACHINE_RUN_RESULT: the rows are what the script read
             run = step["runs"][0]
-            rows = cell.query("SELECT param, value FROM machine_run_result WHERE machine_run_id = %s "
-                              "AND machine_id = %s", run["machine_run_id"], run["machine_id"])
+            rows = cell.query(
+                "SELECT param, value FROM machine_run_result WHERE machine_run_id = %s AND machine_id = %s",
+                run["machine_run_id"],
+                run["machine_id"],
+            )
             assert dict(rows) == run["results"]

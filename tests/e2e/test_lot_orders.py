@@ -15,8 +15,19 @@ import sys
 import time
 from typing import Any
 
-from tests.e2e.lotkit import (cell_with_machines, gwc, holdings, import_export_all, lot_cell, lot_log, ok, order,
-                              script_pid, state, steps, wait_state)  # noqa: F401 (lot_cell is a fixture)
+from tests.e2e.lotkit import (
+    cell_with_machines,
+    gwc,
+    holdings,
+    import_export_all,
+    lot_log,
+    ok,
+    order,
+    script_pid,
+    state,
+    steps,
+    wait_state,
+)
 from tests.harness import CellHarness, wait_for
 
 CMM = {"id": "cmm_wc", "kind": "cmm", "serial": {"port": "sim", "baudrate": 9600, "timeout": 5.0}}
@@ -39,8 +50,11 @@ def test_chess_order_goes_from_work_order_to_exported_lots_in_fifo_order(lot_cel
     wait_state(cell, first, "running", "completed", "waiting_export")
     ok(gwc(cell, "import", str(second)))
     served = ("running", "completed", "waiting_export")
-    wait_for(lambda: sum(holdings(cell, second)) or state(cell, second)[0] in served, 15,
-             "the second lot's request to be queued (or served)")
+    wait_for(
+        lambda: sum(holdings(cell, second)) or state(cell, second)[0] in served,
+        15,
+        "the second lot's request to be queued (or served)",
+    )
     ok(gwc(cell, "import", str(third)))
     import_export_all(cell, entities)
 
@@ -54,8 +68,10 @@ def test_chess_order_goes_from_work_order_to_exported_lots_in_fifo_order(lot_cel
         log = lot_log(cell, e)
         for told in ("attached", "imported", "got machine_run_id", "run", "complete", "unreserved", "exported"):
             assert told in log, f"lot:{e} log does not tell '{told}'"
-    results = cell.query("SELECT machine_run_id, param, value FROM machine_run_result WHERE machine_id = 'cmm_wc' "
-                         "AND param = 'RESULT' ORDER BY 1")
+    results = cell.query(
+        "SELECT machine_run_id, param, value FROM machine_run_result WHERE machine_id = 'cmm_wc' "
+        "AND param = 'RESULT' ORDER BY 1"
+    )
     assert [(r[0], r[2]) for r in results] == [(runs[e][0], "PASS") for e in (first, second, third)]
     # every module tells its part
     assert "MACH_REQ" in cell.log_text("msched")
@@ -74,8 +90,11 @@ def _first_on_the_cmm(cell: CellHarness) -> list[int]:
     for e in entities:
         wait_state(cell, e, "waiting_import")
     ok(gwc(cell, "import", str(entities[0])))
-    wait_for(lambda: cell.query("SELECT status FROM machine_status WHERE machine_id = 'cmm_wc'")[0][0] == "Running",
-             20, "the CMM to run the first lot")
+    wait_for(
+        lambda: cell.query("SELECT status FROM machine_status WHERE machine_id = 'cmm_wc'")[0][0] == "Running",
+        20,
+        "the CMM to run the first lot",
+    )
     return entities
 
 
@@ -86,8 +105,11 @@ def test_lot_script_killed_mid_run_leaves_its_machine_free_and_its_entity_failed
     assert pid
     os.kill(pid, signal.SIGKILL)
     t0 = time.monotonic()
-    wait_for(lambda: state(cell, killed)[0] == "failed" and holdings(cell, killed) == (0, 0), 10,
-             "the killed lot's entity failed and its machine unreserved")
+    wait_for(
+        lambda: state(cell, killed)[0] == "failed" and holdings(cell, killed) == (0, 0),
+        10,
+        "the killed lot's entity failed and its machine unreserved",
+    )
     assert time.monotonic() - t0 < 10
     assert "died" in (state(cell, killed)[1] or "")
     import_export_all(cell, [other])  # the CMM serves the next lot as if nothing happened
@@ -117,16 +139,26 @@ def test_request_cancelled_from_the_human_interface_reaches_the_lot_as_req_cance
 def test_bad_arguments_give_one_clear_line(lot_cell: Any) -> None:
     cell = lot_cell(machines=[])
     cell.start_servers("ls")
-    cases = ((("import", "99999"), "unknown lot entity 99999"),
-             (("export", "99999"), "unknown lot entity 99999"),
-             (("lots", "99999"), "unknown lot entity 99999"),
-             (("order", "show", "4242"), "unknown work order 4242"),
-             (("order", "new", "--customer", "NJIT", "no_such_product=1"), "unknown product"),
-             (("order", "new", "--customer", "NOBODY", "alum_chess_set=1"), "unknown customer"),
-             (("order", "new", "--customer", "NJIT", "alum_chess_set=x"), "bad order item"),
-             (("script", "register", "s", "/no/such/file.py"), "does not exist"))
-    procs = [subprocess.Popen([sys.executable, "-m", "gwc", *args], env=cell.env(), stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for args, _ in cases]  # at once: it is quicker
+    cases = (
+        (("import", "99999"), "unknown lot entity 99999"),
+        (("export", "99999"), "unknown lot entity 99999"),
+        (("lots", "99999"), "unknown lot entity 99999"),
+        (("order", "show", "4242"), "unknown work order 4242"),
+        (("order", "new", "--customer", "NJIT", "no_such_product=1"), "unknown product"),
+        (("order", "new", "--customer", "NOBODY", "alum_chess_set=1"), "unknown customer"),
+        (("order", "new", "--customer", "NJIT", "alum_chess_set=x"), "bad order item"),
+        (("script", "register", "s", "/no/such/file.py"), "does not exist"),
+    )
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "gwc", *args],
+            env=cell.env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for args, _ in cases
+    ]  # at once: it is quicker
     for (args, says), proc in zip(cases, procs):
         out, err = proc.communicate(timeout=60)
         lines = err.strip().splitlines()
@@ -147,11 +179,29 @@ def test_an_order_the_lot_server_answers_too_late_is_asked_again_and_its_lot_mad
     try:
         with hold.transaction():
             hold.execute("SELECT value FROM max_values WHERE type = 'LOT_ID' FOR UPDATE")
-            proc = subprocess.Popen([sys.executable, "-m", "gwc", "order", "new", "--customer", "NJIT", "--no-scripts",
-                                     "milled_pawn=2", "--json"], env=cell.env(), stdout=subprocess.PIPE,
-                                    stderr=subprocess.PIPE, text=True)
-            wait_for(lambda: "did not take CREATE_LOT (restarting?): asking again" in cell.log_text("hi"), 30,
-                     "the HI to ask again")
+            proc = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "gwc",
+                    "order",
+                    "new",
+                    "--customer",
+                    "NJIT",
+                    "--no-scripts",
+                    "milled_pawn=2",
+                    "--json",
+                ],
+                env=cell.env(),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            wait_for(
+                lambda: "did not take CREATE_LOT (restarting?): asking again" in cell.log_text("hi"),
+                30,
+                "the HI to ask again",
+            )
         out, err = proc.communicate(timeout=30)
     finally:
         hold.close()
@@ -164,5 +214,6 @@ def test_an_order_the_lot_server_answers_too_late_is_asked_again_and_its_lot_mad
     wo = json.loads(out)["work_order_id"]
     assert cell.query("SELECT lot_id FROM lots WHERE work_order_id = %s", wo) == [(lot["lot_id"],)]
     assert cell.query("SELECT count(*) FROM lot_entities WHERE lot_id = %s", lot["lot_id"]) == [(2,)]
-    assert re.search(r"CREATE_LOT \S+ asked again: lot %d, entities .*already created" % lot["lot_id"],
-                     cell.log_text("ls"))
+    assert re.search(
+        rf"CREATE_LOT \S+ asked again: lot {lot['lot_id']}, entities .*already created", cell.log_text("ls")
+    )

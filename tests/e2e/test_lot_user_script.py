@@ -8,8 +8,19 @@ import signal
 from pathlib import Path
 from typing import Any
 
-from tests.e2e.lotkit import (cell_with_machines, gwc, import_export_all, lot_cell, lot_log, ok, order,  # noqa: F401
-                              start_machine, state, steps, wait_state)
+from tests.e2e.lotkit import (  # noqa: F401
+    cell_with_machines,
+    gwc,
+    import_export_all,
+    lot_cell,
+    lot_log,
+    ok,
+    order,
+    start_machine,
+    state,
+    steps,
+    wait_state,
+)
 from tests.harness import wait_for
 
 SCRIPT = '''"""Mill a bare pawn: no measuring."""
@@ -27,18 +38,26 @@ def main(entity: OperationEntity) -> None:
 
 def milling_on_the_mazak(lot_cell: Any, tmp_path: Path, run_time: float) -> tuple[Any, int]:
     """The registered script's pawn imported and milling on the Mazak; wc2, the other mill, up too."""
-    cell = cell_with_machines(lot_cell(machines=[
-        {"id": "mazak", "kind": "dummy", "run_time": run_time, "liveness": 1.0},
-        {"id": "wc2", "kind": "dummy", "run_time": 0.3},
-    ]), "mazak")
+    cell = cell_with_machines(
+        lot_cell(
+            machines=[
+                {"id": "mazak", "kind": "dummy", "run_time": run_time, "liveness": 1.0},
+                {"id": "wc2", "kind": "dummy", "run_time": 0.3},
+            ]
+        ),
+        "mazak",
+    )
     script = tmp_path / "bare_pawn.py"
     script.write_text(SCRIPT)
     ok(gwc(cell, "script", "register", "bare_pawn", str(script), "--product", "bare_pawn"))
     (pawn,) = order(cell, "bare_pawn=1")
     wait_state(cell, pawn, "waiting_import")
     ok(gwc(cell, "import", str(pawn)))
-    wait_for(lambda: cell.query("SELECT status FROM machine_status WHERE machine_id = 'mazak'")[0][0] == "Running",
-             20, "the Mazak to mill")
+    wait_for(
+        lambda: cell.query("SELECT status FROM machine_status WHERE machine_id = 'mazak'")[0][0] == "Running",
+        20,
+        "the Mazak to mill",
+    )
     start_machine(cell, "wc2")  # started after the Mazak took the pawn: where a second milling goes
     return cell, pawn
 
@@ -57,8 +76,7 @@ def test_registered_script_asks_again_when_its_machine_dies_mid_run(lot_cell: An
     assert cell.query("SELECT count(*) FROM reserved_machines")[0][0] == 0
 
 
-def test_a_run_whose_wc_died_before_announcing_it_counts_from_its_stored_outcome(lot_cell: Any,
-                                                                                 tmp_path: Path) -> None:
+def test_a_run_whose_wc_died_before_announcing_it_counts_from_its_stored_outcome(lot_cell: Any, tmp_path: Path) -> None:
     # The Mazak's WC stores the run's results and outcome, then dies before its Run_Complete goes
     # out: no RUN_COMPL ever comes, but MACHINE_RUN_OUTCOME holds the outcome, so the pawn is not
     # milled a second time on the other mill.
@@ -69,8 +87,16 @@ def test_a_run_whose_wc_died_before_announcing_it_counts_from_its_stored_outcome
     try:
         ((status, run),) = cell.query("SELECT status, machine_run_id FROM machine_status WHERE machine_id = 'mazak'")
         assert status == "Running", "the run ended before the Machine Server was stopped: the test proves nothing"
-        wait_for(lambda: cell.query("SELECT ack_code FROM machine_run_outcome WHERE machine_id = 'mazak' AND "
-                                    "machine_run_id = %s", run) == [("ACK_OK",)], 20, "the run's stored outcome")
+        wait_for(
+            lambda: (
+                cell.query(
+                    "SELECT ack_code FROM machine_run_outcome WHERE machine_id = 'mazak' AND machine_run_id = %s", run
+                )
+                == [("ACK_OK",)]
+            ),
+            20,
+            "the run's stored outcome",
+        )
         cell.kill("wc", "mazak")
     finally:
         os.kill(ms, signal.SIGCONT)

@@ -80,8 +80,10 @@ def ask(cell: CellHarness, cls: str, msg: Message, to: str) -> Message:
 
 
 def status(cell: CellHarness, machine: str) -> tuple[Any, ...]:
-    return cell.query("select status, recipe_id, machine_run_id, start_time, end_time from machine_status "
-                      "where machine_id = %s", machine)[0]
+    return cell.query(
+        "select status, recipe_id, machine_run_id, start_time, end_time from machine_status where machine_id = %s",
+        machine,
+    )[0]
 
 
 def accepts(cell: CellHarness, machine: str) -> list[str]:
@@ -89,21 +91,30 @@ def accepts(cell: CellHarness, machine: str) -> list[str]:
 
 
 def pending_alarm(cell: CellHarness, alarm_id: str, machine: str) -> int:
-    rows = wait_for(lambda: cell.query("select alarm_no from alarms where alarm_id = %s and machine_id = %s "
-                                       "and cleared_at is null", alarm_id, machine), T, f"alarm {alarm_id} pending")
+    rows = wait_for(
+        lambda: cell.query(
+            "select alarm_no from alarms where alarm_id = %s and machine_id = %s and cleared_at is null",
+            alarm_id,
+            machine,
+        ),
+        T,
+        f"alarm {alarm_id} pending",
+    )
     return int(rows[0][0])
 
 
 def clear(cell: CellHarness, alarm_no: int) -> None:
-    ack = ask(cell, "ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=alarm_no, cleared_by="test operator"),
-              "cas")
+    ack = ask(
+        cell, "ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=alarm_no, cleared_by="test operator"), "cas"
+    )
     assert ack.ack_code == OK, ack
 
 
 def me_start(cell: CellHarness, machine: str) -> BlockingConversation:
     """Open ME_START; the WC acknowledges at once and answers ME_Ready when the machine is up."""
-    conv, batch = cell.bus.request("ME_START", message("Startup_Request", module=f"wc:{machine}"),
-                                   to=f"wc:{machine}", timeout=T)
+    conv, batch = cell.bus.request(
+        "ME_START", message("Startup_Request", module=f"wc:{machine}"), to=f"wc:{machine}", timeout=T
+    )
     assert batch.first.name == "Startup_Ack"
     if batch.first.ack_code != OK:
         conv.end()
@@ -127,10 +138,27 @@ def start_machine(cell: CellHarness, machine: str, homing: bool) -> None:
     assert status(cell, machine)[0] == "Idle"
 
 
-def setup_run(cell: CellHarness, machine: str, run_id: int, recipe: str = "dummy_recipe", op: str = "dummy_op",
-              machine_id: str | None = None) -> Message:
-    return ask(cell, "SETUP_RUN", message("Setup_Run", machine_id=machine_id or machine, recipe_id=recipe, op_type=op,
-                                          machine_run_id=run_id, entity_id=1), f"wc:{machine}")
+def setup_run(
+    cell: CellHarness,
+    machine: str,
+    run_id: int,
+    recipe: str = "dummy_recipe",
+    op: str = "dummy_op",
+    machine_id: str | None = None,
+) -> Message:
+    return ask(
+        cell,
+        "SETUP_RUN",
+        message(
+            "Setup_Run",
+            machine_id=machine_id or machine,
+            recipe_id=recipe,
+            op_type=op,
+            machine_run_id=run_id,
+            entity_id=1,
+        ),
+        f"wc:{machine}",
+    )
 
 
 def start_run(cell: CellHarness, machine: str, run_id: int) -> Message:
@@ -138,8 +166,11 @@ def start_run(cell: CellHarness, machine: str, run_id: int) -> Message:
 
 
 def results(cell: CellHarness, machine: str, run_id: int) -> dict[str, str]:
-    return dict(cell.query("select param, value from machine_run_result where machine_id = %s and machine_run_id = %s",
-                           machine, run_id))
+    return dict(
+        cell.query(
+            "select param, value from machine_run_result where machine_id = %s and machine_run_id = %s", machine, run_id
+        )
+    )
 
 
 def story(cell: CellHarness, name: str, *steps: str) -> None:
@@ -153,16 +184,18 @@ def story(cell: CellHarness, name: str, *steps: str) -> None:
 
 
 def gwc(cell: CellHarness, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "gwc", *args], env=cell.env(), capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "gwc", *args], env=cell.env(), capture_output=True, text=True, timeout=timeout
+    )
 
 
 # ----------------------------------------------------------------------------- the happy paths
 
 
 def test_dummy_machine_homes_sets_up_runs_and_stores_its_results(machine_cell: Any) -> None:
-    cell, ear = machine_cell({"id": "wc3", "kind": "dummy", "run_time": 0.3, "homing_alarm": True,
-                              "results": {"DIAMETER": "25.02"}})
+    cell, ear = machine_cell(
+        {"id": "wc3", "kind": "dummy", "run_time": 0.3, "homing_alarm": True, "results": {"DIAMETER": "25.02"}}
+    )
     assert status(cell, "wc3")[0] == "Shutdown"
     conv = me_start(cell, "wc3")
     alarm = pending_alarm(cell, "HOME_CMM", "wc3")
@@ -189,12 +222,36 @@ def test_dummy_machine_homes_sets_up_runs_and_stores_its_results(machine_cell: A
     wait_for(lambda: accepts(cell, "wc3") == ["dummy_op", "measure", "mill_chess"], T, "all operations again")
     assert not list((cell.cfg.results_dir / "wc3").glob("*")), "the results file is removed once loaded"
 
-    story(cell, "wc:wc3", "ME_START to the ME", "the ME raises alarm HOME_CMM", rf"alarm {alarm} cleared",
-          "Shutdown -> Idle", "accepts all its operations", "SETUP_RUN run 9001", "accept types: none",
-          "Idle -> Setup", "set up run 9001", "START_RUN run 9001", "Setup -> Running", "run 9001 started",
-          "9001: 6 results stored", "Running -> Idle", r"run 9001 complete \(ACK_OK\)", "accept types: all")
-    story(cell, "me:wc3", "homing: alarm HOME_CMM", "homing alarm cleared", r"machine ready \(Idle\)",
-          "set up with recipe dummy_recipe", "run 1 started", "run 1 complete: ACK_OK")
+    story(
+        cell,
+        "wc:wc3",
+        "ME_START to the ME",
+        "the ME raises alarm HOME_CMM",
+        rf"alarm {alarm} cleared",
+        "Shutdown -> Idle",
+        "accepts all its operations",
+        "SETUP_RUN run 9001",
+        "accept types: none",
+        "Idle -> Setup",
+        "set up run 9001",
+        "START_RUN run 9001",
+        "Setup -> Running",
+        "run 9001 started",
+        "9001: 6 results stored",
+        "Running -> Idle",
+        r"run 9001 complete \(ACK_OK\)",
+        "accept types: all",
+    )
+    story(
+        cell,
+        "me:wc3",
+        "homing: alarm HOME_CMM",
+        "homing alarm cleared",
+        r"machine ready \(Idle\)",
+        "set up with recipe dummy_recipe",
+        "run 1 started",
+        "run 1 complete: ACK_OK",
+    )
     shown = json.loads(gwc(cell, "machine", "status", "--json").stdout)
     assert {r["machine_id"]: (r["status"], r["wc"]) for r in shown} == {"wc3": ("Idle", "on bus")}
 
@@ -212,9 +269,19 @@ def test_cmm_over_a_pseudo_terminal_measures_a_pass_and_a_fail_part(machine_cell
         wait_for(lambda: status(cell, "cmm_wc")[0] == "Idle", T, "Idle again")
     assert verdicts == ["PASS", "FAIL"]
     assert results(cell, "cmm_wc", 7001)["PART"] == "alum_chess_set"
-    story(cell, "cmmsim:cmm_wc", "serial end published", "' DOWNLD !'", "part program alum_chess_set received",
-          "'SETUP RUN !'", "part name: alum_chess_set", "'START RUN !'", "measured: PASS!", "'START RUN !'",
-          "measured: FAIL!")
+    story(
+        cell,
+        "cmmsim:cmm_wc",
+        "serial end published",
+        "' DOWNLD !'",
+        "part program alum_chess_set received",
+        "'SETUP RUN !'",
+        "part name: alum_chess_set",
+        "'START RUN !'",
+        "measured: PASS!",
+        "'START RUN !'",
+        "measured: FAIL!",
+    )
     story(cell, "me:cmm_wc", "serial line to the CMM open", "the CMM answered PASS!", "the CMM answered FAIL!")
 
 
@@ -241,8 +308,10 @@ def test_requests_out_of_turn_get_the_thesis_answers_and_leave_the_machine_as_it
 
     assert setup_run(cell, "wc1", 2).ack_code == OK
     assert setup_run(cell, "wc1", 3).ack_code == AckCode.NOTNOW  # Idle only
-    assert ask(cell, "UPLD_ME", message("Upload_Me", machine_id="wc1", recipe_id="dummy_recipe"),
-               "wc:wc1").ack_code == AckCode.NOTNOW
+    assert (
+        ask(cell, "UPLD_ME", message("Upload_Me", machine_id="wc1", recipe_id="dummy_recipe"), "wc:wc1").ack_code
+        == AckCode.NOTNOW
+    )
     assert start_run(cell, "wc1", 3).ack_code == AckCode.START_FAIL  # set up for run 2, not 3
     assert status(cell, "wc1")[:3] == ("Setup", "dummy_recipe", 2)
     assert start_run(cell, "wc1", 2).ack_code == OK
@@ -278,8 +347,7 @@ def test_shutdown_during_setup_and_during_a_run_waits_for_the_run(machine_cell: 
     cell, ear = machine_cell({"id": "wc4", "kind": "dummy", "run_time": 1.0})
 
     def shut() -> Message:
-        conv, batch = cell.bus.request("ME_SHUT", message("Shutdown_Request", module="wc:wc4"), to="wc:wc4",
-                                       timeout=T)
+        conv, batch = cell.bus.request("ME_SHUT", message("Shutdown_Request", module="wc:wc4"), to="wc:wc4", timeout=T)
         try:
             assert batch.first.ack_code == OK, batch.first
             return conv.expect("ME_Stopped", timeout=T).first
@@ -314,7 +382,8 @@ def test_shutdown_during_setup_and_during_a_run_waits_for_the_run(machine_cell: 
 
 
 def test_kill_9_of_the_me_during_a_run_is_reported_and_the_pair_rejoins_with_gwc_machine_start(
-        machine_cell: Any) -> None:
+    machine_cell: Any,
+) -> None:
     cell, ear = machine_cell({"id": "wc5", "kind": "dummy", "run_time": 2.0})
     start_machine(cell, "wc5", homing=False)
     assert setup_run(cell, "wc5", 31).ack_code == OK
@@ -326,8 +395,14 @@ def test_kill_9_of_the_me_during_a_run_is_reported_and_the_pair_rejoins_with_gwc
     pending_alarm(cell, "ME_DIED", "wc5")
     assert ear.wait("Run_Complete(Run_Fail) of run 31", lambda m: m.machine_run_id == 31).ack_code == AckCode.RUN_FAIL
     assert accepts(cell, "wc5") == []
-    story(cell, "wc:wc5", "ME of wc5 is dead", r"alarm \d+ \(ME_DIED\) raised", "Running -> Shutdown",
-          r"run 31 complete \(Run_Fail\)")
+    story(
+        cell,
+        "wc:wc5",
+        "ME of wc5 is dead",
+        r"alarm \d+ \(ME_DIED\) raised",
+        "Running -> Shutdown",
+        r"run 31 complete \(Run_Fail\)",
+    )
 
     cell.kill("wc", "wc5")  # the pair is restarted; nothing else is
     cell.start("me", "wc5")
@@ -342,17 +417,21 @@ def test_kill_9_of_the_me_during_a_run_is_reported_and_the_pair_rejoins_with_gwc
     assert results(cell, "wc5", 32)["RESULT"] == "PASS"
 
 
-@pytest.mark.parametrize("liveness, after", [(30, "Idle"), (1, "Shutdown")],
-                         ids=["back-before-liveness", "shut-down-by-liveness"])
+@pytest.mark.parametrize(
+    "liveness, after", [(30, "Idle"), (1, "Shutdown")], ids=["back-before-liveness", "shut-down-by-liveness"]
+)
 def test_kill_9_of_the_wc_during_a_run_the_restarted_wc_stores_the_run_its_me_finished(
-        machine_cell: Any, liveness: int, after: str) -> None:
+    machine_cell: Any, liveness: int, after: str
+) -> None:
     # The run completes with no WC: the ME's RUN_COMPL waits in the queue. With a long liveness the
     # machine is still Running when the WC is back: it resumes the run and serves again. With a short
     # one the Machine Server has shut the machine down meanwhile: the part was made all the same, so
     # its results are stored and announced and the machine stays Shutdown (the soak, seed 1991,
     # found that results file left behind).
-    cell, ear = machine_cell({"id": "wc6", "kind": "dummy", "run_time": 2.0},
-                             prepare=f"update me_config set liveness_s = {liveness} where machine_id = 'wc6'")
+    cell, ear = machine_cell(
+        {"id": "wc6", "kind": "dummy", "run_time": 2.0},
+        prepare=f"update me_config set liveness_s = {liveness} where machine_id = 'wc6'",
+    )
     start_machine(cell, "wc6", homing=False)
     assert setup_run(cell, "wc6", 41).ack_code == OK
     assert start_run(cell, "wc6", 41).ack_code == OK
@@ -365,8 +444,9 @@ def test_kill_9_of_the_wc_during_a_run_the_restarted_wc_stores_the_run_its_me_fi
     cell.start("wc", "wc6", start=False)
     assert ear.wait("Run_Complete of run 41", lambda m: m.machine_run_id == 41).ack_code == OK
     assert results(cell, "wc6", 41)["RESULT"] == "PASS"
-    assert cell.query("select ack_code from machine_run_outcome where machine_id = 'wc6' and machine_run_id = 41") \
-        == [("ACK_OK",)]
+    assert cell.query("select ack_code from machine_run_outcome where machine_id = 'wc6' and machine_run_id = 41") == [
+        ("ACK_OK",)
+    ]
     assert not results_file.exists(), "the results file is removed once stored"
     wait_for(lambda: status(cell, "wc6")[0] == after, T, f"{after} after the run")
     if after == "Idle":
@@ -378,11 +458,14 @@ def test_kill_9_of_the_wc_during_a_run_the_restarted_wc_stores_the_run_its_me_fi
 
 
 def test_kill_9_of_both_halves_the_restarted_wc_finds_a_fresh_me_refuses_setups_and_shuts_the_machine_down(
-        machine_cell: Any) -> None:
+    machine_cell: Any,
+) -> None:
     # BUG-3: WC and ME killed and restarted before the Machine Server notices (liveness 30 s here): the
     # status still says Idle, but the new ME is shut down. The WC checks its ME before serving anything.
-    cell, ear = machine_cell({"id": "wc5", "kind": "dummy", "run_time": 0.3},
-                             prepare="update me_config set liveness_s = 30 where machine_id = 'wc5'")
+    cell, ear = machine_cell(
+        {"id": "wc5", "kind": "dummy", "run_time": 0.3},
+        prepare="update me_config set liveness_s = 30 where machine_id = 'wc5'",
+    )
     start_machine(cell, "wc5", homing=False)
     cell.kill("wc", "wc5")
     cell.kill("me", "wc5")
@@ -395,8 +478,14 @@ def test_kill_9_of_both_halves_the_restarted_wc_finds_a_fresh_me_refuses_setups_
     assert accepts(cell, "wc5") == []
     assert setup_run(cell, "wc5", 52).ack_code == AckCode.NOTNOW
     assert not cell.log_has("me:wc5", "SETUP_RUN"), "no SETUP_RUN may reach a shut-down ME"
-    story(cell, "wc:wc5", r"Idle \(run None\): resuming it", "ME of wc5 is dead", "answers that it is shut down",
-          "Idle -> Shutdown")
+    story(
+        cell,
+        "wc:wc5",
+        r"Idle \(run None\): resuming it",
+        "ME of wc5 is dead",
+        "answers that it is shut down",
+        "Idle -> Shutdown",
+    )
 
     started = gwc(cell, "machine", "start", "wc5")  # the operator's way back
     assert started.returncode == 0, started.stderr + started.stdout
@@ -407,11 +496,14 @@ def test_kill_9_of_both_halves_the_restarted_wc_finds_a_fresh_me_refuses_setups_
 
 
 def test_kill_9_of_the_wc_after_it_read_run_compl_the_restarted_wc_completes_the_run_from_its_results_file(
-        machine_cell: Any) -> None:
+    machine_cell: Any,
+) -> None:
     # BUG-5: the dead WC had read RUN_COMPL from the queue and died before handling it. Its successor
     # finds run N Running in MACHINE_STATUS and the results file it chose for the run: it completes it.
-    cell, ear = machine_cell({"id": "wc2", "kind": "dummy", "run_time": 0.3},
-                             prepare="update me_config set liveness_s = 30 where machine_id = 'wc2'")
+    cell, ear = machine_cell(
+        {"id": "wc2", "kind": "dummy", "run_time": 0.3},
+        prepare="update me_config set liveness_s = 30 where machine_id = 'wc2'",
+    )
     start_machine(cell, "wc2", homing=False)
     results_file = cell.cfg.results_dir / "wc2" / "run-427.txt"
 
@@ -434,8 +526,16 @@ def test_kill_9_of_the_wc_after_it_read_run_compl_the_restarted_wc_completes_the
     wait_for(lambda: status(cell, "wc2")[0] == "Idle", T, "Idle again")
     assert not results_file.exists(), "the results file is removed once stored"
     wait_for(lambda: accepts(cell, "wc2") == ["dummy_op", "measure", "mill_chess"], T, "all operations again")
-    story(cell, "wc:wc2", r"Running \(run 427\): resuming it", "run 427 ended while no WC handled it",
-          "427: 5 results stored", "Running -> Idle", r"run 427 complete \(ACK_OK\)", "resumed: Idle")
+    story(
+        cell,
+        "wc:wc2",
+        r"Running \(run 427\): resuming it",
+        "run 427 ended while no WC handled it",
+        "427: 5 results stored",
+        "Running -> Idle",
+        r"run 427 complete \(ACK_OK\)",
+        "resumed: Idle",
+    )
 
     # The same, but the results file is gone too: the ME is idle with no run, the run failed.
     run_and_lose_run_compl(428)
@@ -452,8 +552,9 @@ def test_kill_9_of_the_wc_after_it_read_run_compl_the_restarted_wc_completes_the
 
 
 def test_gwc_bench_mq_reports_the_wc_me_round_trip_beside_the_bare_floor() -> None:
-    done = subprocess.run([sys.executable, "-m", "gwc", "bench", "mq", "-n", "300", "--json"], capture_output=True,
-                          text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "gwc", "bench", "mq", "-n", "300", "--json"], capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0, done.stderr
     report = json.loads(done.stdout)
     for path in ("bare", "channel", "wc"):

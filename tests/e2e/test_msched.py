@@ -28,13 +28,15 @@ from tests.harness import CellHarness, wait_for
 T = 20.0  # generous deadlines: the machines are shared
 
 
-def add_entities(cell: CellHarness, *entity_ids: int, priority: int = 20, state: str = "waiting_machine",
-                 lot_id: int | None = None) -> None:
+def add_entities(
+    cell: CellHarness, *entity_ids: int, priority: int = 20, state: str = "waiting_machine", lot_id: int | None = None
+) -> None:
     """Lot entities as the Lot Server would have made them (one lot per call)."""
     lot = lot_id or 1000 + entity_ids[0]
     with cell.db() as conn:
-        conn.execute("insert into lots (lot_id, product_id, priority) values (%s, 'alum_chess_set', %s)",
-                     (lot, priority))
+        conn.execute(
+            "insert into lots (lot_id, product_id, priority) values (%s, 'alum_chess_set', %s)", (lot, priority)
+        )
         for e in entity_ids:
             conn.execute("insert into lot_entities (entity_id, lot_id) values (%s, %s)", (e, lot))
             conn.execute("insert into lot_status (entity_id, lot_id, state) values (%s, %s, %s)", (e, lot, state))
@@ -54,8 +56,11 @@ def ask(cell: CellHarness, cls: str, first: Message, *more: Message) -> Message:
 
 def accept(cell: CellHarness, machine: str, op_types: list[str] | None = None) -> Message:
     """ACC_TYP_C as the machine's WC sends it (default: all it has recipes for)."""
-    return ask(cell, "ACC_TYP_C", message("Chg_Accept_Type", machine_id=machine,
-                                          op_types=["*"] if op_types is None else op_types))
+    return ask(
+        cell,
+        "ACC_TYP_C",
+        message("Chg_Accept_Type", machine_id=machine, op_types=["*"] if op_types is None else op_types),
+    )
 
 
 def machines_up(cell: CellHarness, *machines: str) -> None:
@@ -68,8 +73,9 @@ def machines_up(cell: CellHarness, *machines: str) -> None:
 def broadcast_status(cell: CellHarness, machine: str, status: str, previous: str | None = None) -> None:
     """UPD_ME_ST, as the Machine Server broadcasts it after writing MACHINE_STATUS."""
     set_status(cell, status, machine)
-    conv = cell.bus.start("UPD_ME_ST", message("Update_ME_Status", machine_id=machine, status=status,
-                                               previous=previous))
+    conv = cell.bus.start(
+        "UPD_ME_ST", message("Update_ME_Status", machine_id=machine, status=status, previous=previous)
+    )
     conv.end()
 
 
@@ -98,9 +104,19 @@ class Request:
     def send(self, num_machines: int | None = None) -> Request:
         n = len(self.machines) if num_machines is None else num_machines
         self.conv, batch = self.cell.bus.request(
-            "MACH_REQ", message("Machine_Request", entity_id=self.entity, op_type=self.op_type, num_machines=n,
-                                priority=self.priority, alt_group=self.alt_group),
-            *[message("Machine_Entry", machine_id=m) for m in self.machines], to="msched", timeout=T)
+            "MACH_REQ",
+            message(
+                "Machine_Request",
+                entity_id=self.entity,
+                op_type=self.op_type,
+                num_machines=n,
+                priority=self.priority,
+                alt_group=self.alt_group,
+            ),
+            *[message("Machine_Entry", machine_id=m) for m in self.machines],
+            to="msched",
+            timeout=T,
+        )
         self.ack = batch.first
         if self.ack.ack_code != AckCode.ACK_OK:
             self.conv.end()
@@ -178,8 +194,14 @@ def test_lifecycle_startup_then_shutdown_answers_every_waiting_request(make_cell
     assert refused.ack.ack_code == AckCode.NOTNOW
 
     assert startup(cell.bus, "msched") == "started"
-    wait_for(lambda: cell.bus.peers()["msched"].interest >= {"SHUTDOWN", "MACH_REQ", "CANCEL_RE", "UPD_ME_ST",
-                                                             "ACC_TYP_C", "UNRESERVE"}, T, "msched's busy interest")
+    wait_for(
+        lambda: (
+            cell.bus.peers()["msched"].interest
+            >= {"SHUTDOWN", "MACH_REQ", "CANCEL_RE", "UPD_ME_ST", "ACC_TYP_C", "UNRESERVE"}
+        ),
+        T,
+        "msched's busy interest",
+    )
     assert startup(cell.bus, "msched") == "already started"
     # Nothing accepted on wc1 yet: both requests wait.
     waiting = [request(cell, 2, "wc1"), request(cell, 3, "wc1")]
@@ -277,8 +299,11 @@ def test_accept_type_change(make_cell: Any) -> None:
     assert cell.query("select count(*) from accept_types where machine_id = 'wc1'")[0][0] == 0
     assert accept(cell, "wc1").ack_code == AckCode.ACK_OK  # ['*']: what op_machine_recipe has for wc1
     accepted = {t for (t,) in cell.query("select op_type from accept_types where machine_id = 'wc1'")}
-    assert accepted == {t for (t,) in cell.query(
-        "select distinct op_type from op_machine_recipe where machine_id = 'wc1'")} >= {"dummy_op", "measure"}
+    assert (
+        accepted
+        == {t for (t,) in cell.query("select distinct op_type from op_machine_recipe where machine_id = 'wc1'")}
+        >= {"dummy_op", "measure"}
+    )
     assert r.comp().ack_code == AckCode.ACK_OK  # adding dummy_op ran the scheduler
 
 
@@ -369,9 +394,13 @@ def test_dead_entity_does_not_hold_up_the_scheduler(make_cell: Any) -> None:
     machines_up(cell, "wc1", "wc2")
     request(cell, 1, "wc1").comp()
     with BlockingBus("lot:2", cell.cfg.bus, cell.log) as ghost_bus:  # entity 2 asks, then dies
-        conv, batch = ghost_bus.request("MACH_REQ", message("Machine_Request", entity_id=2, op_type="dummy_op",
-                                                            num_machines=1),
-                                        message("Machine_Entry", machine_id="wc1"), to="msched", timeout=T)
+        conv, batch = ghost_bus.request(
+            "MACH_REQ",
+            message("Machine_Request", entity_id=2, op_type="dummy_op", num_machines=1),
+            message("Machine_Entry", machine_id="wc1"),
+            to="msched",
+            timeout=T,
+        )
         assert batch.first.ack_code == AckCode.ACK_OK
     assert unreserve(cell, 1).ack_code == AckCode.ACK_OK  # wc1 goes to the dead entity 2
     started = time.monotonic()
@@ -446,8 +475,9 @@ def test_finished_entity_is_never_bound_and_its_orphan_request_ends(make_cell: A
 
 
 def _gwc(cell: CellHarness, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "gwc", *args], env=cell.env(), capture_output=True, text=True,
-                          timeout=60)
+    return subprocess.run(
+        [sys.executable, "-m", "gwc", *args], env=cell.env(), capture_output=True, text=True, timeout=60
+    )
 
 
 def test_hi_lists_the_queue_and_cancels_a_request(make_cell: Any) -> None:

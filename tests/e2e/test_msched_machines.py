@@ -19,8 +19,11 @@ def test_demonstration_with_real_dummy_machines(make_cell: Any) -> None:
     for m in ("wc1", "wc2"):
         cell.start_machine_processes(m)
         assert startup(cell.bus, f"wc:{m}", "ME_START") == "started"
-        wait_for(lambda m=m: cell.query("select 1 from accept_types where machine_id = %s and op_type = 'dummy_op'",
-                                        m), T, f"{m} to accept dummy_op")
+        wait_for(
+            lambda m=m: cell.query("select 1 from accept_types where machine_id = %s and op_type = 'dummy_op'", m),
+            T,
+            f"{m} to accept dummy_op",
+        )
     add_entities(cell, *range(1, 9))
 
     # Several lots asking for the same machine are served in FIFO order.
@@ -53,7 +56,10 @@ def test_demonstration_with_real_dummy_machines(make_cell: Any) -> None:
     # A machine added while the cell runs is used.
     cell.start_machine_processes("wc3")
     assert startup(cell.bus, "wc:wc3", "ME_START") == "started"
-    wait_for(lambda: cell.query("select 1 from accept_types where machine_id = 'wc3' and op_type = 'dummy_op'"),
-             T, "wc3 to accept dummy_op")
+    wait_for(
+        lambda: cell.query("select 1 from accept_types where machine_id = 'wc3' and op_type = 'dummy_op'"),
+        T,
+        "wc3 to accept dummy_op",
+    )
     new = request(cell, 8, "wc3")
     assert new.comp().ack_code == AckCode.ACK_OK and new.reserved == ["wc3"]

@@ -5,8 +5,17 @@ from __future__ import annotations
 from typing import Any
 
 from gwc.ipc.codes import AckCode
-from tests.e2e.test_msched import (T, add_entities, machines_up, msched_cell, queued_keys, request, reservations,
-                                   unreserve, wait_queued)
+from tests.e2e.test_msched import (
+    T,
+    add_entities,
+    machines_up,
+    msched_cell,
+    queued_keys,
+    request,
+    reservations,
+    unreserve,
+    wait_queued,
+)
 from tests.harness import CellHarness, wait_for
 
 
@@ -43,8 +52,11 @@ def test_kill9_with_requests_queued_and_machines_reserved_loses_nothing(make_cel
 
     # The answer that was not acknowledged comes again, the same one: bound once, not twice.
     again = in_flight.comp()
-    assert (again.ack_code, again.request_key, again.machine_run_id) == (AckCode.ACK_OK, in_flight.key,
-                                                                         first.machine_run_id)
+    assert (again.ack_code, again.request_key, again.machine_run_id) == (
+        AckCode.ACK_OK,
+        in_flight.key,
+        first.machine_run_id,
+    )
     assert reservations(cell) == before == {"wc1": 1, "wc2": 2, "wc3": 6}
     assert queued_keys(cell) == sorted([three.key, four_a.key, four_b.key, five.key])
 

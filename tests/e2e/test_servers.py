@@ -22,8 +22,10 @@ from tests.harness import CellHarness, wait_for
 S = MachineStatus
 L = LotState
 OK = AckCode.ACK_OK
-MACHINES = [{"id": "wc1", "kind": "dummy", "run_time": 0.1, "maintenance_every": 2},
-            {"id": "wc2", "kind": "dummy", "run_time": 0.1}]
+MACHINES = [
+    {"id": "wc1", "kind": "dummy", "run_time": 0.1, "maintenance_every": 2},
+    {"id": "wc2", "kind": "dummy", "run_time": 0.1},
+]
 
 
 def ask(bus: BlockingBus, cls: str, msg: Message, to: str, timeout: float = 10.0) -> Message:
@@ -67,6 +69,7 @@ def ears() -> Iterator[Callable[..., Ear]]:
 @pytest.fixture
 def servers(make_cell: Any) -> Callable[..., CellHarness]:
     """servers(*names): a private cell running just these servers (fewer processes, faster tests)."""
+
     def make(*names: str) -> CellHarness:
         cell = make_cell(machines=MACHINES)
         cell.start_servers(*names)
@@ -125,8 +128,13 @@ def test_machine_server_lets_one_of_two_racing_changes_win(servers: Any, ears: A
     assert change(wc.bus, "wc2", "Idle", ["Shutdown"]).ack_code == OK
     other = ears(cell, f"other.{cell.tag}")
     convs: list[BlockingConversation] = [
-        b.start("CHG_STATUS", message("Change_Status", machine_id="wc2", status="Setup", expect=["Idle"],
-                                      machine_run_id=n), to="ms") for n, b in ((1, wc.bus), (2, other.bus))]
+        b.start(
+            "CHG_STATUS",
+            message("Change_Status", machine_id="wc2", status="Setup", expect=["Idle"], machine_run_id=n),
+            to="ms",
+        )
+        for n, b in ((1, wc.bus), (2, other.bus))
+    ]
     answers = [c.next_message(10).first for c in convs]
     for c in convs:
         c.end()
@@ -141,10 +149,23 @@ def test_machine_server_counts_runs_and_scrap_and_says_when_maintenance_is_due(s
     for n, code in ((1, OK), (2, AckCode.RUN_FAIL)):
         conv = wc.bus.start("RUN_COMPL", message("Run_Complete", machine_id="wc1", machine_run_id=n, ack_code=code))
         conv.end()
-    wait_for(lambda: q1(cell, "select runs_since_maintenance, scrap_count, maintenance_every from machine_status "
-                              "where machine_id = 'wc1'") == (2, 1, 2), 10, "2 runs, 1 scrap counted")
-    wait_for(lambda: q1(cell, "select machine_id from alarms where alarm_id = 'MAINT_DUE' and cleared_at is null"),
-             10, "alarm MAINT_DUE pending")
+    wait_for(
+        lambda: (
+            q1(
+                cell,
+                "select runs_since_maintenance, scrap_count, maintenance_every from machine_status "
+                "where machine_id = 'wc1'",
+            )
+            == (2, 1, 2)
+        ),
+        10,
+        "2 runs, 1 scrap counted",
+    )
+    wait_for(
+        lambda: q1(cell, "select machine_id from alarms where alarm_id = 'MAINT_DUE' and cleared_at is null"),
+        10,
+        "alarm MAINT_DUE pending",
+    )
     done = ask(cell.bus, "MAINT_DONE", message("Maint_Done", machine_id="wc1", by="test"), "ms")
     assert (done.ack_code, done.runs) == (OK, 2)
     assert q1(cell, "select runs_since_maintenance from machine_status where machine_id = 'wc1'") == (0,)
@@ -161,32 +182,44 @@ def test_silent_wc_makes_its_machine_shutdown_with_alarm_and_broadcast(servers: 
     gone = ear.wait("Update_ME_Status Shutdown", lambda c, m: m.status == "Shutdown", timeout=10)
     assert gone.previous == "Setup" and "silent" in gone.note
     assert q1(cell, "select status from machine_status where machine_id = 'wc1'") == ("Shutdown",)
-    wait_for(lambda: q1(cell, "select machine_id from alarms where alarm_id = 'WC_SILENT' and cleared_at is null"),
-             10, "alarm WC_SILENT pending")
+    wait_for(
+        lambda: q1(cell, "select machine_id from alarms where alarm_id = 'WC_SILENT' and cleared_at is null"),
+        10,
+        "alarm WC_SILENT pending",
+    )
     assert q1(cell, "select status from machine_status where machine_id = 'wc2'") == ("Shutdown",)  # was never up
 
 
 # --------------------------------------------------------------------------------- Cell Alarm Server
 
 
-def test_alarm_server_records_known_and_unknown_alarms_and_broadcasts_their_clearing(
-        servers: Any, ears: Any) -> None:
+def test_alarm_server_records_known_and_unknown_alarms_and_broadcasts_their_clearing(servers: Any, ears: Any) -> None:
     cell = servers("cas", "sls")
     ear = ears(cell, f"ear.{cell.tag}", "ALARM_CLE")
-    send = lambda alarm_id, **f: ask(cell.bus, "ALARM_SEND", message(  # noqa: E731
-        "Alarm_Send", alarm_id=alarm_id, raised_by="wc:wc1", machine_id="wc1", **f), "cas")
+    send = lambda alarm_id, **f: ask(
+        cell.bus,
+        "ALARM_SEND",
+        message("Alarm_Send", alarm_id=alarm_id, raised_by="wc:wc1", machine_id="wc1", **f),
+        "cas",
+    )
     known = send("HOME_CMM")
     assert (known.ack_code, known.known) == (OK, True)
     unknown = send("SPILT_COFFEE", alarm_text="coffee on the CMM")
     assert (unknown.ack_code, unknown.known) == (OK, False)
     assert send(" ").ack_code == AckCode.BAD_MESSAGE
     rows = cell.query("select alarm_no, alarm_id, known, alarm_text, raised_by from alarms order by alarm_no")
-    assert rows == [(known.alarm_no, "HOME_CMM", True, "Push the start button on the CMM", "wc:wc1"),
-                    (unknown.alarm_no, "SPILT_COFFEE", False, "coffee on the CMM", "wc:wc1")]
+    assert rows == [
+        (known.alarm_no, "HOME_CMM", True, "Push the start button on the CMM", "wc:wc1"),
+        (unknown.alarm_no, "SPILT_COFFEE", False, "coffee on the CMM", "wc:wc1"),
+    ]
     line = status_line(cell)
     assert line.alarms == 2 and f"#{unknown.alarm_no} (unknown): coffee on the CMM" in line.text
-    clear = lambda no, by="op": ask(cell.bus, "ALARM_CLR_REQ", message(  # noqa: E731
-        "Alarm_Clear_Request", alarm_no=no, cleared_by=by), "cas")
+    clear = lambda no, by="op": ask(
+        cell.bus,
+        "ALARM_CLR_REQ",
+        message("Alarm_Clear_Request", alarm_no=no, cleared_by=by),
+        "cas",
+    )
     assert clear(known.alarm_no).ack_code == OK
     heard = ear.wait("ALARM_CLEAR broadcast", lambda c, m: m.alarm_no == known.alarm_no)
     assert (heard.alarm_id, heard.machine_id, heard.cleared_by) == ("HOME_CMM", "wc1", "op")
@@ -215,16 +248,24 @@ def test_recipe_server_versions_approves_and_serves_only_the_approved_file(serve
     assert (got.ack_code, got.version) == (OK, 1) and sha(got.content) == got.checksum
     assert fetch(cell, "nosuch", "wc1").ack_code == AckCode.REC_INVAL
     assert fetch(cell, "alum_chess_set", "wc1").ack_code == AckCode.REC_INVAL  # not for this machine
-    store = lambda rid, text: ask(cell.bus, "RECIPE_PUT", message(  # noqa: E731
-        "Recipe_Store", recipe_id=rid, content=text, by="test"), "ers")
+    store = lambda rid, text: ask(
+        cell.bus,
+        "RECIPE_PUT",
+        message("Recipe_Store", recipe_id=rid, content=text, by="test"),
+        "ers",
+    )
     v1 = store("probe", "PROBE 1\n")
     assert (v1.ack_code, v1.version, v1.checksum) == (OK, 1, sha("PROBE 1\n"))
     assert store("probe", "PROBE 1\n").version == 1  # the same content is no new version
     assert store("../etc/passwd", "x").ack_code == AckCode.BAD_MESSAGE
     assert store("big", "x" * 50_000).ack_code == AckCode.BAD_MESSAGE
     assert fetch(cell, "probe").ack_code == AckCode.REC_INVAL  # nothing approved yet
-    approve = lambda rid, v=None: ask(cell.bus, "RECIPE_APPR", message(  # noqa: E731
-        "Recipe_Approve", recipe_id=rid, version=v, by="test"), "ers")
+    approve = lambda rid, v=None: ask(
+        cell.bus,
+        "RECIPE_APPR",
+        message("Recipe_Approve", recipe_id=rid, version=v, by="test"),
+        "ers",
+    )
     assert approve("probe").version == 1
     assert fetch(cell, "probe").content == "PROBE 1\n"
     assert approve("probe", 7).ack_code == AckCode.UNKNOWN
@@ -241,7 +282,9 @@ def test_recipe_server_versions_approves_and_serves_only_the_approved_file(serve
     good = fetch(cell, "probe")
     assert (good.version, good.content) == (2, "PROBE 1\nRAPID 9999\n") and sha(good.content) == good.checksum
     assert cell.query("select version, approved from recipe_versions where recipe_id = 'probe' order by 1") == [
-        (1, False), (2, True)]
+        (1, False),
+        (2, True),
+    ]
     assert q1(cell, "select content from recipe_versions where recipe_id = 'probe' and version = 1")[0] == b"PROBE 1\n"
 
 
@@ -261,25 +304,30 @@ def state_of(cell: CellHarness, eid: int) -> str:
     return q1(cell, "select state from lot_status where entity_id = %s", eid)[0]
 
 
-def test_lot_server_moves_entities_through_their_life_with_the_operators_decisions(
-        servers: Any, ears: Any) -> None:
+def test_lot_server_moves_entities_through_their_life_with_the_operators_decisions(servers: Any, ears: Any) -> None:
     cell = servers("ls", "sls")
     ear = ears(cell, f"ear.{cell.tag}", "LOT_MOVED")
     bus = cell.bus
-    create = lambda **f: ask(bus, "CREATE_LOT", message("Create_Lot_Entity", **f), "ls")  # noqa: E731
+    create = lambda **f: ask(bus, "CREATE_LOT", message("Create_Lot_Entity", **f), "ls")
     made = create(product_id="alum_chess_set", quantity=2, priority=5, owner="op", result_params=["p1", "p2"])
     assert made.ack_code == OK and len(made.entity_ids) == 2
     e1, e2 = made.entity_ids
-    assert q1(cell, "select quantity, priority, script_id, lot_type, result_params from lots where lot_id = %s",
-              made.lot_id) == (2, 5, "chess", "CMM_LOT", ["p1", "p2"])
+    assert q1(
+        cell, "select quantity, priority, script_id, lot_type, result_params from lots where lot_id = %s", made.lot_id
+    ) == (2, 5, "chess", "CMM_LOT", ["p1", "p2"])
     more = create(product_id="alum_chess_set", quantity=1, lot_id=made.lot_id)
-    assert more.lot_id == made.lot_id and q1(cell, "select unit from lot_entities where entity_id = %s",
-                                             more.entity_ids[0]) == (3,)
+    assert more.lot_id == made.lot_id and q1(
+        cell, "select unit from lot_entities where entity_id = %s", more.entity_ids[0]
+    ) == (3,)
     # asked again (its answer was lost, or the Lot Server restarted): what the first request made
     once = create(product_id="milled_pawn", quantity=2, request_id="op.1")
     again = create(product_id="milled_pawn", quantity=2, request_id="op.1")
-    assert (again.ack_code, again.lot_id, again.entity_ids, again.note) == (OK, once.lot_id, once.entity_ids,
-                                                                           "already created")
+    assert (again.ack_code, again.lot_id, again.entity_ids, again.note) == (
+        OK,
+        once.lot_id,
+        once.entity_ids,
+        "already created",
+    )
     assert q1(cell, "select count(*) from lot_entities where create_request = 'op.1'") == (2,)
     assert create(product_id="nosuch", quantity=1).ack_code == AckCode.UNKNOWN
     assert create(product_id="alum_chess_set", quantity=0).ack_code == AckCode.BAD_MESSAGE
@@ -328,7 +376,7 @@ def test_lot_server_divides_and_merges_entities_before_work_starts(servers: Any)
     bus = cell.bus
     made = ask(bus, "CREATE_LOT", message("Create_Lot_Entity", product_id="milled_pawn", quantity=1), "ls")
     (e,) = made.entity_ids
-    dm = lambda **f: ask(bus, "DIV_MERGE", message("Divide_Merge", **f), "ls")  # noqa: E731
+    dm = lambda **f: ask(bus, "DIV_MERGE", message("Divide_Merge", **f), "ls")
     split = dm(entity_id=e, action="divide", quantity=2)
     assert split.ack_code == OK and split.entity_ids[0] == e and len(split.entity_ids) == 3
     child = split.entity_ids[1]
@@ -344,8 +392,7 @@ def test_lot_server_divides_and_merges_entities_before_work_starts(servers: Any)
     assert dm(entity_id=e, action="divide").ack_code == AckCode.NOTNOW  # waiting_import: not now
 
 
-def test_dead_lot_script_fails_its_entity_and_msched_is_asked_to_free_its_machines(
-        servers: Any, ears: Any) -> None:
+def test_dead_lot_script_fails_its_entity_and_msched_is_asked_to_free_its_machines(servers: Any, ears: Any) -> None:
     cell = servers("ls")
     made = ask(cell.bus, "CREATE_LOT", message("Create_Lot_Entity", product_id="alum_chess_set", quantity=2), "ls")
     e, finished = made.entity_ids
@@ -381,12 +428,14 @@ def test_dead_lot_script_fails_its_entity_and_msched_is_asked_to_free_its_machin
 
 
 def gwc(cell: CellHarness, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "gwc", *args], env=cell.env(), capture_output=True, text=True,
-                          timeout=60)
+    return subprocess.run(
+        [sys.executable, "-m", "gwc", *args], env=cell.env(), capture_output=True, text=True, timeout=60
+    )
 
 
 def test_operator_commands_list_and_clear_alarms_show_the_status_line_and_keep_the_recipe_library(
-        servers: Any, tmp_path: Any) -> None:
+    servers: Any, tmp_path: Any
+) -> None:
     cell = servers("cas", "sls", "ers")
     no = ask(cell.bus, "ALARM_SEND", message("Alarm_Send", alarm_id="HOME_CMM", raised_by="wc:cmm_wc"), "cas").alarm_no
     listed = gwc(cell, "alarm", "list")
@@ -416,8 +465,9 @@ def test_operator_commands_list_and_clear_alarms_show_the_status_line_and_keep_t
 # --------------------------------------------------------------------------------- database failure (3.2.2)
 
 
-def test_servers_answer_and_stop_cleanly_when_the_database_is_gone(make_cell: Any, pg_cluster: Any,
-                                                                   database_url: str) -> None:
+def test_servers_answer_and_stop_cleanly_when_the_database_is_gone(
+    make_cell: Any, pg_cluster: Any, database_url: str
+) -> None:
     cell = make_cell(machines=MACHINES)
     cell.start_servers("cas", "ms", "sls")
     assert ask(cell.bus, "GET_STATUS", message("Get_Status", machine_id="wc1"), "ms").ack_code == OK

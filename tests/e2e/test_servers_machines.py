@@ -33,8 +33,12 @@ class Request:
         self.entity = entity
         self.conv: BlockingConversation
         self.conv, batch = cell.bus.request(
-            "MACH_REQ", message("Machine_Request", entity_id=entity, op_type="dummy_op", num_machines=1),
-            message("Machine_Entry", machine_id=machine), to="msched", timeout=T)
+            "MACH_REQ",
+            message("Machine_Request", entity_id=entity, op_type="dummy_op", num_machines=1),
+            message("Machine_Entry", machine_id=machine),
+            to="msched",
+            timeout=T,
+        )
         self.ack = batch.first
         assert self.ack.ack_code == OK, self.ack
         self.done: Batch | None = None
@@ -58,8 +62,10 @@ def entities(cell: CellHarness, n: int) -> list[int]:
     assert made.ack_code == OK, made
     for e in made.entity_ids:
         assert ask(cell.bus, "ENTITY_REQ", message("Entity_Request", entity_id=e, action="import"), "ls").ack_code == OK
-        assert ask(cell.bus, "IMPORT_LOT", message("Lot_Decision", entity_id=e, action="import", by="op"),
-                   "ls").ack_code == OK
+        assert (
+            ask(cell.bus, "IMPORT_LOT", message("Lot_Decision", entity_id=e, action="import", by="op"), "ls").ack_code
+            == OK
+        )
     return list(made.entity_ids)
 
 
@@ -84,26 +90,43 @@ def bound(cell: CellHarness, entity: int, machine: str) -> int:
 
 
 def setup_run(cell: CellHarness, machine: str, run_id: int, entity: int) -> Message:
-    return ask(cell.bus, "SETUP_RUN", message("Setup_Run", machine_id=machine, recipe_id="dummy_recipe",
-                                              op_type="dummy_op", machine_run_id=run_id, entity_id=entity),
-               f"wc:{machine}", timeout=T)
+    return ask(
+        cell.bus,
+        "SETUP_RUN",
+        message(
+            "Setup_Run",
+            machine_id=machine,
+            recipe_id="dummy_recipe",
+            op_type="dummy_op",
+            machine_run_id=run_id,
+            entity_id=entity,
+        ),
+        f"wc:{machine}",
+        timeout=T,
+    )
 
 
 def start_run(cell: CellHarness, machine: str, run_id: int) -> Message:
-    return ask(cell.bus, "START_RUN", message("Start_Run", machine_id=machine, machine_run_id=run_id),
-               f"wc:{machine}", timeout=T)
+    return ask(
+        cell.bus,
+        "START_RUN",
+        message("Start_Run", machine_id=machine, machine_run_id=run_id),
+        f"wc:{machine}",
+        timeout=T,
+    )
 
 
 @pytest.mark.parametrize("when", ["Idle", "Running"])
 def test_kill_9_of_a_machine_pair_is_seen_and_a_waiting_lot_gets_its_alternative(
-        make_cell: Any, ears: Any, when: str) -> None:
+    make_cell: Any, ears: Any, when: str
+) -> None:
     cell = machine_cell(make_cell, 60.0, "wc1", "wc2")
     ear = ears(cell, f"ear.{cell.tag}", "UPD_ME_ST")
     me_start(cell, "wc1")
     me_start(cell, "wc2")
     holder, waiter, other = entities(cell, 3)
     run_id = bound(cell, holder, "wc1")  # wc1 is taken: the waiter's first choice must wait
-    bound(cell, other, "wc2")            # and so is its alternative, for now
+    bound(cell, other, "wc2")  # and so is its alternative, for now
     Request(cell, waiter, "wc1")
     alternative = Request(cell, waiter, "wc2")
     if when == "Running":
@@ -115,12 +138,21 @@ def test_kill_9_of_a_machine_pair_is_seen_and_a_waiting_lot_gets_its_alternative
     killed = time.monotonic()
     for pid in pids:
         os.kill(pid, signal.SIGKILL)
-    wait_for(lambda: q1(cell, "select status from machine_status where machine_id = 'wc1'") == ("Shutdown",),
-             10, "MACHINE_STATUS of wc1 to say Shutdown")
+    wait_for(
+        lambda: q1(cell, "select status from machine_status where machine_id = 'wc1'") == ("Shutdown",),
+        10,
+        "MACHINE_STATUS of wc1 to say Shutdown",
+    )
     assert time.monotonic() - killed < 5.0, f"seen after {time.monotonic() - killed:.1f}s"
     assert not cell.alive("wc", "wc1") and not cell.alive("me", "wc1")
-    wait_for(lambda: q1(cell, "select alarm_no from alarms where alarm_id = 'WC_SILENT' and machine_id = 'wc1' "
-                              "and cleared_at is null"), 5, "alarm WC_SILENT pending")
+    wait_for(
+        lambda: q1(
+            cell,
+            "select alarm_no from alarms where alarm_id = 'WC_SILENT' and machine_id = 'wc1' and cleared_at is null",
+        ),
+        5,
+        "alarm WC_SILENT pending",
+    )
     told = ear.wait("Update_ME_Status wc1 Shutdown", lambda c, m: m.machine_id == "wc1" and m.status == "Shutdown")
     assert told.previous == when
     wait_for(lambda: cell.log_has("msched", "machine wc1 shut down"), 5, "MSCHED to act on the Shutdown")
@@ -143,8 +175,11 @@ def test_recipe_file_changed_after_approval_is_refused_until_approved_again(make
     path.write_text(path.read_text() + "SPEED 11\n")  # edited on disk after its approval
     refused = setup_run(cell, "wc1", run_id, e)
     assert refused.ack_code == AckCode.REC_INVAL, refused
-    wait_for(lambda: q1(cell, "select alarm_text from alarms where alarm_id = 'REC_INVAL' and machine_id = 'wc1'"),
-             5, "alarm REC_INVAL")
+    wait_for(
+        lambda: q1(cell, "select alarm_text from alarms where alarm_id = 'REC_INVAL' and machine_id = 'wc1'"),
+        5,
+        "alarm REC_INVAL",
+    )
     assert q1(cell, "select status from machine_status where machine_id = 'wc1'") == ("Idle",)
     again = ask(cell.bus, "RECIPE_APPR", message("Recipe_Approve", recipe_id="dummy_recipe", by="op"), "ers")
     assert (again.ack_code, again.version) == (OK, 2)
@@ -152,8 +187,11 @@ def test_recipe_file_changed_after_approval_is_refused_until_approved_again(make
     assert start_run(cell, "wc1", run_id).ack_code == OK
     done = ear.wait("Run_Complete", lambda c, m: m.machine_run_id == run_id, timeout=T)
     assert done.ack_code == OK
-    wait_for(lambda: q1(cell, "select runs_since_maintenance from machine_status where machine_id = 'wc1'") == (1,),
-             5, "the Machine Server to count the run")
+    wait_for(
+        lambda: q1(cell, "select runs_since_maintenance from machine_status where machine_id = 'wc1'") == (1,),
+        5,
+        "the Machine Server to count the run",
+    )
 
 
 def test_wc_alarm_is_pending_and_shown_and_the_wc_continues_only_once_cleared(make_cell: Any) -> None:
@@ -169,14 +207,22 @@ def test_wc_alarm_is_pending_and_shown_and_the_wc_continues_only_once_cleared(ma
     starting = threading.Thread(target=go)
     starting.start()
     try:
-        no = wait_for(lambda: q1(cell, "select alarm_no from alarms where alarm_id = 'HOME_CMM' and machine_id = 'wc1' "
-                                       "and cleared_at is null"), T, "alarm HOME_CMM pending in CAS")[0]
+        no = wait_for(
+            lambda: q1(
+                cell,
+                "select alarm_no from alarms where alarm_id = 'HOME_CMM' and machine_id = 'wc1' and cleared_at is null",
+            ),
+            T,
+            "alarm HOME_CMM pending in CAS",
+        )[0]
         line = ask(cell.bus, "STATUS_LN", message("Status_Line_Get"), "sls")
         assert line.alarms == 1 and f"#{no}" in line.text and "Push the start button" in line.text
         assert starting.is_alive() and not outcome  # the WC holds its startup for the operator
         assert q1(cell, "select status from machine_status where machine_id = 'wc1'") == ("Shutdown",)
-        assert ask(cell.bus, "ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=no, cleared_by="op"),
-                   "cas").ack_code == OK
+        assert (
+            ask(cell.bus, "ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=no, cleared_by="op"), "cas").ack_code
+            == OK
+        )
     finally:
         starting.join(T + 15)
     assert outcome.get("ok") == "started", outcome

@@ -34,8 +34,11 @@ def fresh_database(pg_cluster: PgCluster) -> Iterator[Callable[[], str]]:
     def make() -> str:
         name = f"gwc_s_{uuid.uuid4().hex[:12]}"
         with pg_cluster.admin() as conn:
-            conn.execute(sql.SQL("create database {} template {}").format(
-                sql.Identifier(name), sql.Identifier(pg_cluster.template)))
+            conn.execute(
+                sql.SQL("create database {} template {}").format(
+                    sql.Identifier(name), sql.Identifier(pg_cluster.template)
+                )
+            )
         made.append(name)
         return pg_cluster.url(name)
 
@@ -66,13 +69,15 @@ def test_short_soak_under_every_kind_of_fault_keeps_every_promise(tmp_path: Path
 @pytest.mark.soak  # two soaks of their own: about 90 s, so it runs apart with the long soak
 @pytest.mark.timeout(900)
 def test_replay_of_a_broken_build_reproduces_its_failure(tmp_path: Path, fresh_database: Callable[[], str]) -> None:
-    options = dict(seed=11, minutes=0.3, lot_every=1.0, action_every=(4.0, 6.0), kinds=("machine_stop",),
-                   script_path=str(BROKEN))
+    options = dict(
+        seed=11, minutes=0.3, lot_every=1.0, action_every=(4.0, 6.0), kinds=("machine_stop",), script_path=str(BROKEN)
+    )
     first = soak(tmp_path / "first", fresh_database(), **options)
     again = soak(tmp_path / "again", fresh_database(), **options)
     assert not first.clean and broken_lots(first), "\n".join(first.summary())
     assert action_sequence(tmp_path / "first" / "actions.jsonl") == action_sequence(
-        tmp_path / "again" / "actions.jsonl")
+        tmp_path / "again" / "actions.jsonl"
+    )
     assert broken_lots(again) == broken_lots(first)  # the same lots, caught the same way
     assert not first.leaks and not again.leaks
 
@@ -80,12 +85,12 @@ def test_replay_of_a_broken_build_reproduces_its_failure(tmp_path: Path, fresh_d
 @pytest.mark.soak
 @pytest.mark.timeout(3600)
 def test_ten_minute_soak_run_twice_with_one_seed_is_clean_both_times(
-        tmp_path: Path, fresh_database: Callable[[], str]) -> None:
+    tmp_path: Path, fresh_database: Callable[[], str]
+) -> None:
     reports = [soak(tmp_path / f"run{i}", fresh_database(), seed=5, minutes=10.0) for i in (1, 2)]
     for r in reports:
         assert r.clean, "\n".join(r.summary())
-    assert action_sequence(tmp_path / "run1" / "actions.jsonl") == action_sequence(
-        tmp_path / "run2" / "actions.jsonl")
+    assert action_sequence(tmp_path / "run1" / "actions.jsonl") == action_sequence(tmp_path / "run2" / "actions.jsonl")
 
 
 def test_gwc_check_passes_a_live_cell_and_names_a_breach(make_cell: Callable[..., Any]) -> None:
@@ -96,8 +101,13 @@ def test_gwc_check_passes_a_live_cell_and_names_a_breach(make_cell: Callable[...
     assert startup(cell.bus, "wc:wc1", "ME_START") == "started"
 
     def check() -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "gwc", "check", "--settle", "0.5"], env=cell.env(),
-                              capture_output=True, text=True, timeout=120)
+        return subprocess.run(
+            [sys.executable, "-m", "gwc", "check", "--settle", "0.5"],
+            env=cell.env(),
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
 
     ok = check()
     assert ok.returncode == 0 and "all invariants hold" in ok.stdout, ok.stdout + ok.stderr
@@ -105,8 +115,10 @@ def test_gwc_check_passes_a_live_cell_and_names_a_breach(make_cell: Callable[...
         conn.execute("insert into lots (lot_id) values (900)")
         conn.execute("insert into lot_entities (entity_id, lot_id) values (900, 900)")
         conn.execute("insert into lot_status (entity_id, lot_id, state) values (900, 900, 'exported')")
-        conn.execute("insert into reserved_machines (machine_id, entity_id, machine_run_id, request_key) "
-                     "values ('wc1', 900, 900, 900)")
+        conn.execute(
+            "insert into reserved_machines (machine_id, entity_id, machine_run_id, request_key) "
+            "values ('wc1', 900, 900, 900)"
+        )
     bad = check()
     assert bad.returncode == 1, bad.stdout + bad.stderr
     assert "BREACH orphan_reservation" in bad.stdout and "entity_id=900" in bad.stdout

@@ -35,7 +35,9 @@ def test_message_checks_required_nullable_and_types() -> None:
     with pytest.raises(MessageError, match="unknown message class"):
         message("Nope")
     assert message("Change_Status", machine_id="wc1", status="Idle", note=None).fields == {
-        "machine_id": "wc1", "status": "Idle"}
+        "machine_id": "wc1",
+        "status": "Idle",
+    }
 
 
 def test_received_messages_must_belong_to_their_conversation() -> None:
@@ -56,4 +58,5 @@ def test_ack_codes_are_spelled_as_the_thesis_spells_them() -> None:
 
 def test_docs_conversations_md_is_generated_from_the_catalogue() -> None:
     assert DOC.read_text() == render_catalogue(), (
-        "docs/conversations.md is out of date: run `gwc monitor --catalogue > docs/conversations.md`")
+        "docs/conversations.md is out of date: run `gwc monitor --catalogue > docs/conversations.md`"
+    )

@@ -33,24 +33,37 @@ def only(breaches: list[Breach], name: str) -> Breach:
     return breaches[0]
 
 
-def lot(conn: psycopg.Connection[Any], entity: int, state: str = "waiting_machine", pid: int | None = None,
-        destroyed: bool = False) -> None:
+def lot(
+    conn: psycopg.Connection[Any],
+    entity: int,
+    state: str = "waiting_machine",
+    pid: int | None = None,
+    destroyed: bool = False,
+) -> None:
     """A lot with one entity in `state` (lot_id = entity), its script `pid`."""
     conn.execute("insert into lots (lot_id, quantity) values (%s, 1)", (entity,))
-    conn.execute("insert into lot_entities (entity_id, lot_id, unit, destroyed_at) values (%s, %s, 1, %s)",
-                 (entity, entity, "now" if destroyed else None))
-    conn.execute("insert into lot_status (entity_id, lot_id, state, reason, script_pid) values (%s, %s, %s, %s, %s)",
-                 (entity, entity, state, "test" if state == "failed" else None, pid))
+    conn.execute(
+        "insert into lot_entities (entity_id, lot_id, unit, destroyed_at) values (%s, %s, 1, %s)",
+        (entity, entity, "now" if destroyed else None),
+    )
+    conn.execute(
+        "insert into lot_status (entity_id, lot_id, state, reason, script_pid) values (%s, %s, %s, %s, %s)",
+        (entity, entity, state, "test" if state == "failed" else None, pid),
+    )
 
 
 def reserve(conn: psycopg.Connection[Any], machine: str, entity: int, run_id: int, key: int) -> None:
-    conn.execute("insert into reserved_machines (machine_id, entity_id, machine_run_id, request_key) "
-                 "values (%s, %s, %s, %s)", (machine, entity, run_id, key))
+    conn.execute(
+        "insert into reserved_machines (machine_id, entity_id, machine_run_id, request_key) values (%s, %s, %s, %s)",
+        (machine, entity, run_id, key),
+    )
 
 
 def queue(conn: psycopg.Connection[Any], key: int, entity: int, machine: str) -> None:
-    conn.execute("insert into request_machines (request_key, entity_id, machine_id, op_type) "
-                 "values (%s, %s, %s, 'dummy_op')", (key, entity, machine))
+    conn.execute(
+        "insert into request_machines (request_key, entity_id, machine_id, op_type) values (%s, %s, %s, 'dummy_op')",
+        (key, entity, machine),
+    )
 
 
 def machine_up(conn: psycopg.Connection[Any], *machines: str, status: str = "Idle") -> None:
@@ -80,8 +93,10 @@ def test_a_cell_in_mid_flight_holds_every_invariant(db_conn: psycopg.Connection[
     lot(db_conn, 3, "exported")
     lot(db_conn, 4, "failed")
     lot(db_conn, 5, "created")
-    db_conn.execute("insert into machine_run_result (machine_run_id, machine_id, param, value) "
-                    "values (99, 'wc2', 'x', '1'), (99, 'wc2', 'y', '2')")
+    db_conn.execute(
+        "insert into machine_run_result (machine_run_id, machine_id, param, value) "
+        "values (99, 'wc2', 'x', '1'), (99, 'wc2', 'y', '2')"
+    )
     assert check_database(db_conn) == []
 
 
@@ -153,15 +168,17 @@ def test_request_still_queued_after_it_was_bound_is_reported(db_conn: psycopg.Co
 
 
 def test_run_with_results_from_two_machines_is_reported(db_conn: psycopg.Connection[Any]) -> None:
-    db_conn.execute("insert into machine_run_result (machine_run_id, machine_id, param, value) "
-                    "values (99, 'wc1', 'x', '1'), (99, 'wc2', 'x', '1')")
+    db_conn.execute(
+        "insert into machine_run_result (machine_run_id, machine_id, param, value) "
+        "values (99, 'wc1', 'x', '1'), (99, 'wc2', 'x', '1')"
+    )
     assert only(check_database(db_conn), "run_on_two_machines").rows == [
-        {"machine_run_id": 99, "machines": ["wc1", "wc2"]}]
+        {"machine_run_id": 99, "machines": ["wc1", "wc2"]}
+    ]
 
 
 @pytest.mark.parametrize("state", ["waiting_import", "imported", "waiting_machine", "running"])
-def test_lot_whose_script_died_is_reported_stuck(db_conn: psycopg.Connection[Any], dead_pid: int,
-                                                 state: str) -> None:
+def test_lot_whose_script_died_is_reported_stuck(db_conn: psycopg.Connection[Any], dead_pid: int, state: str) -> None:
     lot(db_conn, 1, state, pid=dead_pid)
     b = only(check_database(db_conn), "stuck_lot")
     assert b.rows == [{"entity_id": 1, "lot_id": 1, "state": state, "script_pid": dead_pid}]
@@ -189,8 +206,9 @@ def _cfg(tmp_path: Path, url: str, *modules: str) -> Config:
     return make_config(tmp_path, url, module=[{"name": m} for m in modules])
 
 
-def test_machine_up_without_its_wc_on_the_bus_is_reported(tmp_path: Path, database_url: str,
-                                                         db_conn: psycopg.Connection[Any]) -> None:
+def test_machine_up_without_its_wc_on_the_bus_is_reported(
+    tmp_path: Path, database_url: str, db_conn: psycopg.Connection[Any]
+) -> None:
     machine_up(db_conn, "wc1")
     machine_up(db_conn, "wc2", status="Running")
     peers = {"wc:wc1": Peer("wc:wc1", 1, STARTED_WC, 0.0)}
@@ -198,19 +216,26 @@ def test_machine_up_without_its_wc_on_the_bus_is_reported(tmp_path: Path, databa
     assert b.rows == [{"machine_id": "wc2", "status": "Running"}]
 
 
-def test_status_row_contradicting_its_wc_is_reported(tmp_path: Path, database_url: str,
-                                                     db_conn: psycopg.Connection[Any]) -> None:
+def test_status_row_contradicting_its_wc_is_reported(
+    tmp_path: Path, database_url: str, db_conn: psycopg.Connection[Any]
+) -> None:
     machine_up(db_conn, "wc1")  # the table says Idle, the WC listens only for ME_START
     machine_up(db_conn, "wc3", status="Run_Shut")  # shutting down: the WC no longer serves SETUP_RUN
-    peers = {"wc:wc1": Peer("wc:wc1", 1, IDLE_WC, 0.0), "wc:wc2": Peer("wc:wc2", 1, STARTED_WC, 0.0),
-             "wc:wc3": Peer("wc:wc3", 1, IDLE_WC | {"START_RUN"}, 0.0)}
+    peers = {
+        "wc:wc1": Peer("wc:wc1", 1, IDLE_WC, 0.0),
+        "wc:wc2": Peer("wc:wc2", 1, STARTED_WC, 0.0),
+        "wc:wc3": Peer("wc:wc3", 1, IDLE_WC | {"START_RUN"}, 0.0),
+    }
     b = only(check_live(_cfg(tmp_path, database_url), db_conn, peers), "status_contradicts_wc")
-    assert b.rows == [{"machine_id": "wc1", "status": "Idle", "wc": "not started"},
-                      {"machine_id": "wc2", "status": "Shutdown", "wc": "started"}]
+    assert b.rows == [
+        {"machine_id": "wc1", "status": "Idle", "wc": "not started"},
+        {"machine_id": "wc2", "status": "Shutdown", "wc": "started"},
+    ]
 
 
-def test_configured_server_absent_or_not_started_is_reported(tmp_path: Path, database_url: str,
-                                                             db_conn: psycopg.Connection[Any]) -> None:
+def test_configured_server_absent_or_not_started_is_reported(
+    tmp_path: Path, database_url: str, db_conn: psycopg.Connection[Any]
+) -> None:
     peers = {"msched": Peer("msched", 1, STARTED_SERVER, 0.0), "ms": Peer("ms", 1, frozenset({"STARTUP"}), 0.0)}
     cfg = _cfg(tmp_path, database_url, "msched", "ms", "ls")
     b = only(check_live(cfg, db_conn, peers), "module_down")
@@ -218,14 +243,17 @@ def test_configured_server_absent_or_not_started_is_reported(tmp_path: Path, dat
 
 
 def test_only_breaches_seen_in_both_snapshots_are_reported() -> None:
-    first = [Breach("orphan_request", "p", [{"request_key": 1}, {"request_key": 2}]),
-             Breach("stuck_lot", "p", [{"entity_id": 5}])]
+    first = [
+        Breach("orphan_request", "p", [{"request_key": 1}, {"request_key": 2}]),
+        Breach("stuck_lot", "p", [{"entity_id": 5}]),
+    ]
     second = [Breach("orphan_request", "p", [{"request_key": 2}, {"request_key": 3}])]
     assert persistent(first, second) == [Breach("orphan_request", "p", [{"request_key": 2}])]
 
 
-def test_check_cell_reports_a_breach_that_persists(tmp_path: Path, database_url: str,
-                                                   db_conn: psycopg.Connection[Any]) -> None:
+def test_check_cell_reports_a_breach_that_persists(
+    tmp_path: Path, database_url: str, db_conn: psycopg.Connection[Any]
+) -> None:
     lot(db_conn, 1, "exported")
     reserve(db_conn, "wc1", 1, 100, 10)
     db_conn.commit()
@@ -234,7 +262,8 @@ def test_check_cell_reports_a_breach_that_persists(tmp_path: Path, database_url:
 
 
 def test_entity_whose_machines_sit_idle_while_it_waits_for_its_run_is_reported(
-        db_conn: psycopg.Connection[Any]) -> None:
+    db_conn: psycopg.Connection[Any],
+) -> None:
     machine_up(db_conn, "wc1", "wc2")  # e.g. the machine died mid-run and came back: that run is gone
     lot(db_conn, 1, "running", pid=subprocess.os.getpid())
     reserve(db_conn, "wc1", 1, 100, 10)
@@ -251,10 +280,12 @@ def test_entity_whose_machines_sit_idle_while_it_waits_for_its_run_is_reported(
 def test_machine_set_up_for_a_run_nobody_holds_is_reported(db_conn: psycopg.Connection[Any]) -> None:
     lot(db_conn, 1, "running", pid=subprocess.os.getpid())
     reserve(db_conn, "wc1", 1, 100, 10)
-    db_conn.execute("update machine_status set status = 'Setup', machine_run_id = 100, updated_at = now() "
-                    "where machine_id = 'wc1'")
-    db_conn.execute("update machine_status set status = 'Setup', machine_run_id = 7, updated_at = now() "
-                    "where machine_id = 'wc2'")
+    db_conn.execute(
+        "update machine_status set status = 'Setup', machine_run_id = 100, updated_at = now() where machine_id = 'wc1'"
+    )
+    db_conn.execute(
+        "update machine_status set status = 'Setup', machine_run_id = 7, updated_at = now() where machine_id = 'wc2'"
+    )
     assert check_database(db_conn) == []  # just set up: the lot's reservation may be going
     db_conn.execute("update machine_status set updated_at = now() - interval '1 minute'")
     b = only(check_database(db_conn), "setup_not_reserved")

@@ -23,8 +23,17 @@ from gwc.config import Config
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
-from gwc.lot import (LotError, LotTimeout, MachineLost, OperationEntity, RequestCancelled, RunFailed, Timeouts,
-                     read_traveller, verdict)
+from gwc.lot import (
+    LotError,
+    LotTimeout,
+    MachineLost,
+    OperationEntity,
+    RequestCancelled,
+    RunFailed,
+    Timeouts,
+    read_traveller,
+    verdict,
+)
 from gwc.module import NOT_STARTED
 from tests.conftest import make_config
 from tests.harness import wait_for
@@ -53,13 +62,21 @@ class FakeCell:
         self.loop = asyncio.new_event_loop()
         self.buses: dict[str, Bus] = {}
         self.handlers: dict[str, Handler] = {
-            "ENTITY_REQ": self.entity_req, "MACH_REQ": self.mach_req, "CANCEL_RE": self.cancel,
-            "UNRESERVE": self.unreserve, "SETUP_RUN": self.setup, "START_RUN": self.start,
+            "ENTITY_REQ": self.entity_req,
+            "MACH_REQ": self.mach_req,
+            "CANCEL_RE": self.cancel,
+            "UNRESERVE": self.unreserve,
+            "SETUP_RUN": self.setup,
+            "START_RUN": self.start,
         }
         self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
         self.thread.start()
-        self.classes = {"ls": ["ENTITY_REQ"], "msched": ["MACH_REQ", "CANCEL_RE", "UNRESERVE"],
-                        "wc:m1": ["SETUP_RUN", "START_RUN"], "wc:m2": ["SETUP_RUN", "START_RUN"]}
+        self.classes = {
+            "ls": ["ENTITY_REQ"],
+            "msched": ["MACH_REQ", "CANCEL_RE", "UNRESERVE"],
+            "wc:m1": ["SETUP_RUN", "START_RUN"],
+            "wc:m2": ["SETUP_RUN", "START_RUN"],
+        }
         for name in self.classes:
             self.join(name)
 
@@ -113,8 +130,13 @@ class FakeCell:
 
     def status(self, machine: str, status: str, run: int | None = None) -> None:
         """The Machine Server's table: machine's status (and run) now."""
-        self.sql("UPDATE machine_status SET status = %s, machine_run_id = coalesce(%s, machine_run_id) "
-                 "WHERE machine_id = %s", status, run, machine)
+        self.sql(
+            "UPDATE machine_status SET status = %s, machine_run_id = coalesce(%s, machine_run_id) "
+            "WHERE machine_id = %s",
+            status,
+            run,
+            machine,
+        )
 
     async def broadcast(self, sender: str, cls: str, msg: Message) -> None:
         conv = await self.buses[sender].start(cls, msg)
@@ -123,8 +145,14 @@ class FakeCell:
     # ----------------------------------------------------------------- the stand-ins
 
     async def entity_req(self, conv: Conversation, m: Message) -> None:
-        moves = {"import": "waiting_import", "export": "waiting_export", "waiting_machine": "waiting_machine",
-                 "running": "running", "completed": "completed", "failed": "failed"}
+        moves = {
+            "import": "waiting_import",
+            "export": "waiting_export",
+            "waiting_machine": "waiting_machine",
+            "running": "running",
+            "completed": "completed",
+            "failed": "failed",
+        }
         state = moves.get(m.action)
         if state:
             self.sql("UPDATE lot_status SET state = %s, reason = %s WHERE entity_id = %s", state, m.reason, m.entity_id)
@@ -132,8 +160,9 @@ class FakeCell:
         if m.action in ("import", "export"):  # the operator decides at once
             done = "imported" if m.action == "import" else "exported"
             self.sql("UPDATE lot_status SET state = %s WHERE entity_id = %s", done, m.entity_id)
-            await self.broadcast("ls", "LOT_MOVED", message("Lot_Moved", entity_id=m.entity_id, action=m.action,
-                                                            lot_id=1))
+            await self.broadcast(
+                "ls", "LOT_MOVED", message("Lot_Moved", entity_id=m.entity_id, action=m.action, lot_id=1)
+            )
 
     async def mach_req(self, conv: Conversation, m: Message) -> None:
         assert conv.first is not None
@@ -151,19 +180,37 @@ class FakeCell:
             return
         await asyncio.sleep(0.05)
         self.run_id += 1
-        comp = message("Machine_Req_Comp", ack_code=code, entity_id=m.entity_id, request_key=key, note=note,
-                       machine_run_id=self.run_id if code == OK else None, num_machines=len(machines))
+        comp = message(
+            "Machine_Req_Comp",
+            ack_code=code,
+            entity_id=m.entity_id,
+            request_key=key,
+            note=note,
+            machine_run_id=self.run_id if code == OK else None,
+            num_machines=len(machines),
+        )
         more = [message("Reserved_Machine", machine_id=x) for x in machines] if code == OK else []
         await conv.send(comp, *more)
         await conv.expect("Request_Comp_Ack", timeout=5)
 
     async def cancel(self, conv: Conversation, m: Message) -> None:
-        ended = [k for k, (_, req, _) in self.queued.items()
-                 if k == m.request_key or (m.request_key is None and req.entity_id == m.entity_id)]
+        ended = [
+            k
+            for k, (_, req, _) in self.queued.items()
+            if k == m.request_key or (m.request_key is None and req.entity_id == m.entity_id)
+        ]
         for k in ended:
             req_conv, req, machines = self.queued.pop(k)
-            await req_conv.send(message("Machine_Req_Comp", ack_code=AckCode.REQ_CANCEL, entity_id=req.entity_id,
-                                        request_key=k, note=f"cancelled by {m.by}", num_machines=len(machines)))
+            await req_conv.send(
+                message(
+                    "Machine_Req_Comp",
+                    ack_code=AckCode.REQ_CANCEL,
+                    entity_id=req.entity_id,
+                    request_key=k,
+                    note=f"cancelled by {m.by}",
+                    num_machines=len(machines),
+                )
+            )
         await conv.send(message("Cancel_Req_Ack", ack_code=OK if ended else AckCode.REQ_KEY_U, cancelled=len(ended)))
 
     async def unreserve(self, conv: Conversation, m: Message) -> None:
@@ -181,26 +228,43 @@ class FakeCell:
         if self.lose_run:
             changes, self.lose_run = self.lose_run, []  # the next try completes
             for status, run in changes:
-                await self.broadcast(wc, "UPD_ME_ST", message("Update_ME_Status", machine_id=m.machine_id,
-                                                                status=status, machine_run_id=run))
+                await self.broadcast(
+                    wc,
+                    "UPD_ME_ST",
+                    message("Update_ME_Status", machine_id=m.machine_id, status=status, machine_run_id=run),
+                )
             return
         if not self.complete_runs:
-            await self.broadcast(wc, "UPD_ME_ST", message("Update_ME_Status", machine_id=m.machine_id,
-                                                            status="Shutdown", previous="Running"))
+            await self.broadcast(
+                wc,
+                "UPD_ME_ST",
+                message("Update_ME_Status", machine_id=m.machine_id, status="Shutdown", previous="Running"),
+            )
             self.complete_runs = True  # the next try completes
             return
-        self.sql("INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) VALUES (%s, %s, 'RESULT', "
-                 "'PASS')", m.machine_run_id, m.machine_id)
+        self.sql(
+            "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) VALUES (%s, %s, 'RESULT', "
+            "'PASS')",
+            m.machine_run_id,
+            m.machine_id,
+        )
         self.status(m.machine_id, "Idle")
-        await self.broadcast(wc, "RUN_COMPL", message("Run_Complete", machine_id=m.machine_id,
-                                                      machine_run_id=m.machine_run_id, ack_code=OK))
+        await self.broadcast(
+            wc,
+            "RUN_COMPL",
+            message("Run_Complete", machine_id=m.machine_id, machine_run_id=m.machine_run_id, ack_code=OK),
+        )
 
 
 @pytest.fixture
 def fake(tmp_path: Path, database_url: str) -> Iterator[tuple[FakeCell, OperationEntity]]:
     rnd = random.Random()
-    bus = {"group": f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}", "port": rnd.randrange(20000, 60000),
-           "heartbeat": 0.1, "peer_timeout": 1.0}
+    bus = {
+        "group": f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
+        "port": rnd.randrange(20000, 60000),
+        "heartbeat": 0.1,
+        "peer_timeout": 1.0,
+    }
     cfg = make_config(tmp_path, database_url, bus=bus)
     with psycopg.connect(database_url, autocommit=True) as conn:
         for mid in ("m1", "m2"):
@@ -212,8 +276,23 @@ def fake(tmp_path: Path, database_url: str) -> Iterator[tuple[FakeCell, Operatio
         conn.execute("INSERT INTO lot_status (entity_id, lot_id, state) VALUES (7, 1, 'created')")
     cell = FakeCell(cfg, database_url, 7)
     log = logging.getLogger("lot-test")
-    entity = OperationEntity(cfg, 7, log, Timeouts(answer=3, machines=5, setup=3, run=5, lost_grace=0.2, cleanup=2,
-                                                   retry=3, backoff=0.05, backoff_max=0.2, pause=0.1))
+    entity = OperationEntity(
+        cfg,
+        7,
+        log,
+        Timeouts(
+            answer=3,
+            machines=5,
+            setup=3,
+            run=5,
+            lost_grace=0.2,
+            cleanup=2,
+            retry=3,
+            backoff=0.05,
+            backoff_max=0.2,
+            pause=0.1,
+        ),
+    )
     try:
         yield cell, entity
     finally:
@@ -233,14 +312,18 @@ def test_a_lot_goes_through_listing_1_with_alternatives(fake: tuple[FakeCell, Op
     assert cell.actions() == ["attach", "import", "waiting_machine", "running", "completed", "export"]
     reqs = [f for cls, f in cell.seen if cls == "MACH_REQ"]
     assert [(r["op_type"], r["num_machines"]) for r in reqs] == [("dummy_op", 1), ("dummy_op", 1)]
-    assert [cls for cls, _ in cell.seen if cls in ("SETUP_RUN", "START_RUN", "UNRESERVE")] == \
-        ["SETUP_RUN", "START_RUN", "UNRESERVE"]
+    assert [cls for cls, _ in cell.seen if cls in ("SETUP_RUN", "START_RUN", "UNRESERVE")] == [
+        "SETUP_RUN",
+        "START_RUN",
+        "UNRESERVE",
+    ]
     trav = read_traveller(entity.cfg, 7)
     assert trav and trav["steps"][0]["machines"] == ["m2"] and trav["result"] == "PASS"
 
 
-def test_an_exception_in_the_script_cancels_unreserves_and_fails_the_entity(fake: tuple[FakeCell, OperationEntity]
-                                                                            ) -> None:
+def test_an_exception_in_the_script_cancels_unreserves_and_fails_the_entity(
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
     cell, entity = fake
     with pytest.raises(ZeroDivisionError), entity:
         entity.wait_for_import()
@@ -261,8 +344,9 @@ def test_a_cancelled_request_reaches_the_lot_as_req_cancel(fake: tuple[FakeCell,
     assert "REQ_CANCEL" in failed[0]["reason"]
 
 
-def test_a_machine_lost_mid_run_is_given_back_and_the_operation_asked_again(fake: tuple[FakeCell, OperationEntity]
-                                                                           ) -> None:
+def test_a_machine_lost_mid_run_is_given_back_and_the_operation_asked_again(
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
     cell, entity = fake
     cell.complete_runs = False  # the first run's machine shuts down instead of completing
     with entity:
@@ -293,18 +377,21 @@ def test_waiting_for_machines_has_a_deadline(fake: tuple[FakeCell, OperationEnti
     assert "CANCEL_RE" in [cls for cls, _ in cell.seen]
 
 
-@pytest.mark.parametrize("results, ok", [
-    ({"RESULT": "PASS"}, True),
-    ({"RESULT": "FAIL"}, False),
-    ({"RESULT": "NONE"}, False),
-    ({}, False),
-    ({"RESULT": "PASS", "PARTS": "1"}, True),
-    ({"king": "PASS", "queen": "FAIL"}, False),
-    ({"deviation": "0.03", "tolerance": "0.05"}, True),
-    ({"deviation": "-0.08", "tolerance": "0.05"}, False),
-    ({"DIAMETER": "25.02", "DIAMETER_nominal": "25", "DIAMETER_tol": "0.05"}, True),
-    ({"DIAMETER": "25.2", "DIAMETER_nominal": "25", "DIAMETER_tol": "0.05"}, False),
-])
+@pytest.mark.parametrize(
+    "results, ok",
+    [
+        ({"RESULT": "PASS"}, True),
+        ({"RESULT": "FAIL"}, False),
+        ({"RESULT": "NONE"}, False),
+        ({}, False),
+        ({"RESULT": "PASS", "PARTS": "1"}, True),
+        ({"king": "PASS", "queen": "FAIL"}, False),
+        ({"deviation": "0.03", "tolerance": "0.05"}, True),
+        ({"deviation": "-0.08", "tolerance": "0.05"}, False),
+        ({"DIAMETER": "25.02", "DIAMETER_nominal": "25", "DIAMETER_tol": "0.05"}, True),
+        ({"DIAMETER": "25.2", "DIAMETER_nominal": "25", "DIAMETER_tol": "0.05"}, False),
+    ],
+)
 def test_verdict_reads_pass_fail_and_measured_tolerances(results: dict[str, str], ok: bool) -> None:
     assert verdict(results)[0] is ok
 
@@ -322,14 +409,20 @@ def test_a_second_alternative_bound_too_is_given_back(fake: tuple[FakeCell, Oper
 
 # ----------------------------------------------------------------- machines that go away (soak BUG-1, 3, 4)
 
-@pytest.mark.parametrize("changes, table", [
-    # killed and restarted within lost_grace: only the UPD_ME_ST tell, the table shows nothing wrong
-    ([("Shutdown", 101), ("Idle", 101)], ("Running", 101)),
-    # no broadcast came at all: MACHINE_STATUS says the machine is Idle on another run
-    ([("Running", 101)], ("Idle", 99)),
-], ids=["restarted", "idle-in-the-table"])
+
+@pytest.mark.parametrize(
+    "changes, table",
+    [
+        # killed and restarted within lost_grace: only the UPD_ME_ST tell, the table shows nothing wrong
+        ([("Shutdown", 101), ("Idle", 101)], ("Running", 101)),
+        # no broadcast came at all: MACHINE_STATUS says the machine is Idle on another run
+        ([("Running", 101)], ("Idle", 99)),
+    ],
+    ids=["restarted", "idle-in-the-table"],
+)
 def test_a_machine_that_lost_its_run_is_not_waited_for_even_when_it_is_up_again(
-        fake: tuple[FakeCell, OperationEntity], changes: list[tuple[str, int]], table: tuple[str, int]) -> None:
+    fake: tuple[FakeCell, OperationEntity], changes: list[tuple[str, int]], table: tuple[str, int]
+) -> None:
     cell, entity = fake
     entity.timeouts = Timeouts(answer=3, machines=5, setup=3, run=60, lost_grace=0.2, cleanup=2, retry=3, pause=0.1)
     cell.lose_run = changes
@@ -352,15 +445,23 @@ def test_a_machine_that_lost_its_run_is_not_waited_for_even_when_it_is_up_again(
 
 
 def test_a_run_whose_run_compl_never_came_counts_from_the_outcome_its_wc_stored(
-        fake: tuple[FakeCell, OperationEntity]) -> None:
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
     cell, entity = fake
     cell.lose_run = [("Idle", 101)]  # the machine went Idle on our run; its RUN_COMPL never came
 
     async def start(conv: Conversation, m: Message) -> None:  # what the WC stored before it went Idle
-        cell.sql("INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) VALUES (%s, %s, "
-                 "'RESULT', 'PASS')", m.machine_run_id, m.machine_id)
-        cell.sql("INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code) VALUES (%s, %s, 'ACK_OK')",
-                 m.machine_run_id, m.machine_id)
+        cell.sql(
+            "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) VALUES (%s, %s, "
+            "'RESULT', 'PASS')",
+            m.machine_run_id,
+            m.machine_id,
+        )
+        cell.sql(
+            "INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code) VALUES (%s, %s, 'ACK_OK')",
+            m.machine_run_id,
+            m.machine_id,
+        )
         await FakeCell.start(cell, conv, m)
 
     cell.handlers["START_RUN"] = start
@@ -372,7 +473,8 @@ def test_a_run_whose_run_compl_never_came_counts_from_the_outcome_its_wc_stored(
 
 
 def test_setup_gives_up_as_soon_as_the_machine_shuts_down_and_asks_again_once_it_is_up(
-        fake: tuple[FakeCell, OperationEntity]) -> None:
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
     cell, entity = fake
     entity.timeouts = Timeouts(answer=3, machines=10, setup=60, run=5, lost_grace=0.2, cleanup=2, retry=3, pause=0.1)
     setups = 0
@@ -386,8 +488,9 @@ def test_setup_gives_up_as_soon_as_the_machine_shuts_down_and_asks_again_once_it
         # operator brings it back a moment later.
         await asyncio.sleep(0.2)
         cell.status("m1", "Shutdown")
-        await cell.broadcast("wc:m2", "UPD_ME_ST", message("Update_ME_Status", machine_id="m1", status="Shutdown",
-                                                             previous="Idle"))
+        await cell.broadcast(
+            "wc:m2", "UPD_ME_ST", message("Update_ME_Status", machine_id="m1", status="Shutdown", previous="Idle")
+        )
         cell.later(0.6, lambda: cell.status("m1", "Idle"))
 
     cell.handlers["SETUP_RUN"] = setup
@@ -418,7 +521,8 @@ def test_setup_gives_up_when_the_wc_leaves_the_bus(fake: tuple[FakeCell, Operati
 
 
 def test_a_machine_refusing_a_setup_is_asked_again_after_a_pause_once_it_is_up(
-        fake: tuple[FakeCell, OperationEntity]) -> None:
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
     cell, entity = fake
     entity.timeouts = Timeouts(answer=3, machines=10, setup=3, run=5, lost_grace=0.2, cleanup=2, retry=3, pause=0.3)
     setups = 0
@@ -430,8 +534,13 @@ def test_a_machine_refusing_a_setup_is_asked_again_after_a_pause_once_it_is_up(
             return await FakeCell.setup(cell, conv, m)
         cell.status("m1", "Shutdown")  # its ME stopped: the machine is going down
         cell.later(0.5, lambda: cell.status("m1", "Idle"))
-        await conv.send(message("Setup_Run_Ack", ack_code=AckCode.START_FAIL,
-                                note="ME refused the setup: cannot set up a run: the machine is shutdown"))
+        await conv.send(
+            message(
+                "Setup_Run_Ack",
+                ack_code=AckCode.START_FAIL,
+                note="ME refused the setup: cannot set up a run: the machine is shutdown",
+            )
+        )
 
     cell.handlers["SETUP_RUN"] = setup
     with entity:
@@ -445,11 +554,14 @@ def test_a_machine_refusing_a_setup_is_asked_again_after_a_pause_once_it_is_up(
 
 # ----------------------------------------------------------------- servers that restart (soak BUG-2)
 
+
 def test_the_lot_server_and_msched_are_asked_again_while_not_started_or_silent(
-        fake: tuple[FakeCell, OperationEntity]) -> None:
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
     cell, entity = fake
-    entity.timeouts = Timeouts(answer=0.5, machines=5, setup=3, run=5, lost_grace=0.2, cleanup=2, retry=10,
-                               backoff=0.05, backoff_max=0.2)
+    entity.timeouts = Timeouts(
+        answer=0.5, machines=5, setup=3, run=5, lost_grace=0.2, cleanup=2, retry=10, backoff=0.05, backoff_max=0.2
+    )
     attaches = unreserves = 0
 
     async def entity_req(conv: Conversation, m: Message) -> None:
@@ -480,7 +592,8 @@ def test_the_lot_server_and_msched_are_asked_again_while_not_started_or_silent(
 
 
 def test_a_script_started_while_the_lot_server_is_down_attaches_once_it_is_back(
-        fake: tuple[FakeCell, OperationEntity]) -> None:
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
     cell, entity = fake
     entity.timeouts = Timeouts(answer=3, cleanup=2, retry=10, backoff=0.05, backoff_max=0.2)
     cell.leave("ls")
@@ -492,7 +605,8 @@ def test_a_script_started_while_the_lot_server_is_down_attaches_once_it_is_back(
 
 
 def test_a_server_that_never_starts_fails_the_step_after_the_retry_window(
-        fake: tuple[FakeCell, OperationEntity]) -> None:
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
     cell, entity = fake
     entity.timeouts = Timeouts(answer=3, cleanup=2, retry=0.6, backoff=0.05, backoff_max=0.2)
 
@@ -509,8 +623,10 @@ def test_a_server_that_never_starts_fails_the_step_after_the_retry_window(
 
 # ----------------------------------------------------------------- alternatives (soak BUG-6)
 
+
 def test_alternatives_share_an_alt_group_and_a_late_sibling_refused_is_a_sibling_cancel(
-        fake: tuple[FakeCell, OperationEntity]) -> None:
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
     cell, entity = fake
     cell.ack = {"m1": (AckCode.REQ_CANCEL, "alternative of a group already bound")}  # came after m2 was bound
     with entity:
@@ -541,7 +657,8 @@ def test_no_request_is_left_queued_for_a_finished_entity(fake: tuple[FakeCell, O
 
 
 def test_progress_reports_do_not_hold_the_operation_up_and_a_refused_one_fails_the_next_step(
-        fake: tuple[FakeCell, OperationEntity]) -> None:
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
     cell, entity = fake
     release = threading.Event()
 
@@ -549,8 +666,9 @@ def test_progress_reports_do_not_hold_the_operation_up_and_a_refused_one_fails_t
         if m.action != "running":
             return await FakeCell.entity_req(cell, conv, m)
         await asyncio.get_running_loop().run_in_executor(None, release.wait, 10)  # a slow Lot Server
-        await conv.send(message("Entity_Ack", ack_code=AckCode.NOTNOW, state="failed",
-                                note="the operator failed the entity"))
+        await conv.send(
+            message("Entity_Ack", ack_code=AckCode.NOTNOW, state="failed", note="the operator failed the entity")
+        )
 
     cell.handlers["ENTITY_REQ"] = entity_req
     operated = False

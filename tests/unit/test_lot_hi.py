@@ -17,9 +17,21 @@ from gwc.lot.errors import LotError
 from gwc.lot.run import load_script, resolve_path
 from tests.conftest import make_config
 
-MY_COMMANDS = [["order"], ["order", "new"], ["order", "list"], ["order", "show"], ["lots"], ["import"], ["export"],
-               ["customer", "add"], ["customer", "list"], ["product", "list"], ["script", "register"],
-               ["script", "list"], ["demo"]]
+MY_COMMANDS = [
+    ["order"],
+    ["order", "new"],
+    ["order", "list"],
+    ["order", "show"],
+    ["lots"],
+    ["import"],
+    ["export"],
+    ["customer", "add"],
+    ["customer", "list"],
+    ["product", "list"],
+    ["script", "register"],
+    ["script", "list"],
+    ["demo"],
+]
 
 
 def gwc(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
@@ -27,8 +39,10 @@ def gwc(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
 
 
 def test_order_items_parse_and_bad_ones_say_how_to_write_them() -> None:
-    assert parse_items(("alum_chess_set=2", "milled_pawn", "alum_chess_set=1")) == [("alum_chess_set", 3),
-                                                                                   ("milled_pawn", 1)]
+    assert parse_items(("alum_chess_set=2", "milled_pawn", "alum_chess_set=1")) == [
+        ("alum_chess_set", 3),
+        ("milled_pawn", 1),
+    ]
     for bad in ("x=0", "x=-1", "x=two", "=3"):
         with pytest.raises(GwcError, match="PRODUCT=QUANTITY"):
             parse_items((bad,))
@@ -46,8 +60,12 @@ def test_an_orders_status_follows_its_entities() -> None:
 def test_shipped_scripts_load_and_broken_ones_are_refused_clearly(tmp_path: Path) -> None:
     for path in ("gwc/lot/scripts/chess.py", "gwc/lot/scripts/mill_and_measure.py"):
         assert callable(load_script(resolve_path(path)).main)
-    cases = {"missing.py": None, "syntax.py": "def main(entity:\n", "nomain.py": "x = 1\n",
-             "raises.py": "raise RuntimeError('boom')\n"}
+    cases = {
+        "missing.py": None,
+        "syntax.py": "def main(entity:\n",
+        "nomain.py": "x = 1\n",
+        "raises.py": "raise RuntimeError('boom')\n",
+    }
     for name, text in cases.items():
         if text is not None:
             (tmp_path / name).write_text(text)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import multiprocessing
 from typing import Any
 
@@ -44,7 +45,7 @@ def test_eight_processes_get_unique_increasing_ids(database_url: str) -> None:
     assert len(set(every)) == len(every), "an id was handed out twice"
     assert sorted(every) == list(range(1, PROCESSES * CALLS + 1)), "ids have gaps or do not start at 1"
     for r in results:  # each caller sees its own ids strictly increase
-        assert all(a < b for a, b in zip(r, r[1:]))
+        assert all(a < b for a, b in itertools.pairwise(r))
 
 
 def test_types_count_independently_and_rollback_gives_the_id_back(db_conn: psycopg.Connection[Any]) -> None:

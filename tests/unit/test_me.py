@@ -22,8 +22,8 @@ from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import Channel, MeMessage, MessageId, remove_queues
 from gwc.me import make_machine
 from gwc.me.cmm import RecordStream, sim_link
-from gwc.me.machine import MachineSide
 from gwc.me.cmm_sim import CmmSimulator
+from gwc.me.machine import MachineSide
 from gwc.me.results import read_outcome, read_results, write_results
 from gwc.wc.link import MeDied, MeLink
 from tests.harness import wait_for, write_cell_config
@@ -161,11 +161,15 @@ def test_dummy_configured_to_fail_a_run_and_to_fail_homing(machine, tmp_path: Pa
         assert m.ask(MessageId.START_RUN, file_name=str(tmp_path / f"r{n}")).ack_code == AckCode.ACK_OK
         done = m.wc.receive(5)
         codes.append((done.message_id, done.ack_code, read_results(done.file_name)["RESULT"]))
-        assert read_outcome(done.file_name) == ((AckCode.RUN_FAIL, "configured to fail") if n == 2
-                                                else (AckCode.ACK_OK, ""))
+        assert read_outcome(done.file_name) == (
+            (AckCode.RUN_FAIL, "configured to fail") if n == 2 else (AckCode.ACK_OK, "")
+        )
         m.ask(MessageId.SETUP_RUN, file_name=recipe(tmp_path), recipe_id="dummy_recipe")
-    assert codes == [(MessageId.RUN_COMPL, AckCode.ACK_OK, "PASS"), (MessageId.RUN_COMPL, AckCode.RUN_FAIL, "FAIL"),
-                     (MessageId.RUN_COMPL, AckCode.ACK_OK, "PASS")]
+    assert codes == [
+        (MessageId.RUN_COMPL, AckCode.ACK_OK, "PASS"),
+        (MessageId.RUN_COMPL, AckCode.RUN_FAIL, "FAIL"),
+        (MessageId.RUN_COMPL, AckCode.ACK_OK, "PASS"),
+    ]
     f = machine(kind="dummy", fail_start=True)
     assert f.ask(MessageId.ME_START).ack_code == AckCode.START_FAIL
 
@@ -200,8 +204,10 @@ def test_cmm_measures_parts_pass_and_fail_over_the_pty(machine, tmp_path: Path) 
     assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
     verdicts = []
     for n in (1, 2):
-        assert m.ask(MessageId.SETUP_RUN, file_name=recipe(tmp_path, "PART alum\n"),
-                     recipe_id="alum_chess_set").ack_code == AckCode.ACK_OK
+        assert (
+            m.ask(MessageId.SETUP_RUN, file_name=recipe(tmp_path, "PART alum\n"), recipe_id="alum_chess_set").ack_code
+            == AckCode.ACK_OK
+        )
         out = tmp_path / f"cmm-{n}.txt"
         assert m.ask(MessageId.START_RUN, file_name=str(out)).ack_code == AckCode.ACK_OK
         done = m.wc.receive(5)

@@ -30,8 +30,9 @@ def test_startup_work_that_raises_is_answered_with_startup_complete_not_left_to_
         starter = Bus("starter", cfg.bus, log)
         await starter.sign_on()
         try:
-            conv, ack = await starter.request("STARTUP", message("Startup_Request", module="failing"), to="failing",
-                                              timeout=10)
+            conv, ack = await starter.request(
+                "STARTUP", message("Startup_Request", module="failing"), to="failing", timeout=10
+            )
             done = await conv.next_message(5)  # well before the 10 s a starter would otherwise wait
             conv.end()
             return ack.first.ack_code, done.first.ack_code, module.started

@@ -18,8 +18,21 @@ import pytest
 from gwc.errors import QueueError, QueueFull, QueueTimeout
 from gwc.ipc import mq
 from gwc.ipc.codes import AckCode
-from gwc.ipc.mq import (queue_exists, ALARM_TEXT_SIZE, FILE_NAME_SIZE, LAYOUT_SIZE, MAX_MESSAGES, RECIPE_ID_SIZE, Channel,
-                        MeMessage, MessageId, pack, queue_names, remove_queues, unpack)
+from gwc.ipc.mq import (
+    ALARM_TEXT_SIZE,
+    FILE_NAME_SIZE,
+    LAYOUT_SIZE,
+    MAX_MESSAGES,
+    RECIPE_ID_SIZE,
+    Channel,
+    MeMessage,
+    MessageId,
+    pack,
+    queue_exists,
+    queue_names,
+    remove_queues,
+    unpack,
+)
 from tests.harness import write_cell_config
 
 LOG = logging.getLogger("test_mq")
@@ -46,9 +59,14 @@ def pair(prefix: str) -> Iterator[tuple[Channel, Channel]]:
 
 def full_message(mid: MessageId, seq: int = 7) -> MeMessage:
     """Every field used, up to the last byte of its slot, with multi-byte characters."""
-    return MeMessage(mid, file_name="/var/" + "f" * (FILE_NAME_SIZE - 7) + "é",
-                     recipe_id="r" * (RECIPE_ID_SIZE - 2) + "é", ack_code=AckCode.BAD_MESSAGE,
-                     alarm_text="ä" * (ALARM_TEXT_SIZE // 2), seq=seq)
+    return MeMessage(
+        mid,
+        file_name="/var/" + "f" * (FILE_NAME_SIZE - 7) + "é",
+        recipe_id="r" * (RECIPE_ID_SIZE - 2) + "é",
+        ack_code=AckCode.BAD_MESSAGE,
+        alarm_text="ä" * (ALARM_TEXT_SIZE // 2),
+        seq=seq,
+    )
 
 
 def _echo_me(prefix: str, machine: str) -> None:
@@ -67,8 +85,16 @@ def _echo_me(prefix: str, machine: str) -> None:
 
 def test_layout_is_the_documented_396_bytes() -> None:
     assert LAYOUT_SIZE == 396
-    data = pack(MeMessage(MessageId.SETUP_RUN, file_name="/a", recipe_id="r1", ack_code=AckCode.ACK_OK,
-                          alarm_text="HOME", seq=0x01020304))
+    data = pack(
+        MeMessage(
+            MessageId.SETUP_RUN,
+            file_name="/a",
+            recipe_id="r1",
+            ack_code=AckCode.ACK_OK,
+            alarm_text="HOME",
+            seq=0x01020304,
+        )
+    )
     assert data[0:4] == b"GWME"
     assert data[4:6] == b"\x00\x01"  # layout version
     assert data[6:8] == b"\x00\x04"  # SETUP_RUN
@@ -85,8 +111,9 @@ def test_every_field_round_trips_at_full_length() -> None:
         assert unpack(pack(msg)) == msg
 
 
-@pytest.mark.parametrize("field,size", [("file_name", FILE_NAME_SIZE), ("recipe_id", RECIPE_ID_SIZE),
-                                        ("alarm_text", ALARM_TEXT_SIZE)])
+@pytest.mark.parametrize(
+    "field,size", [("file_name", FILE_NAME_SIZE), ("recipe_id", RECIPE_ID_SIZE), ("alarm_text", ALARM_TEXT_SIZE)]
+)
 def test_oversize_field_is_refused_not_truncated(field: str, size: int) -> None:
     assert getattr(unpack(pack(MeMessage(MessageId.NO_MESSAGE, **{field: "x" * size}))), field) == "x" * size
     with pytest.raises(QueueError, match=f"{field} is {size + 1} bytes"):
@@ -104,12 +131,15 @@ def test_nul_unknown_ack_code_and_bad_seq_are_refused() -> None:
         pack(MeMessage(MessageId.NO_MESSAGE, seq=2**32))
 
 
-@pytest.mark.parametrize("damage,why", [
-    (lambda d: d[:-1], "395 bytes"),
-    (lambda d: b"XXXX" + d[4:], "magic"),
-    (lambda d: d[:4] + b"\x00\x09" + d[6:], "version 9"),
-    (lambda d: d[:30] + bytes([d[30] ^ 0x40]) + d[31:], "CRC"),
-])
+@pytest.mark.parametrize(
+    "damage,why",
+    [
+        (lambda d: d[:-1], "395 bytes"),
+        (lambda d: b"XXXX" + d[4:], "magic"),
+        (lambda d: d[:4] + b"\x00\x09" + d[6:], "version 9"),
+        (lambda d: d[:30] + bytes([d[30] ^ 0x40]) + d[31:], "CRC"),
+    ],
+)
 def test_garbled_record_is_a_clear_error(damage, why: str) -> None:
     data = pack(MeMessage(MessageId.START_RUN, recipe_id="abc", file_name="/x"))
     with pytest.raises(QueueError, match=why):
@@ -236,16 +266,20 @@ def test_drain_throws_away_stale_records(pair: tuple[Channel, Channel]) -> None:
 
 
 def test_queues_are_gone_after_gwc_stop(tmp_path: Path) -> None:
-    cfg = write_cell_config(tmp_path / "var", "postgresql://gwc@/none?host=/nonexistent",
-                            machines=[{"id": "wc1", "kind": "dummy"}, {"id": "wc2", "kind": "dummy"}])
+    cfg = write_cell_config(
+        tmp_path / "var",
+        "postgresql://gwc@/none?host=/nonexistent",
+        machines=[{"id": "wc1", "kind": "dummy"}, {"id": "wc2", "kind": "dummy"}],
+    )
     for mid in ("wc1", "wc2"):
         Channel(cfg.ipc_prefix, mid, "wc", LOG).open().close()
         assert all(queue_exists(q) for q in queue_names(cfg.ipc_prefix, mid))
     env = dict(os.environ, GWC_CONFIG=str(cfg.path), GWC_VAR=str(cfg.var))
     env.pop("GWC_DATABASE_URL", None)
     try:
-        done = subprocess.run([sys.executable, "-m", "gwc", "stop"], env=env, capture_output=True, text=True,
-                              timeout=60)
+        done = subprocess.run(
+            [sys.executable, "-m", "gwc", "stop"], env=env, capture_output=True, text=True, timeout=60
+        )
         assert done.returncode == 0, done.stderr
         for mid in ("wc1", "wc2"):
             assert not any(queue_exists(q) for q in queue_names(cfg.ipc_prefix, mid))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
@@ -11,7 +11,7 @@ from gwc.errors import ConfigError
 from gwc.msched.policy import Candidate, Fifo, Priority, make_policy
 from tests.conftest import make_config
 
-NOW = datetime(2026, 11, 22, 12, 0, tzinfo=timezone.utc)
+NOW = datetime(2026, 11, 22, 12, 0, tzinfo=UTC)
 
 
 def cand(key: int, seq: int, priority: int = 20, waited_s: float = 0.0) -> Candidate:

@@ -55,9 +55,13 @@ class World:
 
     def queue(self) -> list[tuple[int, int, str, int, tuple[str, ...]]]:
         """(key, entity, op_type, seq, machines) oldest first."""
-        return [(k, e, op, s, tuple(ms)) for k, e, op, s, ms in self.cur.execute(
-            "select request_key, min(entity_id), min(op_type), min(seq), array_agg(machine_id order by seq) "
-            "from request_machines group by request_key order by 4")]
+        return [
+            (k, e, op, s, tuple(ms))
+            for k, e, op, s, ms in self.cur.execute(
+                "select request_key, min(entity_id), min(op_type), min(seq), array_agg(machine_id order by seq) "
+                "from request_machines group by request_key order by 4"
+            )
+        ]
 
     def finished(self) -> set[int]:
         return {e for (e,) in self.cur.execute("select entity_id from lot_status where state = 'completed'")}
@@ -67,14 +71,18 @@ class World:
 
     def satisfiable(self) -> list[tuple[int, int, str, int, tuple[str, ...]]]:
         status, acc, res, done = self.status(), self.accepts(), self.reserved(), self.finished()
-        return [q for q in self.queue() if q[1] not in done
-                and all(status[m] in UP and m not in res and (m, q[2]) in acc for m in q[4])]
+        return [
+            q
+            for q in self.queue()
+            if q[1] not in done and all(status[m] in UP and m not in res and (m, q[2]) in acc for m in q[4])
+        ]
 
 
 def _random_op(rng: random.Random, w: World, admin: psycopg.Connection[Any]) -> tuple[str, Any]:
     """Pick the next event; the database side of it (a status change) is done here, as MS would."""
-    kind = rng.choices(["request", "free", "status", "accept", "cancel", "ack", "finish", "sweep"],
-                       [8, 4, 2, 2, 1, 2, 0.5, 1])[0]
+    kind = rng.choices(
+        ["request", "free", "status", "accept", "cancel", "ack", "finish", "sweep"], [8, 4, 2, 2, 1, 2, 0.5, 1]
+    )[0]
     if kind == "request":
         n = rng.choice([1, 1, 2])
         return kind, (rng.choice(ENTITIES), rng.choice(OP_TYPES), rng.sample(MACHINES, n), rng.choice(GROUPS))
@@ -129,8 +137,7 @@ def _apply(step: Step, kind: str, arg: Any, told: list[Outcome]) -> Any:
     return None
 
 
-def _run(conn: psycopg.Connection[Any], admin: psycopg.Connection[Any], policy: Policy, seed: int,
-         steps: int) -> None:
+def _run(conn: psycopg.Connection[Any], admin: psycopg.Connection[Any], policy: Policy, seed: int, steps: int) -> None:
     rng = random.Random(seed)
     ended: Counter[int] = Counter()
     codes: Counter[str] = Counter()
@@ -175,15 +182,17 @@ def _run(conn: psycopg.Connection[Any], admin: psycopg.Connection[Any], policy: 
                     assert m not in res_before, f"{where}: {m} was reserved already"
                     assert (m, q[2]) in acc, f"{where}: {m} does not accept {q[2]}"
                     assert res_after[m] == o.entity_id, where
-            assert sum(len(o.machines) for o in bound) == len(res_after) - len(res_before), \
+            assert sum(len(o.machines) for o in bound) == len(res_after) - len(res_before), (
                 f"{where}: a machine reserved twice"
+            )
             if isinstance(policy, Fifo):  # an older request that could be bound lost only to an older one
                 keys = {o.request_key for o in bound}
                 for q in sat:
                     if q[0] in keys:
                         continue
-                    blockers = [b for b in sat if b[0] in keys and b[3] < q[3]
-                                and (set(b[4]) & set(q[4]) or b[1] == q[1])]
+                    blockers = [
+                        b for b in sat if b[0] in keys and b[3] < q[3] and (set(b[4]) & set(q[4]) or b[1] == q[1])
+                    ]
                     assert blockers, f"{where}: request {q[0]} could be bound and no older request took its place"
             assert w.satisfiable() == [], f"{where}: a request that could be bound is left waiting"
             assert w.groups() == satisfied, f"{where}: satisfied_alt_groups is not what was bound"

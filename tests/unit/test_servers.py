@@ -22,8 +22,15 @@ def test_every_status_has_its_transitions_and_shutdown_is_always_reachable() -> 
     for frm, to in machine.TRANSITIONS.items():
         assert S.SHUTDOWN in to and frm in to, frm
     # the WC's path through a run (6.3.2), and the ones it must never take
-    for a, b in [(S.SHUTDOWN, S.IDLE), (S.IDLE, S.SETUP), (S.SETUP, S.RUNNING), (S.RUNNING, S.IDLE),
-                 (S.SETUP, S.SETUP_SHUT), (S.SETUP_SHUT, S.RUN_SHUT), (S.RUNNING, S.RUN_SHUT)]:
+    for a, b in [
+        (S.SHUTDOWN, S.IDLE),
+        (S.IDLE, S.SETUP),
+        (S.SETUP, S.RUNNING),
+        (S.RUNNING, S.IDLE),
+        (S.SETUP, S.SETUP_SHUT),
+        (S.SETUP_SHUT, S.RUN_SHUT),
+        (S.RUNNING, S.RUN_SHUT),
+    ]:
         assert b in machine.TRANSITIONS[a], (a, b)
     for a, b in [(S.SHUTDOWN, S.RUNNING), (S.SHUTDOWN, S.SETUP), (S.IDLE, S.RUNNING), (S.RUN_SHUT, S.IDLE)]:
         assert b not in machine.TRANSITIONS[a], (a, b)
@@ -38,9 +45,19 @@ def test_lot_actions_name_real_states_and_finished_entities_cannot_move_on() -> 
     assert not lot.ACTIONS["running"][1] & {LotState.CREATED, LotState.WAITING_IMPORT, LotState.EXPORTED}
 
 
-@pytest.mark.parametrize("rid, ok", [("dummy_recipe", True), ("alum_chess_set", True), ("a.b-c_1", True),
-                                     ("../x", False), (".hidden", False), ("a/b", False), ("", False),
-                                     ("x" * 65, False)])
+@pytest.mark.parametrize(
+    "rid, ok",
+    [
+        ("dummy_recipe", True),
+        ("alum_chess_set", True),
+        ("a.b-c_1", True),
+        ("../x", False),
+        (".hidden", False),
+        ("a/b", False),
+        ("", False),
+        ("x" * 65, False),
+    ],
+)
 def test_recipe_ids_are_safe_file_names(rid: str, ok: bool) -> None:
     assert bool(recipe.RECIPE_ID.match(rid)) is ok
 
@@ -58,17 +75,25 @@ def test_status_line_says_what_waits_for_the_operator(cell_config: Config) -> No
     quiet = sls.line({"imports": [], "exports": [], "alarms": 0, "newest": None})
     assert quiet == "LAST 12:00:00 wc1 Idle -> Shutdown"
     busy = sls.line({"imports": list(range(1, 8)), "exports": [9], "alarms": 2, "newest": (4, "odd", False)})
-    assert busy.startswith("IMPORT 7 waiting (1, 2, 3, 4, 5, ...) | EXPORT 1 waiting (9) | "
-                           "ALARMS 2 pending, newest #4 (unknown): odd | LAST")
+    assert busy.startswith(
+        "IMPORT 7 waiting (1, 2, 3, 4, 5, ...) | EXPORT 1 waiting (9) | "
+        "ALARMS 2 pending, newest #4 (unknown): odd | LAST"
+    )
 
 
 def test_status_line_describes_what_it_hears() -> None:
     d = status_line._describe
-    assert d("UPD_ME_ST", message("Update_ME_Status", machine_id="wc1", status="Shutdown", previous="Idle",
-                                  note="silent")) == "wc1 Idle -> Shutdown (silent)"
-    assert d("ALARM_CLE", message("Alarm_Clear", alarm_no=3, alarm_id="HOME_CMM", cleared_by="op")) == \
-        "alarm 3 HOME_CMM cleared by op"
+    assert (
+        d("UPD_ME_ST", message("Update_ME_Status", machine_id="wc1", status="Shutdown", previous="Idle", note="silent"))
+        == "wc1 Idle -> Shutdown (silent)"
+    )
+    assert (
+        d("ALARM_CLE", message("Alarm_Clear", alarm_no=3, alarm_id="HOME_CMM", cleared_by="op"))
+        == "alarm 3 HOME_CMM cleared by op"
+    )
     assert d("LOT_MOVED", message("Lot_Moved", entity_id=4, action="export", lot_id=2)) == "entity 4 (lot 2) exported"
-    assert d("RUN_COMPL", message("Run_Complete", machine_id="wc1", machine_run_id=7, ack_code="Run_Fail")) == \
-        "wc1 run 7 failed (Run_Fail)"
+    assert (
+        d("RUN_COMPL", message("Run_Complete", machine_id="wc1", machine_run_id=7, ack_code="Run_Fail"))
+        == "wc1 run 7 failed (Run_Fail)"
+    )
     assert d("CELL_EVENT", message("Cell_Event", text="hello")) == "hello"

@@ -43,7 +43,9 @@ def _writers(conn: psycopg.Connection[Any]) -> dict[str, set[str]]:
         "select c.relname, r.rolname from pg_class c cross join pg_roles r "
         "where c.relkind = 'r' and c.relnamespace = 'public'::regnamespace and r.rolname = any(%s) "
         "and (has_table_privilege(r.oid, c.oid, 'INSERT') or has_table_privilege(r.oid, c.oid, 'UPDATE') "
-        "or has_table_privilege(r.oid, c.oid, 'DELETE'))", ([f"gwc_{r}" for r in ROLES],)).fetchall()
+        "or has_table_privilege(r.oid, c.oid, 'DELETE'))",
+        ([f"gwc_{r}" for r in ROLES],),
+    ).fetchall()
     out: dict[str, set[str]] = {}
     for table, role in rows:
         out.setdefault(table, set()).add(role.removeprefix("gwc_"))
@@ -57,7 +59,8 @@ def test_each_server_runs_as_its_own_role() -> None:
 
 
 def test_every_table_has_at_most_one_writer_and_each_server_writes_exactly_its_own(
-        db_conn: psycopg.Connection[Any]) -> None:
+    db_conn: psycopg.Connection[Any],
+) -> None:
     writers = _writers(db_conn)
     shared = {t: w for t, w in writers.items() if len(w) > 1}
     assert not shared, f"tables with more than one writer: {shared}"

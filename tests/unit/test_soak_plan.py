@@ -32,11 +32,17 @@ def test_a_ten_minute_plan_mixes_every_kind_of_lot_and_fault() -> None:
 def test_recorded_header_and_action_sequence_read_back(tmp_path: Path) -> None:
     opts = SoakOptions(seed=5, minutes=1.0, var=tmp_path, kinds=("kill_wc",))
     log = tmp_path / "actions.jsonl"
-    log.write_text("\n".join(json.dumps(x) for x in [
-        plan_header(opts, make_plan(5, 1.0, MACHINES)),
-        {"event": "fault", "index": 0, "kind": "kill_wc", "target": "wc3", "t": 7.1, "detail": "killed"},
-        {"event": "repair", "index": 0, "kind": "kill_wc", "target": "wc3", "t": 9.0, "detail": "restarted"},
-    ]) + "\n")
+    log.write_text(
+        "\n".join(
+            json.dumps(x)
+            for x in [
+                plan_header(opts, make_plan(5, 1.0, MACHINES)),
+                {"event": "fault", "index": 0, "kind": "kill_wc", "target": "wc3", "t": 7.1, "detail": "killed"},
+                {"event": "repair", "index": 0, "kind": "kill_wc", "target": "wc3", "t": 9.0, "detail": "restarted"},
+            ]
+        )
+        + "\n"
+    )
     head = read_header(log)
     assert (head["seed"], head["minutes"], head["machines"], head["kinds"]) == (5, 1.0, 6, ["kill_wc"])
     assert action_sequence(log) == [("fault", 0, "kill_wc", "wc3"), ("repair", 0, "kill_wc", "wc3")]

@@ -13,12 +13,47 @@ from gwc.ipc import wire
 from gwc.ipc.wire import Envelope
 
 SAMPLES = [
-    Envelope(kind="msg", src="lot:17", inc=99, seq=3, conv="lot:17.63.1", cls="MACH_REQ", idx=0, more=2, base=0,
-             to="msched", msg="Machine_Request", fields={"entity_id": 17, "op_type": "mill", "num_machines": 2}),
-    Envelope(kind="msg", src="lot:17", inc=99, seq=4, conv="lot:17.63.1", cls="MACH_REQ", idx=1, part=1,
-             to="msched", msg="Machine_Entry", fields={"machine_id": "wc1"}, acks=(7, 8), to_inc=5),
-    Envelope(kind="msg", src="wc:wc1", inc=2**40, seq=2**40, conv="wc:wc1.1.2", cls="RUN_COMPL", idx=7, base=7,
-             msg="Run_Complete", fields={"machine_id": "wc1", "ack_code": "ACK_OK", "note": "é ✓"}),
+    Envelope(
+        kind="msg",
+        src="lot:17",
+        inc=99,
+        seq=3,
+        conv="lot:17.63.1",
+        cls="MACH_REQ",
+        idx=0,
+        more=2,
+        base=0,
+        to="msched",
+        msg="Machine_Request",
+        fields={"entity_id": 17, "op_type": "mill", "num_machines": 2},
+    ),
+    Envelope(
+        kind="msg",
+        src="lot:17",
+        inc=99,
+        seq=4,
+        conv="lot:17.63.1",
+        cls="MACH_REQ",
+        idx=1,
+        part=1,
+        to="msched",
+        msg="Machine_Entry",
+        fields={"machine_id": "wc1"},
+        acks=(7, 8),
+        to_inc=5,
+    ),
+    Envelope(
+        kind="msg",
+        src="wc:wc1",
+        inc=2**40,
+        seq=2**40,
+        conv="wc:wc1.1.2",
+        cls="RUN_COMPL",
+        idx=7,
+        base=7,
+        msg="Run_Complete",
+        fields={"machine_id": "wc1", "ack_code": "ACK_OK", "note": "é ✓"},
+    ),
     Envelope(kind="ack", src="msched", inc=5, to="lot:17", to_inc=99, acks=(3, 4)),
     Envelope(kind="hello", src="msched", inc=5, interest=("MACH_REQ", "STARTUP"), query=True),
     Envelope(kind="bye", src="msched", inc=5),
@@ -36,8 +71,9 @@ def test_the_layout_is_as_documented_and_the_sender_comes_first() -> None:
     data = wire.encode(SAMPLES[-1])
     # GWC, version 3, inc, src tag, no to or cls tag, kind 3 (bye), 32 zero bytes, len(src) 6, 8 zero bytes, src.
     src_tag = (zlib.crc32(b"msched") | 1).to_bytes(4, "big")
-    assert data == (b"GWC\x03" + (5).to_bytes(8, "big") + src_tag + bytes(8) + b"\x03" + bytes(33) + b"\x06"
-                    + bytes(8) + b"msched")
+    assert data == (
+        b"GWC\x03" + (5).to_bytes(8, "big") + src_tag + bytes(8) + b"\x03" + bytes(33) + b"\x06" + bytes(8) + b"msched"
+    )
     assert data.startswith(wire.origin("msched", 5).prefix)
     assert not wire.encode(Envelope(kind="bye", src="msched", inc=55)).startswith(wire.origin("msched", 5).prefix)
     assert not wire.origin("msched2", 5).prefix.startswith(wire.origin("msched", 5).prefix)
@@ -46,42 +82,104 @@ def test_the_layout_is_as_documented_and_the_sender_comes_first() -> None:
 
 
 def test_oversized_message_is_refused_at_the_sender_with_a_clear_error() -> None:
-    env = Envelope(kind="msg", src="a", inc=1, seq=1, conv="a.1.1", cls="PING", msg="Ping",
-                   fields={"n": 1, "payload": "x" * wire.MAX_DATAGRAM})
+    env = Envelope(
+        kind="msg",
+        src="a",
+        inc=1,
+        seq=1,
+        conv="a.1.1",
+        cls="PING",
+        msg="Ping",
+        fields={"n": 1, "payload": "x" * wire.MAX_DATAGRAM},
+    )
     with pytest.raises(MessageError, match="over the bus limit.*through the database"):
         wire.encode(env)
 
 
-@pytest.mark.parametrize("env", [
-    Envelope(kind="msg", src="a", inc=1, seq=1, conv="a.1.1", cls="PING", msg="Ping", fields={"n": float("nan")}),
-    Envelope(kind="msg", src="a", inc=1, seq=1, conv="a.1.1", cls="PING", msg="Ping", fields={"n": object()}),
-    Envelope(kind="msg", src="a", inc=1, seq=-1, conv="a.1.1", cls="PING", msg="Ping"),
-    Envelope(kind="msg", src="a", inc=1, seq=1, conv="a" * 300, cls="PING", msg="Ping"),
-    Envelope(kind="msg", src="a", inc=1, seq=1, conv="a.1.1", cls="PING", msg="Ping", to=""),
-    Envelope(kind="shout", src="a", inc=1),
-    Envelope(kind="bye", src="", inc=1),
-], ids=["nan", "object", "negative", "long name", "empty to", "unknown kind", "empty src"])
+@pytest.mark.parametrize(
+    "env",
+    [
+        Envelope(kind="msg", src="a", inc=1, seq=1, conv="a.1.1", cls="PING", msg="Ping", fields={"n": float("nan")}),
+        Envelope(kind="msg", src="a", inc=1, seq=1, conv="a.1.1", cls="PING", msg="Ping", fields={"n": object()}),
+        Envelope(kind="msg", src="a", inc=1, seq=-1, conv="a.1.1", cls="PING", msg="Ping"),
+        Envelope(kind="msg", src="a", inc=1, seq=1, conv="a" * 300, cls="PING", msg="Ping"),
+        Envelope(kind="msg", src="a", inc=1, seq=1, conv="a.1.1", cls="PING", msg="Ping", to=""),
+        Envelope(kind="shout", src="a", inc=1),
+        Envelope(kind="bye", src="", inc=1),
+    ],
+    ids=["nan", "object", "negative", "long name", "empty to", "unknown kind", "empty src"],
+)
 def test_what_cannot_be_encoded_is_refused_with_message_error(env: Envelope) -> None:
     with pytest.raises(MessageError):
         wire.encode(env)
 
 
-def frame(src: bytes = b"a", inc: int = 1, kind: int = 0, flags: int = 0, seq: int = 1, idx: int = 0, more: int = 0,
-          part: int = 0, base: int = 0, to_inc: int = 0, conv: bytes = b"a.1.1", cls: bytes = b"PING", to: bytes = b"",
-          msg: bytes = b"Ping", acks: tuple[int, ...] = (), interest: tuple[bytes, ...] = (), tail: bytes = b"",
-          lengths: tuple[int, ...] | None = None) -> bytes:
+def frame(
+    src: bytes = b"a",
+    inc: int = 1,
+    kind: int = 0,
+    flags: int = 0,
+    seq: int = 1,
+    idx: int = 0,
+    more: int = 0,
+    part: int = 0,
+    base: int = 0,
+    to_inc: int = 0,
+    conv: bytes = b"a.1.1",
+    cls: bytes = b"PING",
+    to: bytes = b"",
+    msg: bytes = b"Ping",
+    acks: tuple[int, ...] = (),
+    interest: tuple[bytes, ...] = (),
+    tail: bytes = b"",
+    lengths: tuple[int, ...] | None = None,
+) -> bytes:
     """A datagram laid out by hand (the encoder refuses to make bad ones); lengths overrides the length bytes."""
     ls, lc, lk, lt, lm = lengths or (len(src), len(conv), len(cls), len(to), len(msg))
     tags = [zlib.crc32(name) | 1 if name else 0 for name in (src, to, cls)]
-    return (wire.HEADER + struct.pack("!QIIIBBQIIIIQBBBBBHH", inc, *tags, kind, flags, seq, idx, more, part, base,
-                                      to_inc, ls, lc, lk, lt, lm, len(acks), len(interest))
-            + src + conv + cls + to + msg + b"".join(struct.pack("!Q", a) for a in acks)
-            + b"".join(bytes([len(i)]) + i for i in interest) + tail)
+    return (
+        wire.HEADER
+        + struct.pack(
+            "!QIIIBBQIIIIQBBBBBHH",
+            inc,
+            *tags,
+            kind,
+            flags,
+            seq,
+            idx,
+            more,
+            part,
+            base,
+            to_inc,
+            ls,
+            lc,
+            lk,
+            lt,
+            lm,
+            len(acks),
+            len(interest),
+        )
+        + src
+        + conv
+        + cls
+        + to
+        + msg
+        + b"".join(struct.pack("!Q", a) for a in acks)
+        + b"".join(bytes([len(i)]) + i for i in interest)
+        + tail
+    )
 
 
 def test_the_hand_made_frame_is_valid_to_begin_with() -> None:
     env = wire.decode(frame(tail=b'{"n":1}'))
-    assert (env.kind, env.src, env.conv, env.cls, env.msg, env.fields) == ("msg", "a", "a.1.1", "PING", "Ping", {"n": 1})
+    assert (env.kind, env.src, env.conv, env.cls, env.msg, env.fields) == (
+        "msg",
+        "a",
+        "a.1.1",
+        "PING",
+        "Ping",
+        {"n": 1},
+    )
 
 
 MALFORMED = {
@@ -149,7 +247,7 @@ def run_filter(code: list[tuple[int, int, int, int]], payload: bytes) -> bool:
             size = 4 if op == 0x20 else 1
             if k + size > len(packet):
                 return False
-            a = int.from_bytes(packet[k:k + size], "big")
+            a = int.from_bytes(packet[k : k + size], "big")
         elif op == 0x07:
             x = a
         elif op == 0x1C:

@@ -28,8 +28,15 @@ def main(entity: OperationEntity) -> None:
             continue
         measure = entity.operate(MEASURE)
         ok, why = verdict(measure.results) if measure.ok else (False, "measuring run failed")
-        entity.log.info("mill %d on %s (run %d), measured on %s (run %d): %s", attempt, mill.machines[0],
-                        mill.machine_run_id, measure.machines[0], measure.machine_run_id, why)
+        entity.log.info(
+            "mill %d on %s (run %d), measured on %s (run %d): %s",
+            attempt,
+            mill.machines[0],
+            mill.machine_run_id,
+            measure.machines[0],
+            measure.machine_run_id,
+            why,
+        )
         if ok:
             result = f"PASS after {attempt} milling(s): milled on {mill.machines[0]}, {why}"
             break

@@ -36,6 +36,8 @@ def main(entity: OperationEntity) -> None:
     if plan:  # what `gwc bench cell` reads: the whole operation, request to unreserve, as the script saw it
         timing = entity.cfg.var / "soak" / f"timing-{entity.entity_id}.json"
         timing.write_text(json.dumps({"operate_s": took, "tries": op.tries, "machines": op.machines}))
-    entity.lot_completed(f"ran {op.op_type} on {', '.join(op.machines)} (run {op.machine_run_id}, try {op.tries}): "
-                         + ("ok" if op.ok else "run failed"))
+    entity.lot_completed(
+        f"ran {op.op_type} on {', '.join(op.machines)} (run {op.machine_run_id}, try {op.tries}): "
+        + ("ok" if op.ok else "run failed")
+    )
     entity.wait_for_export()
