@@ -8,6 +8,7 @@ from typing import Any
 
 import pytest
 
+from tests.e2e.lotkit import lot_cell  # noqa: F401 (a fixture the lot tests share)
 from tests.harness import CellHarness
 
 

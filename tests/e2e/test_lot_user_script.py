@@ -8,11 +8,10 @@ import signal
 from pathlib import Path
 from typing import Any
 
-from tests.e2e.lotkit import (  # noqa: F401
+from tests.e2e.lotkit import (
     cell_with_machines,
     gwc,
     import_export_all,
-    lot_cell,
     lot_log,
     ok,
     order,
