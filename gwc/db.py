@@ -17,7 +17,6 @@ import grp
 import logging
 import os
 import pwd
-import random
 import re
 import shutil
 import stat
@@ -33,6 +32,7 @@ from psycopg import sql
 
 from gwc.config import PROJECT_ROOT, Config
 from gwc.errors import DatabaseError, DatabaseUnavailable
+from gwc.retry import Backoff
 
 T = TypeVar("T")
 
@@ -350,23 +350,30 @@ def connect(
     if role is not None and not _ROLE.match(role):
         raise DatabaseError(f"bad database role name {role!r}")
     error: Exception | None = None
-    for attempt in range(1, max(1, attempts) + 1):
+    backoff = Backoff(0.1, 2.0, attempts=attempts, jitter=0.2)
+    while True:
+        attempt = backoff.tries + 1
         try:
             conn = psycopg.connect(
                 url, autocommit=False, connect_timeout=5, application_name=f"gwc_{role}" if role else "gwc"
             )
         except psycopg.OperationalError as e:
             error = e
+            pause = backoff.next()
+            if pause is None:
+                break  # the caller hears of it (DatabaseUnavailable)
             log.warning(
                 "database connect failed (try %d of %d) to %s: %s", attempt, attempts, _redact(url), _one_line(e)
             )
-            if attempt < attempts:
-                time.sleep(min(0.1 * 2 ** (attempt - 1), 2.0) * random.uniform(0.8, 1.2))
+            time.sleep(pause)
             continue
         if role is not None:
             try:
                 conn.execute(sql.SQL("set role {}").format(sql.Identifier(f"gwc_{role}")))
                 conn.commit()
+            except psycopg.OperationalError as e:  # the server went away meanwhile
+                conn.close()
+                raise DatabaseUnavailable(f"cell database connection lost at once: {_one_line(e)}") from e
             except psycopg.Error as e:
                 conn.close()
                 raise DatabaseError(
@@ -397,7 +404,8 @@ def transaction(
     uncommitted on the connection beforehand is rolled back first. Transient failures
     (OperationalError: serialization failure, deadlock, lost connection, admin shutdown) are
     retried; after the last try, or at once for any other database error (constraint
-    violation, bad SQL), DatabaseError is raised with the psycopg error as __cause__. An
+    violation, bad SQL), DatabaseError is raised with the psycopg error as __cause__
+    (DatabaseUnavailable when the connection was lost, or could not be made again). An
     exception of fn's own that is not a database error rolls back and propagates unchanged.
 
     fn may run more than once: it must not have side effects outside the database. A commit
@@ -406,7 +414,9 @@ def transaction(
     """
     log = log or _log
     attempts = max(1, attempts)
-    for attempt in range(1, attempts + 1):
+    backoff = Backoff(0.05, 1.0, attempts=attempts, jitter=0.5)
+    while True:
+        attempt = backoff.tries + 1
         c = conn() if callable(conn) else conn
         try:
             if c.info.transaction_status != psycopg.pq.TransactionStatus.IDLE:
@@ -420,7 +430,7 @@ def transaction(
             broken = c.broken or c.closed
             if broken:
                 c.close()
-            last = attempt == attempts or (broken and not callable(conn))
+            pause = None if broken and not callable(conn) else backoff.next()
             log.warning(
                 "database transaction failed (try %d of %d)%s: %s",
                 attempt,
@@ -428,19 +438,20 @@ def transaction(
                 ", connection lost" if broken else "",
                 _one_line(e),
             )
-            if last:
-                raise DatabaseError(
+            if pause is None:
+                # A step that lost its connection is not refused: the database is away (ask again later).
+                error = DatabaseUnavailable if broken else DatabaseError
+                raise error(
                     f"database step failed after {attempt} tries: {_one_line(e)}"
                     + (" (connection lost)" if broken else "")
                 ) from e
-            time.sleep(min(0.05 * 2 ** (attempt - 1), 1.0) * random.uniform(0.5, 1.5))
+            time.sleep(pause)
         except psycopg.Error as e:
             _safe_rollback(c)
             raise DatabaseError(f"database step refused: {_one_line(e)}") from e
         except BaseException:
             _safe_rollback(c)
             raise
-    raise AssertionError("unreachable")
 
 
 def _safe_rollback(conn: psycopg.Connection[Any]) -> None:

@@ -24,7 +24,6 @@ import os
 import signal
 import sys
 import threading
-import time
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -38,6 +37,7 @@ from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.log import conversation, open_log
+from gwc.retry import Backoff
 
 Handler = Callable[[Conversation], Awaitable[None]]
 # The note of the Notnow a module answers before its STARTUP (or after its SHUTDOWN): a passing state,
@@ -62,6 +62,11 @@ MACHINE_PROCESSES = {
 MACHINE_KINDS = ("wc", "me", "cmmsim")
 
 
+def ask_again(answer: catalogue.Message) -> bool:
+    """Whether an answer means "not now, ask again": the module is not started (yet, or any more)."""
+    return answer.ack_code == AckCode.NOTNOW and answer.fields.get("note") == NOT_STARTED
+
+
 def module_name(kind: str, machine: str | None = None) -> str:
     """The bus and log name of a module: 'msched', or 'wc:cmm_wc' for a machine half."""
     return f"{kind}:{machine}" if machine else kind
@@ -79,27 +84,23 @@ async def ask(
     """Hold a one-question conversation with another module and return its answer.
 
     Raises ConversationTimeout (logged) if nobody answers. The caller reads the answer's ack_code.
-    With `within` > 0, a module that is restarting (no answer, or Notnow "module not started")
+    With `within` > 0, a module that is restarting (no answer, or an answer that `ask_again`)
     is asked again in a new conversation, with backoff, for up to `within` seconds: only for
     questions that are safe to ask twice.
     """
-    deadline = time.monotonic() + within
-    pause = 0.2
+    backoff = Backoff(0.2, 2.0, within=within)
     while True:
         try:
             conv, batch = await bus.request(cls, first, *more, to=to, timeout=timeout)
             conv.end()
             answer = batch.first
-            if answer.ack_code != AckCode.NOTNOW or answer.fields.get("note") != NOT_STARTED:
-                return answer
-            if time.monotonic() + pause > deadline:
+            if not ask_again(answer) or (pause := backoff.next()) is None:
                 return answer
         except ConversationTimeout:
-            if time.monotonic() + pause > deadline:
+            if (pause := backoff.next()) is None:
                 raise
         bus.log.warning("%s did not take %s (restarting?): asking again in %.1fs", to or "nobody", cls, pause)
         await asyncio.sleep(pause)
-        pause = min(pause * 2, 2.0)
 
 
 def _load(path: str) -> Any:
