@@ -28,8 +28,9 @@ import click
 from gwc.bench import summary
 from gwc.config import BusConfig
 from gwc.errors import GwcError
-from gwc.ipc.bus import Bus, open_socket
+from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import message
+from gwc.ipc.transport import open_socket
 
 SERVER = "bench.srv"
 MODES = ("bare", "asyncio", "bus")  # the floor, the floor plus one asyncio loop a side, the bus

@@ -23,7 +23,8 @@ from gwc.config import BusConfig
 from gwc.errors import GwcError, MessageError
 from gwc.hi import context
 from gwc.ipc import catalogue, wire
-from gwc.ipc.bus import _initiator, open_socket
+from gwc.ipc.conversation import initiator
+from gwc.ipc.transport import open_socket
 
 SEEN_MAX = 100_000
 
@@ -35,7 +36,7 @@ def record_of(env: wire.Envelope, bus: str, now: float) -> dict[str, Any]:
         "bus": bus,
         "class": env.cls,
         "conv": env.conv,
-        "initiator": _initiator(env.conv),
+        "initiator": initiator(env.conv),
         "from": env.src,
         "to": env.to,
         "message": env.msg,

@@ -1,6 +1,7 @@
-"""The bus's delivery rules at their edges, with several Bus objects in this process on a real
-multicast group: resumed conversations, restarts, late replies, interest changes, dedup, close.
-(The multi-process behaviour is in test_bus.py.)"""
+"""The bus's delivery rules at their edges, with several Bus objects in this process: resumed
+conversations, restarts, late replies, interest changes, dedup, close. Every test runs twice, over a
+real multicast group (udp) and over the in-memory transport (memory): the conversation layer must
+behave the same over both. (The multi-process behaviour is in test_bus.py.)"""
 
 from __future__ import annotations
 
@@ -17,8 +18,24 @@ from gwc.errors import BusError
 from gwc.ipc import wire
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import message
+from gwc.ipc.memory import MemoryTransport
+from gwc.ipc.transport import Transport
 
 Make = Callable[..., Awaitable[Bus]]
+TRANSPORT = "udp"  # set for each test by the fixture below
+
+
+@pytest.fixture(autouse=True, params=["udp", "memory"])
+def transport(request: Any) -> Any:
+    global TRANSPORT
+    TRANSPORT = request.param
+    yield request.param
+    TRANSPORT = "udp"
+
+
+def transport_for(cfg: BusConfig) -> Transport | None:
+    """The transport of the running test's kind (None: the bus's default, UDP multicast)."""
+    return MemoryTransport(cfg) if TRANSPORT == "memory" else None
 
 
 def private_cfg(**kw: Any) -> BusConfig:
@@ -48,7 +65,7 @@ def run(test: Callable[[Make, BusConfig], Awaitable[None]], **cfg: Any) -> None:
         buses: list[Bus] = []
 
         async def make(name: str, interest: tuple[str, ...] = ("PING",), c: BusConfig = config) -> Bus:
-            bus = Bus(name, c, logging.getLogger(f"gwc.test.{name}"), interest)
+            bus = Bus(name, c, logging.getLogger(f"gwc.test.{name}"), interest, transport_for(c))
             await bus.sign_on()
             buses.append(bus)
             return bus
@@ -205,10 +222,9 @@ def test_a_restart_is_reported_with_the_new_incarnation_and_an_old_bye_is_ignore
         a.peer_listeners.append(lambda name, peer: events.append((name, peer.inc if peer else None)))
         old_inc = b.inc
         b._heartbeat.cancel()  # the old one dies without a word (its last beats may still be on their way) ...
-        b._loop.remove_reader(b._sock.fileno())
-        b._sock.close()
-        b._sock = None
-        b2 = Bus("b", cfg, logging.getLogger("gwc.test.b2"), ("PING",))
+        b._transport.close()
+        b._open = False
+        b2 = Bus("b", cfg, logging.getLogger("gwc.test.b2"), ("PING",), transport_for(cfg))
         await b2.sign_on()
         try:
             await until(lambda: a.peers()["b"].inc == b2.inc, "a to see the new incarnation")
@@ -317,6 +333,6 @@ def test_faults_config_is_deterministic_per_module_with_a_seed() -> None:
     a1 = Bus("a", cfg, logging.getLogger("x"))
     a2 = Bus("a", cfg, logging.getLogger("x"))
     b = Bus("b", cfg, logging.getLogger("x"))
-    seq = [a1._rng.random() for _ in range(5)]
-    assert seq == [a2._rng.random() for _ in range(5)]
-    assert seq != [b._rng.random() for _ in range(5)]
+    seq = [a1._faults.rng.random() for _ in range(5)]
+    assert seq == [a2._faults.rng.random() for _ in range(5)]
+    assert seq != [b._faults.rng.random() for _ in range(5)]

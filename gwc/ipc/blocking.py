@@ -1,0 +1,147 @@
+"""BlockingBus: a Bus running in its own thread, for code that is not asyncio (lot scripts, the Human
+Interface, tests). Every method is the Bus's own coroutine run on that thread's loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from collections.abc import Callable, Coroutine, Iterable
+from typing import TYPE_CHECKING, Any, TypeVar
+
+from gwc.config import BusConfig
+from gwc.ipc.catalogue import Message
+from gwc.ipc.conversation import DEFAULT, Batch, Conversation, Peer
+from gwc.ipc.transport import Transport
+
+if TYPE_CHECKING:
+    from gwc.ipc.bus import Bus
+
+T = TypeVar("T")
+
+
+class BlockingBus:
+    """A Bus running in its own thread, for code that is not asyncio (lot scripts, the HI, tests).
+
+    Every method is the Bus's own coroutine run on that thread's loop; nothing is reimplemented.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        cfg: BusConfig,
+        log: logging.Logger,
+        interest: Iterable[str] = (),
+        transport: Transport | None = None,
+    ) -> None:
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name=f"bus-{name}", daemon=True)
+        self._thread.start()
+        self.bus: Bus = self.run(self._make(name, cfg, log, interest, transport))
+        self._closed = False
+
+    @staticmethod
+    async def _make(
+        name: str, cfg: BusConfig, log: logging.Logger, interest: Iterable[str], transport: Transport | None
+    ) -> Bus:
+        from gwc.ipc.bus import Bus  # here: gwc.ipc.bus imports this module to re-export BlockingBus
+
+        bus = Bus(name, cfg, log, interest, transport)
+        await bus.sign_on()
+        return bus
+
+    def run(self, coro: Coroutine[Any, Any, T], timeout: float | None = None) -> T:
+        """Run a coroutine on the bus's loop (one that uses self.bus) and return its result."""
+        fut = asyncio.run_coroutine_threadsafe(coro, self._loop)
+        return fut.result(timeout)
+
+    def call_soon(self, fn: Callable[..., Any], *args: Any) -> None:
+        self._loop.call_soon_threadsafe(fn, *args)
+
+    def start(self, cls: str, *messages: Message, to: str | None = None) -> BlockingConversation:
+        return BlockingConversation(self, self.run(self.bus.start(cls, *messages, to=to)))
+
+    def request(
+        self, cls: str, *messages: Message, to: str | None = None, timeout: float | None = None
+    ) -> tuple[BlockingConversation, Batch]:
+        conv, batch = self.run(self.bus.request(cls, *messages, to=to, timeout=timeout))
+        return BlockingConversation(self, conv), batch
+
+    def resume(self, conv_id: str, cls: str, peer: str) -> BlockingConversation:
+        async def _resume() -> Conversation:
+            return self.bus.resume(conv_id, cls, peer)
+
+        return BlockingConversation(self, self.run(_resume()))
+
+    def first_message(self, timeout: float | None = None) -> BlockingConversation | None:
+        conv = self.run(self.bus.first_message(timeout))
+        return BlockingConversation(self, conv) if conv else None
+
+    def set_interest(self, classes: Iterable[str]) -> None:
+        """Change the interest filter; returns once it applies (unknown classes raise here)."""
+
+        async def _set() -> None:
+            self.bus.set_interest(list(classes))
+
+        self.run(_set())
+
+    def peers(self) -> dict[str, Peer]:
+        async def _peers() -> dict[str, Peer]:
+            return self.bus.peers()
+
+        return self.run(_peers())
+
+    def close(self) -> None:
+        """Flush, sign off and stop the thread. Safe to call twice."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.run(self.bus.close(), timeout=5)
+        finally:
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(5)
+            self._loop.close()
+
+    def __enter__(self) -> BlockingBus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class BlockingConversation:
+    """A Conversation driven from another thread through its BlockingBus."""
+
+    def __init__(self, owner: BlockingBus, conv: Conversation) -> None:
+        self._owner = owner
+        self.conv = conv
+
+    @property
+    def id(self) -> str:
+        return self.conv.id
+
+    @property
+    def cls(self) -> str:
+        return self.conv.cls
+
+    @property
+    def first(self) -> Batch | None:
+        return self.conv.first
+
+    @property
+    def peer(self) -> str | None:
+        return self.conv.peer
+
+    def send(self, *messages: Message, to: str | None = DEFAULT) -> None:
+        self._owner.run(self.conv.send(*messages, to=to))
+
+    def next_message(self, timeout: float | None = None) -> Batch:
+        return self._owner.run(self.conv.next_message(timeout))
+
+    def expect(self, *names: str, timeout: float | None = None) -> Batch:
+        return self._owner.run(self.conv.expect(*names, timeout=timeout))
+
+    def end(self) -> None:
+        self._owner.call_soon(self.conv.end)

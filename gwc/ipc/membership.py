@@ -1,0 +1,99 @@
+"""Who is on the bus: each module's name, incarnation and interest, learnt from hellos (on the bus
+port at sign-on and on a change, on the beat port every heartbeat) and lost by bye or silence."""
+
+from __future__ import annotations
+
+import collections
+import time
+from collections.abc import Iterable
+from typing import TYPE_CHECKING
+
+from gwc.ipc.conversation import Peer
+from gwc.ipc.wire import Envelope
+
+if TYPE_CHECKING:
+    from gwc.ipc.bus import Bus
+
+MAX_GONE = 1024  # incarnations that said bye, remembered so that their late beats are ignored
+
+
+class Membership:
+    """The peers one bus knows, kept for it (the bus reads `peers` on its hot paths)."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.bus = bus
+        self.peers: dict[str, Peer] = {}
+        self.beats: dict[bytes, tuple[str, int]] = {}  # each peer's last beat, as sent -> (name, inc)
+        # Incarnations that said bye, newest last: a beat they sent before it, read after, is stale.
+        self.gone: collections.OrderedDict[tuple[str, int], None] = collections.OrderedDict()
+
+    def expire(self, now: float) -> None:
+        for name, peer in list(self.peers.items()):
+            if now - peer.last_seen > self.bus.cfg.peer_timeout:
+                self.left(name, "silent for %.1fs" % (now - peer.last_seen))
+
+    def read_beats(self, datagrams: Iterable[bytes]) -> None:
+        """Beats since the last heartbeat. They are late by up to a heartbeat, so one never brings in a
+        new incarnation of a module we know (that comes by its sign-on hello on the bus port), nor back
+        one that said bye: a dead incarnation's last beats, read after its successor's hello or its
+        own bye, must not bring it back."""
+        bus = self.bus
+        for data in datagrams:
+            known = self.beats.get(data)
+            if known is not None:  # the same beat as last time: nothing changed but the time
+                peer = self.peers.get(known[0])
+                if peer is not None and peer.inc == known[1]:
+                    peer.last_seen = time.monotonic()
+                    bus.stats["beat"] += 1
+                    continue
+            env = bus._decode(data, "beat")
+            if env is None:
+                continue
+            if env.kind != "hello":
+                bus.stats["malformed"] += 1
+                bus.log.warning("dropped a %s from %s on the beat port", env.kind, env.src)
+                continue
+            bus.stats["beat"] += 1
+            peer = self.peers.get(env.src)
+            if (peer is None and (env.src, env.inc) not in self.gone) or (peer is not None and peer.inc == env.inc):
+                self.on_hello(env, peer)
+                self.beats = {d: k for d, k in self.beats.items() if k[0] != env.src}
+                self.beats[data] = (env.src, env.inc)
+
+    def on_hello(self, env: Envelope, peer: Peer | None) -> None:
+        bus = self.bus
+        now = time.monotonic()
+        interest = frozenset(env.interest)
+        if peer is None or peer.inc != env.inc:
+            if peer is not None:
+                # The old process is gone. Listeners get the new Peer (its inc differs from the one they
+                # knew); msgs still waiting for the old one are acked by the new one and dropped as late.
+                bus.log.info("%s restarted (incarnation %x -> %x)", env.src, peer.inc, env.inc)
+            else:
+                bus.log.info("%s joined the bus", env.src)
+            peer = Peer(env.src, env.inc, interest, now)
+            self.peers[env.src] = peer
+            for cb in self.bus.peer_listeners:
+                cb(env.src, peer)
+        else:
+            if interest != peer.interest:
+                peer.interest = interest
+                # It no longer listens to some classes: it will not ack broadcasts of them.
+                self.bus._forget_waiting(env.src, directed_too=False, unless_cls=interest)
+            peer.last_seen = now
+        if env.query:  # addressed to the newcomer: N answers to one module, not N x N receptions
+            self.bus._hello(to=env.src)
+
+    def left(self, name: str, why: str, clean: bool = False) -> None:
+        peer = self.peers.pop(name, None)
+        if peer is None:
+            return
+        self.bus.log.info("%s left the bus (%s)", name, why)
+        self.beats = {d: k for d, k in self.beats.items() if k[0] != name}
+        if clean:
+            self.gone[(name, peer.inc)] = None
+            if len(self.gone) > MAX_GONE:
+                self.gone.popitem(last=False)
+        self.bus._forget_waiting(name, directed_too=clean)
+        for cb in self.bus.peer_listeners:
+            cb(name, None)
