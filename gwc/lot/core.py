@@ -1,0 +1,268 @@
+"""The operation entity's own state: its database reads and traveller, the status history of the
+machines it works with, and the waits its steps are made of (see gwc/lot/entity.py)."""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict
+from typing import Any
+
+import psycopg
+
+from gwc import db
+from gwc.config import Config
+from gwc.errors import DatabaseError
+from gwc.ipc.bus import BlockingBus
+from gwc.ipc.catalogue import Message
+from gwc.ipc.codes import AckCode
+from gwc.lot.errors import LotError, LotTimeout, MachineLost
+from gwc.lot.model import (
+    HISTORY,
+    POLL,
+    SHUT,
+    UP,
+    MachineRequest,
+    Reservation,
+    Run,
+    S,
+    T,
+    Timeouts,
+    now_text,
+    traveller_path,
+)
+
+
+class EntityCore:
+    """What every step of an operation entity stands on: state, reads, record, waits."""
+
+    def __init__(
+        self, cfg: Config, entity_id: int, log: logging.Logger, timeouts: Timeouts | None = None, max_tries: int = 3
+    ) -> None:
+        self.cfg = cfg
+        self.entity_id = int(entity_id)
+        self.name = f"lot:{self.entity_id}"
+        self.log = log
+        self.timeouts = timeouts or Timeouts()
+        self.max_tries = max_tries
+        self.lot_id: int | None = None
+        self.state: str | None = None
+        self.product_id: str | None = None
+        self.priority: int | None = None
+        self.work_order_id: int | None = None
+        self.result: str | None = None
+        self._bus: BlockingBus | None = None
+        self._conn: psycopg.Connection[Any] | None = None
+        self._cond = threading.Condition()
+        self._runs: dict[tuple[str, int], str] = {}
+        # Every machine's status changes as (when, status, machine_run_id), from UPD_ME_ST (and MACHINE_STATUS
+        # when a wait reads it): a Shutdown stays known after the machine is up again.
+        self._history: dict[str, list[tuple[float, str, int | None]]] = {}
+        self._peer_inc: dict[str, int] = {}  # bus peers present now -> incarnation
+        self._peer_left: dict[str, float] = {}  # bus peers that left -> when
+        self._began: dict[tuple[str, int], tuple[float, int | None]] = {}  # (machine, run) -> when, its WC's inc
+        self._requests: list[MachineRequest] = []  # asked for and not yet waited for
+        self._groups = 0
+        self._recipes: dict[tuple[str, str], str] = {}  # (machine, op type) -> recipe, read ahead (_read_recipes)
+        self._moved: list[tuple[str, int | None]] = []
+        # Progress reports (waiting_machine, running) on their way to the Lot Server, in order (report()).
+        self._reporter: concurrent.futures.ThreadPoolExecutor | None = None
+        self._reports: list[concurrent.futures.Future[Message]] = []
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._failed = False
+        self.traveller: dict[str, Any] = {"entity_id": self.entity_id, "steps": []}
+
+    # ----------------------------------------------------------------- the database, the record
+
+    def _db(self) -> psycopg.Connection[Any]:
+        if self._conn is None or self._conn.closed:
+            self._conn = db.connect(self.cfg, role="lot", log=self.log)
+        return self._conn
+
+    def _query(self, sql: str, *params: Any) -> list[tuple[Any, ...]]:
+        return db.transaction(self._db, lambda cur: cur.execute(sql, params).fetchall(), log=self.log)
+
+    def _query_one(self, sql: str, *params: Any) -> tuple[Any, ...] | None:
+        rows = self._query(sql, *params)
+        return rows[0] if rows else None
+
+    def _read_lot(self) -> None:
+        row = self._query_one(
+            "SELECT s.state, s.lot_id, l.product_id, l.priority, l.work_order_id FROM lot_status s "
+            "JOIN lots l USING (lot_id) WHERE s.entity_id = %s",
+            self.entity_id,
+        )
+        if row is None:
+            raise LotError(f"unknown lot entity {self.entity_id}: the Lot Server has no LOT_STATUS row for it")
+        self._set_state(row[0])
+        self.lot_id, self.product_id, self.priority, self.work_order_id = row[1], row[2], row[3], row[4]
+
+    def read_state(self) -> str | None:
+        """The entity's state in LOT_STATUS (None if the Lot Server has no row for it)."""
+        row = self._query_one("SELECT state, lot_id FROM lot_status WHERE entity_id = %s", self.entity_id)
+        if row is None:
+            return None
+        self.lot_id = row[1]
+        return str(row[0])
+
+    def _set_state(self, state: str) -> None:
+        self.state = state
+        self.traveller["state"] = str(state)
+
+    def _record(self, op_type: str, res: Reservation, runs: list[Run], note: str) -> None:
+        self.traveller["steps"].append(
+            {
+                "op_type": op_type,
+                "machine_run_id": res.machine_run_id,
+                "request_key": res.request_key,
+                "machines": res.machines,
+                "runs": [asdict(r) for r in runs],
+                "note": note,
+                "at": now_text(),
+            }
+        )
+        self._save()
+
+    def _save(self) -> None:
+        """Write the traveller (var/lots/entity-E.json) atomically; it is a record, never required."""
+        try:
+            path = traveller_path(self.cfg, self.entity_id)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(self.traveller, default=str, indent=1))
+            tmp.replace(path)
+        except OSError as e:
+            self.log.warning("could not write the traveller: %s", e)
+
+    # ----------------------------------------------------------------- the machines' status history
+
+    def _note(self, machine_id: str, status: str, machine_run_id: int | None) -> None:
+        """(under the lock) Remember a status change of a machine."""
+        changes = self._history.setdefault(machine_id, [])
+        changes.append((time.monotonic(), status, None if machine_run_id is None else int(machine_run_id)))
+        del changes[:-HISTORY]
+
+    def _went(
+        self, machine_id: str, since: float, statuses: Sequence[str], machine_run_id: int | None = None
+    ) -> tuple[float, str, int | None] | None:
+        """(under the lock) The first change of the machine, since `since`, into one of `statuses` or, if
+        machine_run_id is given, to another run: (when, status, its machine_run_id)."""
+        for when, status, run in self._history.get(machine_id, ()):
+            if when >= since and (
+                status in statuses or (machine_run_id is not None and run is not None and run != machine_run_id)
+            ):
+                return when, status, run
+        return None
+
+    def _lost(self, machine_id: str, machine_run_id: int) -> str | None:
+        """(under the lock) Why the machine's WC will not answer for this run any more, if it will not."""
+        since, inc = self._began.get((machine_id, machine_run_id), (time.monotonic(), None))
+        if self._went(machine_id, since, SHUT) is not None:
+            return f"{machine_id} shut down"
+        wc = f"wc:{machine_id}"
+        now_inc = self._peer_inc.get(wc)
+        if now_inc is None:
+            away = time.monotonic() - max(since, self._peer_left.get(wc, since))
+            if away > self.timeouts.lost_grace:
+                return f"{wc} is not on the bus ({away:.1f}s)"
+        elif inc is not None and now_inc != inc:
+            return f"{wc} restarted"
+        return None
+
+    def _read_status(self, machines: Sequence[str], statuses: Sequence[str], machine_run_id: int | None) -> None:
+        """Fallback for a missed UPD_ME_ST: a machine found in one of `statuses` (or, if machine_run_id is
+        given, on another run) in MACHINE_STATUS is noted as having changed now."""
+        try:
+            rows = self._query(
+                "SELECT machine_id, status, machine_run_id FROM machine_status WHERE machine_id = ANY(%s)",
+                list(machines),
+            )
+        except DatabaseError as e:
+            self.log.warning("could not read MACHINE_STATUS: %s", e)
+            return
+        with self._cond:
+            for m, status, run in rows:
+                other = machine_run_id is not None and run is not None and run != machine_run_id
+                known = self._history.get(m)
+                if (status in statuses or other) and not (known and known[-1][1:] == (status, run)):
+                    self.log.info("%s is %s (run %s) in MACHINE_STATUS", m, status, run)
+                    self._note(m, status, run)
+                    self._cond.notify_all()
+
+    def _raise_if_lost(self, machine_id: str, machine_run_id: int, ack: Message | None) -> None:
+        """A refusal (or no answer) because the machine is going or gone loses the machine: it shut down
+        since the run began there, its WC left or restarted, it is not up now, or it cannot serve now."""
+        with self._cond:
+            why = self._lost(machine_id, machine_run_id)
+        if why:
+            raise MachineLost(why)
+        row = self._query_one("SELECT status FROM machine_status WHERE machine_id = %s", machine_id)
+        if row is None or row[0] not in UP:
+            raise MachineLost(f"{machine_id} is {row[0] if row else 'unknown'}")
+        if ack is not None and ack.ack_code == AckCode.NOTNOW:
+            raise MachineLost(f"{machine_id} cannot serve now ({ack.note or ack.ack_code})")
+
+    # ----------------------------------------------------------------- waiting
+
+    def _wait(
+        self,
+        predicate: Callable[[], T | bool | None],
+        timeout: float,
+        what: str,
+        poll: Callable[[], None] | None = None,
+    ) -> T:
+        """Wait until predicate() (called under the lock) is truthy; LotTimeout naming `what` after timeout.
+
+        `poll`, if given, runs every POLL seconds outside the lock: a fallback read of the tables. Not
+        at once: what the broadcasts said is known already, and a read now would hold the GIL while the
+        bus thread sends the step this wait is for.
+        """
+        deadline = time.monotonic() + timeout
+        next_poll = time.monotonic() + POLL
+        while True:
+            if poll is not None and time.monotonic() >= next_poll:
+                poll()
+                next_poll = time.monotonic() + POLL
+            with self._cond:
+                value = predicate()
+                if value:
+                    return value  # type: ignore[return-value]
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    self.log.error("timed out after %.0fs waiting for %s", timeout, what)
+                    raise LotTimeout(f"entity {self.entity_id}: timed out after {timeout:.0f}s waiting for {what}")
+                self._cond.wait(max(0.0, min(left, 0.5, next_poll - time.monotonic() if poll else 0.5)))
+
+    def _wait_moved(self, action: str, states: Sequence[str], timeout: float) -> None:
+        """Wait for LOT_MOVED(action) for this entity, reading LOT_STATUS as a fallback."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._cond:
+                for act, lot_id in self._moved:
+                    if act == action:
+                        if lot_id is not None:
+                            self.lot_id = lot_id
+                        return
+                self._cond.wait(min(POLL, max(0.0, deadline - time.monotonic())))
+            state = self.read_state()
+            if state in states:
+                return
+            if state == S.FAILED:
+                raise LotError(f"entity {self.entity_id} was marked failed while waiting for {action}")
+            if time.monotonic() > deadline:
+                raise LotTimeout(
+                    f"entity {self.entity_id}: the operator did not {action} the lot within "
+                    f"{timeout:.0f}s (it is {state})"
+                )
+
+    def _pause(self, tries: int, what: str) -> None:
+        """The pause before an operation's next try: a machine that just failed gets time to be marked
+        down (or come up) rather than be asked again at once."""
+        pause = self.timeouts.pause * 2 ** (tries - 1)
+        self.log.info("%s in %.1fs", what, pause)
+        time.sleep(pause)

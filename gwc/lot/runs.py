@@ -1,0 +1,190 @@
+"""The operation entity and the machines' WCs: recipes, SETUP_RUN, START_RUN, waiting for RUN_COMPL (or
+finding the machine lost), and the run's results (see gwc/lot/entity.py, docs/lot-scripts.md)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+from gwc.errors import DatabaseError
+from gwc.ipc.catalogue import message
+from gwc.ipc.codes import AckCode, MachineStatus
+from gwc.lot.errors import MachineLost, RunFailed
+from gwc.lot.model import ENDED, Reservation, Run
+from gwc.lot.reserve import EntityReserve
+
+
+class EntityRuns(EntityReserve):
+    """A reserved machine's run, step by step."""
+
+    def recipe_for(self, machine_id: str, op_type: str) -> str:
+        known = self._recipes.pop((machine_id, op_type), None)
+        if known is not None:
+            return known
+        rows = self._query(
+            "SELECT recipe_id FROM op_machine_recipe WHERE machine_id = %s AND op_type = %s ORDER BY recipe_id",
+            machine_id,
+            op_type,
+        )
+        if not rows:
+            raise RunFailed(f"no recipe for {op_type} on {machine_id} in OP_MACHINE_RECIPE")
+        return str(rows[0][0])
+
+    def setup_run(self, machine_id: str, recipe_id: str, op_type: str, machine_run_id: int) -> None:
+        """SETUP_RUN to the machine's WC: recipe downloaded, machine set up (the CMM is homed first).
+
+        Waits up to Timeouts.setup (the CMM waits for its start button), but no longer than the
+        machine lives: MachineLost as soon as it goes Shutdown or its WC leaves the bus.
+        """
+        self.log.info("setting up run %d on %s with recipe %s", machine_run_id, machine_id, recipe_id)
+        with self._cond:  # the run's life on this machine begins: what happens to it from now on counts
+            self._began[(machine_id, machine_run_id)] = (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
+        ack = self._ask_wc(
+            "SETUP_RUN",
+            message(
+                "Setup_Run",
+                machine_id=machine_id,
+                recipe_id=recipe_id,
+                op_type=op_type,
+                machine_run_id=machine_run_id,
+                entity_id=self.entity_id,
+            ),
+            machine_id,
+            machine_run_id,
+            self.timeouts.setup,
+        )
+        if ack.ack_code != AckCode.ACK_OK:
+            self._raise_if_lost(machine_id, machine_run_id, ack)
+            raise RunFailed(
+                f"{machine_id} refused to set up run {machine_run_id} ({recipe_id}): {ack.ack_code}"
+                + (f" ({ack.note})" if ack.note else "")
+            )
+
+    def start_run(self, machine_id: str, machine_run_id: int) -> None:
+        """START_RUN to the machine's WC: run what was set up (MachineLost if the machine goes meanwhile)."""
+        with self._cond:
+            self._began.setdefault(
+                (machine_id, machine_run_id), (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
+            )
+        ack = self._ask_wc(
+            "START_RUN",
+            message("Start_Run", machine_id=machine_id, machine_run_id=machine_run_id),
+            machine_id,
+            machine_run_id,
+            self.timeouts.answer,
+        )
+        if ack.ack_code != AckCode.ACK_OK:
+            self._raise_if_lost(machine_id, machine_run_id, ack)
+            raise RunFailed(
+                f"{machine_id} refused to start run {machine_run_id}: {ack.ack_code}"
+                + (f" ({ack.note})" if ack.note else "")
+            )
+        self.log.info("run %d started on %s", machine_run_id, machine_id)
+
+    def wait_run_complete(
+        self, machine_run_id: int, machines: Sequence[str], timeout: float | None = None
+    ) -> dict[str, str]:
+        """Wait for RUN_COMPL of this run from every machine.
+
+        A machine has left the run when, since the run began there, it went Shutdown, or Idle with no
+        or another machine_run_id, or on to another run, and no RUN_COMPL followed within lost_grace.
+        That it is up again by now (restarted by the operator) changes nothing: the status history
+        remembers. A machine Idle after our run is how every run ends, a moment before its RUN_COMPL:
+        that one gets `answer` to come. A machine that left the run may still have completed it: its
+        WC stores the outcome in MACHINE_RUN_OUTCOME before it goes Idle, and may have died before its
+        RUN_COMPL went out. So the outcome is read there, and only a run with none is lost (MachineLost).
+        """
+        started = time.monotonic()
+        deadline = started + (timeout or self.timeouts.run)
+        what = f"run {machine_run_id} to complete on " + ", ".join(machines)
+        while True:
+            done, by_machine = self._wait(
+                lambda: self._run_ended(machine_run_id, machines, started),
+                max(0.0, deadline - time.monotonic()),
+                what,
+                poll=lambda: self._read_status(machines, ENDED, machine_run_id),
+            )
+            if done:
+                self.log.info(
+                    "run %d complete: %s", machine_run_id, ", ".join(f"{m} {c}" for m, c in by_machine.items())
+                )
+                return by_machine
+            outcomes = self._run_outcomes(machine_run_id, list(by_machine))
+            with self._cond:
+                for m, code in outcomes.items():
+                    self.log.warning(
+                        "run %d on %s: no RUN_COMPL came, MACHINE_RUN_OUTCOME says %s", machine_run_id, m, code
+                    )
+                    self._runs[(m, machine_run_id)] = code
+            lost = [why for m, why in by_machine.items() if m not in outcomes]
+            if lost:
+                self.log.error("%s, and no RUN_COMPL followed nor is its outcome stored", lost[0])
+                raise MachineLost(f"{lost[0]}: the run cannot complete")
+
+    def _run_ended(
+        self, machine_run_id: int, machines: Sequence[str], started: float
+    ) -> tuple[bool, dict[str, str]] | None:
+        """(under the lock) (True, machine -> ack code) once every machine's RUN_COMPL of the run came;
+        (False, machine -> why) once some left the run without one; else None."""
+        if all((m, machine_run_id) in self._runs for m in machines):
+            return True, {m: self._runs[(m, machine_run_id)] for m in machines}
+        now = time.monotonic()
+        left: dict[str, str] = {}
+        for m in machines:
+            if (m, machine_run_id) in self._runs:
+                continue
+            since = self._began.get((m, machine_run_id), (started, None))[0]
+            went = self._went(m, since, ENDED, machine_run_id)
+            if went is None:
+                continue
+            when, status, run = went
+            ended = status == MachineStatus.IDLE and run == machine_run_id
+            grace = max(self.timeouts.lost_grace, self.timeouts.answer) if ended else self.timeouts.lost_grace
+            if now - when > grace:
+                other = f" (run {run})" if run != machine_run_id else ""
+                left[m] = f"{m} went {status}{other} during run {machine_run_id}"
+        return (False, left) if left else None
+
+    def _run_outcomes(self, machine_run_id: int, machines: Sequence[str]) -> dict[str, str]:
+        """machine -> ack code of the run as its WC stored it (MACHINE_RUN_OUTCOME); {} if unreadable."""
+        try:
+            rows = self._query(
+                "SELECT machine_id, ack_code FROM machine_run_outcome WHERE machine_run_id = %s "
+                "AND machine_id = ANY(%s)",
+                machine_run_id,
+                list(machines),
+            )
+        except DatabaseError as e:
+            self.log.warning("could not read MACHINE_RUN_OUTCOME: %s", e)
+            return {}
+        return {str(m): str(code) for m, code in rows}
+
+    def run_results(self, machine_id: str, machine_run_id: int) -> dict[str, str]:
+        """The run's MACHINE_RUN_RESULT rows as param -> value."""
+        rows = self._query(
+            "SELECT param, value FROM machine_run_result WHERE machine_run_id = %s AND machine_id = %s ORDER BY param",
+            machine_run_id,
+            machine_id,
+        )
+        return {str(p): ("" if v is None else str(v)) for p, v in rows}
+
+    def run_on(self, reservation: Reservation, recipes: str | dict[str, str] | None = None) -> list[Run]:
+        """Set up and start the run on each reserved machine, wait for them all, read the results."""
+        return self._results(reservation, *self._run(reservation, recipes))
+
+    def _run(
+        self, reservation: Reservation, recipes: str | dict[str, str] | None
+    ) -> tuple[dict[str, str], dict[str, str]]:
+        """run_on without reading the results: the recipe and the ack code of each machine's run."""
+        run_id, op_type = reservation.machine_run_id, reservation.op_type
+        chosen = {}
+        for m in reservation.machines:
+            recipe = recipes.get(m) if isinstance(recipes, dict) else recipes
+            chosen[m] = recipe or self.recipe_for(m, op_type)
+            self.setup_run(m, chosen[m], op_type, run_id)
+            self.start_run(m, run_id)
+        return chosen, self.wait_run_complete(run_id, reservation.machines)
+
+    def _results(self, reservation: Reservation, chosen: dict[str, str], codes: dict[str, str]) -> list[Run]:
+        run_id = reservation.machine_run_id
+        return [Run(m, chosen[m], run_id, codes[m], self.run_results(m, run_id)) for m in reservation.machines]

@@ -1,0 +1,357 @@
+"""The operation entity on the bus: the conversations it holds (asked again while a server is away),
+the broadcasts it listens to, the peers it watches, and its conversations with the Lot Server
+(see gwc/lot/entity.py)."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Coroutine
+from typing import Any
+
+from gwc.errors import ConversationTimeout, GwcError
+from gwc.ipc.bus import Batch, Bus, Conversation, Peer
+from gwc.ipc.catalogue import Message, message
+from gwc.ipc.codes import AckCode
+from gwc.lot.core import EntityCore
+from gwc.lot.errors import LotError, LotTimeout, MachineLost
+from gwc.lot.model import ALREADY, FOREVER, LISTENS, SHUT, Alternative, Backoff, WcCall, not_started
+
+
+class EntityTalk(EntityCore):
+    """The entity's bus: conversations, broadcasts, peers; ENTITY_REQ to the Lot Server."""
+
+    # ----------------------------------------------------------------- the Lot Server
+
+    def entity_request(
+        self,
+        action: str,
+        reason: str | None = None,
+        script_pid: int | None = None,
+        timeout: float | None = None,
+        within: float | None = None,
+    ) -> Message:
+        """ENTITY_REQ: ask the Lot Server to move this entity (import, export, completed, failed ...).
+
+        Asked again while the Lot Server is away or not started (see `_ask`). Every action is safe to
+        repeat: the Lot Server moves an entity only into the state it is asked for (attach, completed,
+        failed, waiting_machine, running: a repeat finds it there and changes nothing), and a repeated
+        import or export that finds the operator already moved the entity on is taken as done (ALREADY).
+        Progress reports sent before (report()) are answered first; one that failed raises here.
+        """
+        self._drain_reports()
+        return self._entity_request(action, reason, script_pid, timeout, within)
+
+    def report(self, action: str) -> None:
+        """ENTITY_REQ for a progress state (waiting_machine, running), sent without waiting for the answer.
+
+        The Lot Server records progress for the operator; the operation does not need its answer, so
+        reports go in the background, one at a time and in order (asked again while the Lot Server is
+        away, as entity_request is), and the next entity_request waits for them first. A report the
+        Lot Server refuses raises there, at the latest when the lot completes or fails.
+        """
+        self._set_state(action)
+        if self._reporter is None:
+            raise LotError(f"entity {self.entity_id} is not open")
+        self._reports.append(self._reporter.submit(self._entity_request, action, keep_state=True))
+
+    def _drain_reports(self) -> None:
+        reports, self._reports = self._reports, []
+        for report in reports:
+            report.result()
+
+    def _entity_request(
+        self,
+        action: str,
+        reason: str | None = None,
+        script_pid: int | None = None,
+        timeout: float | None = None,
+        within: float | None = None,
+        keep_state: bool = False,
+    ) -> Message:
+        ack = self._ask(
+            "ENTITY_REQ",
+            message("Entity_Request", entity_id=self.entity_id, action=action, reason=reason, script_pid=script_pid),
+            "ls",
+            timeout,
+            within,
+        )
+        if ack.ack_code == AckCode.NOTNOW and ack.state in ALREADY.get(action, ()):
+            self.log.info("entity %d: %s already done (the entity is %s)", self.entity_id, action, ack.state)
+        elif ack.ack_code != AckCode.ACK_OK:
+            raise LotError(
+                f"the Lot Server refused {action} for entity {self.entity_id}: {ack.ack_code}"
+                + (f" ({ack.note})" if ack.note else "")
+                + (f", entity is {ack.state}" if ack.state else "")
+            )
+        if ack.lot_id is not None:
+            self.lot_id = ack.lot_id
+        if ack.state and not keep_state:  # a report's answer comes after the script has moved on
+            self._set_state(ack.state)
+        return ack
+
+    def _listen_in_cell(self) -> None:
+        """From now on hear the machines' news too (RUN_COMPL, UPD_ME_ST): the lot is in the cell."""
+        if self._bus is not None and self._bus.bus.interests != frozenset(LISTENS):
+            self._bus.set_interest(LISTENS)
+
+    # ----------------------------------------------------------------- conversations
+
+    def _present(self, name: str) -> bool:
+        """Is `name` on the bus now (as this entity's bus last heard)?"""
+        with self._cond:
+            return name in self._peer_inc
+
+    def _ask(
+        self, cls: str, first: Message, to: str, timeout: float | None = None, within: float | None = None
+    ) -> Message:
+        """One conversation with a server (ls, msched): its answer.
+
+        A server away from the bus, not started (Notnow "module not started": it is restarting) or
+        silent past `timeout` is asked again, in a NEW conversation, after a pause (Timeouts.backoff,
+        doubling to backoff_max) until `within` (Timeouts.retry) has passed; then LotTimeout. So every
+        request sent through here must be safe to repeat (ENTITY_REQ, CANCEL_RE, UNRESERVE are).
+        """
+        if self._bus is None:
+            raise LotError(f"entity {self.entity_id} is not open")
+        backoff = Backoff(self.timeouts, within)
+        while True:
+            error: ConversationTimeout | None = None
+            if not self._present(to):
+                why = f"{to} is not on the bus"
+            else:
+                try:
+                    conv, batch = self._bus.request(cls, first, to=to, timeout=timeout or self.timeouts.answer)
+                except ConversationTimeout as e:
+                    why, error = f"no answer within {timeout or self.timeouts.answer:.1f}s", e
+                else:
+                    conv.end()
+                    if not not_started(batch.first):
+                        if backoff.tries:
+                            self.log.info("%s answered %s after %d more tries", to, cls, backoff.tries)
+                        return batch.first
+                    why = f"{to} is not started (Notnow)"
+            pause = backoff.next()
+            if pause is None:
+                self.log.error("%s to %s: %s; gave up after %d tries", cls, to, why, backoff.tries)
+                raise LotTimeout(
+                    f"entity {self.entity_id}: {cls} to {to} failed: {why} (asked {backoff.tries} times)"
+                ) from error
+            self.log.warning("%s to %s: %s; asking again in %.1fs", cls, to, why, pause)
+            time.sleep(pause)
+
+    def _ask_wc(self, cls: str, first: Message, machine_id: str, machine_run_id: int, timeout: float) -> Message:
+        """One conversation with a machine's WC, given up (MachineLost) as soon as the machine is lost:
+        it went Shutdown (UPD_ME_ST, or MACHINE_STATUS read meanwhile), or its WC left the bus for longer
+        than lost_grace or came back as a new process (which knows nothing of this conversation) --
+        rather than after the step's whole deadline. Never asked twice: a setup is not a repeatable step."""
+        if self._bus is None:
+            raise LotError(f"entity {self.entity_id} is not open")
+        call = WcCall()
+        self._spawn(self._converse(call, self._bus.bus, cls, first, f"wc:{machine_id}", timeout))
+
+        def answered() -> bool:
+            if call.done:
+                return True
+            why = self._lost(machine_id, machine_run_id)
+            if why:
+                self.log.error("%s of run %d: %s; not waiting for wc:%s's answer", cls, machine_run_id, why, machine_id)
+                raise MachineLost(f"{why} ({cls} of run {machine_run_id})")
+            return False
+
+        try:
+            self._wait(
+                answered,
+                timeout + 1,
+                f"wc:{machine_id}'s answer to {cls}",
+                poll=lambda: self._read_status([machine_id], SHUT, None),
+            )
+        except BaseException:
+            self._abandon(call)
+            raise
+        if call.error is not None:
+            self._raise_if_lost(machine_id, machine_run_id, None)
+            raise call.error
+        assert call.answer is not None
+        return call.answer
+
+    async def _converse(self, call: WcCall, bus: Bus, cls: str, first: Message, to: str, timeout: float) -> None:
+        call.task = asyncio.current_task()
+        if call.abandoned:
+            return
+        answer: Message | None = None
+        error: GwcError | None = None
+        try:
+            conv, batch = await bus.request(cls, first, to=to, timeout=timeout)
+            conv.end()
+            answer = batch.first
+        except GwcError as e:
+            error = e
+        with self._cond:
+            call.answer, call.error, call.done = answer, error, True
+            self._cond.notify_all()
+
+    def _abandon(self, call: WcCall) -> None:
+        """Stop a conversation nobody waits for any more (its task ends it)."""
+        call.abandoned = True
+        if self._bus is not None:
+            self._bus.call_soon(lambda: call.task.cancel() if call.task is not None else None)
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        """Run a coroutine on the bus's event loop (its thread), kept so close() can cancel it."""
+        assert self._bus is not None
+
+        def launch() -> None:
+            task = asyncio.get_running_loop().create_task(coro)
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+
+        self._bus.call_soon(launch)
+
+    def _cancel_tasks(self) -> None:
+        for t in list(self._tasks):
+            t.cancel()
+
+    # ----------------------------------------------------------------- broadcasts and peers
+
+    async def _listen(self) -> None:
+        """Broadcasts this entity listens to: RUN_COMPL, UPD_ME_ST, LOT_MOVED."""
+        assert self._bus is not None
+        bus = self._bus.bus
+        while True:
+            conv = await bus.first_message()
+            if conv is None or conv.first is None:
+                if bus.closed:
+                    return
+                continue
+            conv.end()
+            m = conv.first.first
+            with self._cond:
+                if m.name == "Run_Complete" and m.machine_run_id is not None:
+                    self._runs[(m.machine_id, int(m.machine_run_id))] = m.ack_code
+                elif m.name == "Update_ME_Status":
+                    self._note(m.machine_id, m.status, m.machine_run_id)
+                elif m.name == "Lot_Moved" and int(m.entity_id) == self.entity_id:
+                    self._moved.append((m.action, m.lot_id))
+                self._cond.notify_all()
+
+    def _watch_peers(self, bus: Bus) -> None:
+        """(bus thread) Keep who is on the bus, and since when a module left, for the steps that wait on one."""
+        with self._cond:
+            self._peer_inc.update({name: p.inc for name, p in bus.peers().items()})
+        bus.peer_listeners.append(self._peer_changed)
+
+    def _peer_changed(self, name: str, peer: Peer | None) -> None:
+        with self._cond:
+            if peer is None:
+                self._peer_inc.pop(name, None)
+                self._peer_left[name] = time.monotonic()
+            else:
+                self._peer_inc[name] = peer.inc
+            self._cond.notify_all()
+
+    # ----------------------------------------------------------------- MACH_REQ
+
+    async def _request(self, alt: Alternative, priority: int | None) -> None:
+        """One MACH_REQ conversation, from Machine_Request to its one Machine_Req_Comp.
+
+        Until MSCHED takes it (Machine_Req_Ack), a MSCHED away, not started or silent is asked again
+        in a new conversation, as `_ask` does: a request that did reach it and is asked again is one
+        more alternative of the same alt_group, which MSCHED refuses once one is bound, and which the
+        entity cancels once it has its machines.
+        """
+        assert self._bus is not None
+        bus = self._bus.bus
+        group = alt.group
+        conv: Conversation | None = None
+        backoff = Backoff(self.timeouts)
+        try:
+            while alt.ack is None and not alt.done:
+                if group is not None and group.winner is not None:  # no need to ask any more
+                    with self._cond:
+                        alt.done = True
+                        self._cond.notify_all()
+                    return
+                if not self._present("msched"):
+                    why = "msched is not on the bus"
+                else:
+                    conv = await bus.start(
+                        "MACH_REQ",
+                        message(
+                            "Machine_Request",
+                            entity_id=self.entity_id,
+                            op_type=alt.op_type,
+                            num_machines=len(alt.machines),
+                            priority=priority,
+                            alt_group=group.alt_group if group else None,
+                        ),
+                        *[message("Machine_Entry", machine_id=m) for m in alt.machines],
+                        to="msched",
+                    )
+                    try:
+                        batch = await conv.next_message(self.timeouts.answer)
+                    except ConversationTimeout:
+                        why = f"no answer within {self.timeouts.answer:.1f}s"
+                    else:
+                        if not not_started(batch.first):
+                            await self._answered(alt, conv, batch)
+                            continue
+                        why = "msched is not started (Notnow)"
+                    conv.end()
+                    conv = None
+                pause = backoff.next()
+                if pause is None:
+                    raise LotTimeout(
+                        f"MACH_REQ for {alt.op_type} ({alt.describe()}): {why} (asked {backoff.tries} times)"
+                    )
+                self.log.warning(
+                    "MACH_REQ for %s (%s): %s; asking again in %.1fs", alt.op_type, alt.describe(), why, pause
+                )
+                await asyncio.sleep(pause)
+            while not alt.done:
+                assert conv is not None
+                await self._answered(alt, conv, await conv.next_message(FOREVER))
+        except asyncio.CancelledError:
+            raise
+        except (GwcError, OSError) as e:
+            with self._cond:
+                alt.error = str(e)
+                alt.done = True
+                self._cond.notify_all()
+        finally:
+            if conv is not None:
+                conv.end()
+
+    async def _answered(self, alt: Alternative, conv: Conversation, batch: Batch) -> None:
+        """MSCHED's Machine_Req_Ack or Machine_Req_Comp for one alternative."""
+        head = batch.first
+        if head.name == "Machine_Req_Comp":
+            await conv.send(message("Request_Comp_Ack", entity_id=self.entity_id, ack_code=AckCode.ACK_OK))
+        with self._cond:
+            if head.name == "Machine_Req_Ack":
+                alt.ack = head
+                alt.done = head.ack_code != AckCode.ACK_OK
+            elif head.name == "Machine_Req_Comp":
+                alt.comp = head
+                alt.reserved = [m.machine_id for m in batch.messages[1:] if m.name == "Reserved_Machine"]
+                alt.done = True
+            taken = alt.group is not None and alt.group.winner not in (None, alt) and head.ack_code == AckCode.ACK_OK
+            surplus = alt.group.surplus(alt) if taken and alt.group and head.name == "Machine_Req_Comp" else []
+            queued = taken and head.name == "Machine_Req_Ack"
+            self._cond.notify_all()
+        for m in surplus:  # bound after the entity took another alternative: give it back
+            self.log.warning("%s was bound after another alternative was taken: giving it back", m)
+            await self._tell("UNRESERVE", message("Unreserve_Me", entity_id=self.entity_id, machine_id=m, by=self.name))
+        if queued:  # queued after the entity took another alternative: it must not wait there
+            self.log.warning("request %s was queued after another alternative was taken: cancelling it", alt.key)
+            await self._tell("CANCEL_RE", message("Cancel_Request", request_key=alt.key, by=self.name))
+
+    async def _tell(self, cls: str, first: Message) -> None:
+        """(bus thread) A cleanup conversation with MSCHED whose answer only goes to the log."""
+        assert self._bus is not None
+        try:
+            conv, batch = await self._bus.bus.request(cls, first, to="msched", timeout=self.timeouts.answer)
+            conv.end()
+            self.log.info("%s: %s", cls, batch.first.ack_code)
+        except GwcError as e:
+            self.log.error("%s failed: %s", cls, e)

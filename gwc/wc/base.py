@@ -1,0 +1,178 @@
+"""The WC's state and what it asks of the cell's servers: status changes (Machine Server), accept types
+(MSCHED), alarms (Cell Alarm Server) and its reads (see gwc/wc/wc.py)."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+from typing import Any
+
+import psycopg
+
+from gwc.errors import ConversationTimeout, DatabaseError
+from gwc.ipc.bus import Conversation
+from gwc.ipc.catalogue import message
+from gwc.ipc.codes import AckCode, MachineStatus
+from gwc.module import Module
+from gwc.wc.link import MeLink
+
+ME_PING = 0.5  # ping the ME after this long without hearing from it
+ME_DEADLINE = 1.5  # an ME silent this long after a ping is dead
+ME_ANSWER = 10.0  # longest an ME may take to acknowledge a request (not counting operator alarms)
+SERVER_TIMEOUT = 5.0  # longest a server may take to answer the WC
+SERVER_RESTART = 30.0  # how long the WC asks a restarting server again (status, accept types)
+ABANDONED_S = 10.0  # a setup whose run has not been reserved this long is given up (its lot is gone)
+SETUP_CHECK_S = 2.0  # how often a machine in Setup looks for its run's reservation
+ALL_OPERATIONS = ["*"]
+S = MachineStatus
+
+
+class WCBase(Module):
+    """The WC's state (set by WC.__init__) and its conversations with the servers."""
+
+    status: MachineStatus  # our copy of MACHINE_STATUS.status; the Machine Server holds the truth
+    machine_id: str
+    machine_run_id: int | None
+    recipe_id: str | None
+    me: MeLink
+    recipe_dir: Path
+    results_dir: Path
+    _state_lock: asyncio.Lock  # one status-changing step at a time
+    _alarm_waits: dict[int, asyncio.Future[None]]
+    _cleared: set[int]  # alarm numbers seen cleared (a clear may beat our wait for it)
+    _alarm_pending: int  # alarms of ours waiting for the operator: ME answers may take that long
+
+    @property
+    def _loop(self) -> asyncio.AbstractEventLoop:
+        loop = self.bus._loop
+        assert loop is not None
+        return loop
+
+    def _read_status(self) -> tuple[MachineStatus, int | None, str | None]:
+        row = self._read(
+            "SELECT status, machine_run_id, recipe_id FROM machine_status WHERE machine_id = %s", (self.machine_id,)
+        )
+        return (MachineStatus(row[0]), row[1], row[2]) if row else (S.SHUTDOWN, None, None)
+
+    def _read(self, sql: str, params: tuple[Any, ...]) -> tuple[Any, ...] | None:
+        """One row read; DatabaseError (answered DB_Badrea by the callers) if the database fails."""
+        try:
+            conn = self.db()
+            row = conn.execute(sql, params).fetchone()
+            conn.rollback()
+            return row
+        except psycopg.Error as e:
+            if self._conn is not None and (self._conn.broken or self._conn.closed):
+                self._conn.close()
+            raise DatabaseError(f"database read failed: {' '.join(str(e).split())}") from e
+
+    async def change_status(
+        self, status: MachineStatus, expect: list[MachineStatus] | None = None, **fields: Any
+    ) -> bool:
+        """Ask the Machine Server to change our status; keep our copy in step when it agrees."""
+        try:
+            answer = await self.ask(
+                "CHG_STATUS",
+                message(
+                    "Change_Status",
+                    machine_id=self.machine_id,
+                    status=status,
+                    expect=[str(s) for s in expect] if expect else None,
+                    **fields,
+                ),
+                "ms",
+                SERVER_TIMEOUT,
+                within=SERVER_RESTART,
+            )
+        except ConversationTimeout:
+            self.log.error("Machine Server did not answer the change to %s", status)
+            return False
+        # A refusal that names the status asked for is no refusal: asked again after the Machine
+        # Server restarted, the first change had been made.
+        if answer.ack_code != AckCode.ACK_OK and answer.status != status:
+            self.log.error("Machine Server refused %s: %s %s", status, answer.ack_code, answer.note or "")
+            if answer.status:
+                self.status = MachineStatus(answer.status)
+            return False
+        self.log.info("status %s -> %s", self.status, status)
+        self.status = status
+        return True
+
+    async def set_accept_types(self, op_types: list[str]) -> bool:
+        try:
+            answer = await self.ask(
+                "ACC_TYP_C",
+                message("Chg_Accept_Type", machine_id=self.machine_id, op_types=op_types),
+                "msched",
+                SERVER_TIMEOUT,
+                within=SERVER_RESTART,
+            )
+        except ConversationTimeout:
+            self.log.error("MSCHED did not answer the accept-type change to %s", op_types or "none")
+            return False
+        if answer.ack_code != AckCode.ACK_OK:
+            self.log.error("MSCHED refused accept types %s: %s", op_types, answer.ack_code)
+            return False
+        self.log.info("accept types: %s", "all operations" if op_types == ALL_OPERATIONS else op_types or "none")
+        return True
+
+    async def raise_alarm(self, alarm_id: str, text: str, wait: bool) -> bool:
+        """6.3.2.8: pass an alarm to the CAS; when `wait`, hold until the operator clears it."""
+        while True:
+            try:
+                answer = await self.ask(
+                    "ALARM_SEND",
+                    message(
+                        "Alarm_Send",
+                        alarm_id=alarm_id,
+                        alarm_text=text,
+                        machine_id=self.machine_id,
+                        raised_by=self.name,
+                    ),
+                    "cas",
+                    SERVER_TIMEOUT,
+                )
+                break
+            except ConversationTimeout:
+                if not wait:
+                    self.log.error("Cell Alarm Server did not take alarm %s", alarm_id)
+                    return False
+                self.log.error("Cell Alarm Server did not take alarm %s: trying again", alarm_id)
+        if answer.ack_code != AckCode.ACK_OK or answer.alarm_no is None:
+            self.log.error("Cell Alarm Server refused alarm %s: %s", alarm_id, answer.ack_code)
+            return False
+        self.log.info("alarm %d (%s) raised: %s", answer.alarm_no, alarm_id, text)
+        if not wait:
+            return True
+        if answer.alarm_no in self._cleared:
+            return True
+        cleared = self._loop.create_future()
+        self._alarm_waits[answer.alarm_no] = cleared
+        self.log.info("alarm %d (%s) pending: waiting for the operator to clear it", answer.alarm_no, alarm_id)
+        try:
+            await cleared
+        finally:
+            self._alarm_waits.pop(answer.alarm_no, None)
+        self.log.info("alarm %d cleared: continuing", answer.alarm_no)
+        return True
+
+    async def alarm_cleared(self, conv: Conversation) -> None:
+        assert conv.first is not None
+        clear = conv.first.first
+        if clear.machine_id not in (None, self.machine_id):
+            return
+        self._cleared.add(clear.alarm_no)
+        waiter = self._alarm_waits.get(clear.alarm_no)
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+    def _alarm_text(self, alarm_id: str) -> str:
+        try:
+            row = self._read("SELECT alarm_text FROM alarm_description WHERE alarm_id = %s", (alarm_id,))
+        except DatabaseError as e:
+            self.log.error("cannot check alarm %s in ALARM_DESCRIPTION: %s", alarm_id, e)
+            row = None
+        if row is None:
+            self.log.warning("alarm %s is not in ALARM_DESCRIPTION: passing it on as unknown", alarm_id)
+            return f"unknown alarm {alarm_id} from {self.machine_id}"
+        return f"{self.machine_id}: {row[0]}"

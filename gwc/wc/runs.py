@@ -1,0 +1,239 @@
+"""The WC and its ME: requests over the queue pair, what the ME sends on its own (alarms, run
+completions), a dead ME, and the end of a run: results stored, status, Run_Complete (see gwc/wc/wc.py)."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Coroutine
+from pathlib import Path
+from typing import Any
+
+from gwc.errors import DatabaseError, DatabaseUnavailable, QueueError
+from gwc.ipc.catalogue import message
+from gwc.ipc.codes import AckCode
+from gwc.ipc.mq import MeMessage, MessageId
+from gwc.me.results import read_outcome, read_results
+from gwc.wc.base import ALL_OPERATIONS, ME_ANSWER, S, WCBase
+from gwc.wc.link import MeDied
+
+
+class WCRuns(WCBase):
+    """The ME side and a run's end."""
+
+    # ----------------------------------------------------------------- the ME side
+
+    def _from_me(self, msg: MeMessage) -> None:
+        """What the ME sends on its own: an alarm, or the end of a run."""
+        if msg.message_id == MessageId.CELL_ALAR:
+            self._spawn(self.alarm_action(msg))
+        else:
+            self._spawn(self.run_complete(msg))
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        task = self._loop.create_task(self._guard(coro))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _guard(self, coro: Coroutine[Any, Any, None]) -> None:
+        """Run work the ME started: log its failure, never lose it silently."""
+        try:
+            await coro
+        except asyncio.CancelledError:
+            raise
+        except DatabaseUnavailable as e:
+            self._fatal(e)
+        except Exception:
+            self.log.exception("work on a message from the ME failed")
+
+    async def me_request(self, msg: MeMessage, timeout: float = ME_ANSWER) -> MeMessage:
+        """One request to the ME; the wait stays open while an alarm of ours waits for the operator."""
+        return await self.me.request(msg, timeout, hold_open=lambda: self._alarm_pending > 0)
+
+    async def me_died(self, why: str) -> None:
+        """6.3's ME is gone: alarm, a run in progress failed, machine Shutdown until the next ME_START.
+
+        A run whose results file the ME wrote before it died (its RUN_COMPL read by a WC that died
+        too) is completed from the file instead.
+        """
+        self.log.error("ME of %s is dead (%s): alarm, machine Shutdown", self.machine_id, why)
+        run_id = self.machine_run_id if self.status in (S.RUNNING, S.RUN_SHUT) else None
+        await self.raise_alarm("ME_DIED", f"machine side of {self.machine_id} stopped answering: {why}", wait=False)
+        if run_id is not None and self._results_path(run_id).exists():
+            path = self._results_path(run_id)
+            self.log.warning("run %d ended before the ME died: completing it from its results file %s", run_id, path)
+            await self._finish_run(run_id, *self._outcome_in(path), shutdown=f"ME died: {why}", tell_me=False)
+            return
+        await self._go_shutdown(f"ME died: {why}", tell_me=False)
+        if run_id is not None:
+            await self._announce_run(run_id, AckCode.RUN_FAIL, "the ME died during the run")
+
+    async def _go_shutdown(self, note: str, tell_me: bool = True) -> None:
+        """Machine to Shutdown: no operations accepted, status Shutdown, ME told (6.3.2.2)."""
+        self.started = False
+        await self.set_accept_types([])
+        await self.change_status(S.SHUTDOWN, note=note)
+        self.status = S.SHUTDOWN  # even if the Machine Server did not answer: we serve nothing now
+        self.machine_run_id = self.recipe_id = None
+        self.bus.set_interest(self.idle_interest())
+        self.log.info("machine %s is Shutdown (%s)", self.machine_id, note)
+        if tell_me:
+            try:
+                answer = await self.me_request(MeMessage(MessageId.ME_SHUT))
+                if answer.message_id != MessageId.ME_SHUT_C or answer.ack_code != AckCode.ACK_OK:
+                    self.log.warning("ME answered ME_SHUT with %s", answer.describe())
+            except (MeDied, QueueError) as e:
+                self.log.warning("ME did not acknowledge ME_SHUT: %s", e)
+
+    async def alarm_action(self, msg: MeMessage) -> None:
+        """An alarm from the ME: to the CAS, wait for the operator, then let the ME continue (ME_START_WAIT)."""
+        self._alarm_pending += 1
+        try:
+            alarm_id = msg.alarm_text or "UNKNOWN"
+            self.log.info("the ME raises alarm %s", alarm_id)
+            text = self._alarm_text(alarm_id)
+            cleared = await self.raise_alarm(alarm_id, text, wait=True)
+            self.me.send(
+                MeMessage(
+                    MessageId.ME_START_WAIT,
+                    alarm_text=alarm_id,
+                    seq=msg.seq,
+                    ack_code=AckCode.ACK_OK if cleared else AckCode.START_FAIL,
+                )
+            )
+        except QueueError as e:
+            self.log.error("could not tell the ME its alarm was cleared: %s", e)
+        finally:
+            self._alarm_pending -= 1
+            self.me.heard = time.monotonic()
+
+    # ----------------------------------------------------------------- a run's end
+
+    def _results_path(self, run_id: int) -> Path:
+        """Where the ME writes run `run_id`'s results: chosen by the WC, so a restarted WC finds them."""
+        return self.results_dir / f"run-{run_id}.txt"
+
+    def _outcome_in(self, path: Path) -> tuple[str, str | None]:
+        """How the ME said the run of this results file ended (its RUN_COMPL's ack code and note)."""
+        try:
+            outcome = read_outcome(path)
+        except (OSError, ValueError) as e:
+            self.log.error("results file %s unreadable: %s", path, e)
+            return AckCode.RUN_FAIL, f"results file unreadable: {e}"
+        if outcome is None:
+            return AckCode.ACK_OK, None
+        try:
+            return AckCode(outcome[0]), outcome[1] or None
+        except ValueError:
+            self.log.error("results file %s records an unknown outcome %r", path, outcome[0])
+            return AckCode.RUN_FAIL, f"unknown outcome {outcome[0]} in the results file"
+
+    def _stored_outcome(self, run_id: int) -> tuple[str, str | None] | None:
+        """(ack code, note) of this run as stored with its results (MACHINE_RUN_OUTCOME); None if it was
+        not stored (a read that fails counts as not)."""
+        try:
+            row = self._read(
+                "SELECT ack_code, note FROM machine_run_outcome WHERE machine_run_id = %s AND machine_id = %s",
+                (run_id, self.machine_id),
+            )
+        except DatabaseUnavailable:
+            raise
+        except DatabaseError as e:
+            self.log.error("cannot read the stored outcome of run %d: %s", run_id, e)
+            return None
+        return None if row is None else (str(row[0]), row[1])
+
+    async def run_complete(self, msg: MeMessage) -> None:
+        """6.3.2.7: the ME's RUN_COMPL ends the run in progress.
+
+        Also the run MACHINE_STATUS last named when the machine is Shutdown: its WC died mid-run and the
+        Machine Server shut the machine down (liveness) before this WC started, while the ME finished
+        the run. The part was made: its results are stored and announced, and the machine stays Shutdown.
+        """
+        async with self._state_lock:
+            run_id = self.machine_run_id
+            path = Path(msg.file_name) if msg.file_name else None
+            code, note = msg.ack_code or AckCode.ACK_OK, msg.alarm_text or None
+            if self.status in (S.RUNNING, S.RUN_SHUT) and run_id is not None:
+                await self._finish_run(
+                    run_id, code, path, note, "shutdown after run" if self.status == S.RUN_SHUT else None
+                )
+            elif (
+                self.status == S.SHUTDOWN
+                and run_id is not None
+                and path == self._results_path(run_id)
+                and path.exists()
+            ):
+                self.log.warning(
+                    "run %d ended while its machine was Shutdown (its WC died mid-run): storing it", run_id
+                )
+                await self._finish_run(run_id, code, path, note, f"run {run_id} ended after its WC died", tell_me=False)
+            else:
+                self.log.warning(
+                    "RUN_COMPL from the ME while %s: ignored (results file %s kept)",
+                    self.status,
+                    msg.file_name or "none",
+                )
+
+    async def _finish_run(
+        self, run_id: int, code: str, path: Path | None, note: str | None, shutdown: str | None, tell_me: bool = True
+    ) -> None:
+        """Results into MACHINE_RUN_RESULT and the outcome into MACHINE_RUN_OUTCOME, file removed, Idle
+        (Shutdown if `shutdown` says why), Run_Complete.
+
+        Idempotent, so a restarted WC may complete a run its predecessor had begun to complete: the
+        insert replaces rows already stored, and the file is removed only once they are stored.
+        """
+        results: dict[str, str] = {}
+        if path is not None:
+            try:
+                results = read_results(path)
+            except (OSError, ValueError) as e:
+                self.log.error("results file %s unreadable: %s", path, e)
+                code = AckCode.RUN_FAIL
+
+        def store(cur: Any) -> None:
+            cur.executemany(  # pipelined: one round trip to the server, not one per result
+                "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) "
+                "VALUES (%s, %s, %s, %s) "
+                "ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value",
+                [(run_id, self.machine_id, param, value) for param, value in results.items()],
+            )
+            # With the results, before Idle: a lot that misses our Run_Complete (we die before it goes
+            # out) finds the outcome here instead of running the operation again.
+            cur.execute(
+                "INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code, note) "
+                "VALUES (%s, %s, %s, %s) ON CONFLICT (machine_run_id, machine_id) DO UPDATE "
+                "SET ack_code = EXCLUDED.ack_code, note = EXCLUDED.note, ended_at = clock_timestamp()",
+                (run_id, self.machine_id, str(code), note),
+            )
+
+        try:
+            self.transaction(store)
+        except DatabaseError as e:
+            self.log.error("results of run %d not stored: %s (file %s kept)", run_id, e, path)
+            code = AckCode.DB_BADUPD
+        else:
+            self.log.info("run %d: %d results stored in MACHINE_RUN_RESULT", run_id, len(results))
+            if path is not None:
+                path.unlink(missing_ok=True)
+        if code != AckCode.ACK_OK:
+            await self.raise_alarm(
+                "RUN_FAIL", f"{self.machine_id}: run {run_id} failed ({code}{': ' + note if note else ''})", wait=False
+            )
+        self.machine_run_id = self.recipe_id = None
+        if shutdown is not None:
+            await self._go_shutdown(shutdown, tell_me=tell_me)
+        else:
+            await self.change_status(S.IDLE, note=None if code == AckCode.ACK_OK else f"run {run_id}: {code}")
+        await self._announce_run(run_id, code, note)
+        if shutdown is None:
+            await self.set_accept_types(ALL_OPERATIONS)
+
+    async def _announce_run(self, run_id: int, code: str, note: str | None) -> None:
+        self.log.info("run %d complete (%s)%s", run_id, code, f": {note}" if note else "")
+        conv = await self.bus.start(
+            "RUN_COMPL",
+            message("Run_Complete", machine_id=self.machine_id, machine_run_id=run_id, ack_code=code, note=note),
+        )
+        conv.end()

@@ -1,0 +1,247 @@
+"""The conversations a WC serves (thesis 6.3.2): SETUP_RUN, START_RUN, DNLD_ME, UPLD_ME, each checked
+against the machine's status and done under the state lock (see gwc/wc/wc.py)."""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, QueueError
+from gwc.ipc.bus import Conversation
+from gwc.ipc.catalogue import Message, message
+from gwc.ipc.codes import AckCode, MachineStatus
+from gwc.ipc.mq import MeMessage, MessageId
+from gwc.wc.base import ALL_OPERATIONS, SERVER_TIMEOUT, S
+from gwc.wc.link import MeDied
+from gwc.wc.runs import WCRuns
+
+
+class WCSteps(WCRuns):
+    """The conversations served."""
+
+    async def _refuse_now(self, conv: Conversation, ack: str, code: str, note: str) -> None:
+        self.log.info("refused %s: %s (%s)", conv.cls, code, note)
+        await conv.send(message(ack, ack_code=code, note=note[:500]))
+
+    def _check(self, req: Message, allowed: tuple[MachineStatus, ...]) -> tuple[str, str] | None:
+        """Why this request cannot be served now, as (ack code, note); None if it can."""
+        if req.machine_id != self.machine_id:
+            return AckCode.BAD_MESSAGE, f"this is the WC of {self.machine_id}, not of {req.machine_id}"
+        if self.status not in allowed:
+            return AckCode.NOTNOW, f"machine is {self.status}, not {' or '.join(allowed)}"
+        return None
+
+    async def _ask_me(self, msg: MeMessage) -> tuple[MeMessage | None, tuple[str, str] | None]:
+        """One request to the ME within a step: its answer, or the refusal the step gives (a dead ME
+        is declared dead on the way)."""
+        try:
+            return await self.me_request(msg), None
+        except MeDied as e:
+            await self.me_died(str(e))
+            return None, (AckCode.START_FAIL, f"ME failed: {e}")
+        except QueueError as e:
+            return None, (AckCode.START_FAIL, str(e))
+
+    async def _serve_step(
+        self,
+        conv: Conversation,
+        ack: str,
+        allowed: tuple[MachineStatus, ...],
+        work: Callable[[Message], Awaitable[tuple[str, str] | None]],
+    ) -> bool:
+        """One of 6.3.2's steps: the state checked and the work done under the state lock, refusals
+        answered with `ack`. True when it was done (the caller answers ACK_OK)."""
+        assert conv.first is not None
+        req = conv.first.first
+        async with self._state_lock:
+            refusal = self._check(req, allowed)
+            if refusal is None:
+                refusal = await work(req)
+        if refusal is not None:
+            await self._refuse_now(conv, ack, *refusal)
+            return False
+        return True
+
+    # ----------------------------------------------------------------- SETUP_RUN, START_RUN
+
+    async def setup_run(self, conv: Conversation) -> None:
+        """6.3.2.3: Idle only; recipe and op type checked; the approved recipe to the ME; status Setup."""
+        assert conv.first is not None
+        req = conv.first.first
+        self.log.info("SETUP_RUN run %d recipe %s op %s", req.machine_run_id, req.recipe_id, req.op_type)
+        if not await self._serve_step(conv, "Setup_Run_Ack", (S.IDLE,), self._setup):
+            return
+        self.log.info("set up run %d with recipe %s", req.machine_run_id, req.recipe_id)
+        await conv.send(message("Setup_Run_Ack", ack_code=AckCode.ACK_OK))
+
+    async def _setup(self, req: Message) -> tuple[str, str] | None:
+        # The recipe is asked of the ERS first, so that the ERS looks it up while we read our table.
+        fetch = asyncio.ensure_future(self.fetch_recipe(req.recipe_id))
+        await asyncio.sleep(0)  # let it send before the (blocking) read
+        try:
+            ok = self._read(
+                "SELECT 1 FROM op_machine_recipe WHERE machine_id = %s AND recipe_id = %s AND op_type = %s",
+                (self.machine_id, req.recipe_id, req.op_type),
+            )
+        except DatabaseUnavailable:
+            fetch.cancel()
+            raise  # fatal (3.2.2): the module answers DB_Badrea and stops cleanly
+        except DatabaseError as e:
+            fetch.cancel()
+            return AckCode.DB_BADREA, str(e)
+        if not ok:
+            fetch.cancel()
+            return AckCode.REC_INVAL, f"recipe {req.recipe_id} is not for op type {req.op_type} on {self.machine_id}"
+        # Listing 3: a machine set up for a run accepts no other operation until the run is over. Asked
+        # now, beside the recipe's download, which does not depend on it: only the status change waits.
+        accept = asyncio.ensure_future(self.set_accept_types([]))
+        try:
+            refusal = await self._set_up_on_me(req, fetch)
+        finally:
+            accepted = await accept
+        if refusal is None and not accepted:
+            refusal = AckCode.DB_BADUPD, "MSCHED did not take the accept types"
+        if refusal is None and not await self.change_status(
+            S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id, machine_run_id=req.machine_run_id
+        ):
+            refusal = AckCode.DB_BADUPD, "the Machine Server refused the change to Setup"
+        if refusal is not None:
+            if accepted:
+                await self.set_accept_types(ALL_OPERATIONS)
+            return refusal
+        self.machine_run_id, self.recipe_id = req.machine_run_id, req.recipe_id
+        return None
+
+    async def _set_up_on_me(self, req: Message, fetch: Awaitable[tuple[Path | None, str]]) -> tuple[str, str] | None:
+        """The approved recipe (`fetch`: from the ERS) to the ME, which sets up with it; the refusal, or None."""
+        path, why = await fetch
+        if path is None:
+            await self.raise_alarm("REC_INVAL", f"{self.machine_id}: recipe {req.recipe_id} refused: {why}", wait=False)
+            return AckCode.REC_INVAL, why
+        answer, refusal = await self._ask_me(
+            MeMessage(MessageId.SETUP_RUN, file_name=str(path), recipe_id=req.recipe_id)
+        )
+        if answer is None:
+            return refusal
+        if answer.ack_code != AckCode.ACK_OK:
+            return answer.ack_code or AckCode.START_FAIL, f"ME refused the setup: {answer.alarm_text}"
+        return None
+
+    async def fetch_recipe(self, recipe_id: str) -> tuple[Path | None, str]:
+        """The approved version from the ERS, checksum verified, written where the ME can read it."""
+        try:
+            reply = await self.ask(
+                "RECIPE_GET",
+                message("Recipe_Fetch", recipe_id=recipe_id, machine_id=self.machine_id),
+                "ers",
+                SERVER_TIMEOUT,
+            )
+        except ConversationTimeout:
+            return None, "the Equipment Recipe Server did not answer"
+        if reply.ack_code != AckCode.ACK_OK or reply.content is None:
+            return None, reply.note or f"recipe {recipe_id} refused by the ERS ({reply.ack_code})"
+        digest = hashlib.sha256(reply.content.encode()).hexdigest()
+        if digest != reply.checksum:
+            return None, f"recipe {recipe_id} v{reply.version} checksum mismatch: the recipe was modified"
+        self.recipe_dir.mkdir(parents=True, exist_ok=True)
+        path = self.recipe_dir / f"{recipe_id}.v{reply.version}"
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(reply.content)
+        tmp.replace(path)
+        return path, ""
+
+    async def start_run(self, conv: Conversation) -> None:
+        """6.3.2.4: Setup or Setup_Shut only; the ME starts; Running (or Run_Shut)."""
+        assert conv.first is not None
+        req = conv.first.first
+        self.log.info("START_RUN run %d", req.machine_run_id)
+        if not await self._serve_step(conv, "Start_Run_Ack", (S.SETUP, S.SETUP_SHUT), self._run_on_me):
+            return
+        self.log.info("run %d started", req.machine_run_id)
+        await conv.send(message("Start_Run_Ack", ack_code=AckCode.ACK_OK))
+
+    async def _run_on_me(self, req: Message) -> tuple[str, str] | None:
+        if req.machine_run_id != self.machine_run_id:
+            return AckCode.START_FAIL, f"set up for run {self.machine_run_id}, not {req.machine_run_id}"
+        results = self._results_path(req.machine_run_id)
+        answer, refusal = await self._ask_me(
+            MeMessage(MessageId.START_RUN, file_name=str(results), recipe_id=self.recipe_id or "")
+        )
+        if answer is None:
+            return refusal
+        if answer.ack_code != AckCode.ACK_OK:
+            return AckCode.START_FAIL, f"ME refused to start: {answer.ack_code} {answer.alarm_text}"
+        # The status now, not at the check: a shutdown may have come while the ME was starting.
+        target = S.RUN_SHUT if self.status == S.SETUP_SHUT else S.RUNNING
+        if not await self.change_status(
+            target, expect=[self.status], machine_run_id=req.machine_run_id, recipe_id=self.recipe_id
+        ):
+            return AckCode.DB_BADUPD, f"the Machine Server refused the change to {target}"
+        return None
+
+    # ----------------------------------------------------------------- DNLD_ME, UPLD_ME
+
+    async def download(self, conv: Conversation) -> None:
+        """DNLD_ME (5.1.3): a recipe from the cell to the machine. Idle only."""
+        assert conv.first is not None
+        req = conv.first.first
+        if not await self._serve_step(conv, "Download_Ack", (S.IDLE,), self._download):
+            return
+        self.log.info("recipe %s downloaded to %s", req.recipe_id, self.machine_id)
+        await conv.send(message("Download_Ack", ack_code=AckCode.ACK_OK))
+
+    async def _download(self, req: Message) -> tuple[str, str] | None:
+        path, why = await self.fetch_recipe(req.recipe_id)
+        if path is None:
+            return AckCode.REC_INVAL, why
+        answer, refusal = await self._ask_me(MeMessage(MessageId.DNLD_ME, file_name=str(path), recipe_id=req.recipe_id))
+        if answer is None:
+            return refusal
+        if answer.ack_code != AckCode.ACK_OK:
+            return answer.ack_code or AckCode.START_FAIL, f"ME refused the download: {answer.alarm_text}"
+        return None
+
+    async def upload(self, conv: Conversation) -> None:
+        """UPLD_ME (5.1.3): the machine's recipe back to the cell, stored by the ERS as a new version."""
+        assert conv.first is not None
+        req = conv.first.first
+        async with self._state_lock:
+            refusal = self._check(req, (S.IDLE,))
+            content: str | None = None
+            if refusal is None:
+                refusal, content = await self._upload(req)
+        if refusal is not None:
+            return await self._refuse_now(conv, "Upload_Ack", *refusal)
+        assert content is not None
+        try:
+            stored = await self.ask(
+                "RECIPE_PUT",
+                message("Recipe_Store", recipe_id=req.recipe_id, content=content, by=self.name),
+                "ers",
+                SERVER_TIMEOUT,
+            )
+        except ConversationTimeout:
+            return await self._refuse_now(
+                conv, "Upload_Ack", AckCode.TIMEOUT, "the Equipment Recipe Server did not answer"
+            )
+        self.log.info(
+            "recipe %s uploaded from %s: ERS says %s, version %s",
+            req.recipe_id,
+            self.machine_id,
+            stored.ack_code,
+            stored.version,
+        )
+        await conv.send(message("Upload_Ack", ack_code=stored.ack_code, version=stored.version, note=stored.note))
+
+    async def _upload(self, req: Message) -> tuple[tuple[str, str] | None, str | None]:
+        answer, refusal = await self._ask_me(MeMessage(MessageId.UPLD_ME, recipe_id=req.recipe_id))
+        if answer is None:
+            return refusal, None
+        if answer.ack_code != AckCode.ACK_OK or not answer.file_name:
+            return (answer.ack_code or AckCode.START_FAIL, f"the ME returned no recipe: {answer.alarm_text}"), None
+        try:
+            return None, Path(answer.file_name).read_text()
+        except (OSError, UnicodeDecodeError) as e:
+            return (AckCode.REC_INVAL, f"the ME's recipe file {answer.file_name} is unreadable: {e}"), None
