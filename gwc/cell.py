@@ -21,11 +21,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 from gwc import db
+from gwc.agent import control as agent_control
 from gwc.config import Config
 from gwc.errors import GwcError, ModuleError
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc.bus import BlockingBus, Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.log import log_file_name
@@ -111,8 +113,12 @@ def read_pid(cfg: Config, name: str) -> ProcStatus:
     return ProcStatus(name, pid, alive, info.get("since"))
 
 
-def spawn(cfg: Config, proc: Proc, extra_env: dict[str, str] | None = None) -> int:
-    """Start one module detached from us, with its pid file; output before its log opens goes to .out."""
+def spawn_process(
+    cfg: Config, proc: Proc, extra_env: dict[str, str] | None = None, pass_fds: tuple[int, ...] = ()
+) -> subprocess.Popen[bytes]:
+    """Start one module in a session of its own, with its pid file; output before its log opens goes to .out.
+
+    The caller is its parent: the agent keeps the Popen to reap it; a command that exits leaves it to init."""
     cfg.run_dir.mkdir(parents=True, exist_ok=True)
     cfg.log_dir.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, GWC_CONFIG=str(cfg.path.resolve()), GWC_VAR=str(cfg.var.resolve()), PYTHONUNBUFFERED="1")
@@ -128,17 +134,28 @@ def spawn(cfg: Config, proc: Proc, extra_env: dict[str, str] | None = None) -> i
             stderr=out,
             start_new_session=True,
             cwd=str(cfg.var.resolve()),
+            pass_fds=pass_fds,
         )
+    write_pid_file(cfg, proc.name, child.pid, proc.argv)
+    return child
+
+
+def spawn(cfg: Config, proc: Proc, extra_env: dict[str, str] | None = None) -> int:
+    """spawn_process() for a caller that only needs the pid."""
+    return spawn_process(cfg, proc, extra_env).pid
+
+
+def write_pid_file(cfg: Config, name: str, pid: int, argv: list[str]) -> None:
     info = {
-        "pid": child.pid,
-        "ticks": _proc_start_ticks(child.pid),
+        "pid": pid,
+        "ticks": _proc_start_ticks(pid),
         "since": datetime.now().isoformat(" ", "seconds"),
-        "argv": proc.argv,
+        "argv": argv,
     }
-    tmp = pid_file(cfg, proc.name).with_suffix(".tmp")
+    cfg.run_dir.mkdir(parents=True, exist_ok=True)
+    tmp = pid_file(cfg, name).with_suffix(".tmp")
     tmp.write_text(json.dumps(info))
-    tmp.replace(pid_file(cfg, proc.name))
-    return child.pid
+    tmp.replace(pid_file(cfg, name))
 
 
 def _out_tail(cfg: Config, name: str, lines: int = 5) -> str:
@@ -162,9 +179,9 @@ def wait_on_bus(cfg: Config, bus: BlockingBus, name: str, timeout: float = UP_TI
     raise ModuleError(f"{name} did not appear on the bus within {timeout:.0f}s (see {cfg.log_dir})")
 
 
-def startup(bus: BlockingBus, name: str, cls: str = "STARTUP", timeout: float = UP_TIMEOUT) -> str:
+async def hold_startup(bus: Bus, name: str, cls: str = "STARTUP", timeout: float = UP_TIMEOUT) -> str:
     """Hold a STARTUP (or ME_START) conversation with one module; return how it ended."""
-    conv, batch = bus.request(cls, message("Startup_Request", module=name), to=name, timeout=timeout)
+    conv, batch = await bus.request(cls, message("Startup_Request", module=name), to=name, timeout=timeout)
     try:
         ack = batch.first
         if ack.ack_code == AckCode.NOTNOW:
@@ -172,13 +189,18 @@ def startup(bus: BlockingBus, name: str, cls: str = "STARTUP", timeout: float = 
         if ack.ack_code != AckCode.ACK_OK:
             raise ModuleError(f"{name} refused startup: {ack.ack_code} {ack.note or ''}".strip())
         while True:
-            done = conv.next_message(timeout).first
+            done = (await conv.next_message(timeout)).first
             if done.name in ("Startup_Complete", "ME_Ready"):
                 if done.ack_code != AckCode.ACK_OK:
                     raise ModuleError(f"{name} startup failed: {done.ack_code} {done.note or ''}".strip())
                 return "started"
     finally:
         conv.end()
+
+
+def startup(bus: BlockingBus, name: str, cls: str = "STARTUP", timeout: float = UP_TIMEOUT) -> str:
+    """hold_startup() from a plain (non-asyncio) caller."""
+    return bus.run(hold_startup(bus.bus, name, cls, timeout))
 
 
 def shutdown(bus: BlockingBus, name: str, cls: str = "SHUTDOWN", timeout: float = UP_TIMEOUT) -> str:
@@ -202,8 +224,15 @@ def hi_bus(cfg: Config, log: logging.Logger, interest: tuple[str, ...] = ()) -> 
     return BlockingBus(f"hi.{os.getpid()}", cfg.bus, log, interest)
 
 
+AGENT = Proc("agent", command=(sys.executable, "-m", "gwc", "agent"))
+
+
 def start_procs(cfg: Config, procs: list[Proc], bus: BlockingBus, say: Callable[[str], None]) -> None:
-    """Spawn what is not running, then bring each up in order (servers through STARTUP)."""
+    """Bring processes up in order (servers through STARTUP): through this host's agent when one runs,
+    which then watches them; else spawn what is not running, unsupervised."""
+    if agent_control.running(cfg):
+        agent_control.call(cfg, "start", say=say, names=[p.name for p in procs])
+        return
     for proc in procs:
         st = read_pid(cfg, proc.name)
         if st.alive:
@@ -220,13 +249,29 @@ def start_procs(cfg: Config, procs: list[Proc], bus: BlockingBus, say: Callable[
             say(f"{proc.name}: {startup(bus, proc.name)}")
 
 
+def start_agent(cfg: Config, say: Callable[[str], None], timeout: float = UP_TIMEOUT) -> None:
+    """Start this host's agent unless one runs (it adopts whatever modules are still running)."""
+    if agent_control.running(cfg):
+        return
+    pid = spawn(cfg, AGENT)
+    say(f"agent: spawned (pid {pid})")
+    deadline = time.monotonic() + timeout
+    while not agent_control.running(cfg):
+        if not read_pid(cfg, AGENT.name).alive:
+            raise ModuleError(f"the agent died at start: {_out_tail(cfg, AGENT.name) or 'see ' + str(cfg.log_dir)}")
+        if time.monotonic() > deadline:
+            raise ModuleError(f"the agent did not answer within {timeout:.0f}s (see {cfg.log_dir})")
+        time.sleep(0.05)
+
+
 def start_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = print) -> None:
+    """Database, schema, then the agent, which starts every module in order and keeps them running."""
     if cfg.embedded:
         db.cluster_start(cfg, log)
         say("database: embedded cluster running")
     db.init_schema(cfg, log)
-    with hi_bus(cfg, log) as bus:
-        start_procs(cfg, cell_procs(cfg), bus, say)
+    start_agent(cfg, say)
+    agent_control.call(cfg, "start", say=say)
 
 
 def stop_proc(cfg: Config, name: str, grace: float = GRACE) -> str:
@@ -286,6 +331,9 @@ def stop_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = pri
                 pass
     for name in lots:
         say(f"{name}: {stop_proc(cfg, name)}")
+    if agent_control.running(cfg):  # the agent stops its modules in reverse order, then itself
+        agent_control.call(cfg, "stop", say=say, exit=True)
+        say(f"agent: {stop_proc(cfg, AGENT.name)}")
     for proc in reversed(cell_procs(cfg)):
         what = stop_proc(cfg, proc.name)
         if what != "not running":
@@ -302,8 +350,19 @@ def stop_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = pri
         say("database: stopped")
 
 
-def cell_status(cfg: Config) -> list[ProcStatus]:
-    return [read_pid(cfg, p.name) for p in cell_procs(cfg)]
+def cell_status(cfg: Config) -> tuple[dict[str, Any] | None, list[dict[str, Any]]]:
+    """(the agent, or None if none runs; each module's state, pid, uptime, restarts, alive)."""
+    try:
+        answer = agent_control.call(cfg, "status", timeout=10.0)
+    except agent_control.NoAgent:
+        rows = []
+        for p in cell_procs(cfg):
+            st = read_pid(cfg, p.name)
+            state = "RUNNING" if st.alive else "STOPPED"
+            rows.append({"module": p.name, "state": state, "pid": st.pid if st.alive else None, "since": st.since})
+        return None, [{**r, "alive": "yes" if r["state"] == "RUNNING" else "no"} for r in rows]
+    rows = [{**r, "alive": "yes" if r["state"] in ("RUNNING", "STARTING") else "no"} for r in answer["modules"]]
+    return answer["agent"], rows
 
 
 def check_alive(cfg: Config, name: str) -> None:

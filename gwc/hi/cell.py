@@ -7,7 +7,10 @@ import sys
 import click
 
 from gwc import cell, db
+from gwc.agent import control as agent_control
+from gwc.agent.agent import agent_name, run_agent
 from gwc.hi import context, json_option, table
+from gwc.log import open_log
 from gwc.module import BUS_MODULES, MACHINE_PROCESSES, run_module
 
 
@@ -56,7 +59,7 @@ def db_url() -> None:
 
 @click.command("start")
 def start() -> None:
-    """Start the cell: database, servers (STARTUP each), machines' WC/ME processes. Idempotent."""
+    """Start the cell: database, then this host's agent, which starts every module and keeps it running."""
     cfg, log = context()
     cell.start_cell(cfg, log, say=click.echo)
     click.echo("cell started")
@@ -65,7 +68,7 @@ def start() -> None:
 @click.command("stop")
 @click.option("--keep-db", is_flag=True, help="Leave the embedded database running.")
 def stop(keep_db: bool) -> None:
-    """Stop every module (SIGTERM, then SIGKILL), remove pid files and queues, stop the database."""
+    """Stop lot scripts, then every module through the agent (SIGTERM, then SIGKILL), the agent, the database."""
     cfg, log = context()
     cell.stop_cell(cfg, log, say=click.echo, database=not keep_db)
     click.echo("cell stopped")
@@ -74,15 +77,31 @@ def stop(keep_db: bool) -> None:
 @click.command("status")
 @json_option
 def status(as_json: bool) -> None:
-    """Each module of the cell: pid, alive or not, since when."""
+    """Each module of the cell: its state under the agent, pid, uptime, restarts, how it last ended."""
     cfg, _ = context()
-    rows = [
-        {"module": s.name, "pid": s.pid, "alive": "yes" if s.alive else "no", "since": s.since if s.pid else None}
-        for s in cell.cell_status(cfg)
-    ]
-    if not as_json and cfg.embedded:
-        click.echo(f"database: embedded, {'running' if db.cluster_running(cfg) else 'stopped'}")
-    table(rows, ["module", "pid", "alive", "since"], as_json)
+    agent, rows = cell.cell_status(cfg)
+    if not as_json:
+        if cfg.embedded:
+            click.echo(f"database: embedded, {'running' if db.cluster_running(cfg) else 'stopped'}")
+        click.echo(f"agent: {agent['name']} (pid {agent['pid']})" if agent else "agent: not running (unsupervised)")
+    table(rows, ["module", "state", "pid", "uptime", "restarts", "last_exit"], as_json)
+
+
+@click.command("restart")
+@click.argument("modules", nargs=-1, required=True)
+def restart(modules: tuple[str, ...]) -> None:
+    """Restart MODULES (e.g. msched, wc:wc1) through this host's agent: stopped, then started again."""
+    cfg, _ = context()
+    agent_control.call(cfg, "restart", say=click.echo, names=list(modules))
+
+
+@click.command("agent")
+def agent() -> None:
+    """Run this host's agent in the foreground (`gwc start` starts it detached): it starts the host's
+    modules, restarts the ones that die, and stops them on SIGTERM."""
+    cfg, _ = context()
+    log = open_log(agent_name(), cfg.log_dir, cfg.level_of("agent"))
+    sys.exit(run_agent(cfg, log))
 
 
 @click.command("run", context_settings={"ignore_unknown_options": False})
@@ -102,4 +121,4 @@ def run(module: str, machine: str | None, start_now: bool, clean: bool) -> None:
     sys.exit(run_module(module, machine, start=start_now, options=options))
 
 
-commands = [db_group, start, stop, status, run]
+commands = [db_group, start, stop, status, restart, agent, run]

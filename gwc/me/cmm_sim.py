@@ -24,6 +24,7 @@ import time
 import tty
 from pathlib import Path
 
+from gwc.agent.control import notify_ready
 from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError, LineError
 from gwc.me.cmm import RecordStream, open_serial, serial_stream, sim_link
@@ -93,6 +94,7 @@ class CmmSimulator:
             closer = pty.close
             self._publish(link, pty.slave_name)
         self.log.info("CMM simulator ready: %.2fs per part, verdicts %s", self.measure_time, self.pattern)
+        notify_ready()
         try:
             while not stop.is_set():
                 self._answer_due(line)

@@ -26,6 +26,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
+from gwc.agent.control import notify_ready
 from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError, GwcError, QueueError, QueueFull, QueueTimeout
 from gwc.ipc.codes import AckCode
@@ -172,6 +173,7 @@ class MachineSide:
             self.channel.in_name,
             self.homing_alarm or "none",
         )
+        notify_ready()
         try:
             while not stop.is_set():
                 self._flush()

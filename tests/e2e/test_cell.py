@@ -56,17 +56,20 @@ def test_start_status_kill_stop_leaves_nothing_behind(cell_env) -> None:
         assert all(FIGURE2.match(line) for line in lines), [ln for ln in lines if not FIGURE2.match(ln)][:3]
     assert "STARTUP" in (cfg.log_dir / "msched.log").read_text()
 
-    os.kill(pids["msched"], signal.SIGKILL)
+    os.kill(pids["msched"], signal.SIGKILL)  # the agent restarts it; the others go on undisturbed
     wait_for(
-        lambda: {r["module"]: r["alive"] for r in json.loads(gwc(env, "status", "--json").stdout)}["msched"] == "no",
+        lambda: (
+            (r := {r["module"]: r for r in json.loads(gwc(env, "status", "--json").stdout)}["msched"])["alive"] == "yes"
+            and r["pid"] != pids["msched"]
+        ),
         10,
-        "gwc status to show msched dead",
+        "gwc status to show msched running again",
     )
-
-    assert gwc(env, "start").returncode == 0  # idempotent: restarts only what is missing
+    assert gwc(env, "start").returncode == 0  # idempotent: starts only what is missing
     again = {r["module"]: r for r in json.loads(gwc(env, "status", "--json").stdout)}
     assert again["msched"]["alive"] == "yes" and again["msched"]["pid"] != pids["msched"]
     assert again["ms"]["pid"] == pids["ms"]
+    pids["msched"] = again["msched"]["pid"]
 
     stopped = gwc(env, "stop")
     assert stopped.returncode == 0, stopped.stderr

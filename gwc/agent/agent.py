@@ -1,0 +1,424 @@
+"""The agent: one per host. It starts the host's modules, learns of a death at once, and restarts.
+
+* **Start.** Every module of etc/cell.toml, in its order, each its own process in a session of its
+  own (the agent's child). A module is RUNNING once proven ready: a server on the bus (a new
+  incarnation) and through its STARTUP conversation, a WC on the bus (its machine then resumes, or
+  waits Shutdown for `gwc machine start`), an ME or simulator (off the bus) by writing to the pipe
+  the agent gave it ($GWC_READY_FD, as systemd's sd_notify) once it serves its queues or its line.
+* **Deaths.** Each process has a pidfd in the event loop; its exit is seen at once. The agent
+  broadcasts Module_Died (MOD_DIED) before anything else, so the Machine Server, MSCHED and the lots
+  act on it, then restarts the module: at once if it had run `start_secs`, else after a backoff
+  (`backoff`, doubling to `backoff_max`). A module that dies `start_retries` times in a row before
+  it has run `start_secs` is FATAL: left down, alarm MODULE_FATAL raised; `gwc start` or `gwc
+  restart` tries it again.
+* **The agent's own death.** The modules do not depend on it (own sessions, own bus members): a
+  killed agent leaves them running, unwatched, until an agent runs again (`gwc start`, or the
+  host's service manager), which adopts every module its pid file names and finds alive (watched
+  by pidfd again, exit status unknown), and starts the rest. SIGTERM to the agent is an orderly stop
+  of the host's part of the cell: every module stopped in reverse order, then the agent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import fcntl
+import json
+import logging
+import os
+import signal
+import socket
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, fields
+from typing import Any
+
+from gwc.agent.child import Child
+from gwc.agent.control import READY_FD, address
+from gwc.agent.states import ProcessState
+from gwc.cell import cell_procs, hold_startup, pid_file, read_pid, spawn_process, write_pid_file
+from gwc.config import Config
+from gwc.errors import ConfigError, GwcError, ModuleError
+from gwc.ipc.bus import Bus
+from gwc.ipc.catalogue import message
+from gwc.log import TRACE
+from gwc.module import module_name
+from gwc.servers.common import Server
+
+S = ProcessState
+OFF_BUS = ("me", "cmmsim")  # proven ready by staying alive; their WC proves the rest
+
+
+@dataclass(frozen=True)
+class Policy:
+    """The restart policy, from cell.toml's [agent] table (docs/operating.md)."""
+
+    start_retries: int = 3  # deaths in a row before start_secs of running: then FATAL
+    start_secs: float = 5.0  # a module that ran this long was started well: its next death restarts it at once
+    backoff: float = 0.5  # the first pause after a failed start, doubling ...
+    backoff_max: float = 8.0  # ... up to this
+    start_timeout: float = 30.0  # a module not ready within this is killed (a failed start)
+    grace: float = 5.0  # between SIGTERM and SIGKILL when stopping
+
+    @classmethod
+    def of(cls, cfg: Config) -> Policy:
+        raw = dict(cfg.raw.get("agent", {}))
+        known = {f.name: f.type for f in fields(cls)}
+        unknown = set(raw) - set(known)
+        if unknown:
+            raise ConfigError(f"{cfg.path}: [agent] has unknown key(s) {', '.join(sorted(unknown))}")
+        for key, value in raw.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+                raise ConfigError(f"{cfg.path}: [agent] {key} = {value!r} is not a number >= 0")
+            if known[key] == "int" and not isinstance(value, int):
+                raise ConfigError(f"{cfg.path}: [agent] {key} = {value!r} is not a whole number")
+        return cls(**raw)
+
+
+def agent_name(host: str | None = None) -> str:
+    """The agent's bus and log name: agent:<host>."""
+    return module_name("agent", host or socket.gethostname().split(".")[0])
+
+
+class Agent(Server):
+    """One host's supervisor (see the module docstring)."""
+
+    def __init__(self, cfg: Config, log: logging.Logger, host: str | None = None) -> None:
+        self.cfg = cfg
+        self.log = log
+        self.name = agent_name(host)
+        self.policy = Policy.of(cfg)
+        self.bus = Bus(self.name, cfg.bus, log)
+        self._tasks: set[asyncio.Task[None]] = set()
+        self.children = {p.name: Child(p, log) for p in cell_procs(cfg)}
+        self._stop = asyncio.Event()
+        self._stopping = False
+
+    # ----------------------------------------------------------------- the agent's life
+
+    async def run(self) -> int:
+        self.cfg.run_dir.mkdir(parents=True, exist_ok=True)
+        with open(self.cfg.run_dir / "agent.lock", "w") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise ModuleError(f"an agent already runs for {self.cfg.var} on this host") from None
+            write_pid_file(self.cfg, "agent", os.getpid(), ["gwc", "agent"])
+            await self.bus.sign_on()
+            server = await asyncio.start_unix_server(self._serve, path=address(self.cfg))
+            loop = asyncio.get_running_loop()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.add_signal_handler(sig, lambda: self.spawn(self.stop_all(exit_after=True)))
+            self.log.info("agent %s (pid %d) supervising %d modules", self.name, os.getpid(), len(self.children))
+            self._adopt()
+            self.spawn(self._start_all_logged())
+            try:
+                await self._stop.wait()
+            finally:
+                server.close()
+                for t in list(self._tasks):
+                    t.cancel()
+                await self.bus.close()
+                with contextlib.suppress(OSError, ValueError, KeyError):
+                    if json.loads(pid_file(self.cfg, "agent").read_text())["pid"] == os.getpid():
+                        pid_file(self.cfg, "agent").unlink()
+                self.log.info("agent stopped")
+        return 0
+
+    def _adopt(self) -> None:
+        """Modules an earlier agent started and left running are watched again, not started twice."""
+        for child in self.children.values():
+            st = read_pid(self.cfg, child.name)
+            if not st.alive or st.pid is None:
+                continue
+            pid = st.pid
+            ours = child.attach(pid, None, self._exited, still_ours=lambda c=child, p=pid: _names(self.cfg, c, p))
+            if ours:
+                child.change_state(S.STARTING, "adopted: left running by an earlier agent")
+                child.ready = asyncio.get_running_loop().create_task(self._probe(child, None))
+
+    async def _start_all_logged(self) -> None:
+        try:
+            await self.start_some(list(self.children), self.log.info)
+        except GwcError as e:
+            self.log.error("starting the host's modules: %s", e)
+
+    # ----------------------------------------------------------------- starting
+
+    def _spawn(self, child: Child, why: str) -> None:
+        """A new process for the module: STARTING, and its readiness probe."""
+        if child.retry is not None:
+            child.retry.cancel()
+            child.retry = None
+        old = self.bus.peers().get(child.name)
+        ready_r, ready_w = os.pipe() if child.proc.kind in OFF_BUS else (None, None)
+        try:
+            env = {READY_FD: str(ready_w)} if ready_w is not None else None
+            fds = (ready_w,) if ready_w is not None else ()
+            popen = spawn_process(self.cfg, child.proc, env, pass_fds=fds)
+        except OSError:
+            if ready_r is not None:
+                os.close(ready_r)
+            raise
+        finally:
+            if ready_w is not None:
+                os.close(ready_w)
+        child.attach(popen.pid, popen, self._exited)
+        child.change_state(S.STARTING, why)
+        probe = self._probe(child, old.inc if old else None, ready_r)
+        child.ready = asyncio.get_running_loop().create_task(probe)
+        if ready_r is not None:  # closed however the probe ends, even cancelled before its first step
+            child.ready.add_done_callback(lambda _t, fd=ready_r: os.close(fd))
+
+    async def _probe(self, child: Child, old_inc: int | None, ready_fd: int | None = None) -> None:
+        """Prove the new process ready (RUNNING), or kill it: a failed start, counted when it dies.
+        An adopted off-bus process (no pipe) ran before: it is taken as ready."""
+        pid = child.pid
+        kind = child.proc.kind
+        how = "ready"
+        try:
+            async with asyncio.timeout(self.policy.start_timeout):
+                if kind in OFF_BUS:
+                    if ready_fd is not None:
+                        await _read_ready(ready_fd)
+                else:
+                    while True:
+                        peer = self.bus.peers().get(child.name)
+                        if peer is not None and peer.inc != old_inc:
+                            break
+                        await asyncio.sleep(0.02)
+                    how = "on the bus"
+                    if kind != "wc":
+                        how = await hold_startup(self.bus, child.name, timeout=self.policy.start_timeout)
+        except TimeoutError:
+            why = f"not ready within {self.policy.start_timeout:g}s"
+        except GwcError as e:
+            why = str(e)
+        else:
+            if child.pid == pid and child.state == S.STARTING:
+                child.change_state(S.RUNNING, how)
+            return
+        if child.pid == pid and child.state == S.STARTING:
+            self.log.error("%s (pid %s): %s: killing it", child.name, pid, why)
+            child.last_exit = why
+            child.signal_group(signal.SIGKILL)
+
+    async def bring_up(self, child: Child, say: Callable[[str], None]) -> None:
+        """Start a module that is not running (an operator's start: FATAL and BACKOFF try again at once)
+        and wait until it is RUNNING or FATAL."""
+        if child.state == S.STOPPING:
+            await self._wait(child, (S.STOPPED,), self.policy.grace * 3)
+        if child.state in (S.STOPPED, S.FATAL, S.BACKOFF):
+            child.fails = 0
+            self._spawn(child, "started")
+            say(f"{child.name}: spawned (pid {child.pid})")
+        elif child.state == S.RUNNING:
+            say(f"{child.name}: already running (pid {child.pid})")
+            return
+        await self._wait(child, (S.RUNNING, S.FATAL), self.policy.start_timeout * (self.policy.start_retries + 1))
+        if child.state == S.FATAL:
+            raise ModuleError(f"{child.name} is FATAL: {child.last_exit} (see {self.cfg.log_dir})")
+        say(f"{child.name}: {child.state} (pid {child.pid})")
+
+    async def start_some(self, names: list[str], say: Callable[[str], None]) -> None:
+        """Bring modules up in cell.toml's order, each RUNNING before the next; every failure is reported."""
+        failed = []
+        for name in names:
+            try:
+                await self.bring_up(self.children[name], say)
+            except GwcError as e:
+                say(f"{name}: {e}")
+                failed.append(str(e))
+        if failed:
+            raise ModuleError("; ".join(failed))
+
+    # ----------------------------------------------------------------- deaths
+
+    def _exited(self, child: Child) -> None:
+        """pidfd callback: the process is gone. Announce it, then restart, back off, or give up."""
+        pid = child.pid
+        how = child.reap()
+        if child.ready is not None:
+            child.ready.cancel()
+            child.ready = None
+        with contextlib.suppress(OSError, ValueError, KeyError):
+            if json.loads(pid_file(self.cfg, child.name).read_text())["pid"] == pid:
+                pid_file(self.cfg, child.name).unlink()
+        if child.state == S.STOPPING:
+            child.change_state(S.STOPPED, how)
+            return
+        if child.state == S.RUNNING and time.monotonic() - child.running_at >= self.policy.start_secs:
+            child.fails = 0
+        child.fails += 1
+        delay: float | None = None
+        if child.fails >= self.policy.start_retries:
+            child.change_state(S.FATAL, f"{how}; {child.fails} failed starts in a row")
+            text = f"{child.name} failed {child.fails} times in a row ({how}): left down"
+            self.spawn(self.raise_alarm("MODULE_FATAL", text, child.proc.machine))
+        else:
+            pause = self.policy.backoff * 2 ** (child.fails - 2)
+            delay = 0.0 if child.fails == 1 else min(pause, self.policy.backoff_max)
+            child.change_state(S.BACKOFF, f"{how}; restart in {delay:g}s")
+        # The announcement's task is scheduled before the restart's timer: it goes out first.
+        self.spawn(self._announce(child, pid, how, delay))
+        if delay is not None:
+            child.retry = asyncio.get_running_loop().call_later(delay, self._restart, child)
+
+    def _restart(self, child: Child) -> None:
+        child.retry = None
+        if child.state != S.BACKOFF or self._stopping:
+            return
+        child.restarts += 1
+        try:
+            self._spawn(child, f"restart {child.restarts}")
+        except OSError as e:  # cannot even fork/exec: counts as a failed start
+            self.log.error("%s: could not spawn: %s", child.name, e)
+            child.fails += 1
+            child.change_state(S.FATAL, f"spawn failed: {e}")
+
+    async def _announce(self, child: Child, pid: int | None, how: str, delay: float | None) -> None:
+        try:
+            await self.broadcast(
+                "MOD_DIED",
+                message(
+                    "Module_Died",
+                    module=child.name,
+                    host=self.name,
+                    pid=pid,
+                    how=how,
+                    state=child.state.value,
+                    restarts=child.restarts,
+                    restart_in=delay,
+                ),
+            )
+        except GwcError as e:
+            self.log.error("could not announce the death of %s: %s", child.name, e)
+
+    # ----------------------------------------------------------------- stopping
+
+    async def stop_child(self, child: Child, say: Callable[[str], None]) -> None:
+        """SIGTERM, `grace`, SIGKILL: STOPPED, and not restarted."""
+        if child.retry is not None:
+            child.retry.cancel()
+            child.retry = None
+        if child.state in (S.BACKOFF, S.FATAL):
+            child.change_state(S.STOPPED, "stopped")
+        if child.state == S.STOPPED:
+            return
+        if child.state != S.STOPPING:
+            child.change_state(S.STOPPING, "stop")
+            if child.ready is not None:
+                child.ready.cancel()
+            child.signal_group(signal.SIGTERM)
+        how = "stopped"
+        if not await self._wait(child, (S.STOPPED,), self.policy.grace):
+            how = "killed"
+            child.signal_group(signal.SIGKILL)
+            await self._wait(child, (S.STOPPED,), self.policy.grace)
+        say(f"{child.name}: {how}")
+
+    async def stop_all(self, exit_after: bool, say: Callable[[str], None] | None = None) -> None:
+        """Every module in reverse order; then, if asked, the agent itself."""
+        self._stopping = exit_after or self._stopping
+        for child in reversed(list(self.children.values())):
+            await self.stop_child(child, say or self.log.info)
+        if exit_after:
+            self._stop.set()
+
+    async def _wait(self, child: Child, states: Iterable[ProcessState], timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        wanted = tuple(states)
+        while child.state not in wanted:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            child.changed.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(child.changed.wait(), left)
+        return True
+
+    # ----------------------------------------------------------------- the control socket
+
+    def _pick(self, names: list[str] | None) -> list[Child]:
+        if not names:
+            return list(self.children.values())
+        unknown = [n for n in names if n not in self.children]
+        if unknown:
+            known = ", ".join(self.children)
+            raise ModuleError(f"no module {', '.join(unknown)} on this host's agent (known: {known})")
+        return [c for c in self.children.values() if c.name in names]  # cell.toml's order
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        def say(text: str) -> None:
+            writer.write(json.dumps({"say": text}).encode() + b"\n")
+
+        answer: dict[str, Any] = {}
+        try:
+            req = json.loads(await reader.readline())
+            if not isinstance(req, dict):
+                raise ValueError("not a JSON object")
+            cmd = req.get("cmd")
+            names = req.get("names")
+            if names is not None and not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
+                raise ValueError("names must be a list of module names")
+            quiet = cmd in ("ping", "status")  # asked often, by every `gwc status` and `gwc start`
+            self.log.log(TRACE if quiet else logging.INFO, "control: %s", " ".join([str(cmd), *(names or [])]))
+            if cmd == "ping":
+                pass
+            elif cmd == "status":
+                answer["agent"] = {"name": self.name, "pid": os.getpid()}
+                answer["modules"] = [c.row() for c in self.children.values()]
+            elif cmd == "start":
+                await self.start_some([c.name for c in self._pick(names)], say)
+            elif cmd == "stop":
+                if names:
+                    for child in reversed(self._pick(names)):
+                        await self.stop_child(child, say)
+                else:
+                    await self.stop_all(exit_after=bool(req.get("exit")), say=say)
+            elif cmd == "restart":
+                picked = self._pick(names)
+                if not names:
+                    raise ModuleError("restart: name the module(s) to restart")
+                for child in reversed(picked):
+                    await self.stop_child(child, say)
+                await self.start_some([c.name for c in picked], say)
+            else:
+                raise ModuleError(f"unknown agent command {cmd!r} (ping, status, start, stop, restart)")
+            answer.update(done=True, ok=True)
+        except (ValueError, UnicodeDecodeError) as e:
+            self.log.warning("control: bad request: %s", e)
+            answer = {"done": True, "ok": False, "error": f"bad request: {e}"}
+        except GwcError as e:
+            answer = {"done": True, "ok": False, "error": str(e)}
+        try:
+            writer.write(json.dumps(answer).encode() + b"\n")
+            await writer.drain()
+            writer.close()
+        except OSError as e:  # the asker went away: nothing to tell it
+            self.log.info("control: %s", e)
+
+
+async def _read_ready(fd: int) -> None:
+    """Wait for the module's byte on its readiness pipe; EOF means it ended first."""
+    loop = asyncio.get_running_loop()
+    got: asyncio.Future[bytes] = loop.create_future()
+    loop.add_reader(fd, lambda: got.done() or got.set_result(os.read(fd, 1)))
+    try:
+        if not await got:
+            raise ModuleError("ended before it was ready")
+    finally:
+        loop.remove_reader(fd)
+
+
+def _names(cfg: Config, child: Child, pid: int) -> bool:
+    st = read_pid(cfg, child.name)
+    return st.alive and st.pid == pid
+
+
+def run_agent(cfg: Config, log: logging.Logger, host: str | None = None) -> int:
+    """`gwc agent`: supervise this host's modules until SIGTERM (which stops them) or `gwc stop`."""
+    return asyncio.run(Agent(cfg, log, host).run())
+
+
+__all__ = ["Agent", "Policy", "agent_name", "run_agent"]
