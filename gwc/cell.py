@@ -67,10 +67,11 @@ def machine_procs(cfg: Config, machine_id: str) -> list[Proc]:
 
 
 def cell_procs(cfg: Config) -> list[Proc]:
-    """Every process of the cell in start order."""
-    procs = [Proc(m.name) for m in cfg.modules]
+    """Every process of the cell on this host, in start order (all of them in a one-host cell)."""
+    procs = [Proc(m.name) for m in cfg.modules if cfg.placed_here(m)]
     for m in cfg.machines:
-        procs += machine_procs(cfg, m.id)
+        if cfg.placed_here(m):
+            procs += machine_procs(cfg, m.id)
     return procs
 
 

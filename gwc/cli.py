@@ -7,6 +7,7 @@ Command groups live in gwc/hi/ and are added here, so this file stays an index.
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 from typing import Any
 
@@ -46,12 +47,15 @@ class GwcGroup(click.Group):
 
 @click.group(cls=GwcGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="gwc")
-def cli() -> None:
+@click.option("--host", metavar="NAME", help="Which of the cell's [[host]]s this is (else $GWC_HOST, else found).")
+def cli(host: str | None) -> None:
     """GWC, the Generic WorkCell: run and operate a factory cell.
 
     Configuration is etc/cell.toml (or $GWC_CONFIG); state is var/ (or $GWC_VAR); the database is
     the embedded PostgreSQL cluster under var/pg unless $GWC_DATABASE_URL names another.
     """
+    if host:  # through the environment, so the modules `gwc start` spawns know it too
+        os.environ["GWC_HOST"] = host
 
 
 for _name in COMMAND_MODULES:

@@ -2,7 +2,8 @@
 
 Configuration lives in etc/, state in var/ (GUIDE 4). Overrides, in order of strength:
 GWC_CONFIG (the file), GWC_VAR (the state folder), GWC_DATABASE_URL (use that server, not the
-embedded cluster).
+embedded cluster), GWC_HOST (which of the cell's [[host]]s this is, when it cannot be found from the
+machine's own addresses).
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import os
 import random
+import socket
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +44,7 @@ class BusConfig:
     group: str = "239.255.71.1"
     port: int = 47100
     interface: str = "127.0.0.1"
+    ttl: int = 1  # multicast hops: 1 keeps the bus on its LAN segment; more only through multicast routers
     heartbeat: float = 0.25
     peer_timeout: float = 1.5
     ack_timeout: float = 0.02
@@ -65,12 +68,22 @@ class MachineSpec:
     liveness: float = 3.0  # the Machine Server marks it Shutdown after this much WC silence
     level: str = "note"
     options: dict[str, Any] = field(default_factory=dict)  # kind-specific: run_time, serial, sim, ...
+    host: str | None = None  # the [[host]] it runs on; None: every host's (a one-host cell)
 
 
 @dataclass(frozen=True)
 class ModuleSpec:
     name: str
     level: str = "note"
+    host: str | None = None
+
+
+@dataclass(frozen=True)
+class HostSpec:
+    """One computer of a cell spread over several (docs/deploying.md)."""
+
+    name: str
+    address: str  # its address on the cell's LAN: the bus sends and joins the group there
 
 
 @dataclass(frozen=True)
@@ -84,6 +97,8 @@ class Config:
     modules: tuple[ModuleSpec, ...]
     machines: tuple[MachineSpec, ...]
     raw: dict[str, Any]
+    hosts: tuple[HostSpec, ...] = ()
+    host: str | None = None  # which of `hosts` this process runs on (None in a one-host cell)
 
     @property
     def log_dir(self) -> Path:
@@ -112,6 +127,10 @@ class Config:
     @property
     def embedded(self) -> bool:
         return self.database_url is None
+
+    def placed_here(self, spec: ModuleSpec | MachineSpec) -> bool:
+        """Whether a module or machine runs on this host (everything does in a one-host cell)."""
+        return self.host is None or spec.host == self.host
 
     def machine(self, machine_id: str) -> MachineSpec:
         for m in self.machines:
@@ -165,14 +184,26 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
         var = cfg_path.parent.parent / var
     bus_raw = dict(raw.get("bus", {}))
     faults = Faults(**bus_raw.pop("faults", {}))
+    hosts = tuple(HostSpec(name=h["name"], address=h["address"]) for h in raw.get("host", []))
+    if len({h.name for h in hosts}) != len(hosts):
+        raise ValueError("host names must be unique")
+    host = _this_host(hosts)
+    if host is not None:  # the bus lives on this host's LAN address, whatever [bus] says
+        bus_raw["interface"] = next(h.address for h in hosts if h.name == host)
     bus = BusConfig(**bus_raw, faults=faults)
+    if not 1 <= bus.ttl <= 255:
+        raise ValueError(f"bus.ttl must be 1..255, got {bus.ttl}")
     for rate in (faults.drop, faults.duplicate, faults.reorder):
         if not 0.0 <= rate < 1.0:
             raise ValueError(f"bus.faults rates must be in [0, 1), got {rate}")
     url = os.environ.get("GWC_DATABASE_URL") or raw.get("database", {}).get("url") or None
     default_level = _check_level(raw.get("log", {}).get("level", "note"), "log.level")
     modules = tuple(
-        ModuleSpec(name=m["name"], level=_check_level(m.get("level", default_level), f"module {m['name']}"))
+        ModuleSpec(
+            name=m["name"],
+            level=_check_level(m.get("level", default_level), f"module {m['name']}"),
+            host=_placed(m.get("host"), hosts, f"module {m['name']}"),
+        )
         for m in raw.get("module", [])
     )
     for m in modules:
@@ -191,6 +222,7 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
                 kind=kind,
                 liveness=float(m.pop("liveness", 3.0)),
                 level=_check_level(m.pop("level", default_level), f"machine {mid}"),
+                host=_placed(m.pop("host", None), hosts, f"machine {mid}"),
                 options=m,
             )
         )
@@ -210,6 +242,54 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
         modules=modules,
         machines=tuple(machines),
         raw=raw,
+        hosts=hosts,
+        host=host,
+    )
+
+
+def _placed(host: str | None, hosts: tuple[HostSpec, ...], what: str) -> str | None:
+    """A module's or machine's host, checked: a cell with [[host]]s places everything on one of them."""
+    if not hosts:
+        if host is not None:
+            raise ValueError(f"{what} names host {host!r} but the cell has no [[host]] tables")
+        return None
+    names = [h.name for h in hosts]
+    if host not in names:
+        raise ValueError(f"{what} must name its host, one of {', '.join(names)} (got {host!r})")
+    return host
+
+
+def _is_local(address: str) -> bool:
+    """Whether this machine owns an address: binding to it succeeds only then."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.bind((address, 0))
+        except OSError:
+            return False
+    return True
+
+
+def _this_host(hosts: tuple[HostSpec, ...]) -> str | None:
+    """Which [[host]] this is: GWC_HOST, else the one whose name is this machine's host name, else the one
+    whose address is this machine's. None in a one-host cell; an error if it cannot be told."""
+    if not hosts:
+        return None
+    names = [h.name for h in hosts]
+    chosen = os.environ.get("GWC_HOST")
+    if chosen:
+        if chosen not in names:
+            raise ValueError(f"GWC_HOST={chosen!r} is not one of the cell's hosts ({', '.join(names)})")
+        return chosen
+    hostname = socket.gethostname().split(".")[0]
+    if hostname in names:
+        return hostname
+    local = [h.name for h in hosts if _is_local(h.address)]
+    if len(local) == 1:
+        return local[0]
+    raise ValueError(
+        f"cannot tell which of the cell's hosts ({', '.join(names)}) this is: "
+        + ("several of their addresses are local" if local else "none has this host name or a local address")
+        + "; set GWC_HOST (or `gwc --host NAME`)"
     )
 
 
