@@ -270,7 +270,8 @@ def start_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = pr
     if cfg.embedded:
         db.cluster_start(cfg, log)
         say("database: embedded cluster running")
-    db.init_schema(cfg, log)
+    if cfg.embedded or cfg.database_url:  # another host's embedded cluster is that host's to set up
+        db.init_schema(cfg, log)
     start_agent(cfg, say)
     agent_control.call(cfg, "start", say=say)
 

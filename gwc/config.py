@@ -99,6 +99,7 @@ class Config:
     raw: dict[str, Any]
     hosts: tuple[HostSpec, ...] = ()
     host: str | None = None  # which of `hosts` this process runs on (None in a one-host cell)
+    database_host: HostSpec | None = None  # where the embedded cluster runs, in a cell over several hosts
 
     @property
     def log_dir(self) -> Path:
@@ -126,7 +127,8 @@ class Config:
 
     @property
     def embedded(self) -> bool:
-        return self.database_url is None
+        """Whether this host runs the cell's embedded cluster (not an external one, nor another host's)."""
+        return self.database_url is None and (self.database_host is None or self.database_host.name == self.host)
 
     def placed_here(self, spec: ModuleSpec | MachineSpec) -> bool:
         """Whether a module or machine runs on this host (everything does in a one-host cell)."""
@@ -244,6 +246,19 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
         raw=raw,
         hosts=hosts,
         host=host,
+        database_host=_database_host(raw.get("database", {}).get("host"), hosts, url),
+    )
+
+
+def _database_host(name: str | None, hosts: tuple[HostSpec, ...], url: str | None) -> HostSpec | None:
+    if not hosts or url:
+        return None
+    for h in hosts:
+        if h.name == name:
+            return h
+    raise ValueError(
+        f"[database] host must name the host that runs the embedded cluster "
+        f"(one of {', '.join(h.name for h in hosts)}), got {name!r}"
     )
 
 

@@ -2,8 +2,10 @@
 
 The thesis (3.2.2) asks every module to retry a failed database request and, when the failure is
 fatal, to die cleanly; `connect` and `transaction` are those two rules, written once. The embedded
-cluster is private to one cell: it lives in var/pg, listens only on a unix socket in var/run, and
-trusts local connections, so nothing outside the machine can reach it.
+cluster is private to one cell: it lives in var/pg, listens on a unix socket in var/run and trusts
+local connections. In a cell spread over several hosts it also listens on its host's address, where
+each module's role logs in with its password (scram-sha-256) from the cell's subnet only, over TLS
+when configured (docs/deploying.md).
 
 Every module connects as the superuser of the cluster and then `SET ROLE gwc_<module>`, so the
 table-ownership rule (thesis 5.1, GUIDE 4) is enforced by the server, not by convention.
@@ -18,6 +20,7 @@ import logging
 import os
 import pwd
 import re
+import secrets
 import shutil
 import stat
 import subprocess
@@ -30,7 +33,7 @@ from urllib.parse import quote, urlsplit, urlunsplit
 import psycopg
 from psycopg import sql
 
-from gwc.config import PROJECT_ROOT, Config
+from gwc.config import PROJECT_ROOT, Config, HostSpec
 from gwc.errors import DatabaseError, DatabaseUnavailable
 from gwc.retry import Backoff
 
@@ -193,7 +196,15 @@ def _conf_value(v: Any) -> str:
 
 def _write_settings(cfg: Config, owner: pwd.struct_passwd | None) -> None:
     settings = {**DEFAULT_SETTINGS, **cfg.raw.get("database", {}).get("settings", {})}
-    settings.update(listen_addresses="", unix_socket_directories=str(cfg.run_dir), port=_port(cfg))
+    host = cfg.database_host
+    settings.update(
+        listen_addresses=host.address if host else "", unix_socket_directories=str(cfg.run_dir), port=_port(cfg)
+    )
+    if host is not None:
+        _write_hba(cfg, host, owner)
+        if _tls(cfg):
+            _make_certificate(cfg, host, owner)
+            settings.update(ssl=True, ssl_cert_file="server.crt", ssl_key_file="server.key")
     lines = ["# Written by gwc.db at every start; edit etc/cell.toml [database.settings] instead."]
     lines += [f"{k} = {_conf_value(v)}" for k, v in settings.items()]
     conf = cfg.pg_dir / "gwc.conf"
@@ -204,6 +215,93 @@ def _write_settings(cfg: Config, owner: pwd.struct_passwd | None) -> None:
             f.write("\ninclude_if_exists = 'gwc.conf'\n")
     if owner is not None:
         os.chown(conf, owner.pw_uid, owner.pw_gid)
+
+
+# ----------------------------------------------------------------------------- across hosts
+
+
+def _tls(cfg: Config) -> bool:
+    return bool(cfg.raw.get("database", {}).get("tls", False))
+
+
+def secrets_dir(cfg: Config) -> Path:
+    """What every host of the cell needs and no one else may read: copied to each host by the operator."""
+    return cfg.var / "secrets"
+
+
+def _passwords_file(cfg: Config) -> Path:
+    return secrets_dir(cfg) / "database"
+
+
+def _ca_file(cfg: Config) -> Path:
+    return secrets_dir(cfg) / "database.crt"
+
+
+def role_passwords(cfg: Config) -> dict[str, str]:
+    """Each module role's password ("role password" lines, mode 0600), made on the database host."""
+    try:
+        lines = _passwords_file(cfg).read_text().splitlines()
+    except FileNotFoundError:
+        raise DatabaseError(
+            f"no database passwords at {_passwords_file(cfg)}: copy var/secrets/ from the database host "
+            "(docs/deploying.md, Keys)"
+        ) from None
+    return dict(line.split(" ", 1) for line in lines if " " in line)
+
+
+def _write_secret(path: Path, text: str) -> None:
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+
+
+def _set_role_passwords(cur: psycopg.Cursor[Any], cfg: Config) -> None:
+    """Let every module role log in from other hosts, each with its own password (made once, kept)."""
+    roles = [r for (r,) in cur.execute("select rolname from pg_roles where rolname like 'gwc\\_%' order by 1")]
+    try:
+        known = role_passwords(cfg)
+    except DatabaseError:
+        known = {}
+    passwords = {r: known.get(r) or secrets.token_urlsafe(24) for r in roles}
+    for role, password in passwords.items():
+        cur.execute(sql.SQL("alter role {} login password {}").format(sql.Identifier(role), sql.Literal(password)))
+    if passwords != known:
+        _write_secret(_passwords_file(cfg), "".join(f"{r} {p}\n" for r, p in passwords.items()))
+
+
+def _write_hba(cfg: Config, host: HostSpec, owner: pwd.struct_passwd | None) -> None:
+    """Local connections as before; from the network only the cell's subnet, each role by password."""
+    allow = cfg.raw.get("database", {}).get("allow") or f"{host.address.rsplit('.', 1)[0]}.0/24"
+    kind = "hostssl" if _tls(cfg) else "host"
+    hba = cfg.pg_dir / "pg_hba.conf"
+    hba.write_text(
+        "# Written by gwc.db at every start; edit etc/cell.toml [database] allow/tls instead.\n"
+        "local all all trust\n"
+        f"{kind} {DB_NAME} all {allow} scram-sha-256\n"
+    )
+    if owner is not None:
+        os.chown(hba, owner.pw_uid, owner.pw_gid)
+
+
+def _make_certificate(cfg: Config, host: HostSpec, owner: pwd.struct_passwd | None) -> None:
+    """A self-signed certificate for the host's address, made once; its public half goes to
+    var/secrets/, so the other hosts can verify the server they talk to (sslmode=verify-ca)."""
+    crt, key = cfg.pg_dir / "server.crt", cfg.pg_dir / "server.key"
+    if not crt.exists():
+        r = subprocess.run(
+            ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "3650", "-subj",
+             f"/CN={host.address}", "-addext", f"subjectAltName=IP:{host.address}",
+             "-keyout", str(key), "-out", str(crt)],
+            capture_output=True, text=True,
+        )  # fmt: skip
+        if r.returncode != 0:
+            raise DatabaseError(f"cannot make the database's TLS certificate: {r.stderr.strip()[-300:]}")
+        key.chmod(0o600)
+        if owner is not None:
+            for f in (crt, key):
+                os.chown(f, owner.pw_uid, owner.pw_gid)
+    _write_secret(_ca_file(cfg), crt.read_text())
 
 
 def _log_tail(path: Path, lines: int = 15) -> str:
@@ -310,11 +408,20 @@ def cluster_stop(cfg: Config, log: logging.Logger | None = None) -> None:
 # ----------------------------------------------------------------------------- connections
 
 
-def database_url(cfg: Config) -> str:
-    """The URL the cell uses: GWC_DATABASE_URL / [database] url, else the embedded cluster's socket."""
+def database_url(cfg: Config, role: str | None = None) -> str:
+    """The URL the cell uses: GWC_DATABASE_URL / [database] url, else the embedded cluster's socket, or
+    from another host of the cell its address, as the module's role (gwc_hi for the operator's tools)."""
     if cfg.database_url:
         return cfg.database_url
     port = _port(cfg)
+    host = cfg.database_host
+    if host is not None and host.name != cfg.host:
+        user = f"gwc_{role or 'hi'}"
+        password = role_passwords(cfg).get(user)
+        if password is None:
+            raise DatabaseError(f"no password for {user} in {_passwords_file(cfg)}: copy it from the database host")
+        tls = f"?sslmode=verify-ca&sslrootcert={quote(str(_ca_file(cfg)), safe='')}" if _tls(cfg) else ""
+        return f"postgresql://{user}:{quote(password, safe='')}@{host.address}:{port}/{DB_NAME}{tls}"
     return f"postgresql://{SUPERUSER}@/{DB_NAME}?host={quote(str(cfg.run_dir), safe='')}" + (
         f"&port={port}" if port != 5432 else ""
     )
@@ -346,9 +453,9 @@ def connect(
     (that is not transient: the schema has not been applied).
     """
     log = log or _log
-    url = database_url(cfg)
     if role is not None and not _ROLE.match(role):
         raise DatabaseError(f"bad database role name {role!r}")
+    url = database_url(cfg, role)
     error: Exception | None = None
     backoff = Backoff(0.1, 2.0, attempts=attempts, jitter=0.2)
     while True:
@@ -489,6 +596,8 @@ def init_schema(cfg: Config, log: logging.Logger | None = None) -> None:
                     except psycopg.Error as e:
                         raise DatabaseError(f"{path.name}: {_one_line(e)}") from e
                 _register_machines(cur, cfg)
+                if cfg.database_host is not None:
+                    _set_role_passwords(cur, cfg)
         except psycopg.Error as e:
             raise DatabaseError(f"applying the schema failed: {_one_line(e)}") from e
     log.info("schema applied (%s)", ", ".join(p.name for p in files))

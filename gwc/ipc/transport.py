@@ -78,7 +78,7 @@ def open_socket(cfg: BusConfig, port: int | None = None) -> socket.socket:
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton(cfg.group) + iface)
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, iface)
         sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
-        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, struct.pack("b", 1))
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, struct.pack("B", cfg.ttl))
         if sys.platform.startswith("linux"):
             # Only the groups this socket joined: without it Linux hands us every group joined on the
             # host at this port, and two cells on one port but different groups would hear each other.

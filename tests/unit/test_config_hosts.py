@@ -7,9 +7,10 @@ from typing import Any
 
 import pytest
 
+from gwc import db
 from gwc.cell import cell_procs
 from gwc.config import write_config
-from gwc.errors import ConfigError
+from gwc.errors import ConfigError, DatabaseError
 
 HOSTS = [{"name": "h1", "address": "127.0.0.1"}, {"name": "h2", "address": "198.51.100.7"}]
 
@@ -18,6 +19,7 @@ def placed(tmp_path: Path, **doc: Any) -> Any:
     base: dict[str, Any] = {
         "cell": {"name": "t", "var": str(tmp_path / "var")},
         "host": HOSTS,
+        "database": {"host": "h1"},
         "module": [{"name": "ms", "host": "h1"}, {"name": "msched", "host": "h1"}],
         "machine": [{"id": "wc1", "kind": "dummy", "host": "h2"}, {"id": "wc2", "kind": "dummy", "host": "h1"}],
     }
@@ -44,6 +46,22 @@ def test_gwc_host_chooses_the_host_and_only_its_modules_and_machines_start_there
     assert [p.name for p in cell_procs(placed(tmp_path))] == ["ms", "msched", "me:wc2", "wc:wc2"]
 
 
+def test_the_database_host_runs_the_embedded_cluster_and_the_others_reach_it_by_password(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("GWC_HOST", "h1")
+    assert placed(tmp_path).embedded
+    monkeypatch.setenv("GWC_HOST", "h2")
+    cfg = placed(tmp_path)
+    assert not cfg.embedded
+    with pytest.raises(DatabaseError, match="copy var/secrets/ from the database host"):
+        db.database_url(cfg, "wc")
+    (cfg.var / "secrets").mkdir(parents=True)
+    (cfg.var / "secrets" / "database").write_text("gwc_wc s3cr/t\ngwc_hi other\n")
+    assert db.database_url(cfg, "wc") == "postgresql://gwc_wc:s3cr%2Ft@127.0.0.1:5432/gwc"
+    assert db.database_url(cfg).startswith("postgresql://gwc_hi:other@127.0.0.1:5432/gwc")
+
+
 def test_a_one_host_cell_runs_everything_here(tmp_path: Path) -> None:
     cfg = placed(tmp_path, host=[], module=[{"name": "ms"}], machine=[{"id": "wc1", "kind": "dummy"}])
     assert cfg.host is None
@@ -66,6 +84,7 @@ def test_a_one_host_cell_runs_everything_here(tmp_path: Path) -> None:
             "cannot tell which of the cell's hosts",
         ),
         ({"bus": {"ttl": 0}}, "h1", "bus.ttl must be 1..255"),
+        ({"database": {"host": "h5"}}, "h1", "\\[database\\] host must name the host that runs the embedded"),
         ({"host": [], "module": [{"name": "ms", "host": "h1"}], "machine": []}, "", "has no \\[\\[host\\]\\] tables"),
     ],
 )
