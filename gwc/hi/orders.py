@@ -25,7 +25,7 @@ import psycopg
 from gwc import db
 from gwc.cell import hi_bus, read_pid
 from gwc.config import PROJECT_ROOT, Config
-from gwc.errors import GwcError
+from gwc.errors import GwcError, Refused
 from gwc.hi import context, json_option, table
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import message
@@ -222,14 +222,27 @@ def order_status(states: dict[str, int] | None) -> str:
     return "RUNNING"
 
 
-def list_orders(cfg: Config, log: logging.Logger, work_order: int | None = None) -> list[dict[str, Any]]:
-    with hi_conn(cfg, log) as conn:
-        where = " WHERE w.work_order_id = %s" if work_order is not None else ""
-        rows = rows_of(
-            conn,
-            ORDER_STATUS_SQL + where + " ORDER BY w.work_order_id",
-            *([work_order] if work_order is not None else []),
-        )
+def read_rows(
+    cfg: Config, log: logging.Logger, conn: psycopg.Connection[Any] | None, sql: str, *params: Any
+) -> list[dict[str, Any]]:
+    """rows_of on the caller's connection (a screen that stays open keeps one), or on a new one."""
+    if conn is not None:
+        return rows_of(conn, sql, *params)
+    with hi_conn(cfg, log) as own:
+        return rows_of(own, sql, *params)
+
+
+def list_orders(
+    cfg: Config, log: logging.Logger, work_order: int | None = None, conn: psycopg.Connection[Any] | None = None
+) -> list[dict[str, Any]]:
+    where = " WHERE w.work_order_id = %s" if work_order is not None else ""
+    rows = read_rows(
+        cfg,
+        log,
+        conn,
+        ORDER_STATUS_SQL + where + " ORDER BY w.work_order_id",
+        *([work_order] if work_order is not None else []),
+    )
     for r in rows:
         r["status"] = order_status(r["states"])
         r["lots"] = ", ".join(f"{n} {s}" for s, n in sorted((r.pop("states") or {}).items()))
@@ -279,15 +292,19 @@ SELECT s.entity_id AS entity, s.lot_id AS lot, l.work_order_id AS work_order, l.
 
 
 def list_lots(
-    cfg: Config, log: logging.Logger, work_order: int | None = None, state: str | None = None, entity: int | None = None
+    cfg: Config,
+    log: logging.Logger,
+    work_order: int | None = None,
+    state: str | None = None,
+    entity: int | None = None,
+    conn: psycopg.Connection[Any] | None = None,
 ) -> list[dict[str, Any]]:
     sql, params = LOTS_SQL, []
     for col, value in (("l.work_order_id", work_order), ("s.state", state), ("s.entity_id", entity)):
         if value is not None:
             sql += f" AND {col} = %s"
             params.append(value)
-    with hi_conn(cfg, log) as conn:
-        rows = rows_of(conn, sql + " ORDER BY s.entity_id", *params)
+    rows = read_rows(cfg, log, conn, sql + " ORDER BY s.entity_id", *params)
     for r in rows:
         r["script"] = script_alive(cfg, r["entity"], r.pop("script_pid"))
     return rows
@@ -341,7 +358,7 @@ def decide(bus: BlockingBus, entity_id: int, action: str, by: str) -> int | None
     if ack.ack_code == AckCode.UNKNOWN:
         raise GwcError(f"unknown lot entity {entity_id} (see `gwc lots`)")
     if ack.ack_code != AckCode.ACK_OK:
-        raise GwcError(f"cannot {action} entity {entity_id}: {ack.note or ack.ack_code}")
+        raise Refused(ack.ack_code, ack.note or f"cannot {action} entity {entity_id}")
     return ack.lot_id
 
 

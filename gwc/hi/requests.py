@@ -9,12 +9,14 @@ from __future__ import annotations
 from typing import Any
 
 import click
+import psycopg
 
 from gwc import db
 from gwc.cell import hi_bus
 from gwc.errors import GwcError, Refused
 from gwc.hi import context, table
-from gwc.ipc.catalogue import message
+from gwc.ipc.bus import BlockingBus
+from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 
 CANCEL_TIMEOUT = 10.0
@@ -43,13 +45,33 @@ def _rows(cur: Any, sql: str) -> list[dict[str, Any]]:
     return [dict(zip(cols, r)) for r in cur.fetchall()]
 
 
+def request_tables(conn: psycopg.Connection[Any]) -> tuple[list[dict[str, Any]], ...]:
+    """MREQ's three tables: the requests waiting, the reserved machines, the answers not yet acknowledged."""
+    with conn.cursor() as cur:
+        tables = tuple(_rows(cur, q) for q in (_QUEUE, _RESERVED, _TELLING))
+    conn.rollback()
+    return tables
+
+
+def cancel_request(bus: BlockingBus, request_key: int | None, entity_id: int | None, by: str) -> Message:
+    """CANCEL_RE to MSCHED (one request, or every request of an entity); returns its Cancel_Req_Ack."""
+    conv, batch = bus.request(
+        "CANCEL_RE",
+        message("Cancel_Request", request_key=request_key, entity_id=entity_id, by=by),
+        to="msched",
+        timeout=CANCEL_TIMEOUT,
+    )
+    conv.end()
+    return batch.first
+
+
 @click.command("requests")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON for scripts instead of tables.")
 def requests(as_json: bool) -> None:
     """The machine request queue (oldest first), the reserved machines, and answers not yet acknowledged."""
     cfg, log = context()
-    with db.connect(cfg, role="hi", log=log) as conn, conn.cursor() as cur:
-        queue, reserved, telling = (_rows(cur, q) for q in (_QUEUE, _RESERVED, _TELLING))
+    with db.connect(cfg, role="hi", log=log) as conn:
+        queue, reserved, telling = request_tables(conn)
     if as_json:
         table([{"requests": queue, "reserved": reserved, "telling": telling}], [], as_json=True)
         return
@@ -72,14 +94,7 @@ def cancel(request_key: int | None, entity_id: int | None) -> None:
     cfg, log = context()
     what = f"request {request_key}" if request_key is not None else f"the requests of entity {entity_id}"
     with hi_bus(cfg, log) as bus:
-        conv, batch = bus.request(
-            "CANCEL_RE",
-            message("Cancel_Request", request_key=request_key, entity_id=entity_id, by=f"hi.{cfg.cell_name}"),
-            to="msched",
-            timeout=CANCEL_TIMEOUT,
-        )
-        conv.end()
-    ack = batch.first
+        ack = cancel_request(bus, request_key, entity_id, f"hi.{cfg.cell_name}")
     if ack.ack_code == AckCode.REQ_KEY_U:
         raise GwcError(f"nothing waiting to cancel for {what} (REQ_KEY_U): see `gwc requests`")
     if ack.ack_code != AckCode.ACK_OK:

@@ -8,20 +8,43 @@ from enum import StrEnum
 class AckCode(StrEnum):
     """The answer carried by every acknowledgement, on the bus and on the WC<->ME queues."""
 
-    ACK_OK = "ACK_OK"  # done
-    NO_MACHINE = "NO_MACHINE"  # a requested machine does not exist, is shut down, or MSCHED shut down
-    REQ_CANCEL = "REQ_CANCEL"  # the request was cancelled (operator or entity)
-    REQ_KEY_U = "REQ_KEY_U"  # cancel: no such request_key (nothing to cancel)
-    NOT_RESERVED = "Not_Reserv"  # unreserve: the machine is not reserved by that entity
-    NOTNOW = "Notnow"  # the module or machine is in a state that does not allow this now
-    DB_BADREA = "DB_Badrea"  # a database read failed
-    DB_BADUPD = "DB_Badupd"  # a database update failed
-    REC_INVAL = "Rec_Inval"  # recipe unknown, not for this machine/op type, or its checksum is wrong
-    START_FAIL = "Start_Fail"  # startup or a run could not be started
-    RUN_FAIL = "Run_Fail"  # the machine reported a failed run
-    BAD_MESSAGE = "Bad_message"  # the message is malformed or does not fit its conversation
-    UNKNOWN = "Unknown"  # unknown entity, lot, alarm, machine ...
-    TIMEOUT = "Timeout"  # a peer (ME, server) did not answer in time
+    ACK_OK = "ACK_OK"
+    NO_MACHINE = "NO_MACHINE"
+    REQ_CANCEL = "REQ_CANCEL"
+    REQ_KEY_U = "REQ_KEY_U"
+    NOT_RESERVED = "Not_Reserv"
+    NOTNOW = "Notnow"
+    DB_BADREA = "DB_Badrea"
+    DB_BADUPD = "DB_Badupd"
+    REC_INVAL = "Rec_Inval"
+    START_FAIL = "Start_Fail"
+    RUN_FAIL = "Run_Fail"
+    BAD_MESSAGE = "Bad_message"
+    UNKNOWN = "Unknown"
+    TIMEOUT = "Timeout"
+
+    @property
+    def words(self) -> str:
+        """What the code means, for a person (the console shows it beside the code)."""
+        return _ACK_WORDS[self]
+
+
+_ACK_WORDS = {
+    AckCode.ACK_OK: "done",
+    AckCode.NO_MACHINE: "a requested machine does not exist, is shut down, or MSCHED shut down",
+    AckCode.REQ_CANCEL: "the request was cancelled (operator or entity)",
+    AckCode.REQ_KEY_U: "no such request key: nothing to cancel",
+    AckCode.NOT_RESERVED: "the machine is not reserved by that entity",
+    AckCode.NOTNOW: "the module or machine is in a state that does not allow this now",
+    AckCode.DB_BADREA: "a database read failed",
+    AckCode.DB_BADUPD: "a database update failed",
+    AckCode.REC_INVAL: "recipe unknown, not for this machine or op type, or its checksum is wrong",
+    AckCode.START_FAIL: "the startup or the run could not be started",
+    AckCode.RUN_FAIL: "the machine reported a failed run",
+    AckCode.BAD_MESSAGE: "the message is malformed or does not fit its conversation",
+    AckCode.UNKNOWN: "unknown entity, lot, alarm or machine",
+    AckCode.TIMEOUT: "a peer (ME, server) did not answer in time",
+}
 
 
 class MachineStatus(StrEnum):

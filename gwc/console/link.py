@@ -1,0 +1,323 @@
+"""The console's side of the cell, without a user interface: what it hears, reads and asks.
+
+* It hears the bus as the monitor does (a silent listener thread, gwc.hi.monitor.watch): every
+  conversation is kept for the monitor view and names the views it makes stale (VIEWS_OF), so a
+  view is read again only when the cell said something that concerns it.
+* It reads what the bus does not carry (the rows behind a view) on one database connection kept
+  open as role gwc_hi, opened again after the database comes back.
+* It acts through its own bus attachment (a `hi.` name like every `gwc` command), with the very
+  functions the `gwc` commands call, so an action is the same conversation the command holds; each
+  answer comes back as an Answer with the ack code in words.
+"""
+
+from __future__ import annotations
+
+import collections
+import getpass
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import psycopg
+
+from gwc import cell, db
+from gwc.config import Config
+from gwc.errors import GwcError, Refused
+from gwc.hi.alarm import clear_alarm, read_status_line
+from gwc.hi.machine import start_machine, stop_machine
+from gwc.hi.monitor import watch
+from gwc.hi.orders import decide, enter_order
+from gwc.hi.requests import cancel_request
+from gwc.ipc.bus import BlockingBus, Peer
+from gwc.ipc.codes import AckCode, LotState
+
+T = TypeVar("T")
+
+RECORDS_MAX = 5000  # conversations held for the monitor view between two looks
+DB_RETRY = 2.0  # seconds between attempts to reach a database that is down
+START_TIMEOUT = 600.0  # a machine being homed waits for its operator (as `gwc machine start`)
+STOP_TIMEOUT = 60.0
+
+# Which views each conversation class makes stale. The status line follows what it counts.
+VIEWS_OF: dict[str, tuple[str, ...]] = {
+    "STARTUP": ("modules",),
+    "SHUTDOWN": ("modules",),
+    "ME_START": ("machines", "modules"),
+    "ME_SHUT": ("machines", "modules", "requests"),
+    "UPD_ME_ST": ("machines", "requests"),
+    "CHG_STATUS": ("machines",),
+    "ACC_TYP_C": ("machines",),
+    "MAINT_DONE": ("machines",),
+    "SETUP_RUN": ("machines",),
+    "START_RUN": ("machines",),
+    "RUN_COMPL": ("machines", "lots"),
+    "MACH_REQ": ("requests", "lots"),
+    "CANCEL_RE": ("requests", "lots"),
+    "UNRESERVE": ("requests", "lots"),
+    "CREATE_LOT": ("lots", "orders"),
+    "ENTITY_REQ": ("lots", "orders", "status"),
+    "IMPORT_LOT": ("lots", "orders", "status"),
+    "EXPORT_LOT": ("lots", "orders", "status"),
+    "LOT_MOVED": ("lots", "orders", "status"),
+    "DIV_MERGE": ("lots", "orders"),
+    "ALARM_SEND": ("alarms", "status"),
+    "ALARM_CLE": ("alarms", "status"),
+    "ALARM_CLR_REQ": ("alarms", "status"),
+    "CELL_EVENT": ("status",),
+}
+
+
+@dataclass(frozen=True)
+class Answer:
+    """The cell's answer to one action, as the console shows it."""
+
+    ok: bool
+    text: str
+
+
+def in_words(code: str) -> str:
+    """An ack code and what it means: `Notnow (the module or machine is in a state ...)`."""
+    try:
+        return f"{code} ({AckCode(code).words})"
+    except ValueError:
+        return str(code)
+
+
+def operator() -> str:
+    """Who the console acts for, as the cell's history records it."""
+    try:
+        return f"console:{getpass.getuser()}"
+    except (KeyError, OSError):
+        return f"console:{os.getuid()}"
+
+
+class CellLink:
+    """One console's attachment to a cell. open() before use, close() at the end (safe twice)."""
+
+    def __init__(self, cfg: Config, log: logging.Logger) -> None:
+        self.cfg = cfg
+        self.log = log
+        self.bus: BlockingBus | None = None
+        self.db_error: str | None = None
+        self._conn: psycopg.Connection[Any] | None = None
+        self._conn_lock = threading.Lock()
+        self._next_connect = 0.0
+        self._records: collections.deque[dict[str, Any]] = collections.deque(maxlen=RECORDS_MAX)
+        self._stop = threading.Event()
+        self._listener: threading.Thread | None = None
+
+    # ----------------------------------------------------------------- lifetime
+
+    def open(self) -> None:
+        self.bus = cell.hi_bus(self.cfg, self.log)
+        self._listener = threading.Thread(target=self._listen, name="console-listener", daemon=True)
+        self._listener.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._listener is not None:
+            self._listener.join(2)
+        if self.bus is not None:
+            self.bus.close()
+        with self._conn_lock:
+            if self._conn is not None:
+                self._conn.close()
+                self._conn = None
+
+    def _listen(self) -> None:
+        try:
+            watch(self.cfg.bus, self._records.append, self._stop.is_set)
+        except Exception:  # the views go on without it; the log says why
+            self.log.exception("console: the bus listener stopped")
+
+    def heard(self) -> list[dict[str, Any]]:
+        """Every conversation message heard since the last call, oldest first."""
+        out = []
+        while self._records:
+            out.append(self._records.popleft())
+        return out
+
+    # ----------------------------------------------------------------- the bus
+
+    def peers(self) -> dict[str, Peer]:
+        """The modules on the bus now (other HIs and consoles left out)."""
+        assert self.bus is not None
+        return {n: p for n, p in self.bus.peers().items() if not n.startswith("hi.")}
+
+    def _need(self, name: str) -> None:
+        if name not in self.peers():
+            raise GwcError(f"{name} is not on the bus: is the cell running?")
+
+    # ----------------------------------------------------------------- the database
+
+    def read(self, fn: Callable[[psycopg.Connection[Any]], T]) -> T | None:
+        """fn(conn) on the console's connection; None while the database cannot be reached (db_error says why)."""
+        with self._conn_lock:
+            if self._conn is None or self._conn.closed:
+                if time.monotonic() < self._next_connect:
+                    return None
+                try:
+                    self._conn = db.connect(self.cfg, role="hi", log=self.log, attempts=1)
+                    self._conn.autocommit = True
+                except GwcError as e:
+                    self._next_connect = time.monotonic() + DB_RETRY
+                    self.db_error = f"unreachable ({str(e).split(' (')[0]})"
+                    return None
+            try:
+                result = fn(self._conn)
+            except psycopg.OperationalError as e:
+                self.log.warning("console: database read failed: %s", e)
+                self.db_error = "unreachable (the connection was lost; trying again)"
+                self._conn.close()
+                self._conn = None
+                return None
+            self.db_error = None
+            return result
+
+    # ----------------------------------------------------------------- actions (worker threads)
+
+    def act(self, what: str, fn: Callable[[], str]) -> Answer:
+        """Run one action; its answer (or why it was refused) as one line, logged to the console's log."""
+        try:
+            answer = Answer(True, f"{what}: {fn()}")
+        except Refused as e:
+            answer = Answer(False, f"{what}: refused, {in_words(e.ack_code)}" + _detail(e))
+        except GwcError as e:
+            answer = Answer(False, f"{what}: {e}")
+        self.log.info("%s", answer.text)
+        return answer
+
+    def decide(self, entity_id: int, action: str) -> Answer:
+        """IMPORT_LOT or EXPORT_LOT, as `gwc import` / `gwc export`."""
+
+        def go() -> str:
+            assert self.bus is not None
+            self._need("ls")
+            lot = decide(self.bus, entity_id, action, operator())
+            return f"{in_words(AckCode.ACK_OK)}, lot {lot}"
+
+        return self.act(f"{action} entity {entity_id}", go)
+
+    def decide_all(self, action: str, entities: Iterable[int]) -> list[Answer]:
+        return [self.decide(e, action) for e in entities]
+
+    def start_machine(self, machine_id: str) -> Answer:
+        """Its processes if they are down, then ME_START, as `gwc machine start`."""
+
+        def go() -> str:
+            assert self.bus is not None
+            return start_machine(self.cfg, self.bus, machine_id, self.log.info, START_TIMEOUT)
+
+        return self.act(f"start machine {machine_id} (ME_START)", go)
+
+    def stop_machine(self, machine_id: str) -> Answer:
+        """ME_SHUT, as `gwc machine stop`."""
+
+        def go() -> str:
+            assert self.bus is not None
+            return stop_machine(self.cfg, self.bus, machine_id, STOP_TIMEOUT)
+
+        return self.act(f"stop machine {machine_id} (ME_SHUT)", go)
+
+    def start_module(self, name: str) -> Answer:
+        """A server: its process if it is not running, then STARTUP (as `gwc start` does for each)."""
+        if name.startswith("wc:"):
+            return self.start_machine(name[3:])
+
+        def go() -> str:
+            assert self.bus is not None
+            if name in self.peers():
+                return cell.startup(self.bus, name)
+            procs = [p for p in cell.cell_procs(self.cfg) if p.name == name]
+            if not procs:
+                raise GwcError(f"{name} is not a module of this cell ({self.cfg.path})")
+            said: list[str] = []
+            cell.start_procs(self.cfg, procs, self.bus, said.append)
+            return "; ".join(said)
+
+        return self.act(f"start {name} (STARTUP)", go)
+
+    def stop_module(self, name: str) -> Answer:
+        """A server: SHUTDOWN (it stays on the bus, listening for STARTUP); a WC: ME_SHUT."""
+        if name.startswith("wc:"):
+            return self.stop_machine(name[3:])
+
+        def go() -> str:
+            assert self.bus is not None
+            self._need(name)
+            return cell.shutdown(self.bus, name)
+
+        return self.act(f"stop {name} (SHUTDOWN)", go)
+
+    def start_cell(self) -> Answer:
+        """Database, servers and machines' processes, as `gwc start`."""
+
+        def go() -> str:
+            cell.start_cell(self.cfg, self.log, say=self.log.info)
+            return "cell started"
+
+        return self.act("start the cell", go)
+
+    def clear_alarm(self, alarm_no: int) -> Answer:
+        """ALARM_CLR_REQ, as `gwc alarm clear`."""
+
+        def go() -> str:
+            assert self.bus is not None
+            self._need("cas")
+            ack = clear_alarm(self.bus, alarm_no, operator())
+            if ack.ack_code != AckCode.ACK_OK:
+                raise Refused(ack.ack_code, ack.note or "")
+            return in_words(ack.ack_code)
+
+        return self.act(f"clear alarm {alarm_no}", go)
+
+    def cancel_request(self, request_key: int) -> Answer:
+        """CANCEL_RE, as `gwc cancel`."""
+
+        def go() -> str:
+            assert self.bus is not None
+            self._need("msched")
+            ack = cancel_request(self.bus, request_key, None, operator())
+            if ack.ack_code != AckCode.ACK_OK:
+                raise Refused(ack.ack_code, ack.note or "")
+            return f"{in_words(ack.ack_code)}: {ack.cancelled} request(s) cancelled, the entity was told REQ_CANCEL"
+
+        return self.act(f"cancel request {request_key}", go)
+
+    def enter_order(self, customer: str, items: list[tuple[str, int]]) -> Answer:
+        """Work Order Entry, as `gwc order new`: the order, its lots, one lot script per entity."""
+
+        def go() -> str:
+            assert self.bus is not None
+            made = enter_order(self.cfg, self.log, self.bus, customer, items)
+            lots = "; ".join(
+                f"lot {lot['lot_id']}: {lot['quantity']} x {lot['product_id']} "
+                f"(entities {', '.join(map(str, lot['entities']))})"
+                for lot in made["lots"]
+            )
+            return f"work order {made['work_order_id']} entered, {lots}"
+
+        return self.act(f"work order for {customer}", go)
+
+    def status_line(self) -> str:
+        """The Status Line Server's line (STATUS_LN), as `gwc status-line`."""
+        assert self.bus is not None
+        if "sls" not in self.peers():
+            return "Status Line Server not on the bus"
+        try:
+            return read_status_line(self.bus).text
+        except GwcError as e:
+            return f"status line: {e}"
+
+
+def _detail(e: Refused) -> str:
+    text = str(e)
+    _, _, detail = text.partition(": ")
+    return f": {detail}" if detail else ""
+
+
+WAITING = {"import": LotState.WAITING_IMPORT.value, "export": LotState.WAITING_EXPORT.value}

@@ -1,0 +1,184 @@
+"""`gwc console` against a real running cell: Textual's pilot drives the app in this process, the
+cell's modules are real processes; the checks look at the cell (its tables, `gwc` commands), not at
+the console's own idea of it. One run in a real terminal (tmux) proves `gwc console` as typed."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+from textual.pilot import Pilot
+from textual.widgets import DataTable, Input, Select
+
+from gwc.console.app import ConsoleApp
+from gwc.ipc.catalogue import message
+from gwc.log import open_log
+from tests.e2e.lotkit import gwc, ok
+from tests.harness import CellHarness, wait_for
+
+pytestmark = pytest.mark.e2e
+
+MACHINES = [{"id": "wc1", "kind": "dummy", "run_time": 0.2}, {"id": "wc2", "kind": "dummy", "run_time": 0.2}]
+
+
+async def until(pilot: Pilot[Any], predicate: Callable[[], Any], timeout: float, what: str) -> Any:
+    """wait_for for the pilot: the app keeps running while we wait."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:.1f}s waiting for {what}")
+        await pilot.pause(0.05)
+
+
+def table_keys(app: ConsoleApp, table_id: str) -> list[str]:
+    table = app._views[table_id].query_one(f"#table-{table_id}", DataTable)
+    return [str(k.value) for k in table.rows]
+
+
+def select_row(app: ConsoleApp, view: str, key: str) -> None:
+    table = app._views[view].query_one(f"#table-{view}", DataTable)
+    table.move_cursor(row=table.get_row_index(key))
+
+
+def console(cell: CellHarness) -> ConsoleApp:
+    return ConsoleApp(cell.cfg, open_log("console", cell.cfg.log_dir, "note"))
+
+
+def lot_states(cell: CellHarness) -> dict[int, str]:
+    return {e: s for e, s in cell.query("SELECT entity_id, state FROM lot_status")}
+
+
+def test_order_entered_in_the_form_makes_its_lots_and_a_waiting_lot_is_imported_with_one_key(lot_cell: Any) -> None:
+    cell = lot_cell(machines=MACHINES)
+    cell.start_servers()
+
+    async def drive() -> None:
+        app = console(cell)
+        async with app.run_test(size=(160, 45)) as pilot:
+            await pilot.press("3")  # WOEN
+            customer, product = app.query_one("#customer", Select), app.query_one("#product", Select)
+            await until(pilot, lambda: len(product._options) > 1, 10, "the product picker to be filled")
+            customer.value = "NJIT"
+            product.value = "milled_pawn"
+            app.query_one("#quantity", Input).value = "2"
+            await pilot.press("ctrl+s")
+            answer = await until(pilot, lambda: [a for a in app.answers if "work order" in a.text], 30, "the answer")
+            assert answer[0].ok, answer[0].text
+            entities = sorted(lot_states(cell))
+            assert len(entities) == 2, answer[0].text
+
+            await pilot.press("2")  # DISP: the lots appear as they ask to be imported
+            await until(
+                pilot,
+                lambda: (
+                    all(lot_states(cell).get(e) == "waiting_import" for e in entities)
+                    and {str(e) for e in entities} <= set(table_keys(app, "lots"))
+                ),
+                20,
+                "both lots listed, waiting for import",
+            )
+            await until(
+                pilot,
+                lambda: [r for r in app._views["lots"].rows if r["state"] == "waiting_import"],
+                2,
+                "the dispatch list to show them waiting",
+            )
+            select_row(app, "lots", str(entities[0]))
+            await pilot.press("i")  # one key
+            await until(pilot, lambda: lot_states(cell)[entities[0]] != "waiting_import", 15, "the import")
+            assert lot_states(cell)[entities[1]] == "waiting_import"
+            assert any(a.ok and f"import entity {entities[0]}: ACK_OK (done)" in a.text for a in app.answers)
+            # The view follows the cell by itself (the bus said so), within half a second.
+            imported = time.monotonic()
+            await until(
+                pilot,
+                lambda: (
+                    next(r for r in app._views["lots"].rows if r["entity"] == entities[0])["state"] != "waiting_import"
+                ),
+                5,
+                "the dispatch list to show the import",
+            )
+            assert time.monotonic() - imported < 1.0
+            await pilot.press("q")
+
+    asyncio.run(drive())
+
+
+def test_machine_stopped_and_alarm_cleared_from_the_console_change_the_cell(cell: CellHarness) -> None:
+    cell.start_servers()
+    cell.start_machine_processes("wc1")
+    conv, batch = cell.bus.request("ME_START", message("Startup_Request", module="wc:wc1"), to="wc:wc1")
+    conv.end()
+    wait_for(lambda: cell.query("SELECT status FROM machine_status WHERE machine_id='wc1'") == [("Idle",)], 20, "Idle")
+    conv, batch = cell.bus.request(
+        "ALARM_SEND", message("Alarm_Send", alarm_id="HOME_CMM", machine_id="wc1", raised_by="test"), to="cas"
+    )
+    conv.end()
+    alarm_no = batch.first.alarm_no
+
+    async def drive() -> None:
+        app = console(cell)
+        async with app.run_test(size=(160, 45)) as pilot:
+            await until(pilot, lambda: "Idle" in str(app._views["machines"].rows), 10, "wc1 Idle in MSTT")
+            select_row(app, "machines", "wc1")
+            await pilot.press("x")  # Idle: no run to lose, no question
+            await until(pilot, lambda: any("stop machine wc1" in a.text for a in app.answers), 30, "the answer")
+            assert [a.text for a in app.answers if "stop machine wc1" in a.text] == [
+                "stop machine wc1 (ME_SHUT): shut down"
+            ]
+            await until(
+                pilot, lambda: "Shutdown" in str(app._views["machines"].rows), 2, "MSTT to show Shutdown by itself"
+            )
+
+            await pilot.press("6")
+            await until(pilot, lambda: str(alarm_no) in table_keys(app, "alarms"), 10, "the alarm listed")
+            select_row(app, "alarms", str(alarm_no))
+            await pilot.press("c")
+            await until(pilot, lambda: any("clear alarm" in a.text for a in app.answers), 15, "the answer")
+            assert any(a.text == f"clear alarm {alarm_no}: ACK_OK (done)" for a in app.answers), app.answers
+            await until(pilot, lambda: str(alarm_no) not in table_keys(app, "alarms"), 2, "the alarm to go")
+            await pilot.press("q")
+
+    asyncio.run(drive())
+    status = {r["machine_id"]: r["status"] for r in json.loads(ok(gwc(cell, "machine", "status", "--json")))}
+    assert status["wc1"] == "Shutdown"
+    assert json.loads(ok(gwc(cell, "alarm", "list", "--json"))) == []
+    assert cell.query("SELECT cleared_by FROM alarms WHERE alarm_no = %s", alarm_no)[0][0].startswith("console:")
+
+
+@pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed (bin/setup installs it when root)")
+def test_gwc_console_in_a_terminal_shows_every_machine_and_quits_on_q(cell: CellHarness) -> None:
+    cell.start_servers()
+    for m in ("wc1", "wc2", "cmm_wc"):
+        cell.start_machine_processes(m)
+    session = f"gwc-console-{cell.tag}"
+    env = [shlex.quote(f"{k}={v}") for k, v in cell.env().items() if k.startswith(("GWC_", "PYTHON", "PATH", "HOME"))]
+    done = cell.var / "console.exit"
+    cmd = f"env {' '.join(env)} TERM=xterm-256color {sys.executable} -m gwc console; echo $? > {done}"
+    tmux = ["tmux", "-L", session]
+    subprocess.run([*tmux, "new-session", "-d", "-s", session, "-x", "160", "-y", "45", cmd], check=True)
+    try:
+
+        def screen() -> str:
+            return subprocess.run([*tmux, "capture-pane", "-p", "-t", session], capture_output=True, text=True).stdout
+
+        try:
+            wait_for(lambda: all(m in screen() for m in ("wc1", "wc2", "cmm_wc")) and "cell UP" in screen(), 30, "MSTT")
+        except AssertionError as e:
+            raise AssertionError(f"{e}; the terminal shows:\n{screen()}") from None
+        subprocess.run([*tmux, "send-keys", "-t", session, "q"], check=True)
+        wait_for(done.exists, 10, "the console to quit")
+        assert done.read_text().strip() == "0"
+    finally:
+        subprocess.run([*tmux, "kill-server"], capture_output=True)
