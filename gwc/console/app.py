@@ -325,40 +325,51 @@ class AlarmsView(View):
 
 class ModulesView(View):
     name_ = "modules"
-    columns = ("module", "process", "bus", "since")
+    columns = ("module", "state", "pid", "uptime", "restarts", "last_exit", "bus")
     key = "module"
-    help = "STRT: the cell's modules.  s start (STARTUP / ME_START)  x stop (SHUTDOWN / ME_SHUT)  S start the cell"
+    help = (
+        "STRT: the cell's modules (under this host's agent where one runs).  s start  x stop  R restart  "
+        "S start the cell"
+    )
     BINDINGS: ClassVar[list[BindingType]] = [
         ("s", "start", "Start"),
         ("x", "stop", "Stop"),
+        ("R", "restart", "Restart"),
         ("S", "start_cell", "Start cell"),
     ]
 
     def fetch(self, link: CellLink) -> list[dict[str, Any]] | None:
         peers = link.peers()
-        rows = []
-        for st in cell_status(link.cfg):
-            peer = peers.get(st.name)
+        agent, rows = cell_status(link.cfg)
+        for r in rows:
+            peer = peers.get(r["module"])
             if peer is None:
-                bus = "-"
-            elif st.name.startswith("wc:"):
-                bus = "on bus"
+                r["bus"] = "-"
+            elif r["module"].startswith("wc:"):
+                r["bus"] = "on bus"
             else:
-                bus = "started" if "SHUTDOWN" in peer.interest else "on bus, not started"
-            process = f"pid {st.pid}" if st.alive else ("dead" if st.pid else "not running")
-            rows.append({"module": st.name, "process": process, "bus": bus, "since": st.since if st.pid else None})
-        return rows
+                r["bus"] = "started" if "SHUTDOWN" in peer.interest else "on bus, not started"
+        agent_row = {"module": "agent", "state": "RUNNING" if agent else "not running (unsupervised)"}
+        return [{**agent_row, **(agent or {}), "module": "agent"}, *rows]
 
     def action_start(self) -> None:
         row = self.selected()
-        if row:
+        if row and row["module"] != "agent":
             self.console.act(lambda link: link.start_module(row["module"]))
 
     def action_stop(self) -> None:
         row = self.selected()
-        if row:
+        if row and row["module"] != "agent":
             name = row["module"]
             self.console.confirm(f"Stop {name}?", lambda link: link.stop_module(name))
+
+    def action_restart(self) -> None:
+        row = self.selected()
+        if row and row["module"] != "agent":
+            name = row["module"]
+            self.console.confirm(
+                f"Restart {name} (stop its process, start it again)?", lambda link: link.restart_module(name)
+            )
 
     def action_start_cell(self) -> None:
         self.console.act(lambda link: link.start_cell())

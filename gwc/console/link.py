@@ -25,6 +25,7 @@ from typing import Any, TypeVar
 import psycopg
 
 from gwc import cell, db
+from gwc.agent import control as agent_control
 from gwc.config import Config
 from gwc.errors import GwcError, Refused
 from gwc.hi.alarm import clear_alarm, read_status_line
@@ -224,34 +225,50 @@ class CellLink:
         return self.act(f"stop machine {machine_id} (ME_SHUT)", go)
 
     def start_module(self, name: str) -> Answer:
-        """A server: its process if it is not running, then STARTUP (as `gwc start` does for each)."""
+        """A WC: ME_START. A server: through the agent where one runs (as `gwc start`), else its
+        process if it is not running, then STARTUP."""
         if name.startswith("wc:"):
             return self.start_machine(name[3:])
 
         def go() -> str:
             assert self.bus is not None
-            if name in self.peers():
+            if name in self.peers() and not agent_control.running(self.cfg):
                 return cell.startup(self.bus, name)
             procs = [p for p in cell.cell_procs(self.cfg) if p.name == name]
             if not procs:
                 raise GwcError(f"{name} is not a module of this cell ({self.cfg.path})")
             said: list[str] = []
             cell.start_procs(self.cfg, procs, self.bus, said.append)
-            return "; ".join(said)
+            return "; ".join(said) or "started"
 
-        return self.act(f"start {name} (STARTUP)", go)
+        return self.act(f"start {name}", go)
 
     def stop_module(self, name: str) -> Answer:
-        """A server: SHUTDOWN (it stays on the bus, listening for STARTUP); a WC: ME_SHUT."""
+        """A WC: ME_SHUT. A server: the agent stops its process (and keeps it down) where one runs;
+        else SHUTDOWN (it stays on the bus, listening for STARTUP)."""
         if name.startswith("wc:"):
             return self.stop_machine(name[3:])
 
         def go() -> str:
             assert self.bus is not None
+            if agent_control.running(self.cfg):
+                said: list[str] = []
+                agent_control.call(self.cfg, "stop", say=said.append, names=[name])
+                return "; ".join(said) or "stopped by the agent"
             self._need(name)
             return cell.shutdown(self.bus, name)
 
-        return self.act(f"stop {name} (SHUTDOWN)", go)
+        return self.act(f"stop {name}", go)
+
+    def restart_module(self, name: str) -> Answer:
+        """Stop and start a module's process through the agent, as `gwc restart`."""
+
+        def go() -> str:
+            said: list[str] = []
+            agent_control.call(self.cfg, "restart", say=said.append, names=[name])
+            return "; ".join(said) or "restarted"
+
+        return self.act(f"restart {name}", go)
 
     def start_cell(self) -> Answer:
         """Database, servers and machines' processes, as `gwc start`."""
