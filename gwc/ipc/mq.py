@@ -62,6 +62,8 @@ class MessageId(IntEnum):
     RUN_COMPL = 8  # ME -> WC: the run ended; file_name = its results file, ack_code ACK_OK or Run_Fail
     CELL_ALAR = 9  # ME -> WC: raise alarm alarm_text (an ALARM_DESCRIPTION id) and tell me when cleared
     ME_START_WAIT = 10  # WC -> ME: the alarm was cleared (ack ACK_OK) or could not be raised: go on
+    ME_LOST = 11  # ME -> WC: the machine itself stopped answering (alarm_text: why); the ME looks for it
+    ME_BACK = 12  # ME -> WC: the machine answers again
 
 
 @dataclass(frozen=True)
@@ -336,6 +338,23 @@ class Channel:
             except QueueError as e:
                 self.log.warning("dropped a garbled record while draining: %s", e)
             n += 1
+
+    def withdraw(self) -> list[MeMessage]:
+        """Take back what we sent and the other half has not read (it is dead or hung): a request
+        left in the queue would be served, out of its time, by the next incarnation."""
+        taken = []
+        q = self._queue(self._out)
+        while True:
+            try:
+                data, _ = q.receive(timeout=0)
+            except posix_ipc.BusyError:
+                return taken
+            except posix_ipc.Error as e:
+                raise QueueError(f"withdrawing from {self.out_name} failed: {e}") from e
+            try:
+                taken.append(unpack(data))
+            except QueueError as e:
+                self.log.warning("dropped a garbled record while withdrawing: %s", e)
 
     def fileno(self) -> int:
         """The descriptor of the queue we read: on Linux a queue is a file that select/epoll can watch."""

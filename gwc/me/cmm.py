@@ -1,181 +1,73 @@
-"""The CMM's machine side: Listing 9's line protocol over RS-232 with pyserial.
+"""The CMM's machine side: Listing 9's line protocol over RS-232 (or any pyserial URL), owned for the
+CMM's whole life.
 
 Listing 9 ran on the CMM's own computer and read records from the serial line, each ending in `!`.
-The ME is the other end of that line. What it sends, and what the CMM answers:
+The ME is the other end of that line. What it sends, and what the CMM answers (docs/machine-interface.md
+section 6 has the grammar, both transfers and every timeout):
 
-    ` DOWNLD !`  `<part>!`  `<n>!`  <n bytes>    a recipe to the CMM            -> `OK!`
-    ` UPLD !`  `<part>!`                          a recipe back from the CMM     -> `<n>!` <n bytes>, or `NONE!`
-    `SETUP RUN !`  `1!`  `<part>!`                set up the part program        (no answer, as in Listing 9)
-    `START RUN !`                                 measure the part               -> `PASS!` or `FAIL!`
+    ` DOWNLD !`  then the part program                         a recipe to the CMM
+    ` UPLD !`  `<part>!`  then the part program back           a recipe back from the CMM
+    `SETUP RUN !`  `1!`  `<part>!`                             set up the part program (no answer)
+    `START RUN !`                                              measure -> `PASS!` / `FAIL!` (or without `!`)
+    `STATUS <n>!`                                              are you there? -> `READY <n>!` (transfer "line")
 
-Listing 9 moved recipe files with kermit after ` DOWNLD !` and ` UPLD !`; the length-prefixed
-transfer above takes kermit's place on the same line. A FAIL part is a run that worked and found
-the part out of tolerance: RUN_COMPL carries ACK_OK and RESULT FAIL. Run_Fail is kept for a run that
-did not work (no answer in time, the line lost).
+The program moves as the machine's `transfer` says: "line" (ours: `<part>!` `<n>!` + n bytes,
+answered `OK!`) or "kermit" (Listing 9's own: G-Kermit on both ends).
 
-The port is opened when the machine starts (ME_START), not when the ME process starts, so the ME
-may start before the CMM (or its simulator) and a line lost in a run is opened again at the next
-start. Serial settings come from the machine's `serial` table in etc/cell.toml; `port = "sim"`
-means the pseudo-terminal of the CMM simulator (gwc.me.cmm_sim), published as var/run/cmm-<id>.pty,
-and any other port is handed to pyserial's serial_for_url (a device, or socket://, rfc2217://...).
+The line is the ME's from ME_START to ME_SHUT. Before each exchange it is resynchronised (STATUS <n>
+answered READY <n>, everything before it logged and dropped; with Kermit, drained until quiet), so
+nothing an earlier exchange left behind, a late verdict above all, is read as the answer to a later
+one. An exchange that fails costs that exchange (Notnow for a request, Run_Fail for a run), then
+the CMM is probed at once: if it does not answer, or the port is gone (EIO, hang-up, closed
+socket), the machine is lost (ME_LOST: the WC raises CMM_LOST and shuts the machine down) and the
+ME reopens and probes it with backoff (reprobe_min doubling to reprobe_max) until it answers (ME_BACK:
+alarm cleared, the machine back in service).
+
+A FAIL part is a run that worked and found the part out of tolerance: RUN_COMPL carries ACK_OK and
+RESULT FAIL. Run_Fail is a run the CMM never measured (no verdict in time, garbage instead of one,
+the line lost), and says which in its note.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import serial
 
 from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError, LineError
 from gwc.ipc.codes import AckCode
+from gwc.me.cmm_sim import sim_link
+from gwc.me.line import (
+    Garbage,
+    LineLost,
+    LineTimeout,
+    RecordStream,
+    escaped,
+    kermit,
+    open_serial,
+    serial_settings,
+    serial_stream,
+)
 from gwc.me.machine import MachineSide, Refusal, RunOutcome
 
-END = b"!"
-MAX_RECORD = 125  # Listing 9's BUF_SIZE: a longer record is garbage on the line
-MAX_PAYLOAD = 1 << 20  # largest recipe file moved over the line
-READ_SLICE = 0.05  # pyserial read timeout: the longest one read blocks
-SERIAL_KEYS = ("port", "baudrate", "bytesize", "parity", "stopbits", "timeout", "xonxoff", "rtscts")
-
-
-def sim_link(cfg: Config, machine_id: str) -> Path:
-    """Where the CMM simulator publishes its pseudo-terminal for machine_id."""
-    return cfg.run_dir / f"cmm-{machine_id}.pty"
+T = TypeVar("T")
+VERDICTS = ("PASS!", "FAIL!")
+TRANSFERS = ("line", "kermit")
+QUIET = 0.1  # resynchronising without STATUS (Kermit devices): the line must be quiet this long
 
 
 def check_name(name: str) -> str:
-    """A part name as a record: ASCII, no `!`, no line ends, short enough for one record."""
-    if not name or "!" in name or not name.isascii() or not name.isprintable() or len(name) >= MAX_RECORD:
-        raise LineError(f"part name {name!r} cannot be sent as a record")
+    """A part name as a record: ASCII, no `!`, no line ends, no path, short enough for one record."""
+    if not name or "!" in name or "/" in name or not name.isascii() or not name.isprintable() or len(name) >= 100:
+        raise Refusal(AckCode.REC_INVAL, f"part name {name!r} cannot be sent as a record")
     return name
-
-
-class RecordStream:
-    """Records ending in `!` over any byte line: `read_some(timeout)` and `write(bytes)`."""
-
-    def __init__(self, read_some: Callable[[float], bytes], write: Callable[[bytes], object], name: str) -> None:
-        self._read_some = read_some
-        self._write = write
-        self.name = name
-        self._buf = bytearray()
-
-    def write_record(self, text: str) -> None:
-        data = text.encode("ascii")
-        if not data.endswith(END) or len(data) > MAX_RECORD:
-            raise LineError(f"bad record {text!r}: a record ends in '!' and is at most {MAX_RECORD} bytes")
-        self.write_bytes(data)
-
-    def write_bytes(self, data: bytes) -> None:
-        try:
-            self._write(data)
-        except (OSError, serial.SerialException) as e:
-            raise LineError(f"writing to {self.name} failed: {e}") from e
-
-    def _fill(self, timeout: float) -> None:
-        try:
-            self._buf += self._read_some(timeout)
-        except (OSError, serial.SerialException) as e:
-            raise LineError(f"reading from {self.name} failed: {e}") from e
-
-    def _take_record(self) -> str | None:
-        end = self._buf.find(END)
-        if end < 0:
-            if len(self._buf) > MAX_RECORD:
-                junk = bytes(self._buf[:40])
-                self._buf.clear()
-                raise LineError(f"garbled line {self.name}: {MAX_RECORD}+ bytes without '!' ({junk!r}...)")
-            return None
-        raw = bytes(self._buf[: end + 1])
-        del self._buf[: end + 1]
-        try:
-            return raw.decode("ascii")
-        except UnicodeDecodeError:
-            raise LineError(f"garbled record on {self.name}: {raw[:40]!r}") from None
-
-    def poll_record(self) -> str | None:
-        """A complete record if one has arrived, without waiting."""
-        rec = self._take_record()
-        if rec is None:
-            self._fill(0.0)
-            rec = self._take_record()
-        return rec
-
-    def next_record(self, timeout: float) -> str | None:
-        """The next record, waiting up to `timeout` s; None if none came."""
-        deadline = time.monotonic() + timeout
-        while True:
-            rec = self._take_record()
-            if rec is not None:
-                return rec
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return None
-            self._fill(left)
-
-    def read_record(self, timeout: float) -> str:
-        """The next record; LineError if none came within `timeout` s (every wait has a deadline)."""
-        rec = self.next_record(timeout)
-        if rec is None:
-            raise LineError(f"no record from {self.name} within {timeout:.1f}s")
-        return rec
-
-    def read_bytes(self, n: int, timeout: float) -> bytes:
-        deadline = time.monotonic() + timeout
-        while len(self._buf) < n:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise LineError(f"{self.name}: {len(self._buf)} of {n} bytes within {timeout:.1f}s")
-            self._fill(left)
-        data = bytes(self._buf[:n])
-        del self._buf[:n]
-        return data
-
-    def read_length(self, timeout: float) -> int:
-        """A `<n>!` record: the length of the bytes that follow."""
-        return self.length_of(self.read_record(timeout))
-
-    def length_of(self, rec: str) -> int:
-        try:
-            n = int(rec[:-1])
-        except ValueError:
-            raise LineError(f"{self.name}: expected a length record, got {rec!r}") from None
-        if not 0 <= n <= MAX_PAYLOAD:
-            raise LineError(f"{self.name}: length {n} out of range")
-        return n
-
-    def discard(self) -> None:
-        """Forget what is buffered (a late answer of an abandoned exchange)."""
-        self._buf.clear()
-
-
-def serial_stream(ser: serial.SerialBase, name: str) -> RecordStream:
-    """A RecordStream over an open pyserial port (its timeout must be short: READ_SLICE)."""
-
-    def read_some(timeout: float) -> bytes:
-        deadline = time.monotonic() + timeout
-        while True:
-            waiting = ser.in_waiting
-            if waiting or timeout > 0:
-                data = ser.read(waiting or 1)
-                if data:
-                    return bytes(data)
-            if time.monotonic() >= deadline:
-                return b""
-
-    return RecordStream(read_some, ser.write, name)
-
-
-def open_serial(settings: dict[str, object], port: str) -> serial.SerialBase:
-    """Open a port with the machine's settings, as any URL pyserial accepts; LineError if it cannot."""
-    kwargs = {k: v for k, v in settings.items() if k not in ("port", "timeout")}
-    try:
-        return serial.serial_for_url(port, timeout=READ_SLICE, write_timeout=5.0, **kwargs)
-    except (serial.SerialException, OSError, ValueError) as e:
-        raise LineError(f"cannot open serial port {port}: {e}") from e
 
 
 class CmmMachine(MachineSide):
@@ -184,37 +76,46 @@ class CmmMachine(MachineSide):
 
     def __init__(self, cfg: Config, spec: MachineSpec, log: logging.Logger) -> None:
         super().__init__(cfg, spec, log)
-        settings = dict(self.options.get("serial", dict, {}))
-        unknown = set(settings) - set(SERIAL_KEYS)
-        if unknown:
-            raise ConfigError(f"machine {spec.id}: unknown serial setting(s) {', '.join(sorted(unknown))}")
-        if not isinstance(settings.get("port"), str) or not settings["port"]:
-            raise ConfigError(f'machine {spec.id}: serial.port is required (a device, a pyserial URL, or "sim")')
-        self.settings = settings
-        self.answer_timeout = float(settings.get("timeout", 5.0))  # type: ignore[arg-type]
+        self.settings = serial_settings(self.options.get("serial", dict, {}), f"machine {spec.id}")
+        self.answer_timeout = float(self.settings.get("timeout", 5.0))  # type: ignore[arg-type]
+        self.open_timeout = float(self.settings.get("open_timeout", self.answer_timeout))  # type: ignore[arg-type]
         self.run_timeout = self.options.get("run_timeout", float, 120.0)
+        self.transfer = self.options.get("transfer", str, "line")
+        if self.transfer not in TRANSFERS:
+            raise ConfigError(f"machine {spec.id}: transfer must be one of {', '.join(TRANSFERS)}")
+        self.probe = self.options.get("probe", bool, self.transfer == "line")
+        self.kermit_timeout = self.options.get("kermit_timeout", float, 60.0)
+        self.reprobe_min = self.options.get("reprobe_min", float, 0.5)
+        self.reprobe_max = self.options.get("reprobe_max", float, 2.0)
         self._ser: serial.SerialBase | None = None
         self._line: RecordStream | None = None
         self._run_deadline = 0.0
+        self._given_up = 0  # the last run given up without a verdict: its verdict may still come
+        self._suspect: str | None = None  # an exchange failed: probe the CMM next
+        self._probe_deadline: float | None = None  # a STATUS is out: its READY is due by then
+        self._status_no = 0
+        self._ready = ""  # the answer due to the STATUS out
+        self._next_probe = 0.0
+        self._backoff = self.reprobe_min
 
     # ----------------------------------------------------------------- the line
 
-    def _port(self) -> str:
+    def _port(self, wait: bool) -> str:
         port = str(self.settings["port"])
         if port != "sim":
             return port
         link = sim_link(self.cfg, self.spec.id)
-        deadline = time.monotonic() + self.answer_timeout
-        while not link.exists():  # the simulator may still be starting
+        deadline = time.monotonic() + (self.open_timeout if wait else 0.0)
+        while not link.exists():  # the simulator may still be starting, or its line is down
             if time.monotonic() > deadline:
-                raise LineError(f"no CMM simulator: {link} does not exist (is `gwc run cmmsim` running?)")
+                raise LineLost(f"no CMM simulator: {link} does not exist (is `gwc run cmmsim` running?)")
             time.sleep(0.05)
         return os.path.realpath(link)
 
-    def line(self) -> RecordStream:
-        """The open line to the CMM, opened now if it is not."""
+    def line(self, wait: bool = True) -> RecordStream:
+        """The open line to the CMM, opened now if it is not (`wait`: for the simulator's pty to appear)."""
         if self._line is None:
-            port = self._port()
+            port = self._port(wait)
             self._ser = open_serial(self.settings, port)
             self._line = serial_stream(self._ser, f"CMM line {port}")
             self.log.info(
@@ -233,51 +134,113 @@ class CmmMachine(MachineSide):
                 pass
         self._ser, self._line = None, None
 
-    def _exchange(self, what: str, fn: Callable[[RecordStream], object]) -> object:
-        """One exchange on the line; a line failure becomes a Refusal and a closed line (reopened later)."""
+    def _stale(self, rec: str, when: str) -> None:
+        """A record nobody asked for: a late verdict of a run given up, or garbage. Logged, dropped."""
+        if rec.rstrip("!") in ("PASS", "FAIL") and self._given_up:
+            self.log.warning("late verdict %s for run %d (given up) %s: dropped", rec, self._given_up, when)
+        else:
+            self.log.warning("unexpected record from the CMM %s: %r dropped", when, rec)
+
+    def _resync(self, line: RecordStream) -> None:
+        """Nothing from an earlier exchange may answer the next one: STATUS until READY!, or drain."""
+        if not self.probe:
+            junk = line.drain(QUIET, self.answer_timeout)
+            if junk:
+                self._stale(junk.decode("ascii", "backslashreplace"), "before the exchange")
+            return
+        ready = self._ask_status(line)
+        deadline = time.monotonic() + self.answer_timeout
+        while True:
+            rec = line.next_record(max(0.0, deadline - time.monotonic()), bare_verdict=True)
+            if rec is None:
+                raise LineTimeout(f"the CMM did not answer STATUS within {self.answer_timeout:.1f}s")
+            if rec == ready:
+                return
+            self._stale(rec, f"before {ready}")
+
+    def _ask_status(self, line: RecordStream) -> str:
+        """`STATUS <n>!`, numbered so that an answer to an earlier one (a CMM that read several at once
+        after a measurement) is not taken for this one's; returns the answer due, `READY <n>!`."""
+        self._status_no = self._status_no % 99999 + 1
+        line.write_record(f"STATUS {self._status_no}!")
+        return f"READY {self._status_no}!"
+
+    def _exchange(self, what: str, fn: Callable[[RecordStream], T]) -> T:
+        """One exchange on a resynchronised line. Its failure is refused Notnow (the CMM cannot serve
+        now: the lot asks again): a CMM that did not answer the resync, or whose line is gone, is lost
+        at once; after any other failure it is probed next (watch)."""
+        self._suspect, self._probe_deadline = None, None  # the resync probes as well
         try:
             line = self.line()
-            if self._ser is not None:
-                self._ser.reset_input_buffer()
-            line.discard()
+            try:
+                self._resync(line)
+            except LineTimeout as e:
+                raise LineLost(str(e)) from e
             return fn(line)
         except LineError as e:
-            self.drop_line(str(e))
-            raise Refusal(AckCode.START_FAIL, f"{what}: {e}") from e
+            self.log.warning("CMM exchange failed (%s): %s", what, e)
+            if isinstance(e, LineLost):
+                self._lose(str(e))
+            else:
+                self._suspect = str(e)
+            state = f"lost: {self.lost}" if self.lost else "probed next"
+            raise Refusal(AckCode.NOTNOW, f"{what} failed: {e} (the CMM is {state})") from e
 
-    def _send_recipe(self, line: RecordStream, part: str, content: bytes) -> None:
+    def _send_recipe(self, line: RecordStream, part: str, path: Path) -> None:
         line.write_record(" DOWNLD !")
-        line.write_record(f"{check_name(part)}!")
+        if self.transfer == "kermit":
+            # The file goes under the part's name, as Listing 9 found it in /usr/avail/part.
+            spool = self.memory / "kermit"
+            shutil.rmtree(spool, ignore_errors=True)
+            spool.mkdir(parents=True)
+            shutil.copyfile(path, spool / part)
+            kermit(line, ["-s", part], spool, self.kermit_timeout)
+            return
+        content = path.read_bytes()
+        line.write_record(f"{part}!")
         line.write_record(f"{len(content)}!")
         line.write_bytes(content)
         answer = line.read_record(self.answer_timeout)
         if answer != "OK!":
-            raise LineError(f"the CMM answered {answer!r} to the download of {part}")
+            raise Garbage(f"the CMM answered {answer!r} to the download of {part}, not OK!")
 
     # ----------------------------------------------------------------- the machine
 
     def home(self) -> None:
-        self._exchange("start", lambda line: None)
+        self._suspect, self._probe_deadline = None, None
+        try:
+            self._resync(self.line())
+        except LineError as e:
+            self.drop_line(str(e))
+            raise Refusal(AckCode.START_FAIL, f"the CMM does not answer: {e}") from e
 
     def load(self, recipe_id: str, path: Path) -> None:
-        content = path.read_bytes()
+        part = check_name(recipe_id)
 
         def setup(line: RecordStream) -> None:
-            self._send_recipe(line, recipe_id, content)
+            self._send_recipe(line, part, path)
             line.write_record("SETUP RUN !")
             line.write_record("1!")
-            line.write_record(f"{recipe_id}!")
+            line.write_record(f"{part}!")
 
         self._exchange(f"setup of {recipe_id}", setup)
 
     def download(self, recipe_id: str, path: Path) -> None:
-        content = path.read_bytes()
-        self._exchange(f"download of {recipe_id}", lambda line: self._send_recipe(line, recipe_id, content))
+        part = check_name(recipe_id)
+        self._exchange(f"download of {recipe_id}", lambda line: self._send_recipe(line, part, path))
 
     def upload(self, recipe_id: str) -> Path:
+        part = check_name(recipe_id)
+        target = self.memory / "upload"
+        target.mkdir(parents=True, exist_ok=True)
+
         def fetch(line: RecordStream) -> bytes | None:
             line.write_record(" UPLD !")
-            line.write_record(f"{check_name(recipe_id)}!")
+            line.write_record(f"{part}!")
+            if self.transfer == "kermit":
+                (target / part).unlink(missing_ok=True)
+                kermit(line, ["-r"], target, self.kermit_timeout)
+                return (target / part).read_bytes() if (target / part).exists() else None
             first = line.read_record(self.answer_timeout)
             if first == "NONE!":
                 return None
@@ -286,9 +249,7 @@ class CmmMachine(MachineSide):
         content = self._exchange(f"upload of {recipe_id}", fetch)
         if content is None:
             raise Refusal(AckCode.REC_INVAL, f"the CMM holds no part program {recipe_id}")
-        assert isinstance(content, bytes)
-        path = self.memory / "upload" / recipe_id
-        path.parent.mkdir(parents=True, exist_ok=True)
+        path = target / part
         path.write_bytes(content)
         return path
 
@@ -297,30 +258,109 @@ class CmmMachine(MachineSide):
         self._run_deadline = time.monotonic() + self.run_timeout
 
     def progress(self) -> RunOutcome | None:
-        if self._line is None:
-            return RunOutcome(AckCode.RUN_FAIL, {"RESULT": "NONE"}, note="serial line closed during the run")
+        """The verdict, or why the run failed (the CMM is then probed by watch(), after RUN_COMPL)."""
         try:
-            rec = self._line.poll_record()
+            rec = self.line().poll_record(bare_verdict=True)
         except LineError as e:
-            self.drop_line(str(e))
-            return RunOutcome(AckCode.RUN_FAIL, {"RESULT": "NONE"}, note=f"line lost: {e}")
+            return self._run_failed(e, f"{'line lost' if isinstance(e, LineLost) else 'garbage'} during the run: {e}")
         if rec is None:
             if time.monotonic() > self._run_deadline:
-                return RunOutcome(
-                    AckCode.RUN_FAIL,
-                    {"RESULT": "NONE"},
-                    note=f"no PASS!/FAIL! from the CMM within {self.run_timeout:.0f}s",
+                return self._run_failed(
+                    LineTimeout("no verdict"), f"no verdict from the CMM within {self.run_timeout:g}s: run given up"
                 )
             return None
-        if rec in ("PASS!", "FAIL!"):
+        if rec in VERDICTS:
             self.log.info("the CMM answered %s", rec)
             return RunOutcome(AckCode.ACK_OK, {"PART": self.recipe_id, "RESULT": rec[:-1]})
-        self.log.warning("unexpected record from the CMM during the run: %r", rec)
-        return None
+        return self._run_failed(Garbage(rec), f"the CMM answered {escaped(rec.encode())} instead of a verdict")
+
+    def _run_failed(self, error: LineError, note: str) -> RunOutcome:
+        self._given_up = self.run_no
+        self._suspect = note  # probed by watch() once RUN_COMPL is out (so ME_LOST follows it)
+        if isinstance(error, LineLost):
+            self.drop_line(note)
+        self.log.warning("run %d failed, the part was not measured: %s", self.run_no, note)
+        return RunOutcome(AckCode.RUN_FAIL, {"RESULT": "NONE"}, note=note)
 
     def abort(self, why: str) -> None:
-        # Listing 9 has no way to stop a measurement: its late answer is discarded before the next exchange.
-        self.log.warning("run %d abandoned (%s): the CMM's answer will be ignored", self.run_no, why)
+        # Listing 9 has no way to stop a measurement: its late verdict is dropped at the next resync.
+        self._given_up = self.run_no
+        self.log.warning("run %d abandoned (%s): the CMM's verdict will be dropped", self.run_no, why)
+
+    def watch(self) -> None:
+        """Between runs, never blocking the loop (the WC's pings must be answered): a CMM whose last
+        exchange failed, or which is lost, is probed (STATUS sent, READY! looked for on later turns);
+        an open line is read for a hang-up (a power cycle while Idle) and for what nobody asked for."""
+        if self._suspect is not None or self.lost is not None:
+            self._probe_step()
+            return
+        if self._line is None:
+            return
+        try:
+            rec = self._line.poll_record(bare_verdict=True)
+        except Garbage as e:
+            self.log.warning("garbage from the CMM between exchanges dropped: %s", e)
+            return
+        except LineError as e:
+            self._lose(str(e))
+            return
+        if rec is not None:
+            self._stale(rec, "between exchanges")
+
+    def _probe_step(self) -> None:
+        now = time.monotonic()
+        if self._probe_deadline is None:
+            if now < self._next_probe:
+                return
+            try:
+                line = self.line(wait=False)
+                if self.probe:
+                    self._ready = self._ask_status(line)
+                    self._probe_deadline = now + self.answer_timeout
+                    return
+                line.drain(QUIET, QUIET)  # a Kermit device: an open line that does not hang up is there
+            except LineError as e:
+                self._probe_failed(str(e))
+                return
+            self._found()
+            return
+        try:
+            rec = self.line().poll_record(bare_verdict=True)
+        except LineError as e:
+            self._probe_failed(str(e))
+            return
+        if rec == self._ready:
+            self._found()
+        elif rec is not None:
+            self._stale(rec, "while probing")
+        elif now > self._probe_deadline:
+            self._probe_failed(f"the CMM did not answer STATUS within {self.answer_timeout:.1f}s")
+
+    def _found(self) -> None:
+        self._probe_deadline = None
+        if self._suspect is not None:
+            self.log.info("the CMM answers after the failed exchange (%s)", self._suspect)
+            self._suspect = None
+        self._backoff = self.reprobe_min
+        self.device_back()
+
+    def _probe_failed(self, why: str) -> None:
+        self._probe_deadline = None
+        if self.lost is None:
+            self._lose(f"{self._suspect}; then {why}" if self._suspect else why)
+            return
+        self.drop_line(why)
+        self._backoff = min(self._backoff * 2, self.reprobe_max)
+        self._next_probe = time.monotonic() + self._backoff
+        self.log.info("the CMM still does not answer (%s): next try in %.1fs", why, self._backoff)
+
+    def _lose(self, why: str) -> None:
+        """The CMM is lost: line closed, the WC told, probes from now on with backoff."""
+        self._suspect, self._probe_deadline = None, None
+        self.drop_line(why)
+        self._backoff = self.reprobe_min
+        self._next_probe = time.monotonic() + self._backoff
+        self.device_lost(why)
 
     def close(self) -> None:
         if self._ser is not None:

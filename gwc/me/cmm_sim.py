@@ -2,35 +2,86 @@
 
 It plays what Listing 9 did on the CMM's computer: it reads records ending in `!`, keeps the part
 programs downloaded to it, takes the part named after `SETUP RUN !` `1!`, and answers
-`START RUN !` with `PASS!` or `FAIL!` once the part is measured. Records it does not know go "to
-SUP" as in Listing 9: it logs them.
+`START RUN !` with `PASS!` or `FAIL!` once the part is measured. While it measures it reads nothing
+(Listing 9 loops waiting for the RESULTS file), so what the ME sends meanwhile waits on the line.
+Records it does not know go "to SUP" as in Listing 9: it logs them.
 
-By default it opens a pseudo-terminal pair, keeps the master end and publishes the slave end as
-var/run/cmm-<id>.pty, which the CMM's ME opens as its serial port when `serial.port = "sim"`. With
-`sim.port` set it serves that port instead (any URL pyserial accepts). Its behaviour comes from the
-machine's `sim` table in etc/cell.toml:
+Where: by default a pseudo-terminal pair, the slave end published as var/run/cmm-<id>.pty (the
+port of an ME with `serial.port = "sim"`); with `sim.listen = "host:port"` a TCP server (the ME's
+port is then `socket://host:port`, a serial device server); with `sim.port` any pyserial URL.
 
-    sim = { measure_time = 0.3, pattern = "PPF" }   # seconds per part; verdicts cycled per part
+What it speaks follows the machine's `transfer`: "line" (ours: length-prefixed recipes, `OK!`,
+and `STATUS <n>!` answered `READY <n>!`) or "kermit" (Listing 9: G-Kermit after ` DOWNLD !` and
+` UPLD !`; STATUS is passed to SUP like any unknown record). `sim.bang = false` sends the verdict
+as Listing 9's output() does, without its `!`. Options, in the machine's `sim` table:
+
+    sim = { measure_time = 0.3, pattern = "PPF", bang = true, listen = "127.0.0.1:7001" }
+
+Faults, so tests can make it misbehave like a real CMM on a shop floor: written as JSON to
+var/run/cmm-<id>.fault (fault_file; `inject_fault` does it), taken within IDLE_WAIT:
+
+    {"fault": "silent", "for": 5}        reads and throws away everything, answers nothing (hung)
+    {"fault": "garbage", "kind": K}      the next verdict is replaced by garbage: K = text (a record
+                                         outside the grammar), binary, long (no `!`), half (never ended)
+    {"fault": "hangup", "for": 30}       the line goes (pty closed / connection and listener closed),
+                                         and comes back after `for` s (a new pty, the link republished)
+    {"fault": "power_cycle", "for": 2}   a hang-up that also forgets the programs, the part and a
+                                         measurement in progress
+    {"fault": "delay", "for": 12}        the next verdict comes `for` s after START RUN (slow or late)
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import select
+import shutil
+import socket
 import threading
 import time
 import tty
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from gwc.agent.control import notify_ready
 from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError, LineError
-from gwc.me.cmm import RecordStream, open_serial, serial_stream, sim_link
+from gwc.me.line import LineLost, RecordStream, escaped, kermit, open_serial, serial_stream
 
 ANSWER_TIMEOUT = 5.0  # longest wait for the rest of a multi-record command
 IDLE_WAIT = 0.2
+KERMIT_TIMEOUT = 60.0
+FAULTS = ("silent", "garbage", "hangup", "power_cycle", "delay")
+GARBAGE = {
+    "text": b"XYZZY 42!",
+    "binary": b"\x00\xfe\x13PA\x81SS!",
+    "long": b"A" * 200,
+    "half": b"PAS",
+}
+
+
+def sim_link(cfg: Config, machine_id: str) -> Path:
+    """Where the CMM simulator publishes its pseudo-terminal for machine_id."""
+    return cfg.run_dir / f"cmm-{machine_id}.pty"
+
+
+def fault_file(cfg: Config, machine_id: str) -> Path:
+    """Where a fault for the simulator of machine_id is written (inject_fault)."""
+    return cfg.run_dir / f"cmm-{machine_id}.fault"
+
+
+def inject_fault(cfg: Config, machine_id: str, fault: str, **params: Any) -> None:
+    """Tell the running simulator of machine_id to misbehave (see the module docstring)."""
+    if fault not in FAULTS:
+        raise ConfigError(f"unknown simulator fault {fault!r}: one of {', '.join(FAULTS)}")
+    path = fault_file(cfg, machine_id)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps({"fault": fault, **params}))
+    os.replace(tmp, path)
 
 
 class PtyEnd:
@@ -58,6 +109,66 @@ class PtyEnd:
                 os.close(fd)
 
 
+class TcpEnd:
+    """A serial device server's end: one ME connection at a time on a listening socket."""
+
+    def __init__(self, listen: str) -> None:
+        host, _, port = listen.rpartition(":")
+        self.address = (host or "127.0.0.1", int(port))
+        self._server: socket.socket | None = None
+        self._conn: socket.socket | None = None
+
+    def _listen(self) -> socket.socket:
+        if self._server is None:
+            server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                server.bind(self.address)
+                server.listen(1)
+            except OSError:
+                server.close()
+                raise
+            self._server = server
+        return self._server
+
+    def read_some(self, timeout: float) -> bytes:
+        if self._conn is None:
+            server = self._listen()
+            ready, _, _ = select.select([server], [], [], max(0.0, timeout))
+            if not ready:
+                return b""
+            self._conn, _ = server.accept()
+            return b""
+        ready, _, _ = select.select([self._conn], [], [], max(0.0, timeout))
+        if not ready:
+            return b""
+        try:
+            data = self._conn.recv(4096)
+        except OSError:
+            data = b""
+        if not data:  # the ME hung up: wait for its next connection
+            self._conn.close()
+            self._conn = None
+        return data
+
+    def write(self, data: bytes) -> None:
+        if self._conn is None:
+            raise LineLost("no ME connected")
+        try:
+            self._conn.sendall(data)
+        except OSError as e:
+            self._conn.close()
+            self._conn = None
+            raise LineLost(f"the ME's connection broke: {e}") from e
+
+    def close(self) -> None:
+        for s in (self._conn, self._server):
+            if s is not None:
+                with contextlib.suppress(OSError):
+                    s.close()
+        self._conn = self._server = None
+
+
 class CmmSimulator:
     def __init__(self, cfg: Config, spec: MachineSpec, log: logging.Logger) -> None:
         if spec.kind != "cmm":
@@ -74,47 +185,91 @@ class CmmSimulator:
         if self.measure_time < 0 or not self.pattern or set(self.pattern) - {"P", "F"}:
             raise ConfigError(f"machine {spec.id}: sim needs measure_time >= 0 and a pattern of P and F, got {sim!r}")
         self.port = sim.get("port")
+        self.listen = sim.get("listen")
+        self.bang = bool(sim.get("bang", True))
+        self.kermit = spec.options.get("transfer", "line") == "kermit"
+        self.store = cfg.var / "cmmsim" / spec.id  # the CMM's /usr/avail/part (Kermit files land here)
         self.programs: dict[str, bytes] = {}
         self.part: str | None = None
         self.measured = 0
         self._verdict: str | None = None
         self._verdict_at = 0.0
+        self._silent_until = 0.0
+        self._garbage: bytes | None = None
+        self._delay: float | None = None
+        self._down_until = 0.0
 
-    def serve(self, stop: threading.Event) -> int:
-        pty: PtyEnd | None = None
-        link = sim_link(self.cfg, self.spec.id)
+    # ----------------------------------------------------------------- the line's end
+
+    def _open(self) -> tuple[RecordStream, Callable[[], None]]:
+        if self.listen:
+            end = TcpEnd(str(self.listen))
+            end._listen()  # bound now, so an ME that connects early is queued, not refused
+            self.log.info("CMM simulator of %s listening on %s:%d", self.spec.id, *end.address)
+            return RecordStream(end.read_some, end.write, f"tcp {self.listen}"), end.close
         if self.port:
             ser = open_serial(self.spec.options.get("serial", {}), str(self.port))
-            line = serial_stream(ser, f"port {self.port}")
-            closer = ser.close
             self.log.info("CMM simulator of %s on %s", self.spec.id, self.port)
-        else:
-            pty = PtyEnd()
-            line = RecordStream(pty.read_some, pty.write, f"pty {pty.slave_name}")
-            closer = pty.close
-            self._publish(link, pty.slave_name)
-        self.log.info("CMM simulator ready: %.2fs per part, verdicts %s", self.measure_time, self.pattern)
+            return serial_stream(ser, f"port {self.port}"), ser.close
+        pty = PtyEnd()
+        self._publish(sim_link(self.cfg, self.spec.id), pty.slave_name)
+        return RecordStream(pty.read_some, pty.write, f"pty {pty.slave_name}"), pty.close
+
+    def _unpublish(self) -> None:
+        with contextlib.suppress(OSError):
+            sim_link(self.cfg, self.spec.id).unlink()
+
+    def serve(self, stop: threading.Event) -> int:
+        line, closer = self._open()
+        self.store.mkdir(parents=True, exist_ok=True)
+        self.log.info(
+            "CMM simulator ready: %.2fs per part, verdicts %s%s, %s transfer",
+            self.measure_time,
+            self.pattern,
+            "" if self.bang else " (without '!', as Listing 9's output())",
+            "Kermit" if self.kermit else "line",
+        )
         notify_ready()
         try:
             while not stop.is_set():
-                self._answer_due(line)
-                wait = IDLE_WAIT
-                if self._verdict is not None:
-                    wait = min(wait, max(0.001, self._verdict_at - time.monotonic()))
-                try:
-                    rec = line.next_record(wait)
-                    if rec is not None:
-                        self.handle(rec, line)
-                except LineError as e:
-                    self.log.warning("%s: dropped", e)
-                    line.discard()
+                fault = self._take_fault()
+                if fault in ("hangup", "power_cycle"):
+                    closer()
+                    self._unpublish()
+                    self.log.warning("line down (%s) for %.1fs", fault, self._down_until - time.monotonic())
+                    while not stop.is_set() and time.monotonic() < self._down_until:
+                        stop.wait(min(IDLE_WAIT, max(0.0, self._down_until - time.monotonic())))
+                    line, closer = self._open()
+                    self.log.warning("line up again after %s", fault)
+                    continue
+                self._step(line)
         finally:
-            if pty is not None:
-                with contextlib.suppress(OSError):
-                    if os.readlink(link) == pty.slave_name:
-                        link.unlink()
+            if not self.listen and not self.port:
+                self._unpublish()
             closer()
         return 0
+
+    def _step(self, line: RecordStream) -> None:
+        now = time.monotonic()
+        try:
+            if now < self._silent_until:  # hung: the line is read and nothing done with it
+                junk = line.drain(IDLE_WAIT, IDLE_WAIT)
+                if junk:
+                    self.log.info("silent: ignored %s", escaped(junk))
+                return
+            if self._verdict is not None:  # measuring: Listing 9 reads nothing until the part is done
+                time.sleep(min(IDLE_WAIT, max(0.0, self._verdict_at - now)))
+                self._answer_due(line)
+                return
+            rec = line.next_record(IDLE_WAIT)
+            if rec is not None:
+                self.handle(rec, line)
+        except LineLost as e:
+            self.log.warning("%s: waiting for the ME", e)
+            time.sleep(IDLE_WAIT)
+        except LineError as e:
+            self.log.warning("%s: dropped", e)
+            line.drain(0.05, 1.0)
 
     def _publish(self, link: Path, target: str) -> None:
         link.parent.mkdir(parents=True, exist_ok=True)
@@ -125,30 +280,60 @@ class CmmSimulator:
         os.replace(tmp, link)
         self.log.info("serial end published: %s -> %s", link, target)
 
+    # ----------------------------------------------------------------- faults
+
+    def _take_fault(self) -> str | None:
+        path = fault_file(self.cfg, self.spec.id)
+        try:
+            raw = path.read_text()
+            path.unlink()
+        except FileNotFoundError:
+            return None
+        try:
+            fault = json.loads(raw)
+            kind = fault["fault"]
+            span = float(fault.get("for", 0.0))
+        except (ValueError, KeyError, TypeError) as e:
+            self.log.error("fault file %s unreadable (%s): %r", path, e, raw[:200])
+            return None
+        self.log.warning("fault injected: %s", raw)
+        now = time.monotonic()
+        if kind == "silent":
+            self._silent_until, self._verdict = now + span, None
+        elif kind == "garbage":
+            self._garbage = GARBAGE.get(str(fault.get("kind", "text")), GARBAGE["text"])
+        elif kind == "delay":
+            self._delay = span
+        elif kind in ("hangup", "power_cycle"):
+            self._down_until = now + span
+            if kind == "power_cycle":
+                self.programs, self.part, self._verdict = {}, None, None
+                shutil.rmtree(self.store, ignore_errors=True)
+        else:
+            self.log.error("unknown fault %r ignored", kind)
+            return None
+        return str(kind)
+
+    # ----------------------------------------------------------------- Listing 9
+
     def _answer_due(self, line: RecordStream) -> None:
         if self._verdict is not None and time.monotonic() >= self._verdict_at:
             verdict, self._verdict = self._verdict, None
             self.log.info("part %s measured: %s", self.part, verdict)
-            line.write_record(verdict)
+            if self._garbage is not None:
+                junk, self._garbage = self._garbage, None
+                self.log.warning("sending garbage instead of %s: %s", verdict, escaped(junk))
+                line.write_bytes(junk)
+                return
+            line.write_bytes(verdict.encode("ascii") if self.bang else verdict[:-1].encode("ascii"))
 
     def handle(self, rec: str, line: RecordStream) -> None:
         """One command from the ME (the branches of Listing 9's listen())."""
         self.log.info("read: %r", rec)
         if rec == " DOWNLD !":
-            name = line.read_record(ANSWER_TIMEOUT)[:-1]
-            content = line.read_bytes(line.read_length(ANSWER_TIMEOUT), ANSWER_TIMEOUT)
-            self.programs[name] = content
-            self.log.info("part program %s received (%d bytes)", name, len(content))
-            line.write_record("OK!")
+            self._receive_program(line)
         elif rec == " UPLD !":
-            name = line.read_record(ANSWER_TIMEOUT)[:-1]
-            content = self.programs.get(name)
-            if content is None:
-                self.log.warning("upload of unknown part program %s", name)
-                line.write_record("NONE!")
-            else:
-                line.write_record(f"{len(content)}!")
-                line.write_bytes(content)
+            self._send_program(line)
         elif rec == "SETUP RUN !":
             one = line.read_record(ANSWER_TIMEOUT)
             if one != "1!":
@@ -163,10 +348,48 @@ class CmmSimulator:
             letter = self.pattern[self.measured % len(self.pattern)]
             self.measured += 1
             self._verdict = "PASS!" if letter == "P" else "FAIL!"
-            self._verdict_at = time.monotonic() + self.measure_time
-            self.log.info("measuring part %s (%d)", self.part, self.measured)
+            wait, self._delay = (self.measure_time if self._delay is None else self._delay), None
+            self._verdict_at = time.monotonic() + wait
+            self.log.info("measuring part %s (%d): %.1fs", self.part, self.measured, wait)
+        elif rec.startswith("STATUS ") and not self.kermit:
+            line.write_record(f"READY {rec[len('STATUS ') : -1].strip()}".rstrip() + "!")
         else:
             self.log.info("passed to SUP: %r", rec)
+
+    def _receive_program(self, line: RecordStream) -> None:
+        if self.kermit:  # Listing 9: system("kermit ilbr /dev/tty2a 9600")
+            self.store.mkdir(parents=True, exist_ok=True)
+            before = {p.name for p in self.store.iterdir()}
+            kermit(line, ["-r"], self.store, KERMIT_TIMEOUT)
+            got = [p for p in self.store.iterdir() if p.name not in before] or sorted(
+                self.store.iterdir(), key=lambda p: p.stat().st_mtime
+            )[-1:]
+            for path in got:
+                self.programs[path.name] = path.read_bytes()
+                self.log.info("part program %s received by Kermit (%d bytes)", path.name, path.stat().st_size)
+            return
+        name = line.read_record(ANSWER_TIMEOUT)[:-1]
+        content = line.read_bytes(line.read_length(ANSWER_TIMEOUT), ANSWER_TIMEOUT)
+        self.programs[name] = content
+        self.log.info("part program %s received (%d bytes)", name, len(content))
+        line.write_record("OK!")
+
+    def _send_program(self, line: RecordStream) -> None:
+        name = line.read_record(ANSWER_TIMEOUT)[:-1]
+        content = self.programs.get(name)
+        if self.kermit:  # Listing 9: kermit ilbs /dev/tty2a 9600 <part>.tar; nothing to send: no transfer
+            if content is None:
+                self.log.warning("upload of unknown part program %s: nothing sent", name)
+                return
+            (self.store / name).write_bytes(content)
+            kermit(line, ["-s", name], self.store, KERMIT_TIMEOUT)
+            return
+        if content is None:
+            self.log.warning("upload of unknown part program %s", name)
+            line.write_record("NONE!")
+        else:
+            line.write_record(f"{len(content)}!")
+            line.write_bytes(content)
 
 
 def main(cfg: Config, machine_id: str, log: logging.Logger, stop: threading.Event) -> int:

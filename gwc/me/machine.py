@@ -12,6 +12,13 @@ goes in alarm_text (cut to its 80-byte slot by `brief`, the whole of it in the l
 
 Answers the WC could not take (its queue full while it was down) wait in an outbox and are sent
 again each turn of the loop, so a restarted WC still gets its RUN_COMPL.
+
+A machine that can be lost while the ME runs (the CMM at the end of its serial line) reports it:
+`device_lost(why)` sends ME_LOST (the WC raises an alarm and shuts the machine down), the ME
+refuses work (Notnow) and looks for the machine in `watch()`, and `device_back()` sends ME_BACK
+once it answers again (the WC clears the alarm and brings the machine back).
+
+RUN_NO counts the runs of the machine, not of the ME process: it is kept in var/me/<id>/run_no.
 """
 
 from __future__ import annotations
@@ -32,6 +39,8 @@ from gwc.errors import ConfigError, GwcError, QueueError, QueueFull, QueueTimeou
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import ALARM_TEXT_SIZE, Channel, MeMessage, MessageId
 from gwc.me.results import write_results
+
+RUN_NO_FILE = "run_no"  # in the machine's memory directory: the last run number given
 
 IDLE_POLL = 0.25  # wait this long for a request when nothing runs
 RUN_POLL = 0.02  # ... and this long while a run is in progress, to notice its end soon
@@ -108,9 +117,10 @@ class MachineSide:
         self.recipe_id = ""
         self.recipe_file: Path | None = None
         self.results_path: Path | None = None
-        self.run_no = 0  # runs started by this ME process
-        self.run_started = 0.0
         self.memory = cfg.var / "me" / spec.id  # the machine's own recipe store (download/upload)
+        self.run_no = self._last_run_no()  # runs of this machine, across ME restarts
+        self.run_started = 0.0
+        self.lost: str | None = None  # why the machine itself stopped answering, while it does not
         self._start_req: MeMessage | None = None
         self._outbox: deque[MeMessage] = deque()
         self._blocked = False  # the WC's queue was full at the last try
@@ -158,6 +168,45 @@ class MachineSide:
     def close(self) -> None:
         """Release the machine (serial port, ...) when the ME stops."""
 
+    def watch(self) -> None:
+        """Called every turn of the loop while the machine is started and not running: look after it
+        (a line that hung up, a lost machine that may answer again)."""
+
+    # ----------------------------------------------------------------- a machine lost and found
+
+    def device_lost(self, why: str) -> None:
+        """The machine stopped answering: tell the WC (ME_LOST) once; work is refused until device_back."""
+        if self.lost is not None:
+            return
+        self.lost = why
+        self.log.error("the machine is lost: %s; the WC shuts it down, the ME looks for it", why)
+        self.send(MeMessage(MessageId.ME_LOST, alarm_text=brief(why)))
+
+    def device_back(self) -> None:
+        """The lost machine answers again: tell the WC (ME_BACK), serve again."""
+        if self.lost is None:
+            return
+        self.log.warning("the machine answers again (it was lost: %s)", self.lost)
+        self.lost = None
+        self.send(MeMessage(MessageId.ME_BACK))
+
+    def _last_run_no(self) -> int:
+        try:
+            return int((self.memory / RUN_NO_FILE).read_text().strip() or 0)
+        except FileNotFoundError:
+            return 0
+        except (OSError, ValueError) as e:
+            raise ConfigError(f"machine {self.spec.id}: {self.memory / RUN_NO_FILE} unreadable: {e}") from e
+
+    def _next_run_no(self) -> int:
+        """The next run number, written before the run starts, so no two runs of a machine share one."""
+        n = self.run_no + 1
+        self.memory.mkdir(parents=True, exist_ok=True)
+        tmp = self.memory / (RUN_NO_FILE + ".tmp")
+        tmp.write_text(f"{n}\n")
+        tmp.replace(self.memory / RUN_NO_FILE)
+        return n
+
     # ----------------------------------------------------------------- the loop
 
     def serve(self, stop: threading.Event) -> int:
@@ -188,6 +237,8 @@ class MachineSide:
                     self.handle(msg)
                 if self.state == MeState.RUNNING:
                     self._watch_run()
+                elif self.state in (MeState.IDLE, MeState.SETUP):
+                    self.watch()
         finally:
             if self.state == MeState.RUNNING:
                 self.abort("the ME is stopping")
@@ -244,6 +295,8 @@ class MachineSide:
     def _need(self, *states: MeState, what: str) -> None:
         if self.state not in states:
             raise Refusal(AckCode.NOTNOW, f"cannot {what}: the machine is {self.state}")
+        if self.lost is not None and self.state != MeState.SHUTDOWN:
+            raise Refusal(AckCode.NOTNOW, f"cannot {what}: the machine does not answer ({self.lost})")
 
     # ----------------------------------------------------------------- the requests
 
@@ -266,7 +319,7 @@ class MachineSide:
     def _me_start(self, msg: MeMessage) -> None:
         if self.state == MeState.RUNNING:
             raise Refusal(AckCode.NOTNOW, f"run {self.run_no} is in progress: start again when it is over")
-        self.recipe_id, self.recipe_file = "", None
+        self.recipe_id, self.recipe_file, self.lost = "", None, None
         if self.homing_alarm:
             # Listing 3: the first answer to ME_START is the alarm asking the operator to home the machine.
             self.state = MeState.HOMING
@@ -307,7 +360,7 @@ class MachineSide:
         if self.state == MeState.RUNNING:
             self.log.warning("ME_SHUT during run %d: the run is abandoned", self.run_no)
             self.abort("ME_SHUT")
-        self.state, self._start_req = MeState.SHUTDOWN, None
+        self.state, self._start_req, self.lost = MeState.SHUTDOWN, None, None
         self.recipe_id, self.recipe_file = "", None
         self.log.info("machine shut down")
         self.answer(msg, AckCode.ACK_OK, message_id=MessageId.ME_SHUT_C)
@@ -334,7 +387,7 @@ class MachineSide:
         if not msg.file_name:
             raise Refusal(AckCode.BAD_MESSAGE, "START_RUN names no results file")
         self.results_path = Path(msg.file_name)
-        self.run_no += 1
+        self.run_no = self._next_run_no()
         self.begin()
         self.run_started = time.monotonic()
         self.state = MeState.RUNNING
@@ -347,8 +400,11 @@ class MachineSide:
         except Exception as e:
             self.log.exception("run %d: the machine failed", self.run_no)
             outcome = RunOutcome(AckCode.RUN_FAIL, note=f"machine error: {e}")
-        if outcome is None:
-            return
+        if outcome is not None:
+            self.end_run(outcome)
+
+    def end_run(self, outcome: RunOutcome) -> None:
+        """The run in progress is over: results file, RUN_COMPL, Idle."""
         self.state = MeState.IDLE
         assert self.results_path is not None
         results = {

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
+import socket
 import threading
 import time
 import uuid
@@ -17,12 +19,12 @@ from typing import Any
 import pytest
 
 from gwc.config import Config
-from gwc.errors import ConfigError, LineError, QueueTimeout
+from gwc.errors import ConfigError, QueueTimeout
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import Channel, MeMessage, MessageId, remove_queues
 from gwc.me import make_machine
-from gwc.me.cmm import RecordStream, sim_link
-from gwc.me.cmm_sim import CmmSimulator
+from gwc.me.cmm_sim import CmmSimulator, fault_file, inject_fault, sim_link
+from gwc.me.line import Garbage, LineTimeout, RecordStream
 from gwc.me.machine import MachineSide
 from gwc.me.results import read_outcome, read_results, write_results
 from gwc.wc.link import MeDied, MeLink
@@ -75,7 +77,8 @@ def machine(tmp_path: Path) -> Iterator[Callable[..., Running]]:
         made.append(r)
         if spec.get("kind") == "cmm":
             r.run(CmmSimulator(cfg, cfg.machine(r.machine), LOG).serve)
-            wait_for(lambda: sim_link(cfg, r.machine).exists(), 10, "the simulator's pty link")
+            if spec["serial"]["port"] == "sim":
+                wait_for(lambda: sim_link(cfg, r.machine).exists(), 10, "the simulator's pty link")
         r.me = make_machine(cfg, r.machine, LOG)
         r.run(r.me.serve)
         return r
@@ -237,13 +240,148 @@ def test_cmm_without_its_simulator_fails_to_start(tmp_path: Path) -> None:
         r.close()
 
 
-def test_record_stream_refuses_garbage() -> None:
-    chunks = [b"x" * 200]
+def test_record_stream_refuses_garbage_shown_escaped() -> None:
+    chunks = [b"\x00\xfePASS!", b"x" * 200]
     stream = RecordStream(lambda t: chunks.pop() if chunks else b"", lambda b: None, "test line")
-    with pytest.raises(LineError, match="without '!'"):
+    with pytest.raises(Garbage, match="without '!'"):
         stream.read_record(0.1)
-    with pytest.raises(LineError, match="within"):
+    with pytest.raises(Garbage, match=r"not a record: \\x00\\xfePASS!"):
+        stream.read_record(0.1)
+    with pytest.raises(LineTimeout, match="within"):
         stream.read_record(0.05)
+
+
+def test_record_stream_takes_listing_9s_verdict_without_its_bang() -> None:
+    chunks = [b"FAIL", b"PASSREADY!"]
+    stream = RecordStream(lambda t: chunks.pop() if chunks else b"", lambda b: None, "test line")
+    assert stream.next_record(1, bare_verdict=True) == "PASS!"  # unambiguous: another record follows
+    assert stream.next_record(1, bare_verdict=True) == "READY!"
+    assert stream.next_record(1, bare_verdict=True) == "FAIL!"  # unambiguous: the line went quiet
+    assert stream.next_record(0.1, bare_verdict=True) is None
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def cmm_on(transport: str, **options: Any) -> dict[str, Any]:
+    """A CMM machine whose simulator is on a pty, or behind a TCP socket (a serial device server)."""
+    serial = {"port": "sim", "timeout": 0.5}
+    sim = {"measure_time": 0.05, **options.pop("sim", {})}
+    if transport == "socket":
+        port = free_port()
+        serial["port"] = f"socket://127.0.0.1:{port}"
+        sim["listen"] = f"127.0.0.1:{port}"
+    return {**CMM, "serial": serial, "sim": sim, "run_timeout": 1.5, "reprobe_max": 0.3, **options}
+
+
+def next_from_me(m: Running, timeout: float = 10) -> MeMessage:
+    """The next record the ME sends on its own (answers to nothing)."""
+    return m.wc.receive(timeout)
+
+
+def setup_and_start(m: Running, tmp_path: Path, n: int) -> Path:
+    rec = recipe(tmp_path, "PART alum\n")
+    answer = m.ask(MessageId.SETUP_RUN, file_name=rec, recipe_id="alum_chess_set")
+    assert answer.ack_code == AckCode.ACK_OK, answer
+    out = tmp_path / f"run-{n}.txt"
+    assert m.ask(MessageId.START_RUN, file_name=str(out)).ack_code == AckCode.ACK_OK
+    return out
+
+
+TRANSPORTS = ["pty", "socket"]
+
+
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_cmm_power_cycled_while_idle_is_lost_then_back_and_measures(machine, tmp_path: Path, transport: str) -> None:
+    m = machine(**cmm_on(transport))
+    assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
+    inject_fault(m.cfg, m.machine, "power_cycle", **{"for": 0.5})
+    lost = next_from_me(m)
+    assert lost.message_id == MessageId.ME_LOST, lost
+    refused = m.ask(MessageId.SETUP_RUN, file_name=recipe(tmp_path), recipe_id="alum_chess_set")
+    assert refused.ack_code == AckCode.NOTNOW and "does not answer" in refused.alarm_text
+    assert next_from_me(m).message_id == MessageId.ME_BACK
+    out = setup_and_start(m, tmp_path, 1)  # the program is downloaded again: the CMM forgot it
+    done = next_from_me(m)
+    assert (done.message_id, done.ack_code) == (MessageId.RUN_COMPL, AckCode.ACK_OK)
+    assert read_results(out)["RESULT"] == "PASS"
+
+
+@pytest.mark.parametrize(
+    ("fault", "params", "note", "lost"),
+    [
+        ("power_cycle", {"for": 0.5}, "line lost during the run", True),
+        ("silent", {"for": 3.0}, "no verdict from the CMM within 1.5s", True),
+        ("garbage", {"kind": "binary"}, r"garbage during the run: .*not a record: \\x00\\xfe\\x13PA\\x81SS!", False),
+        ("garbage", {"kind": "text"}, "the CMM answered XYZZY 42! instead of a verdict", False),
+    ],
+)
+def test_cmm_fault_during_a_run_fails_the_run_with_its_reason(
+    machine, tmp_path: Path, fault: str, params: dict[str, Any], note: str, lost: bool
+) -> None:
+    m = machine(**cmm_on("pty", sim={"measure_time": 0.6}))
+    assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
+    if fault == "garbage":  # instead of the next verdict
+        inject_fault(m.cfg, m.machine, fault, **params)
+        wait_for(lambda: not fault_file(m.cfg, m.machine).exists(), 5, "the simulator to take the fault")
+    out = setup_and_start(m, tmp_path, 1)
+    if fault != "garbage":  # while the part is measured
+        inject_fault(m.cfg, m.machine, fault, **params)
+    done = next_from_me(m)
+    assert (done.message_id, done.ack_code) == (MessageId.RUN_COMPL, AckCode.RUN_FAIL), done
+    assert read_results(out)["RESULT"] == "NONE"
+    assert re.search(note, read_outcome(out)[1]), read_outcome(out)
+    if lost:
+        assert next_from_me(m).message_id == MessageId.ME_LOST
+        assert next_from_me(m).message_id == MessageId.ME_BACK
+    out = setup_and_start(m, tmp_path, 2)
+    done = next_from_me(m)
+    assert (done.message_id, done.ack_code) == (MessageId.RUN_COMPL, AckCode.ACK_OK), done
+    assert read_results(out)["RUN_NO"] == "2"
+
+
+def test_cmm_late_verdict_is_dropped_not_taken_for_the_next_run(machine, tmp_path: Path) -> None:
+    m = machine(**cmm_on("pty", sim={"pattern": "FP"}))
+    assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
+    inject_fault(m.cfg, m.machine, "delay", **{"for": 3.0})  # past run_timeout (1.5) and the probe (0.5)
+    wait_for(lambda: not fault_file(m.cfg, m.machine).exists(), 5, "the simulator to take the fault")
+    out = setup_and_start(m, tmp_path, 1)
+    done = next_from_me(m)
+    assert done.ack_code == AckCode.RUN_FAIL and "given up" in read_outcome(out)[1]
+    lost = next_from_me(m)  # measuring, the CMM reads nothing: the probe after the run goes unanswered
+    assert lost.message_id == MessageId.ME_LOST
+    assert next_from_me(m).message_id == MessageId.ME_BACK  # the late FAIL! came, then READY!
+    out = setup_and_start(m, tmp_path, 2)
+    done = next_from_me(m)
+    assert done.ack_code == AckCode.ACK_OK and read_results(out)["RESULT"] == "PASS"  # its own verdict
+
+
+def test_cmm_in_thesis_mode_kermit_transfer_and_a_verdict_without_bang(machine, tmp_path: Path) -> None:
+    m = machine(**cmm_on("socket", transfer="kermit", sim={"bang": False, "pattern": "PF"}))
+    assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
+    verdicts = []
+    for n in (1, 2):
+        out = setup_and_start(m, tmp_path, n)
+        done = next_from_me(m)
+        assert done.ack_code == AckCode.ACK_OK, done
+        verdicts.append(read_results(out)["RESULT"])
+    assert verdicts == ["PASS", "FAIL"]
+    text = "PART king\nMEASURE all!\n" * 50
+    assert m.ask(MessageId.DNLD_ME, file_name=recipe(tmp_path, text), recipe_id="king").ack_code == AckCode.ACK_OK
+    up = m.ask(MessageId.UPLD_ME, recipe_id="king")
+    assert up.ack_code == AckCode.ACK_OK and Path(up.file_name).read_text() == text
+
+
+def test_run_numbers_go_on_across_me_restarts(machine, tmp_path: Path) -> None:
+    m = machine(kind="dummy", run_time=0.0)
+    start_and_setup(m, tmp_path)
+    assert m.ask(MessageId.START_RUN, file_name=str(tmp_path / "r1")).ack_code == AckCode.ACK_OK
+    assert read_results(next_from_me(m).file_name)["RUN_NO"] == "1"
+    again = make_machine(m.cfg, m.machine, LOG)  # a new ME process of the same machine
+    assert again.run_no == 1
 
 
 # ----------------------------------------------------------------------------- results file
