@@ -29,6 +29,7 @@ on conflict do nothing;
 insert into alarm_description (alarm_id, alarm_text, severity) values
     ('HOME_CMM',  'Push the start button on the CMM', 'warning'),
     ('ME_DIED',   'The machine side (ME) stopped answering its WC', 'error'),
+    ('MACH_LOST', 'The machine stopped answering its ME (line lost, hung or powered off): Shutdown until it answers again', 'error'),
     ('WC_SILENT', 'The machine''s WC has gone silent (liveness): machine marked Shutdown', 'error'),
     ('MAINT_DUE', 'Maintenance is due on the machine', 'warning'),
     ('RUN_FAIL',  'The machine reported a failed run', 'error'),

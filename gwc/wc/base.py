@@ -116,8 +116,9 @@ class WCBase(Module):
         self.log.info("accept types: %s", "all operations" if op_types == ALL_OPERATIONS else op_types or "none")
         return True
 
-    async def raise_alarm(self, alarm_id: str, text: str, wait: bool) -> bool:
-        """6.3.2.8: pass an alarm to the CAS; when `wait`, hold until the operator clears it."""
+    async def raise_alarm(self, alarm_id: str, text: str, wait: bool) -> int | None:
+        """6.3.2.8: pass an alarm to the CAS; when `wait`, hold until the operator clears it. Its alarm
+        number, or None if the CAS did not take it."""
         while True:
             try:
                 answer = await self.ask(
@@ -136,16 +137,14 @@ class WCBase(Module):
             except ConversationTimeout:
                 if not wait:
                     self.log.error("Cell Alarm Server did not take alarm %s", alarm_id)
-                    return False
+                    return None
                 self.log.error("Cell Alarm Server did not take alarm %s: trying again", alarm_id)
         if answer.ack_code != AckCode.ACK_OK or answer.alarm_no is None:
             self.log.error("Cell Alarm Server refused alarm %s: %s", alarm_id, answer.ack_code)
-            return False
+            return None
         self.log.info("alarm %d (%s) raised: %s", answer.alarm_no, alarm_id, text)
-        if not wait:
-            return True
-        if answer.alarm_no in self._cleared:
-            return True
+        if not wait or answer.alarm_no in self._cleared:
+            return int(answer.alarm_no)
         cleared = self._loop.create_future()
         self._alarm_waits[answer.alarm_no] = cleared
         self.log.info("alarm %d (%s) pending: waiting for the operator to clear it", answer.alarm_no, alarm_id)
@@ -154,7 +153,7 @@ class WCBase(Module):
         finally:
             self._alarm_waits.pop(answer.alarm_no, None)
         self.log.info("alarm %d cleared: continuing", answer.alarm_no)
-        return True
+        return int(answer.alarm_no)
 
     async def alarm_cleared(self, conv: Conversation) -> None:
         assert conv.first is not None

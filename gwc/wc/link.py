@@ -19,7 +19,7 @@ from collections.abc import Callable
 from gwc.errors import GwcError, QueueError, QueueFull
 from gwc.ipc.mq import Channel, MeMessage, MessageId
 
-UNSOLICITED = (MessageId.CELL_ALAR, MessageId.RUN_COMPL)
+UNSOLICITED = (MessageId.CELL_ALAR, MessageId.RUN_COMPL, MessageId.ME_LOST, MessageId.ME_BACK)
 
 
 class MeDied(GwcError):
@@ -110,11 +110,23 @@ class MeLink:
                         return await answer
                     except _Expired:
                         if not hold_open():
+                            self._withdraw()
                             raise MeDied(f"ME did not answer {msg.message_id.name} within {timeout:.1f}s") from None
                     finally:
                         timer.cancel()
             finally:
                 self._pending = None
+
+    def _withdraw(self) -> None:
+        """A request the ME did not read is taken back: the next ME would serve it out of its time (an old
+        ME_START raising a second homing alarm)."""
+        try:
+            taken = self.channel.withdraw()
+        except QueueError as e:
+            self.log.warning("could not take back what the ME did not read: %s", e)
+            return
+        for old in taken:
+            self.log.warning("the ME did not read %s: taken back from its queue", old.describe())
 
 
 class _Expired(Exception):

@@ -14,11 +14,11 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.mq import MeMessage, MessageId
 from gwc.wc.base import ALL_OPERATIONS, SERVER_TIMEOUT, S
+from gwc.wc.device import WCDevice
 from gwc.wc.link import MeDied
-from gwc.wc.runs import WCRuns
 
 
-class WCSteps(WCRuns):
+class WCSteps(WCDevice):
     """The conversations served."""
 
     async def _refuse_now(self, conv: Conversation, ack: str, code: str, note: str) -> None:

@@ -232,19 +232,24 @@ class WC(WCSteps):
         """Give up an abandoned setup; watch the ME: ping it when quiet; declare it dead when a ping goes
         unanswered."""
         await self._give_up_abandoned_setup()
-        if self._resuming or self.status == S.SHUTDOWN or self.me.busy or time.monotonic() - self.me.heard < ME_PING:
+        if self._resuming or not self._me_up or self.me.busy or time.monotonic() - self.me.heard < ME_PING:
             return
         try:
             answer = await self.me_request(MeMessage(MessageId.NO_MESSAGE), timeout=ME_DEADLINE)
         except (MeDied, QueueError) as e:
-            if self.status != S.SHUTDOWN:
+            if self._me_up:
                 await self.me_died(str(e))
             return
-        if answer.ack_code != AckCode.ACK_OK and self.status != S.SHUTDOWN:
+        if answer.ack_code != AckCode.ACK_OK and self._me_up:
             await self.me_died(
                 f"the ME answers that it is shut down ({answer.alarm_text or answer.ack_code}): "
                 "it was restarted and lost the machine's state"
             )
+
+    @property
+    def _me_up(self) -> bool:
+        """The ME should be up and is watched: the machine is, or it is lost (its ME looks for it)."""
+        return self.status != S.SHUTDOWN or self.lost is not None
 
     async def _give_up_abandoned_setup(self) -> None:
         """A machine set up for a run that MSCHED no longer reserves for it goes Idle again.
