@@ -142,6 +142,12 @@ create table if not exists lot_status (
 );
 create index if not exists lot_status_lot on lot_status (lot_id);
 
+-- The entities that may still use a machine: not destroyed, with a lot status that is not finished.
+-- MSCHED never binds a request of any other, and its sweep ends their queued requests.
+create or replace view live_entities as
+    select s.entity_id from lot_status s join lot_entities e on e.entity_id = s.entity_id
+    where e.destroyed_at is null and s.state not in ('completed', 'waiting_export', 'exported', 'failed');
+
 -- Scheduling ----------------------------------------------------------------------------------
 
 -- One row per machine a request asks for; seq is the arrival order FIFO scheduling follows.
@@ -173,7 +179,15 @@ create index if not exists reserved_machines_entity on reserved_machines (entity
 -- MSCHED finds a repeated Machine_Request (a step retried after a lost commit) by its conversation,
 -- and walks the requests of a freed machine oldest first (the FIFO scheduling pass).
 create index if not exists request_machines_conv on request_machines (reply_conv);
-create index if not exists request_machines_machine_seq on request_machines (machine_id, seq);
+-- The policy's order of a request, set when it is queued (MSCHED sets it again at start when the
+-- policy or its ageing changed): FIFO 0 (so seq decides), priority its priority plus its arrival
+-- time in ageing steps (gwc/msched/policy.py). The scheduling pass walks (machine_id, rank, seq)
+-- in order and stops after a few matches, for both policies.
+alter table request_machines add column if not exists rank double precision not null default 0;
+create index if not exists request_machines_machine_rank on request_machines (machine_id, rank, seq);
+-- (machine_id) and (machine_id, seq) are prefixes or orders the index above serves.
+drop index if exists request_machines_machine_seq;
+drop index if exists request_machines_machine;
 -- Every row carries its request's 'machine:op_type' pairs, so the scheduling pass tells whether a
 -- request can be bound from one row (slots <@ the free, accepting pairs) instead of joining its rows.
 alter table request_machines add column if not exists slots text[];

@@ -32,8 +32,9 @@ grant usage on schema public
     to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot;
 grant select on all tables in schema public
     to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot;
-grant execute on function get_new_max_value(text)
+grant execute on function get_new_max_value(text), get_new_max_values(text, int)
     to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot;
+grant execute on function msched_analyze(), msched_candidates(text[], text[], int) to gwc_msched;
 
 -- MSCHED: the request queue, the reservations, what machines accept now.
 grant insert, update, delete on request_machines, reserved_machines, accept_types, request_outcomes,

@@ -44,11 +44,12 @@ class Policy(Protocol):
         """The candidates in the order they should be bound."""
         ...
 
-    def sql_key(self) -> str:
-        """The same order as an SQL sort key over a request_machines row `q`.
+    def rank_sql(self) -> str:
+        """The same order as an SQL expression over a request's `priority` and `requested_at`.
 
-        The pass uses it only to fetch, per freed machine, the first few candidates in the order
-        `order` will put them; `order` decides. It must sort exactly as `order` does.
+        Stored with the request when it is queued (request_machines.rank; ties go by arrival, seq),
+        so the pass walks the index (machine_id, rank, seq) and fetches, per freed machine, the first
+        few candidates in the order `order` will put them. It must sort exactly as `order` does.
         """
         ...
 
@@ -61,8 +62,8 @@ class Fifo:
     def order(self, candidates: Sequence[Candidate], now: datetime) -> list[Candidate]:
         return sorted(candidates, key=lambda c: c.seq)
 
-    def sql_key(self) -> str:
-        return "q.seq"
+    def rank_sql(self) -> str:
+        return "0"
 
 
 class Priority:
@@ -82,9 +83,9 @@ class Priority:
     def order(self, candidates: Sequence[Candidate], now: datetime) -> list[Candidate]:
         return sorted(candidates, key=lambda c: (self.effective(c, now), c.seq))
 
-    def sql_key(self) -> str:
+    def rank_sql(self) -> str:
         # effective = priority - (now - requested_at) / ageing_s; `now` is the same for all, so drop it.
-        return f"q.priority + extract(epoch from q.requested_at) / {self.ageing_s!r}, q.seq"
+        return f"priority + extract(epoch from requested_at) / {self.ageing_s!r}"
 
 
 def make_policy(cfg: Config) -> Policy:

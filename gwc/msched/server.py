@@ -38,7 +38,7 @@ DEFAULT_SWEEP_S = 5.0
 # change (a datagram already received needs about three turns - read, open the conversation, run its
 # handler - to become one), or after MAX_GATHER_TURNS turns under a steady stream.
 GATHER_TURNS = 4
-LAZY_S = 0.5  # a change submitted without a kick waits at most this long for a step to ride on
+LAZY_S = 0.5  # an acknowledged outcome waits at most this long for a step to ride on
 MAX_GATHER_TURNS = 200
 
 Op = Callable[[Step], Any]
@@ -58,6 +58,10 @@ class Msched(Module):
         self.ack_timeout = float(opts.get("ack_timeout", cfg.bus.retry_deadline + cfg.bus.reply_timeout))
         self.sweep_s = float(opts.get("sweep_s", DEFAULT_SWEEP_S))
         self._ops: list[tuple[Op, asyncio.Future[Any] | None]] = []
+        # Unreserve_Me and acknowledged outcomes of one step go to the database as one statement each.
+        self._frees: list[tuple[int, str | None, asyncio.Future[list[str]]]] = []
+        self._finished: list[int] = []
+        self._lazy: asyncio.TimerHandle | None = None  # a step for _finished, should no other come
         self._kick: asyncio.Event | None = None
         self._waiters: dict[str, asyncio.Future[Outcome]] = {}  # MACH_REQ conversation id -> its outcome
         self._acks: dict[int, asyncio.Future[None]] = {}  # request_key -> done when its Comp is acknowledged
@@ -210,7 +214,7 @@ class Msched(Module):
         """UNRESERVE: free machines of an entity, then schedule them (in the same step)."""
         assert conv.first is not None
         m = conv.first.first
-        freed = await self._submit(lambda s: s.unreserve(m.entity_id, m.machine_id))
+        freed = await self._free(m.entity_id, m.machine_id)
         if freed:
             self.log.info("entity %s freed %s (by %s)", m.entity_id, ", ".join(freed), m.by or conv.peer)
             await conv.send(message("Unreserve_Me_Ack", ack_code=AckCode.ACK_OK, freed=len(freed)))
@@ -251,21 +255,37 @@ class Msched(Module):
 
     # ------------------------------------------------------------------ the step worker
 
-    def _submit(self, op: Op, wait: bool = True, kick: bool = True) -> asyncio.Future[Any]:
-        """Queue a change for the next step; the future gives the op's result once it is committed.
-
-        Without `kick` the change rides on the next step something else starts, or on its own after
-        LAZY_S: for bookkeeping nobody waits on, which should not cost a transaction of its own.
-        """
+    def _submit(self, op: Op, wait: bool = True) -> asyncio.Future[Any]:
+        """Queue a change for the next step; the future gives the op's result once it is committed."""
         assert self._kick is not None
-        loop = asyncio.get_running_loop()
-        fut = loop.create_future() if wait else None
+        fut = asyncio.get_running_loop().create_future() if wait else None
         self._ops.append((op, fut))
-        if kick:
-            self._kick.set()
-        else:
-            loop.call_later(LAZY_S, self._kick.set)
+        self._kick.set()
         return fut  # type: ignore[return-value]
+
+    def _free(self, entity_id: int, machine_id: str | None) -> asyncio.Future[list[str]]:
+        """Unreserve_Me for the next step, where it joins the step's other frees in one statement."""
+        assert self._kick is not None
+        fut: asyncio.Future[list[str]] = asyncio.get_running_loop().create_future()
+        self._frees.append((entity_id, machine_id, fut))
+        self._kick.set()
+        return fut
+
+    def _take(self) -> list[tuple[Op, asyncio.Future[Any] | None]]:
+        """The pending changes as a step's ops: all frees as one op, all acknowledged outcomes as one."""
+        ops, self._ops = self._ops, []
+        frees, self._frees = self._frees, []
+        finished, self._finished = self._finished, []
+        if self._lazy is not None:
+            self._lazy.cancel()
+            self._lazy = None
+        if finished:
+            ops.insert(0, (lambda s: s.finish(finished), None))
+        if frees:
+            fut = asyncio.get_running_loop().create_future()
+            fut.add_done_callback(lambda f: _spread(f, [w for _, _, w in frees]))
+            ops.insert(0, (lambda s: s.unreserve_all([(e, m) for e, m, _ in frees]), fut))
+        return ops
 
     async def _worker(self) -> None:
         assert self._kick is not None
@@ -275,12 +295,12 @@ class Msched(Module):
             # while changes keep coming (a backlog), up to a bound; a lone change waits a few turns.
             quiet = turns = 0
             while quiet < GATHER_TURNS and turns < MAX_GATHER_TURNS:
-                n = len(self._ops)
+                n = len(self._ops) + len(self._frees)
                 await asyncio.sleep(0)
                 turns += 1
-                quiet = quiet + 1 if len(self._ops) == n else 0
+                quiet = quiet + 1 if len(self._ops) + len(self._frees) == n else 0
             self._kick.clear()
-            ops, self._ops = self._ops, []
+            ops = self._take()
             if ops:
                 self._run(ops)
 
@@ -394,10 +414,25 @@ class Msched(Module):
     def _told(self, o: Outcome) -> None:
         # Forgetting an acknowledged outcome rides on the next step: kept a moment longer, it is only
         # told again (and dropped as late) should MSCHED restart meanwhile.
-        self._submit(lambda s: s.finish([o.request_key]), wait=False, kick=False)
+        self._finished.append(o.request_key)
+        if self._lazy is None and self._kick is not None:
+            self._lazy = asyncio.get_running_loop().call_later(LAZY_S, self._kick.set)
         done = self._acks.pop(o.request_key, None)
         if done is not None and not done.done():
             done.set_result(None)
+
+
+def _spread(done: asyncio.Future[list[list[str]]], waiters: list[asyncio.Future[list[str]]]) -> None:
+    """Hand each Unreserve_Me of a batch its own result (or the batch's failure)."""
+    for i, w in enumerate(waiters):
+        if w.done():
+            continue
+        if done.cancelled():
+            w.cancel()
+        elif done.exception() is not None:
+            w.set_exception(done.exception())  # type: ignore[arg-type]
+        else:
+            w.set_result(done.result()[i])
 
 
 def _malformed_request(head: Message, entries: tuple[Message, ...]) -> str | None:

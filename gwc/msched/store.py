@@ -25,54 +25,12 @@ from typing import Any
 
 import psycopg
 
-from gwc.ipc.codes import AckCode, LotState, MachineStatus
+from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.msched.policy import Candidate, Policy
 
 # A machine in one of these states is up: it can be bound (when it is free and accepts the op type).
 UP = (MachineStatus.IDLE.value, MachineStatus.SETUP.value, MachineStatus.RUNNING.value)
-# An entity in one of these states will never use a machine again.
-FINISHED = (LotState.COMPLETED.value, LotState.WAITING_EXPORT.value, LotState.EXPORTED.value, LotState.FAILED.value)
-
 _OUTCOME_COLS = "request_key, entity_id, ack_code, machines, machine_run_id, note, reply_to, reply_conv"
-
-
-def _live(entity: str, finished: str) -> str:
-    """SQL: the entity (a column) exists, is not destroyed and has a lot status that is not finished.
-
-    `finished` is the query parameter holding FINISHED. One definition for the pass (never bind a
-    request of a finished entity) and for the sweep that ends such requests.
-    """
-    return (
-        f"exists (select 1 from lot_status s join lot_entities e on e.entity_id = s.entity_id "
-        f"where s.entity_id = {entity} and e.destroyed_at is null and s.state <> all({finished}))"
-    )
-
-
-# For each trigger machine, the first few requests in the policy's order whose every machine is
-# free (up, unreserved) and accepts the request's op type (its `slots` are all among the usable
-# 'machine:op_type' pairs), of entities alive (not finished, not destroyed). For FIFO the index
-# (machine_id, seq) is walked in order and the walk stops after `per` matches: a freed machine costs
-# a few index probes however long the queue. (Checking each request's other rows with a subquery
-# instead made PostgreSQL test every request of the machine: 23 ms for 20 freed machines with
-# 10,000 queued, against ~1 ms.)
-_CANDIDATES = """
-select c.request_key, c.entity_id, c.op_type, c.priority, c.first_seq, c.requested_at, c.machines
-from unnest(%(trig)s::text[]) as t (machine_id)
-cross join lateral (
-    select q.request_key, q.entity_id, q.op_type, q.priority, q.requested_at,
-           -- not min(u.seq): PostgreSQL turns that into a walk of the seq index, ~50 us a candidate
-           (array(select u.seq from request_machines u where u.request_key = q.request_key order by u.seq))[1]
-               as first_seq,
-           array(select u.machine_id from request_machines u where u.request_key = q.request_key
-                 order by u.seq) as machines
-    from request_machines q
-    where q.machine_id = t.machine_id
-      and q.slots <@ %(usable)s::text[]
-      and {live}
-    order by {key}
-    limit %(per)s
-) c
-"""
 # Candidates fetched per freed machine and round; the pass repeats while a round binds something.
 PER_MACHINE = 4
 
@@ -135,26 +93,29 @@ class Step:
         """
         cur = self.cur
         # One round trip for what must be checked: a repeat (a step retried after a lost commit gets
-        # the same answer), the entity, its group, the op type; a second for the machines.
+        # the same answer), the entity, its group, the op type, the machines' status; one to insert.
         row = cur.execute(
             "select coalesce((select request_key from request_machines where reply_conv = %(conv)s limit 1), "
             "                (select request_key from request_outcomes where reply_conv = %(conv)s limit 1)), "
-            "       (select array[(e.destroyed_at is null)::text, s.state, l.priority::text] from lot_entities e "
+            "       (select array[exists (select 1 from live_entities v where v.entity_id = e.entity_id)::text, "
+            "                     s.state, l.priority::text] from lot_entities e "
             "        join lots l on l.lot_id = e.lot_id left join lot_status s on s.entity_id = e.entity_id "
             "        where e.entity_id = %(entity)s), "
             "       (select request_key from satisfied_alt_groups where entity_id = %(entity)s "
             "        and alt_group = %(group)s), "
-            "       exists (select 1 from op_types where op_type = %(op)s)",
-            {"conv": reply_conv, "entity": entity_id, "group": alt_group, "op": op_type},
+            "       exists (select 1 from op_types where op_type = %(op)s), "
+            "       (select array_agg(array[c.machine_id, coalesce(s.status, '')]) from me_config c "
+            "        left join machine_status s on s.machine_id = c.machine_id where c.machine_id = any(%(machines)s))",
+            {"conv": reply_conv, "entity": entity_id, "group": alt_group, "op": op_type, "machines": list(machines)},
         ).fetchone()
         assert row is not None
-        repeat, ent, satisfied_by, op_known = row
+        repeat, ent, satisfied_by, op_known, statuses = row
         if repeat is not None:
             return Queued(AckCode.ACK_OK, int(repeat), "already queued")
         if ent is None:
             return Queued(AckCode.UNKNOWN, note=f"entity {entity_id} is not known to the Lot Server")
         alive, state, lot_priority = ent
-        if alive != "true" or state is None or state in FINISHED:
+        if alive != "true":
             return Queued(
                 AckCode.NOTNOW,
                 note=f"entity {entity_id} is {state or 'without a lot status'}: it cannot ask for machines",
@@ -163,14 +124,7 @@ class Step:
             return Queued(AckCode.REQ_CANCEL, note=f"alternative {satisfied_by} already satisfied")
         if not op_known:
             return Queued(AckCode.UNKNOWN, note=f"op type {op_type!r} is not known")
-        status = dict(
-            cur.execute(
-                "select c.machine_id, s.status from me_config c "
-                "left join machine_status s on s.machine_id = c.machine_id "
-                "where c.machine_id = any(%s)",
-                (list(machines),),
-            ).fetchall()
-        )
+        status = {m: st for m, st in statuses or ()}
         for m in machines:
             if m not in status:
                 return Queued(AckCode.NO_MACHINE, note=f"machine {m} does not exist (ME_CONFIG)")
@@ -178,16 +132,17 @@ class Step:
                 return Queued(AckCode.NO_MACHINE, note=f"machine {m} is {status[m] or 'without a status'}")
         key = int(
             cur.execute(
-                "with k (key, at) as (select get_new_max_value('MACH_R_KEY'), clock_timestamp()) "
+                "with k (key, requested_at, priority) as "
+                "    (select get_new_max_value('MACH_R_KEY'), clock_timestamp(), %s::int) "
                 "insert into request_machines (request_key, entity_id, machine_id, op_type, priority, reply_to, "
-                "                              reply_conv, requested_at, slots, alt_group) "
-                "select k.key, %s, m, %s, %s, %s, %s, k.at, %s, %s "
+                "                              reply_conv, requested_at, slots, alt_group, rank) "
+                f"select k.key, %s, m, %s, k.priority, %s, %s, k.requested_at, %s, %s, {self.policy.rank_sql()} "
                 "from k, unnest(%s::text[]) with ordinality as u (m, i) order by i "
                 "returning request_key",
                 (
+                    int(lot_priority) if priority is None else priority,
                     entity_id,
                     op_type,
-                    int(lot_priority) if priority is None else priority,
                     reply_to,
                     reply_conv,
                     [f"{m}:{op_type}" for m in machines],
@@ -219,13 +174,23 @@ class Step:
 
     def unreserve(self, entity_id: int, machine_id: str | None) -> list[str]:
         """Unreserve_Me: free one machine of an entity, or all of them; the machines freed."""
-        sql = "delete from reserved_machines where entity_id = %s"
-        params: list[Any] = [entity_id]
-        if machine_id is not None:
-            sql += " and machine_id = %s"
-            params.append(machine_id)
-        freed = [r[0] for r in self.cur.execute(sql + " returning machine_id", params).fetchall()]
-        self.triggers.update(freed)
+        return self.unreserve_all([(entity_id, machine_id)])[0]
+
+    def unreserve_all(self, frees: Sequence[tuple[int, str | None]]) -> list[list[str]]:
+        """Many Unreserve_Me in one statement (a step's worth under load); the machines each freed."""
+        # A machine two frees name (its own, then all of the entity's) goes to the first, as one by one.
+        rows = self.cur.execute(
+            "with f (i, entity_id, machine_id) as (select * from unnest(%s::int[], %s::bigint[], %s::text[])), "
+            "d as (select distinct on (r.machine_id) r.machine_id, f.i from reserved_machines r join f "
+            "      on r.entity_id = f.entity_id and (f.machine_id is null or r.machine_id = f.machine_id) "
+            "      order by r.machine_id, f.i) "
+            "delete from reserved_machines r using d where r.machine_id = d.machine_id returning d.i, r.machine_id",
+            (list(range(len(frees))), [e for e, _ in frees], [m for _, m in frees]),
+        ).fetchall()
+        freed: list[list[str]] = [[] for _ in frees]
+        for i, m in rows:
+            freed[i].append(m)
+        self.triggers.update(m for _, m in rows)
         return freed
 
     def set_accept_types(self, machine_id: str, op_types: Sequence[str]) -> tuple[str, str]:
@@ -308,8 +273,12 @@ class Step:
                     f"select {_OUTCOME_COLS} from request_outcomes where not held order by decided_at, request_key"
                 )
             ]
+            # The policy, or its ageing, may have changed since the requests were queued.
+            rank = self.policy.rank_sql()
+            cur.execute(f"update request_machines set rank = {rank} where rank is distinct from {rank}")
         self.end_finished()  # entities that finished while MSCHED was away
         self.machines_down()
+        self.analyze()
         self.full = True
         return owed
 
@@ -317,7 +286,16 @@ class Step:
         """The periodic safety net: a status change whose broadcast never came, an orphan request."""
         self.end_finished()
         self.machines_down()
+        self.analyze()
         self.full = True
+
+    def analyze(self) -> bool:
+        """Refresh the planner's statistics of the queue if much of it changed (sql msched_analyze()).
+
+        The pass's per-machine walk is the plan PostgreSQL picks only when it knows how long the
+        queue is; whether they were refreshed.
+        """
+        return bool(self.cur.execute("select msched_analyze()").fetchone()[0])
 
     def end_finished(self) -> int:
         """Entities that finished (or were destroyed) will never take a machine: end their queued
@@ -328,11 +306,15 @@ class Step:
         bound). How many requests ended.
         """
         ended = self._end_queued(
-            f"not {_live('request_machines.entity_id', '%s')}", [list(FINISHED)], AckCode.REQ_CANCEL, "entity finished"
+            "not exists (select 1 from live_entities v where v.entity_id = request_machines.entity_id)",
+            [],
+            AckCode.REQ_CANCEL,
+            "entity finished",
         )
         self._settle({o.entity_id for o in ended})
         self.cur.execute(
-            f"delete from satisfied_alt_groups g where not {_live('g.entity_id', '%s')}", (list(FINISHED),)
+            "delete from satisfied_alt_groups g where not exists (select 1 from live_entities v "
+            "where v.entity_id = g.entity_id)"
         )
         return len(ended)
 
@@ -351,21 +333,14 @@ class Step:
         )
 
     def candidates(self, trig: set[str], usable: set[tuple[str, str]]) -> list[Candidate]:
-        # prepare=False: planned for these machines each time; a generic (prepared) plan of this
-        # query walked every request of the queue (70 ms instead of 1 with 10,000 queued).
-        query = _CANDIDATES.format(key=self.policy.sql_key(), live=_live("q.entity_id", "%(finished)s"))
+        """Per trigger machine, the first few bindable requests in the policy's order (sql msched_candidates)."""
         rows = self.cur.execute(
-            query,
-            {
-                "trig": sorted(trig),
-                "usable": sorted(f"{m}:{op}" for m, op in usable),
-                "finished": list(FINISHED),
-                "per": self.per_machine,
-            },
-            prepare=False,
+            "select * from msched_candidates(%s, %s, %s)",
+            (sorted(trig), sorted(f"{m}:{op}" for m, op in usable), self.per_machine),
         ).fetchall()
         unique = {
-            int(k): Candidate(int(k), int(e), op, int(p), int(s), at, tuple(ms)) for k, e, op, p, s, at, ms in rows
+            int(k): Candidate(int(k), int(e), op, int(p), int(s), at, tuple(x[: -len(op) - 1] for x in slots))
+            for k, e, op, p, s, at, slots in rows
         }
         return list(unique.values())
 
@@ -406,26 +381,21 @@ class Step:
         return bound
 
     def _bind(self, chosen: list[Candidate]) -> list[Outcome]:
-        """Reserve the chosen requests' machines and end their entities' requests, in two round trips."""
-        cur = self.cur
-        run_ids = [
-            int(r[0])
-            for r in cur.execute(
-                "select get_new_max_value('MACH_R_ID') from generate_series(1, %s) order by 1", (len(chosen),)
-            )
-        ]
-        flat = [(m, c.entity_id, rid, c.request_key) for c, rid in zip(chosen, run_ids) for m in c.machines]
-        machines, m_entities, m_run_ids, m_keys = (list(col) for col in zip(*flat))
-        # One statement: reserve; the bound request ends ACK_OK, the entity's other requests (its
-        # alternatives) REQ_CANCEL, and so do its held outcomes; a bound request's alt_group is
-        # remembered as satisfied. The CTEs share one snapshot, so the update sees only outcomes held
-        # before this statement.
-        rows = cur.execute(
-            "with b (entity_id, bound_key, run_id) as (select * from unnest(%(entities)s::bigint[], "
-            "        %(keys)s::bigint[], %(run_ids)s::bigint[])), "
+        """Reserve the chosen requests' machines and end their entities' requests, in one round trip."""
+        flat = [(m, i) for i, c in enumerate(chosen) for m in c.machines]
+        # One statement: the machine_run_ids (one counter update for all); reserve; the bound request
+        # ends ACK_OK, the entity's other requests (its alternatives) REQ_CANCEL, and so do its held
+        # outcomes; a bound request's alt_group is remembered as satisfied. The CTEs share one
+        # snapshot, so the update sees only outcomes held before this statement.
+        rows = self.cur.execute(
+            "with ids (last) as materialized (select get_new_max_values('MACH_R_ID', %(n)s)), "
+            "b (i, entity_id, bound_key, run_id) as (select u.i, u.entity_id, u.bound_key, "
+            "        ids.last - %(n)s + u.i from ids, unnest(%(entities)s::bigint[], %(keys)s::bigint[]) "
+            "        with ordinality as u (entity_id, bound_key, i)), "
             "reserve as (insert into reserved_machines (machine_id, entity_id, machine_run_id, request_key) "
-            "        select * from unnest(%(machines)s::text[], %(m_entities)s::bigint[], %(m_run_ids)s::bigint[], "
-            "                             %(m_keys)s::bigint[])), "
+            "        select m.machine_id, b.entity_id, b.run_id, b.bound_key "
+            "        from unnest(%(machines)s::text[], %(m_index)s::bigint[]) as m (machine_id, i) "
+            "        join b on b.i = m.i), "
             "gone as (delete from request_machines q using b where q.entity_id = b.entity_id "
             "        returning q.*, b.bound_key, b.run_id), "
             "satisfied as (insert into satisfied_alt_groups (entity_id, alt_group, request_key) "
@@ -446,13 +416,11 @@ class Step:
             f"       returning {', '.join('o.' + c for c in _OUTCOME_COLS.split(', '))}) "
             f"select {_OUTCOME_COLS} from ended union all select {_OUTCOME_COLS} from released",
             {
+                "n": len(chosen),
                 "entities": [c.entity_id for c in chosen],
                 "keys": [c.request_key for c in chosen],
-                "run_ids": run_ids,
-                "machines": machines,
-                "m_entities": m_entities,
-                "m_run_ids": m_run_ids,
-                "m_keys": m_keys,
+                "machines": [m for m, _ in flat],
+                "m_index": [i + 1 for _, i in flat],
             },
         ).fetchall()
         ended = [Outcome.of(r) for r in rows]

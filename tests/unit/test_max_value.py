@@ -67,3 +67,13 @@ def test_module_roles_cannot_write_the_counters_directly(db_conn: psycopg.Connec
     db_conn.execute("set role gwc_ls")
     with pytest.raises(psycopg.errors.InsufficientPrivilege):
         db_conn.execute("update max_values set value = 0")
+
+
+def test_several_values_at_once_continue_the_same_counter(db_conn: psycopg.Connection[Any]) -> None:
+    """get_new_max_values(type, n): one update hands out n values; the caller's end at the one returned."""
+    assert db.get_new_max_value(db_conn, "MACH_R_ID") == 1
+    assert db_conn.execute("select get_new_max_values('MACH_R_ID', 5)").fetchone()[0] == 6  # 2..6 are ours
+    assert db.get_new_max_value(db_conn, "MACH_R_ID") == 7
+    assert db_conn.execute("select get_new_max_values('FRESH', 3)").fetchone()[0] == 3  # a new type: 1..3
+    with pytest.raises(psycopg.errors.InvalidParameterValue):
+        db_conn.execute("select get_new_max_values('MACH_R_ID', 0)")

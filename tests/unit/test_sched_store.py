@@ -1,0 +1,126 @@
+"""MSCHED's store, piece by piece against the real database: batched frees, the policy's rank stored
+with each request (and set again when the policy changes), the candidate walk, the statistics refresh.
+
+The random sequences of test_sched_property.py check the pass as a whole; these check the parts the
+scheduler's speed rests on, which those sequences would only notice indirectly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import psycopg
+import pytest
+
+from gwc import db
+from gwc.config import Config
+from gwc.msched.policy import Fifo, Policy, Priority
+from gwc.msched.store import Step
+
+MACHINES = ["wc1", "wc2", "wc3"]
+
+
+@pytest.fixture
+def conn(cell_config: Config, database_url: str) -> Iterator[psycopg.Connection[Any]]:
+    """MSCHED's connection (role gwc_msched) to a database with entities 1..20 and wc1..wc3 Idle."""
+    with psycopg.connect(database_url, autocommit=True) as admin:
+        admin.execute("insert into lots (lot_id, product_id) values (1, 'alum_chess_set')")
+        admin.execute("insert into lot_entities (entity_id, lot_id) select g, 1 from generate_series(1, 20) g")
+        admin.execute(
+            "insert into lot_status (entity_id, lot_id, state) select g, 1, 'waiting_machine' "
+            "from generate_series(1, 20) g"
+        )
+        admin.execute("update machine_status set status = 'Idle' where machine_id = any(%s)", (MACHINES,))
+    with db.connect(cell_config, role="msched") as c:
+        c.autocommit = True
+        yield c
+
+
+def _step(conn: psycopg.Connection[Any], policy: Policy, fn: Any) -> tuple[Any, Step]:
+    with conn.transaction(), conn.cursor() as cur:
+        step = Step(cur, policy)
+        result = fn(step)
+        step.schedule()
+        return result, step
+
+
+def _accept_all(conn: psycopg.Connection[Any], policy: Policy) -> None:
+    _step(conn, policy, lambda s: [s.set_accept_types(m, ["*"]) for m in MACHINES])
+
+
+def test_frees_of_one_step_each_get_their_own_machines(conn: psycopg.Connection[Any]) -> None:
+    fifo = Fifo()
+    _accept_all(conn, fifo)
+    _step(conn, fifo, lambda s: [s.queue_request(1, "dummy_op", ["wc1", "wc2"], None, "t", "c1")])
+    _step(conn, fifo, lambda s: [s.queue_request(2, "dummy_op", ["wc3"], None, "t", "c2")])
+    freed, _ = _step(conn, fifo, lambda s: s.unreserve_all([(1, "wc2"), (2, None), (1, "wc3"), (7, None), (1, None)]))
+    # entity 1 frees wc2, then (all) the rest: wc1; wc3 was never entity 1's; entity 7 holds nothing
+    assert freed == [["wc2"], ["wc3"], [], [], ["wc1"]]
+    assert conn.execute("select count(*) from reserved_machines").fetchone()[0] == 0
+
+
+def test_priority_rank_is_stored_and_set_again_when_the_policy_changes(conn: psycopg.Connection[Any]) -> None:
+    fifo, prio = Fifo(), Priority(ageing_s=10)
+    # wc1 is held, so the requests queue: entity 3 asks first with priority 30, entity 4 later with 5
+    _accept_all(conn, fifo)
+    _step(conn, fifo, lambda s: s.queue_request(2, "dummy_op", ["wc1"], None, "t", "hold"))
+    _step(conn, fifo, lambda s: s.queue_request(3, "dummy_op", ["wc1"], 30, "t", "c3"))
+    _step(conn, fifo, lambda s: s.queue_request(4, "dummy_op", ["wc1"], 5, "t", "c4"))
+    assert conn.execute("select array_agg(distinct rank) from request_machines").fetchone()[0] == [0.0]
+    # MSCHED restarts with the priority policy: every waiting request gets its priority rank
+    _step(conn, prio, lambda s: s.startup(clean=False))
+    rows = conn.execute("select entity_id, priority, requested_at, rank from request_machines order by entity_id")
+    for entity, priority, at, rank in rows:
+        assert rank == pytest.approx(priority + at.timestamp() / 10), entity
+    # freed, wc1 goes to the more urgent request, not the older one (FIFO would take entity 3)
+    _, step = _step(conn, prio, lambda s: s.unreserve(2, None))
+    assert [o.entity_id for o in step.outcomes] == [4]
+    # a request queued under priority is ranked as it is queued
+    _step(conn, prio, lambda s: s.queue_request(5, "dummy_op", ["wc1"], 1, "t", "c5"))
+    rank, at = conn.execute("select rank, requested_at from request_machines where entity_id = 5").fetchone()
+    assert rank == pytest.approx(1 + at.timestamp() / 10)
+
+
+def test_candidates_are_the_first_few_bindable_of_each_machine_in_order(conn: psycopg.Connection[Any]) -> None:
+    fifo = Fifo()
+    _accept_all(conn, fifo)
+    _step(conn, fifo, lambda s: [s.queue_request(1, "dummy_op", [m], None, "t", f"h{m}") for m in MACHINES])
+    # behind the holders: on wc1, entity 2 wants wc1+wc2 (blocked while wc2 is held), then 3..7 want wc1
+    _step(conn, fifo, lambda s: s.queue_request(2, "dummy_op", ["wc1", "wc2"], None, "t", "c2"))
+    _step(conn, fifo, lambda s: [s.queue_request(e, "dummy_op", ["wc1"], None, "t", f"c{e}") for e in range(3, 8)])
+    with psycopg.connect(conn.info.dsn, autocommit=True) as admin:  # entity 4 finishes meanwhile
+        admin.execute("update lot_status set state = 'completed' where entity_id = 4")
+    with conn.transaction(), conn.cursor() as cur:
+        step = Step(cur, fifo, per_machine=2)
+        cands = step.candidates({"wc1"}, {("wc1", "dummy_op")})
+        # entity 2's request is blocked (wc2 not usable), entity 4 finished: the first two others
+        assert [c.entity_id for c in cands] == [3, 5]
+        assert all(c.machines == ("wc1",) for c in cands)
+        both = step.candidates({"wc1"}, {("wc1", "dummy_op"), ("wc2", "dummy_op")})
+        assert [c.entity_id for c in both] == [2, 3]
+        assert both[0].machines == ("wc1", "wc2")
+
+
+def test_queue_statistics_are_refreshed_only_when_much_changed(conn: psycopg.Connection[Any]) -> None:
+    fifo = Fifo()
+    _accept_all(conn, fifo)
+
+    def analyze() -> bool:
+        conn.execute("select pg_stat_force_next_flush()")  # this backend's counters, visible now
+        conn.execute("select pg_stat_clear_snapshot()")
+        return bool(_step(conn, fifo, lambda s: s.analyze())[0])
+
+    _step(conn, fifo, lambda s: s.queue_request(1, "dummy_op", ["wc1"], None, "t", "hold"))
+    _step(
+        conn, fifo, lambda s: [s.queue_request(e % 20 + 1, "dummy_op", ["wc1"], None, "t", f"c{e}") for e in range(5)]
+    )
+    assert analyze() is False  # a few rows since the database was made: no need
+    _step(
+        conn, fifo, lambda s: [s.queue_request(e % 20 + 1, "dummy_op", ["wc1"], None, "t", f"d{e}") for e in range(300)]
+    )
+    assert analyze() is True
+    assert analyze() is False  # just done
+    assert conn.execute(
+        "select last_analyze is not null from pg_stat_user_tables where relname = 'request_machines'"
+    ).fetchone()[0]
