@@ -183,7 +183,7 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
     cell = raw.get("cell", {})
     var = Path(os.environ.get("GWC_VAR") or cell.get("var") or PROJECT_ROOT / "var")
     if not var.is_absolute():
-        var = cfg_path.parent.parent / var
+        var = cfg_path.resolve().parent.parent / var  # absolute: the database socket's folder is named by it
     bus_raw = dict(raw.get("bus", {}))
     faults = Faults(**bus_raw.pop("faults", {}))
     hosts = tuple(HostSpec(name=h["name"], address=h["address"]) for h in raw.get("host", []))

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import collections
 import logging
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
+from pathlib import Path
 from typing import Any, ClassVar
 
 import psycopg
@@ -21,6 +23,7 @@ from textual import on
 from textual.app import App, ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical
+from textual.pilot import Pilot
 from textual.screen import ModalScreen
 from textual.widgets import (
     Button,
@@ -39,18 +42,21 @@ from textual.widgets import (
 from gwc.cell import cell_status
 from gwc.config import Config
 from gwc.console.link import VIEWS_OF, WAITING, Answer, CellLink
+from gwc.errors import GwcError
 from gwc.hi.alarm import alarm_rows
 from gwc.hi.machine import machine_rows
 from gwc.hi.monitor import line_of, matches
 from gwc.hi.orders import list_lots, list_orders, rows_of
 from gwc.hi.requests import request_tables
 from gwc.ipc.codes import MachineStatus
+from gwc.log import open_log
 
 TICK = 0.1  # how often the console takes what it heard on the bus
 RELOAD_EVERY = 0.25  # a view is read at most this often, however busy the bus
 PEERS_EVERY = 0.5  # how often the bus's membership is looked at (in memory, no traffic)
 SAFETY = 5.0  # the shown view is read this often even when nothing concerning it was heard
 MONITOR_LINES = 2000
+SCREENSHOT_WAIT = 5.0  # a view's read, at most, before its screenshot is taken anyway
 IN_A_RUN = {MachineStatus.SETUP, MachineStatus.RUNNING, MachineStatus.SETUP_SHUT, MachineStatus.RUN_SHUT}
 
 
@@ -118,7 +124,7 @@ class View(Vertical):
         yield DataTable(id=f"table-{self.name_}", cursor_type="row", zebra_stripes=True)
 
     def on_mount(self) -> None:
-        self.query_one(DataTable).add_columns(*self.columns)
+        self.query_one(f"#table-{self.name_}", DataTable).add_columns(*self.columns)
 
     def focus_main(self) -> None:
         self.query_one(DataTable).focus()
@@ -272,8 +278,7 @@ class RequestsView(View):
         yield Static(Text("Reserved machines"), classes="help")
         yield DataTable(id="table-reserved", cursor_type="row", zebra_stripes=True)
 
-    def on_mount(self) -> None:
-        super().on_mount()
+    def on_mount(self) -> None:  # View's on_mount has run too (Textual calls each class's handler)
         self.query_one("#table-reserved", DataTable).add_columns(*self.reserved_columns)
 
     def focus_main(self) -> None:
@@ -476,8 +481,8 @@ class MonitorView(Vertical):
         self.records: collections.deque[dict[str, Any]] = collections.deque(maxlen=MONITOR_LINES)
         self.filters: tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]] = ((), (), ())
         self.machine_convs: set[str] = set()
-        self.shown = False
         self.stale = False
+        self.own_name = ""
 
     def compose(self) -> ComposeResult:
         yield Static(Text("Every conversation on the bus. Filters (comma-separated, empty: all):"), classes="help")
@@ -494,7 +499,9 @@ class MonitorView(Vertical):
         self._redraw()
 
     def _match(self, rec: dict[str, Any]) -> bool:
-        return "message" in rec and matches(rec, *self.filters, self.machine_convs)
+        # The console's own status-line asks are left out: they would drown a quiet cell's conversations.
+        own = rec.get("initiator") == self.own_name and rec.get("class") == "STATUS_LN"
+        return "message" in rec and not own and matches(rec, *self.filters, self.machine_convs)
 
     def heard(self, records: list[dict[str, Any]], shown: bool) -> None:
         self.records.extend(records)
@@ -539,13 +546,13 @@ class ConsoleApp(App[None]):
     EntryView Select { width: 60; }
     """
     VIEWS: ClassVar[list[tuple[str, str]]] = [
-        ("machines", "1 Machines (MSTT)"),
-        ("lots", "2 Dispatch (DISP)"),
-        ("entry", "3 Order entry (WOEN)"),
-        ("orders", "4 Orders (WOSU)"),
-        ("requests", "5 Requests (MREQ)"),
+        ("machines", "1 Machines"),
+        ("lots", "2 Dispatch"),
+        ("entry", "3 New order"),
+        ("orders", "4 Orders"),
+        ("requests", "5 Requests"),
         ("alarms", "6 Alarms"),
-        ("modules", "7 Modules (STRT)"),
+        ("modules", "7 Modules"),
         ("monitor", "8 Monitor"),
     ]
     BINDINGS: ClassVar[list[BindingType]] = [
@@ -561,6 +568,8 @@ class ConsoleApp(App[None]):
         self.log_ = log
         self.link = CellLink(cfg, log)
         self.narration = narration
+        self.narrated: collections.deque[str] = collections.deque()  # from another thread, shown by tick()
+        self.when_ready: list[Callable[[], None]] = []
         self.cell_up: bool | None = None
         self.cell_since = time.strftime("%H:%M:%S")
         self.modules_seen: set[str] = set()
@@ -612,6 +621,7 @@ class ConsoleApp(App[None]):
         if self.narration:
             self.bind("9", "show('demo')", show=False)
         self.link.open()
+        self._views["monitor"].own_name = self.link.name
         self.show_cell_state()
         self.set_interval(TICK, self.tick)
         self.set_interval(PEERS_EVERY, self.look_at_peers)
@@ -620,6 +630,8 @@ class ConsoleApp(App[None]):
         self.views()["machines"].reload()
         self.reload_status_line()
         self.call_after_refresh(self.action_focus_view)
+        for fn in self.when_ready:
+            fn()
 
     def on_unmount(self) -> None:
         self.link.close()
@@ -627,6 +639,8 @@ class ConsoleApp(App[None]):
     # ----------------------------------------------------------------- keeping the views live
 
     def tick(self) -> None:
+        while self.narrated and self._narration is not None:
+            self._narration.write(Text(self.narrated.popleft()))
         heard = self.link.heard()
         if not heard:
             return
@@ -650,7 +664,7 @@ class ConsoleApp(App[None]):
                     views[name].stale = True
 
     def look_at_peers(self) -> None:
-        names = set(self.link.peers())
+        names = self.link.modules_up()
         if names != self.modules_seen:
             self.modules_seen = names
             self.make_stale({"machines", "modules"})
@@ -755,7 +769,51 @@ class ConsoleApp(App[None]):
         if answer.text != "asking the cell ...":
             self.notify(answer.text, severity="information" if answer.ok else "error", markup=False, timeout=6)
 
-    def narrate(self, text: str) -> None:
-        """A line of the demonstration's narration (from its thread)."""
-        if self._narration is not None:
-            self.call_from_thread(self._narration.write, Text(text))
+
+def run_beside(cfg: Config, job: Callable[[Callable[[str], None]], bool], echo: Callable[[str], None]) -> bool:
+    """The console in the foreground while job(say) runs in a thread, its narration in the console's
+    Demo tab; quitting the console leaves the job running, narrating to `echo`. Returns job's result."""
+    app = ConsoleApp(cfg, open_log("console", cfg.log_dir, cfg.level_of("hi")), narration=True)
+    outcome: dict[str, bool] = {}
+    console_open = threading.Event()
+
+    def say(text: str) -> None:
+        (app.narrated.append if console_open.is_set() else echo)(text)
+
+    def work() -> None:
+        try:
+            outcome["ok"] = job(say)
+        except GwcError as e:
+            say(f"failed: {e}")
+        say("finished" + ("" if outcome.get("ok") else " (not every lot did)") + ": q quits the console")
+
+    thread = threading.Thread(target=work, name="console-beside", daemon=True)
+    app.when_ready += [console_open.set, thread.start]
+    app.run()
+    console_open.clear()
+    while app.narrated:
+        echo(app.narrated.popleft())
+    if thread.is_alive():
+        echo("console closed; the demonstration goes on here")
+        thread.join()
+    return outcome.get("ok", False)
+
+
+def screenshot_every_view(folder: Path) -> Callable[[Pilot[None]], Coroutine[Any, Any, None]]:
+    """An auto-pilot that shows each view in turn, once it has been read, and saves it as SVG."""
+
+    async def shoot(pilot: Pilot[None]) -> None:
+        app = pilot.app
+        assert isinstance(app, ConsoleApp)
+        for i, (name, _) in enumerate(app.VIEWS, 1):
+            await pilot.press(str(i))
+            view = app.views()[name]
+            deadline = time.monotonic() + SCREENSHOT_WAIT
+            await pilot.pause(RELOAD_EVERY)
+            while getattr(view, "_loading", False) and time.monotonic() < deadline:
+                await pilot.pause(TICK)
+            await pilot.pause(TICK)
+            app.save_screenshot(f"console-{name}.svg", path=str(folder))
+        app.exit()
+
+    return shoot

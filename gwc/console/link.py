@@ -35,6 +35,7 @@ from gwc.hi.orders import decide, enter_order
 from gwc.hi.requests import cancel_request
 from gwc.ipc.bus import BlockingBus, Peer
 from gwc.ipc.codes import AckCode, LotState
+from gwc.module import module_name
 
 T = TypeVar("T")
 
@@ -103,6 +104,7 @@ class CellLink:
         self.cfg = cfg
         self.log = log
         self.bus: BlockingBus | None = None
+        self.name = f"hi.console.{os.getpid()}"
         self.db_error: str | None = None
         self._conn: psycopg.Connection[Any] | None = None
         self._conn_lock = threading.Lock()
@@ -114,7 +116,8 @@ class CellLink:
     # ----------------------------------------------------------------- lifetime
 
     def open(self) -> None:
-        self.bus = cell.hi_bus(self.cfg, self.log)
+        # A name of its own: `gwc demo --console` holds the demo's HI bus (hi.<pid>) in this process too.
+        self.bus = BlockingBus(self.name, self.cfg.bus, self.log)
         self._listener = threading.Thread(target=self._listen, name="console-listener", daemon=True)
         self._listener.start()
 
@@ -148,6 +151,11 @@ class CellLink:
         """The modules on the bus now (other HIs and consoles left out)."""
         assert self.bus is not None
         return {n: p for n, p in self.bus.peers().items() if not n.startswith("hi.")}
+
+    def modules_up(self) -> set[str]:
+        """The cell's own modules (cell.toml's) on the bus now: none means the cell is down."""
+        mine = {m.name for m in self.cfg.modules} | {module_name("wc", m.id) for m in self.cfg.machines}
+        return set(self.peers()) & mine
 
     def _need(self, name: str) -> None:
         if name not in self.peers():

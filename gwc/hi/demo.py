@@ -298,7 +298,13 @@ class Demo:
 )
 @click.option("--timeout", default=100.0, show_default=True, help="Seconds the lots may take in all.")
 @click.option("--keep", is_flag=True, help="Leave the cell running at the end (to look around with gwc commands).")
-def demo(config_path: Path, chess: int, pawns: int, timeout: float, keep: bool) -> None:
+@click.option(
+    "--console",
+    "with_console",
+    is_flag=True,
+    help="Watch it live in the operator's console (`gwc console`; the narration is its Demo tab, 9).",
+)
+def demo(config_path: Path, chess: int, pawns: int, timeout: float, keep: bool, with_console: bool) -> None:
     """Run section 7's demonstration: start a cell, order a chess set, run it, print the results, stop.
 
     Exits 0 only if every lot was exported with its result. Runs on its own cell (etc/demo.toml,
@@ -310,7 +316,12 @@ def demo(config_path: Path, chess: int, pawns: int, timeout: float, keep: bool) 
     mills = [m.id for m in cfg.machines if m.kind == "dummy"]
     if not any(m.id == "cmm_wc" for m in cfg.machines) or len(mills) < 2:
         raise GwcError(f"{config_path}: the demonstration needs machine cmm_wc and two dummy machines")
-    ok = Demo(cfg, click.echo, chess, pawns, timeout).run(keep)
+    if with_console:
+        from gwc.console.app import run_beside  # Textual only when asked for
+
+        ok = run_beside(cfg, lambda say: Demo(cfg, say, chess, pawns, timeout).run(keep), click.echo)
+    else:
+        ok = Demo(cfg, click.echo, chess, pawns, timeout).run(keep)
     if not ok:
         raise click.exceptions.Exit(1)
 

@@ -8,6 +8,7 @@ import asyncio
 import json
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -22,7 +23,7 @@ from gwc.console.app import ConsoleApp
 from gwc.ipc.catalogue import message
 from gwc.log import open_log
 from tests.e2e.lotkit import gwc, ok
-from tests.harness import CellHarness, wait_for
+from tests.harness import SERVERS, CellHarness, wait_for
 
 pytestmark = pytest.mark.e2e
 
@@ -158,25 +159,43 @@ def test_machine_stopped_and_alarm_cleared_from_the_console_change_the_cell(cell
 
 
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed (bin/setup installs it when root)")
-def test_gwc_console_in_a_terminal_shows_every_machine_and_quits_on_q(cell: CellHarness) -> None:
+def test_gwc_console_in_a_terminal_shows_every_machine_survives_the_cell_stopping_and_quits_on_q(
+    make_cell: Any,
+) -> None:
+    cell = make_cell(machines=MACHINES)
     cell.start_servers()
-    for m in ("wc1", "wc2", "cmm_wc"):
-        cell.start_machine_processes(m)
+    for m in MACHINES:
+        cell.start_machine_processes(m["id"])
     session = f"gwc-console-{cell.tag}"
     env = [shlex.quote(f"{k}={v}") for k, v in cell.env().items() if k.startswith(("GWC_", "PYTHON", "PATH", "HOME"))]
     done = cell.var / "console.exit"
     cmd = f"env {' '.join(env)} TERM=xterm-256color {sys.executable} -m gwc console; echo $? > {done}"
     tmux = ["tmux", "-L", session]
     subprocess.run([*tmux, "new-session", "-d", "-s", session, "-x", "160", "-y", "45", cmd], check=True)
-    try:
 
-        def screen() -> str:
-            return subprocess.run([*tmux, "capture-pane", "-p", "-t", session], capture_output=True, text=True).stdout
+    def screen() -> str:
+        return subprocess.run([*tmux, "capture-pane", "-p", "-t", session], capture_output=True, text=True).stdout
 
+    def shows(*texts: str) -> Callable[[], bool]:
+        return lambda: all(t in screen() for t in texts)
+
+    def wait_screen(what: str, *texts: str) -> None:
         try:
-            wait_for(lambda: all(m in screen() for m in ("wc1", "wc2", "cmm_wc")) and "cell UP" in screen(), 30, "MSTT")
+            wait_for(shows(*texts), 30, what)
         except AssertionError as e:
             raise AssertionError(f"{e}; the terminal shows:\n{screen()}") from None
+
+    try:
+        wait_screen("every machine in MSTT", "wc1", "wc2", "Shutdown", "cell UP")
+        # The cell stops under the console (every module on the bus goes), then starts again.
+        bus_modules = [*((s, None) for s in SERVERS), *(("wc", m["id"]) for m in MACHINES)]
+        for kind, machine in reversed(bus_modules):
+            cell.kill(kind, machine, sig=signal.SIGTERM)
+        wait_screen("the console to say the cell is down", "cell DOWN")
+        cell.start_servers()
+        for m in MACHINES:
+            cell.start("wc", m["id"], start=False)
+        wait_screen("the console to say the cell is back", "cell UP", "wc1", "wc2")
         subprocess.run([*tmux, "send-keys", "-t", session, "q"], check=True)
         wait_for(done.exists, 10, "the console to quit")
         assert done.read_text().strip() == "0"
