@@ -27,6 +27,7 @@ from gwc import db
 from gwc.agent import control as agent_control
 from gwc.config import Config
 from gwc.errors import GwcError, ModuleError
+from gwc.ipc import keys
 from gwc.ipc.bus import BlockingBus, Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
@@ -272,6 +273,8 @@ def start_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = pr
         say("database: embedded cluster running")
     if cfg.embedded or cfg.database_url:  # another host's embedded cluster is that host's to set up
         db.init_schema(cfg, log)
+    if keys.ensure(cfg.bus):
+        say(f"bus: new cell key in {cfg.bus.key_file} (copy it to the cell's other hosts: docs/security.md)")
     start_agent(cfg, say)
     agent_control.call(cfg, "start", say=say)
 

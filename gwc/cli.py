@@ -25,6 +25,7 @@ COMMAND_MODULES = [
     "gwc.hi.recipe",  # the recipe library (ERS)
     "gwc.hi.monitor",  # the conversation monitor
     "gwc.console.command",  # the operator's console (all the screens above, live)
+    "gwc.hi.key",  # the cell's keys
     "gwc.hi.check",  # cell invariants
     "gwc.hi.soak",  # the chaos soak
     "gwc.hi.demo",  # section 7's demonstration

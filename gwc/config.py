@@ -51,6 +51,10 @@ class BusConfig:
     retry_deadline: float = 5.0
     reply_timeout: float = 10.0
     kernel_filter: bool = True  # the kernel drops datagrams a module would drop unread (docs/protocol.md)
+    key_file: str | None = None  # the cell key file (module and lot keys); default var/secrets/cell.key
+    lot_key_file: str | None = None  # the lot keys alone, for lot scripts; default var/secrets/lot.key
+    replay_window: float = 10.0  # s: a datagram sealed longer ago (or that far ahead) is refused as a replay
+    max_skew: float = 1.0  # s: how far apart the clocks of the cell's hosts may be (docs/protocol.md, Replay)
     faults: Faults = field(default_factory=Faults)
 
     @property
@@ -185,6 +189,9 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
     if not var.is_absolute():
         var = cfg_path.resolve().parent.parent / var  # absolute: the database socket's folder is named by it
     bus_raw = dict(raw.get("bus", {}))
+    for name, default in (("key_file", "cell.key"), ("lot_key_file", "lot.key")):
+        where = Path(bus_raw.get(name) or var / "secrets" / default)
+        bus_raw[name] = str(where if where.is_absolute() else cfg_path.parent.parent / where)
     faults = Faults(**bus_raw.pop("faults", {}))
     hosts = tuple(HostSpec(name=h["name"], address=h["address"]) for h in raw.get("host", []))
     if len({h.name for h in hosts}) != len(hosts):
@@ -340,7 +347,11 @@ def write_config(path: Path, doc: dict[str, Any]) -> Config:
     """Write a cell configuration (for tests, benchmarks and private cells) and load it back."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(dump_toml(doc))
-    return load_config(path)
+    cfg = load_config(path)
+    from gwc.ipc.keys import ensure  # here: the keys module builds on this one
+
+    ensure(cfg.bus)  # set-up: a private cell gets keys of its own
+    return cfg
 
 
 def private_bus(**settings: Any) -> dict[str, Any]:

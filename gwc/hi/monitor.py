@@ -1,15 +1,21 @@
 """`gwc monitor`: the Conversation Monitor (CMON). Every conversation on the bus, live and decoded.
 
 The monitor joins the cell's multicast group but never speaks: it sends no hello, no ack, so the
-modules do not count it and it changes nothing it watches. It decodes every datagram with the same
-wire module as the bus, shows each message once (retransmissions and duplicates are recognised by
-(sender, incarnation, seq)), and notes which modules acknowledged it. `--record FILE` appends one
-JSON object per line for each message shown, for later study or for tests.
+modules do not count it and it changes nothing it watches. It checks every datagram with the cell's
+key as a module would (gwc/ipc/auth.py), decodes what is authentic with the same wire module as the
+bus, shows each message once (retransmissions and duplicates are recognised by (sender,
+incarnation, seq)), and notes which modules acknowledged it. `--record FILE` appends one JSON object
+per line for each message shown, for later study or for tests.
+
+Without the key (`--no-key`, or none readable) it decodes nothing: it shows only that traffic it
+cannot authenticate exists, how much each second. With it, refused datagrams are counted the same way.
 """
 
 from __future__ import annotations
 
+import collections
 import json
+import logging
 import select
 import time
 from collections import OrderedDict
@@ -20,9 +26,10 @@ from typing import Any, TextIO
 import click
 
 from gwc.config import BusConfig
-from gwc.errors import GwcError, MessageError
+from gwc.errors import BusError, GwcError, MessageError
 from gwc.hi import context
-from gwc.ipc import catalogue, wire
+from gwc.ipc import catalogue, keys, wire
+from gwc.ipc.auth import Guard
 from gwc.ipc.conversation import initiator
 from gwc.ipc.transport import open_socket
 
@@ -92,24 +99,40 @@ def watch(
     stop: Callable[[], bool],
     show_acks: bool = False,
     ready: Callable[[], None] = lambda: None,
+    keyed: bool = True,
 ) -> dict[str, int]:
-    """Listen to the group until stop() says so; emit each new msg once (and acks, if asked)."""
+    """Listen to the group until stop() says so; emit each new msg once (and acks, if asked).
+
+    Without the key (keyed False) nothing is decoded: every second with traffic emits how many
+    datagrams came that could not be authenticated."""
+    guard = Guard(cfg, "monitor", logging.getLogger("gwc.monitor"), collections.Counter()) if keyed else None
     sock = open_socket(cfg)
     ready()
     seen: OrderedDict[tuple[str, int, int], dict[str, Any]] = OrderedDict()
-    counts = {"datagrams": 0, "messages": 0, "malformed": 0}
+    counts = {"datagrams": 0, "messages": 0, "malformed": 0, "unauthenticated": 0}
+    second, unauthenticated = time.monotonic() + 1.0, 0
     try:
         while not stop():
-            ready, _, _ = select.select([sock], [], [], 0.1)
-            if not ready:
+            if time.monotonic() >= second:
+                if unauthenticated:
+                    now = datetime.now().isoformat(" ", "milliseconds")
+                    emit({"time": now, "bus": cfg.name, "unauthenticated": unauthenticated, "keyed": keyed})
+                second, unauthenticated = time.monotonic() + 1.0, 0
+            readable, _, _ = select.select([sock], [], [], 0.1)
+            if not readable:
                 continue
             try:
-                data = sock.recv(65536)
+                data, source = sock.recvfrom(65536)
             except BlockingIOError:
                 continue
             counts["datagrams"] += 1
+            opened = guard.open(data, False, source) if guard is not None else None
+            if opened is None:
+                counts["unauthenticated"] += 1
+                unauthenticated += 1
+                continue
             try:
-                env = wire.decode(data)
+                env = wire.decode(opened[0])
             except MessageError as e:
                 counts["malformed"] += 1
                 emit({"time": datetime.now().isoformat(" ", "milliseconds"), "bus": cfg.name, "malformed": str(e)})
@@ -198,6 +221,7 @@ def render_catalogue() -> str:
 @click.option("--json", "as_json", is_flag=True, help="Print JSON lines instead of text.")
 @click.option("--count", type=int, help="Stop after this many messages.")
 @click.option("--duration", type=float, help="Stop after this many seconds.")
+@click.option("--no-key", "no_key", is_flag=True, help="Do not load the cell key: only count the traffic.")
 @click.option(
     "--catalogue", "show_catalogue", is_flag=True, help="Print the conversation catalogue (markdown) and exit."
 )
@@ -210,6 +234,7 @@ def monitor(
     as_json: bool,
     count: int | None,
     duration: float | None,
+    no_key: bool,
     show_catalogue: bool,
 ) -> None:
     """Watch every conversation on the cell bus, live and decoded (the Conversation Monitor)."""
@@ -240,6 +265,9 @@ def monitor(
             click.echo(line_of(rec))
         elif "ack" in rec:
             click.echo(f"{rec['time'][11:]} {rec['bus']}   ack {rec['of']} in {rec['conv']} by {rec['by']}")
+        elif "unauthenticated" in rec:
+            why = "refused: not authentic, not fresh or another cell's" if rec["keyed"] else "no key: not decoded"
+            click.echo(f"{rec['time'][11:]} {rec['bus']}   {rec['unauthenticated']} datagram(s) ({why})")
         else:
             click.echo(f"{rec['time'][11:]} {rec['bus']}   malformed datagram: {rec['malformed']}")
         if "message" in rec:
@@ -251,8 +279,15 @@ def monitor(
     def ready() -> None:
         click.echo(f"monitoring bus {cfg.bus.name} ({cfg.bus.group}:{cfg.bus.port}); Ctrl-C stops", err=True)
 
+    keyed = not no_key
+    if keyed:
+        try:
+            keys.load(cfg.bus, "module")
+        except BusError as e:
+            click.echo(f"{e}: showing only that traffic exists", err=True)
+            keyed = False
     try:
-        watch(cfg.bus, emit, stop, show_acks, ready)
+        watch(cfg.bus, emit, stop, show_acks, ready, keyed)
     except KeyboardInterrupt:
         pass
 

@@ -38,7 +38,9 @@ from dataclasses import replace
 from gwc.config import BusConfig
 from gwc.errors import BusError, MessageError
 from gwc.ipc import catalogue, wire
+from gwc.ipc.auth import Guard
 from gwc.ipc.catalogue import Message
+from gwc.ipc.codes import AckCode
 from gwc.ipc.conversation import (
     CLOSED,
     INF,
@@ -60,6 +62,7 @@ __all__ = ["Batch", "BlockingBus", "BlockingConversation", "Bus", "Conversation"
 
 MAX_RTO = 0.5  # retransmission backoff stops growing here
 MAX_PIGGYBACK = 32  # acks riding on a msg at most; the rest go in ack datagrams
+FLOOD_BEATS = 50  # beats refused in one heartbeat that make a flood
 MAX_REMEMBERED = 65_536  # ended conversations (and our idx counters) remembered, newest first
 
 
@@ -109,6 +112,8 @@ class Bus:
         self._deadlines = Deadlines()
         self._heartbeat: asyncio.Task[None] | None = None
         self._faults = FaultInjector(cfg.faults, name, self.stats)
+        self._guard = Guard(cfg, name, log, self.stats)  # signs what we send, checks what we receive
+        self._following_beats = False  # reading beats as they come (under a flood), not once a heartbeat
         self._origin = wire.origin(name, self.inc)
         self._mine = f"{name}."  # how the ids of conversations this module opened begin
         self._conv_prefix = f"{name}.{self.inc:x}."  # ... in this incarnation
@@ -315,45 +320,13 @@ class Bus:
         own, encode = self._origin, wire.encode_parts
         # Encode everything before sending anything: an oversize batch fails whole, at the sender.
         try:
-            if n == 1:  # the usual case, without the batch's numbering
-                datas = [
-                    encode(
-                        own,
-                        "msg",
-                        seq + 1,
-                        conv_id,
-                        cls,
-                        start,
-                        0,
-                        0,
-                        base,
-                        to,
-                        messages[0].name,
-                        messages[0].fields,
-                        acks,
-                        to_inc,
-                    )
-                ]
-            else:
-                datas = [
-                    encode(
-                        own,
-                        "msg",
-                        seq + 1 + i,
-                        conv_id,
-                        cls,
-                        start + i,
-                        n - 1 if i == 0 else 0,
-                        i,
-                        base,
-                        to,
-                        m.name,
-                        m.fields,
-                        acks if i == 0 else (),
-                        to_inc if i == 0 else 0,
-                    )
-                    for i, m in enumerate(messages)
-                ]
+            m = messages[0]  # the first message carries the batch's size and the acks
+            datas = [
+                encode(own, "msg", seq + 1, conv_id, cls, start, n - 1, 0, base, to, m.name, m.fields, acks, to_inc)
+            ]
+            for i in range(1, n):
+                m = messages[i]
+                datas.append(encode(own, "msg", seq + 1 + i, conv_id, cls, start + i, 0, i, base, to, m.name, m.fields))
         except MessageError:
             if acks:
                 self._acks_due.setdefault((to, to_inc), []).extend(acks)  # type: ignore[arg-type]
@@ -401,7 +374,7 @@ class Bus:
         if not self._open:
             raise BusError(f"{self.name} is not signed on to the bus")
         try:
-            self._transport.send(data)
+            self._transport.send(self._guard.seal(data))
         except (BlockingIOError, InterruptedError):
             self.stats["send_lost"] += 1
         except OSError as e:
@@ -518,20 +491,36 @@ class Bus:
         while True:
             await asyncio.sleep(self.cfg.heartbeat)
             try:
-                self._members.read_beats(self._transport.beats())
+                self._read_beats(heartbeat=True)
                 self._send_beat()
                 self._expire()
+                self._guard.refresh()
             except Exception:  # a bug here must not stop the heartbeat
                 self.log.exception("bus housekeeping failed")
+
+    def _read_beats(self, heartbeat: bool = False) -> None:
+        """The beats that came, checked. A heartbeat that finds many refused (a flood on the beat port)
+        switches to reading them as they come, so that the flood cannot fill the socket's buffer and
+        push real beats out before they are read; a heartbeat without flood switches back."""
+        self._members.read_beats(self._guard.beats(self._transport))
+        if not heartbeat:
+            return  # called by the transport as beats come: the heartbeat decides
+        flood = self._guard.beat_drops > FLOOD_BEATS
+        self._guard.beat_drops = 0
+        if flood != self._following_beats:
+            self._following_beats = flood
+            self._transport.follow_beats(self._read_beats if flood else None)
+            self.log.warning("beat port %s: beats read as they come", "flooded" if flood else "quiet again")
 
     def _send_beat(self) -> None:
         """Our hello, to the beat port: a change of interest or a query goes to the bus port instead."""
         if not self._open:
             return
         try:
-            self._transport.send_beat(
-                wire.encode(Envelope(kind="hello", src=self.name, inc=self.inc, interest=tuple(sorted(self._interest))))
+            beat = wire.encode(
+                Envelope(kind="hello", src=self.name, inc=self.inc, interest=tuple(sorted(self._interest)))
             )
+            self._transport.send_beat(self._guard.seal(beat, beat=True))
         except OSError as e:  # lost like a dropped datagram: the next beat makes up for it
             self.stats["send_lost"] += 1
             self.log.debug("beat not sent: %s", e)
@@ -558,16 +547,23 @@ class Bus:
         """The datagram's envelope; None (counted, logged) if it is malformed."""
         try:
             return wire.decode(data)
-        except MessageError as e:
+        except MessageError as e:  # only a key holder gets here: counted and summarised like the rest
             self.stats["malformed"] += 1
-            self.log.warning("dropped malformed %s (%d bytes): %s", what, len(data), e)
+            self._guard.drops.drop("malformed", self._transport.source)
+            self.log.debug("dropped malformed %s (%d bytes): %s", what, len(data), e)
             return None
 
     def _handle(self, data: bytes) -> None:
-        env = self._decode(data, "datagram")
+        opened = self._guard.open(data, False, self._transport.source)
+        if opened is None:
+            return
+        env = self._decode(opened[0], "datagram")
         if env is None:
             return
         if env.inc == self.inc and env.src == self.name:
+            return
+        if opened[1] and env.kind == "msg" and env.cls not in catalogue.LOT_CLASSES:
+            self._refuse(env)
             return
         try:
             now = time.monotonic()
@@ -586,6 +582,23 @@ class Bus:
                 self._members.left(env.src, "said bye", clean=True)
         except Exception:  # a bug must not take the receive path down with it
             self.log.exception("error handling %s from %s", env.kind, env.src)
+
+    def _refuse(self, env: Envelope) -> None:
+        """A msg a lot script may not send: acknowledged (so it is not sent again), answered Not_Auth
+        by the module it was for, counted, and logged once per source and interval."""
+        to = env.to
+        if (to is not None and to != self.name) or (to is None and env.cls not in self._interest):
+            return
+        self._guard.drops.drop("not_authorized", f"{env.src} ({env.cls})")
+        key = (env.src, env.inc)
+        self._ack(key, env.seq)
+        if to is None or env.idx or self._inbound.duplicate(key, env.seq, time.monotonic()):
+            return
+        answer = catalogue.refusal(env.cls, AckCode.NOT_AUTH, "not allowed under the lot key")
+        if answer is not None:
+            conv = self.resume(env.conv, env.cls, env.src)
+            self._send_batch(conv, (answer,), env.src)
+            conv.end()
 
     def _on_ack(self, env: Envelope) -> None:
         if env.to != self.name or env.to_inc != self.inc:

@@ -22,6 +22,9 @@ _TYPES: dict[str, tuple[type, ...]] = {
     "list": (list,),
     "dict": (dict,),
 }
+MAX_NAME = 200  # characters: ids and names (machine_id, module, op_type, ...); longer is hostile
+# Free text: bounded only by the datagram. Every other str field is a name.
+TEXT_FIELDS = frozenset({"content", "note", "alarm_text", "text", "payload", "description", "reason", "last_event"})
 
 
 @dataclass(frozen=True)
@@ -43,7 +46,17 @@ class MessageClass:
         object.__setattr__(
             self,
             "_checks",
-            tuple((f.name, _TYPES[f.type], f.type in ("int", "float"), f.nullable, f) for f in self.fields),
+            tuple(
+                (
+                    f.name,
+                    _TYPES[f.type],
+                    f.type in ("int", "float"),
+                    f.nullable,
+                    f,
+                    (None if f.name in TEXT_FIELDS else MAX_NAME) if f.type == "str" else -1,
+                )
+                for f in self.fields
+            ),
         )
 
     def check(self, values: dict[str, Any]) -> None:
@@ -52,7 +65,7 @@ class MessageClass:
         if not known.issuperset(values):
             extra = set(values) - known
             raise MessageError(f"{self.name}: unknown field(s) {', '.join(sorted(extra))}")
-        for name, types, numeric, nullable, f in self._checks:  # type: ignore[attr-defined]
+        for name, types, numeric, nullable, f, limit in self._checks:  # type: ignore[attr-defined]
             v = values.get(name)
             if v is None:
                 if not nullable:
@@ -60,6 +73,10 @@ class MessageClass:
                 continue
             if not isinstance(v, types) or (numeric and v.__class__ is bool):
                 raise MessageError(f"{self.name}: field {name} must be {f.type}, got {type(v).__name__}")
+            if limit != -1 and ("\0" in v or (limit is not None and len(v) > limit)):
+                raise MessageError(f"{self.name}: field {name} holds a NUL or is over {limit} characters")
+            if numeric and v != v:  # NaN (the wire refuses it; a message built in Python could hold one)
+                raise MessageError(f"{self.name}: field {name} is NaN")
 
 
 @dataclass(frozen=True)
@@ -348,6 +365,11 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
 }
 
 
+# The conversation classes a lot entity starts or answers: all that receivers accept under the lot
+# key (docs/security.md). Everything else a lot script sends is refused Not_Auth.
+LOT_CLASSES = frozenset({"MACH_REQ", "CANCEL_RE", "UNRESERVE", "SETUP_RUN", "START_RUN", "ENTITY_REQ"})
+
+
 @dataclass(frozen=True)
 class Message:
     """One message of a conversation: its class name and its field values (validated)."""
@@ -391,3 +413,13 @@ def check(cls: str, msg: str, fields: dict[str, Any]) -> Message:
         raise MessageError(f"message {msg!r} does not belong to conversation {cls}")
     mc.check(fields)
     return Message(msg, fields)
+
+
+def refusal(cls: str, ack_code: str, note: str) -> Message | None:
+    """The answer that refuses a conversation of class `cls` with ack_code: its first answer message
+    that needs nothing but an ack code; None if the class has none (a broadcast)."""
+    for name in CONVERSATION_CLASSES[cls].messages[1:]:
+        mc = MESSAGE_CLASSES[name]
+        if "ack_code" in mc._known and all(f.nullable or f.name == "ack_code" for f in mc.fields):  # type: ignore[attr-defined]
+            return Message(name, {"ack_code": ack_code, "note": note})
+    return None

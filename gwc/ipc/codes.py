@@ -22,6 +22,7 @@ class AckCode(StrEnum):
     BAD_MESSAGE = "Bad_message"
     UNKNOWN = "Unknown"
     TIMEOUT = "Timeout"
+    NOT_AUTH = "Not_Auth"
 
     @property
     def words(self) -> str:
@@ -44,6 +45,7 @@ _ACK_WORDS = {
     AckCode.BAD_MESSAGE: "the message is malformed or does not fit its conversation",
     AckCode.UNKNOWN: "unknown entity, lot, alarm or machine",
     AckCode.TIMEOUT: "a peer (ME, server) did not answer in time",
+    AckCode.NOT_AUTH: "the sender's key does not allow this conversation (a lot script outside its rights)",
 }
 
 

@@ -24,6 +24,8 @@ _LOCK = threading.Lock()  # BlockingBus members live on threads of their own
 
 
 class MemoryTransport(Transport):
+    source = "memory"
+
     def __init__(self, cfg: BusConfig) -> None:
         self._key = (cfg.group, cfg.port)
         self._loop: asyncio.AbstractEventLoop | None = None

@@ -21,6 +21,7 @@ import struct
 import sys
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
+from typing import Any
 
 from gwc.config import BusConfig, Faults
 from gwc.errors import BusError
@@ -36,6 +37,8 @@ Handler = Callable[[bytes], None]
 
 class Transport(ABC):
     """Datagrams to and from every module of one bus (see the module docstring)."""
+
+    source: Any = None  # where the datagram being handled came from (an address), for drop reports
 
     @abstractmethod
     def open(self, loop: asyncio.AbstractEventLoop, own: bytes, on_datagram: Handler) -> None:
@@ -57,6 +60,9 @@ class Transport(ABC):
 
     def set_filter(self, src: str, inc: int, interest: Iterable[str]) -> None:  # noqa: B027  (optional)
         """Drop before the module wakes what module `src` would drop unread (a hint; none by default)."""
+
+    def follow_beats(self, on_beats: Callable[[], None] | None) -> None:  # noqa: B027  (optional)
+        """Call on_beats whenever beats are waiting (None: stop); for a transport a flood can fill."""
 
     @abstractmethod
     def close(self) -> None:
@@ -141,11 +147,19 @@ class UdpTransport(Transport):
             raise BusError("the bus transport is not open")
         self._sock.sendto(data, self._beat_dest)
 
+    def follow_beats(self, on_beats: Callable[[], None] | None) -> None:
+        if self._beat_sock is None or self._loop is None:
+            return
+        if on_beats is None:
+            self._loop.remove_reader(self._beat_sock.fileno())
+        else:
+            self._loop.add_reader(self._beat_sock.fileno(), on_beats)
+
     def beats(self) -> Iterator[bytes]:
         sock, own = self._beat_sock, self._own
         while sock is not None:
             try:
-                data = sock.recv(wire.MAX_DATAGRAM + 1)
+                data, self.source = sock.recvfrom(wire.MAX_DATAGRAM + 1)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as e:
@@ -161,7 +175,7 @@ class UdpTransport(Transport):
             return
         for _ in range(READ_BURST):
             try:
-                n = sock.recv_into(buf)
+                n, self.source = sock.recvfrom_into(buf)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as e:
@@ -178,6 +192,8 @@ class UdpTransport(Transport):
             self._sock.close()
             self._sock = None
         if self._beat_sock is not None:
+            if self._loop is not None and not self._loop.is_closed():
+                self._loop.remove_reader(self._beat_sock.fileno())
             self._beat_sock.close()
             self._beat_sock = None
 

@@ -67,6 +67,8 @@ class Envelope:
 _FIXED = struct.Struct("!QIIIBBQIIIIQBBBBBHH")
 _AFTER_PREFIX = struct.Struct("!" + _FIXED.format[3:])  # the fixed part after inc and src tag (Origin.prefix)
 _BODY = len(HEADER) + _FIXED.size  # where the strings begin
+BODY_OFFSET = _BODY
+SRC_LEN_OFFSET = len(HEADER) + struct.calcsize("!QIIIBBQIIIIQ")  # the byte giving the length of src
 # Offsets in the datagram of what the kernel filter reads (docs/protocol.md, "Kernel filtering").
 OFF_INC, OFF_SRC_TAG, OFF_TO_TAG, OFF_CLS_TAG, OFF_KIND, OFF_IDX, OFF_PART = 4, 12, 16, 20, 24, 34, 42
 
@@ -128,7 +130,23 @@ _c_encode = (
     if json.encoder.c_make_encoder
     else None
 )
-_scan = json.JSONDecoder().scan_once
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a value the bus carries")
+
+
+def _finite(text: str) -> float:
+    value = float(text)
+    if value in (INF, -INF):  # 1e999: JSON has no infinity, and float() makes one of it
+        raise ValueError(f"number {text[:20]} is out of range")
+    return value
+
+
+INF = float("inf")
+# NaN and Infinity are not JSON: Python's decoder takes them by default, the bus does not.
+_scan = json.JSONDecoder(parse_constant=_no_constant, parse_float=_finite).scan_once
+_json_loads = json.JSONDecoder(parse_constant=_no_constant, parse_float=_finite).decode
 
 
 def _json(value: Any) -> str:
@@ -265,7 +283,7 @@ def _loads(text: str) -> Any:
             return value
     except StopIteration:
         pass
-    return json.loads(text)  # whitespace around the value, or an error worth json's own message
+    return _json_loads(text)  # whitespace around the value, or an error worth json's own message
 
 
 def decode(data: bytes) -> Envelope:
@@ -288,6 +306,8 @@ def decode(data: bytes) -> Envelope:
         e = o + lc + lk + lt + lm
         if e > n:
             raise MessageError("truncated datagram")
+        if b"\0" in data[_BODY:e]:
+            raise MessageError("a name holds a NUL byte")
         src = _tagged(data, _BODY, ls, src_tag) or ""
         conv = data[o : o + lc].decode()
         o += lc
@@ -310,6 +330,8 @@ def decode(data: bytes) -> Envelope:
                 o, e = e + 1, e + 1 + data[e]
                 if e > n:
                     raise MessageError("truncated datagram")
+                if not 0 < e - o <= MAX_NAME or b"\0" in data[o:e]:
+                    raise MessageError(f"an interest entry is empty, over {MAX_NAME} bytes or holds a NUL byte")
                 got.append(data[o:e].decode())
             interest = tuple(got)
         fields = {}

@@ -7,6 +7,7 @@ process talks to them through its own Bus, so every conversation crosses a proce
 from __future__ import annotations
 
 import asyncio
+import collections
 import json
 import logging
 import os
@@ -25,6 +26,7 @@ from xprocess import ProcessStarter
 from gwc.config import Config
 from gwc.errors import ConversationTimeout
 from gwc.ipc import wire
+from gwc.ipc.auth import Guard
 from gwc.ipc.bus import BlockingBus, Bus
 from gwc.ipc.catalogue import message
 from gwc.log import log_file_name, open_log
@@ -274,6 +276,8 @@ def test_the_kernel_keeps_from_a_module_what_is_not_meant_for_it(make_lab: Any) 
 
 
 def test_fuzzed_datagrams_are_dropped_and_the_module_keeps_answering(make_lab: Any) -> None:
+    """Each mutation twice: as an outsider sends it (no seal: refused unread) and sealed with the
+    cell's key (as from a buggy module: the decoder and the catalogue refuse it)."""
     lab = make_lab()
     lab.start_peer("fz")
     rnd = random.Random(1991)
@@ -290,14 +294,16 @@ def test_fuzzed_datagrams_are_dropped_and_the_module_keeps_answering(make_lab: A
             fields={"n": 1, "payload": "leaf"},
         )
     )
+    guard = Guard(lab.cfg.bus, "fuzzer", lab.log, collections.Counter())
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(lab.cfg.bus.interface))
     try:
         for i, data in enumerate(_mutations(valid, rnd)):
-            try:
-                sock.sendto(data, (lab.cfg.bus.group, lab.cfg.bus.port))
-            except OSError:
-                pass  # the kernel refused it (too large): fine, it never reached anyone
+            for datagram in (data, guard.seal(data)):
+                try:
+                    sock.sendto(datagram, (lab.cfg.bus.group, lab.cfg.bus.port))
+                except OSError:
+                    pass  # the kernel refused it (too large): fine, it never reached anyone
             if i % 50 == 0:
                 conv, answer = lab.bus.request("PING", message("Ping", n=i), to="fz", timeout=15)
                 conv.end()
@@ -306,6 +312,7 @@ def test_fuzzed_datagrams_are_dropped_and_the_module_keeps_answering(make_lab: A
         sock.close()
     stats = lab.report("fz")["stats"]
     assert stats["malformed"] > 100 and stats.get("invalid", 0) >= 1
+    assert stats.get("dropped_short", 0) + stats.get("dropped_other_cell", 0) > 100
 
 
 def test_monitor_shows_and_records_conversations_decoded_with_filters(make_lab: Any, tmp_path: Path) -> None:

@@ -8,14 +8,16 @@ from __future__ import annotations
 import asyncio
 import logging
 import random
+import tempfile
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from gwc.config import BusConfig, Faults
 from gwc.errors import BusError
-from gwc.ipc import wire
+from gwc.ipc import keys, wire
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.memory import MemoryTransport
@@ -39,14 +41,20 @@ def transport_for(cfg: BusConfig) -> Transport | None:
 
 
 def private_cfg(**kw: Any) -> BusConfig:
+    """A bus of its own (group, port, keys)."""
     rnd = random.Random()
-    return BusConfig(
+    where = Path(tempfile.mkdtemp(prefix="gwc-bus-keys-"))
+    cfg = BusConfig(
         group=f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
         port=rnd.randrange(20000, 60000),
         heartbeat=0.1,
         peer_timeout=1.0,
+        key_file=str(where / "cell.key"),
+        lot_key_file=str(where / "lot.key"),
         **kw,
     )
+    keys.new(cfg)
+    return cfg
 
 
 async def until(predicate: Callable[[], Any], what: str, timeout: float = 10.0) -> None:
@@ -232,7 +240,7 @@ def test_a_restart_is_reported_with_the_new_incarnation_and_an_old_bye_is_ignore
             await asyncio.sleep(3 * cfg.heartbeat)  # beats read meanwhile, the dead one's too: b2 stays
             assert a.peers()["b"].inc == b2.inc and events == [("b", b2.inc)]
             old_bye = wire.encode(wire.Envelope(kind="bye", src="b", inc=old_inc))
-            a._handle(old_bye)  # ... and a stray bye of the old incarnation changes nothing
+            a._handle(a._guard.seal(old_bye))  # ... and a stray bye of the old incarnation changes nothing
             assert "b" in a.peers()
         finally:
             await b2.close()

@@ -1,0 +1,156 @@
+"""The seal on every datagram (gwc/ipc/auth.py) and the cell's keys (gwc/ipc/keys.py), in one process."""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import stat
+import time
+from pathlib import Path
+
+import pytest
+
+from gwc.config import BusConfig
+from gwc.errors import BusError, MessageError
+from gwc.ipc import auth, catalogue, keys, wire
+from gwc.ipc.auth import Guard
+from gwc.ipc.codes import AckCode
+
+LOG = logging.getLogger("gwc.test.auth")
+
+
+def cfg_in(where: Path, **kw: float) -> BusConfig:
+    cfg = BusConfig(key_file=str(where / "cell.key"), lot_key_file=str(where / "lot.key"), **kw)  # type: ignore[arg-type]
+    keys.ensure(cfg)
+    return cfg
+
+
+def guard(cfg: BusConfig, name: str) -> Guard:
+    return Guard(cfg, name, LOG, collections.Counter())
+
+
+def body(src: str = "ms", inc: int = 5, **kw: object) -> bytes:
+    fields = {"kind": "msg", "seq": 1, "conv": f"{src}.5.1", "cls": "UPD_ME_ST", "msg": "Update_ME_Status"} | kw
+    return wire.encode(wire.Envelope(src=src, inc=inc, **fields))  # type: ignore[arg-type]
+
+
+def test_key_files_are_private_and_hold_what_each_role_may_have(tmp_path: Path) -> None:
+    cfg = cfg_in(tmp_path)
+    for f in ("cell.key", "lot.key"):
+        assert stat.S_IMODE(os.stat(tmp_path / f).st_mode) == 0o600
+    _, lot = keys.load(cfg, "lot")
+    _, cell = keys.load(cfg, "module")
+    assert {k.role for k in lot.keys} == {"lot"} and {k.role for k in cell.keys} == {"lot", "module"}
+    assert lot.cell_id == cell.cell_id
+    with pytest.raises(BusError, match="exists"):
+        keys.new(cfg)
+
+
+def test_a_sealed_datagram_opens_once_and_its_replay_is_refused(tmp_path: Path) -> None:
+    cfg = cfg_in(tmp_path)
+    a, b = guard(cfg, "ms"), guard(cfg, "msched")
+    data = a.seal(body())
+    assert b.open(data, False, "x") == (body(), False)
+    assert b.open(data, False, "x") is None and b.stats["dropped_replay"] == 1
+    again = a.seal(body())  # a retransmission is sealed anew: not a replay
+    assert b.open(again, False, "x") is not None
+
+
+def test_forged_altered_and_foreign_datagrams_are_dropped_unread(tmp_path: Path) -> None:
+    cfg = cfg_in(tmp_path / "one")
+    other = cfg_in(tmp_path / "two")
+    b = guard(cfg, "msched")
+    sealed = guard(cfg, "ms").seal(body())
+    assert b.open(body(), False, "x") is None  # no seal at all
+    assert b.open(sealed[:-1] + bytes([sealed[-1] ^ 1]), False, "x") is None
+    assert b.open(sealed[:20] + b"X" + sealed[21:], False, "x") is None
+    assert b.open(guard(other, "ms").seal(body()), False, "x") is None
+    assert b.open(sealed, True, "x") is None  # a bus-port datagram replayed onto the beat port
+    assert b.stats["dropped_bad_mac"] == 2 and b.stats["dropped_wrong_channel"] == 1
+    assert b.stats["dropped_other_cell"] + b.stats["dropped_short"] == 2
+
+
+def test_a_lot_script_cannot_speak_as_a_module(tmp_path: Path) -> None:
+    cfg = cfg_in(tmp_path)
+    lot, module = guard(cfg, "lot:7"), guard(cfg, "msched")
+    assert lot.role == "lot" and module.role == "module"
+    assert module.open(lot.seal(body("lot:7")), False, "x") == (body("lot:7"), True)
+    assert module.open(lot.seal(body("ms")), False, "x") is None  # the lot key signs for lot entities only
+    assert module.stats["dropped_lot_key_misused"] == 1
+    # A lot script reads the modules' traffic (their lot MAC) ...
+    assert lot.open(guard(cfg, "ms").seal(body()), False, "x") == (body(), False)
+
+
+def test_stale_and_pre_start_datagrams_are_replays(tmp_path: Path) -> None:
+    cfg = cfg_in(tmp_path, replay_window=10.0, max_skew=1.0)
+    a = guard(cfg, "ms")
+    old = a.seal(body())
+    b = guard(cfg, "msched")
+    b._started += 5  # b started after `old` was sealed (more than max_skew later)
+    assert b.open(old, False, "x") is None and b.stats["dropped_replay"] == 1
+    b._started -= 5
+    b.cfg = BusConfig(key_file=cfg.key_file, lot_key_file=cfg.lot_key_file, replay_window=-1.0)
+    assert b.open(a.seal(body()), False, "x") is None and b.stats["dropped_stale"] == 1
+
+
+def test_rotation_keeps_old_and_new_accepted_through_the_overlap(tmp_path: Path) -> None:
+    cfg = cfg_in(tmp_path)
+    old_sender = guard(cfg, "ms")
+    receiver = guard(cfg, "msched")
+    keys.rotate(cfg, overlap=60, take_up=3, now=time.time() - 10)  # new keys in use now
+    new_sender = guard(cfg, "ms")
+    assert new_sender._module_send[0] == 2
+    receiver._mtime = 0
+    receiver.refresh()
+    assert receiver.open(old_sender.seal(body()), False, "x") is not None
+    assert receiver.open(new_sender.seal(body(inc=6)), False, "x") is not None
+    keys.rotate(cfg, overlap=4, take_up=3, now=time.time() - 100)  # key 2 expired long ago
+    receiver._mtime = 0
+    receiver.refresh()
+    assert receiver.open(new_sender.seal(body(inc=6)), False, "x") is None
+    assert receiver.stats["dropped_unknown_key"] == 1
+
+
+def test_drops_are_summarised_per_source_not_logged_each(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    b = guard(cfg_in(tmp_path), "msched")
+    with caplog.at_level(logging.WARNING):
+        for i in range(1000):
+            b.open(b"garbage" * 20, False, ("10.0.0.9", 4000 + i % 2))
+        assert not caplog.records
+        b.drops.report(float("inf"))
+    assert len(caplog.records) == 2 and "500 other cell" in caplog.text
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        b'{"n":NaN}',
+        b'{"n":1e999}',
+        b'{"n":-Infinity}',
+    ],
+)
+def test_the_wire_refuses_nan_and_infinity(bad: bytes) -> None:
+    good = wire.encode(wire.Envelope(kind="msg", src="a", inc=1, seq=1, conv="a.1.1", cls="PING", msg="Ping"))
+    with pytest.raises(MessageError):
+        wire.decode(good + bad)
+
+
+def test_the_wire_refuses_nul_and_over_long_names() -> None:
+    with pytest.raises(MessageError, match="NUL"):
+        wire.decode(wire.encode(wire.Envelope(kind="hello", src="w\0c", inc=1)))
+    hello = wire.encode(wire.Envelope(kind="hello", src="wc", inc=1, interest=("X" * 200,)))
+    with pytest.raises(MessageError, match="interest"):  # the encoder refuses it; a hostile sender need not
+        wire.decode(hello[:-201] + bytes([201]) + b"X" * 201)
+    with pytest.raises(MessageError, match="NUL"):
+        catalogue.check("GET_STATUS", "Get_Status", {"machine_id": "wc1\0"})
+    with pytest.raises(MessageError, match="over 200"):
+        catalogue.check("GET_STATUS", "Get_Status", {"machine_id": "m" * 201})
+    catalogue.check("CELL_EVENT", "Cell_Event", {"text": "t" * 1000})  # free text may be long
+
+
+def test_refusal_answers_with_the_class_ack_message() -> None:
+    answer = catalogue.refusal("SHUTDOWN", AckCode.NOT_AUTH, "no")
+    assert answer is not None and answer.name == "Shutdown_Ack" and answer.ack_code == "Not_Auth"
+    assert catalogue.refusal("UPD_ME_ST", AckCode.NOT_AUTH, "no") is None  # a broadcast: nothing to answer
+    assert auth.SEAL_BYTES == 61
