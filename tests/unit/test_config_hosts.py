@@ -56,7 +56,7 @@ def test_the_database_host_runs_the_embedded_cluster_and_the_others_reach_it_by_
     assert not cfg.embedded
     with pytest.raises(DatabaseError, match="copy var/secrets/ from the database host"):
         db.database_url(cfg, "wc")
-    (cfg.var / "secrets").mkdir(parents=True)
+    (cfg.var / "secrets").mkdir(parents=True, exist_ok=True)  # it holds the cell key already
     (cfg.var / "secrets" / "database").write_text("gwc_wc s3cr/t\ngwc_hi other\n")
     assert db.database_url(cfg, "wc") == "postgresql://gwc_wc:s3cr%2Ft@127.0.0.1:5432/gwc"
     assert db.database_url(cfg).startswith("postgresql://gwc_hi:other@127.0.0.1:5432/gwc")
