@@ -20,7 +20,7 @@ from typing import Any
 from gwc.errors import ConfigError
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
-SERVER_MODULES = ("cas", "ers", "ms", "ls", "sls", "msched")
+SERVER_MODULES = ("cas", "ers", "ms", "ls", "sls", "msched", "opcua")
 LEVELS = ("trace", "note", "warning", "error")
 
 

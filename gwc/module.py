@@ -53,6 +53,7 @@ BUS_MODULES = {
     "ers": "gwc.servers.recipe:RecipeServer",
     "sls": "gwc.servers.status_line:StatusLineServer",
     "wc": "gwc.wc.wc:WC",
+    "opcua": "gwc.opcua.gateway:Gateway",
 }
 # Processes off the bus, each `main(cfg, machine_id, log, stop) -> int`.
 MACHINE_PROCESSES = {

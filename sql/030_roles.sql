@@ -8,7 +8,7 @@ declare
     r text;
 begin
     foreach r in array array['gwc_msched', 'gwc_ms', 'gwc_ls', 'gwc_cas', 'gwc_ers', 'gwc_sls',
-                             'gwc_wc', 'gwc_hi', 'gwc_lot'] loop
+                             'gwc_wc', 'gwc_hi', 'gwc_lot', 'gwc_opcua'] loop
         if not exists (select 1 from pg_roles where rolname = r) then
             begin
                 execute format('create role %I nologin', r);
@@ -24,14 +24,14 @@ end;
 $$;
 
 revoke all on all tables in schema public
-    from gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot;
+    from gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot, gwc_opcua;
 revoke all on all sequences in schema public
-    from gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot;
+    from gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot, gwc_opcua;
 
 grant usage on schema public
-    to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot;
+    to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot, gwc_opcua;
 grant select on all tables in schema public
-    to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot;
+    to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot, gwc_opcua;
 grant execute on function get_new_max_value(text), get_new_max_values(text, int)
     to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot;
 grant execute on function msched_analyze(), msched_candidates(text[], text[], int) to gwc_msched;
@@ -52,4 +52,4 @@ grant insert, update, delete on alarms, alarm_description to gwc_cas;
 grant insert, update, delete on recipes, recipe_versions, op_machine_recipe, op_types to gwc_ers;
 -- Human Interface: orders, customers, and the products and lot scripts it registers.
 grant insert, update, delete on work_orders, work_order_items, customers, products, lot_scripts to gwc_hi;
--- SLS and lot scripts (gwc_lot) only read; they ask the owners over the bus.
+-- SLS, lot scripts (gwc_lot) and the OPC UA gateway (gwc_opcua) only read; they ask the owners over the bus.

@@ -22,8 +22,9 @@ OWNED = {
     "cas": {"alarms", "alarm_description"},
     "ers": {"recipes", "recipe_versions", "op_machine_recipe", "op_types"},
     "sls": set(),
+    "opcua": set(),
 }
-ROLES = ["msched", "ms", "ls", "cas", "ers", "sls", "wc", "hi", "lot"]
+ROLES = ["msched", "ms", "ls", "cas", "ers", "sls", "wc", "hi", "lot", "opcua"]
 # One row each server could plausibly write into another's table.
 TRY = {
     "machine_status": "update machine_status set note = 'x' where machine_id = 'wc1'",

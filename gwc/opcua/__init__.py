@@ -1,0 +1,8 @@
+"""The OPC UA gateway (`gwc run opcua`): the cell as an OPC UA server any MES, SCADA or client can
+browse, subscribe to and command. docs/opcua.md describes the address space, the methods and security.
+
+* settings.py: the [opcua] section of cell.toml.
+* security.py: users, the rule that methods need a user on a SignAndEncrypt channel, certificates.
+* space.py: the address space (string node ids in the cell's namespace, stable across restarts).
+* gateway.py: the cell module: what it hears on the bus and reads in the tables, and the methods.
+"""

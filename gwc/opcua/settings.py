@@ -1,0 +1,52 @@
+"""The gateway's settings: the [opcua] section of cell.toml (docs/opcua.md, Settings)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gwc.config import Config
+from gwc.errors import ConfigError
+
+DEFAULT_ENDPOINT = "opc.tcp://127.0.0.1:4840/gwc/"
+
+
+@dataclass(frozen=True)
+class OpcuaSettings:
+    endpoint: str = DEFAULT_ENDPOINT
+    anonymous: bool = True  # anonymous clients may browse and subscribe (never call methods)
+    users: dict[str, str] = field(default_factory=dict)  # user name -> password, or "sha256:<hex>"
+    user_certificates: dict[str, Path] = field(default_factory=dict)  # user name -> DER/PEM certificate
+    refresh: float = 1.0  # seconds between full re-reads of the tables (what no broadcast tells)
+    lots_poll: float = 0.25  # seconds between reads of lot states changed since the last read
+    keep_done: float = 300.0  # seconds an exported or failed entity stays in the address space
+    method_timeout: float = 0.9  # longest a method waits for a module's answer (see COMPLETE_WAIT)
+    cert_dir: Path = Path()  # the server's certificate and key, made when missing
+
+    @property
+    def namespace(self) -> str:
+        return "urn:gwc:cell"
+
+
+def load_settings(cfg: Config) -> OpcuaSettings:
+    """The [opcua] section, checked: ConfigError naming the key that is wrong."""
+    raw: dict[str, Any] = dict(cfg.raw.get("opcua", {}))
+    known = set(OpcuaSettings.__dataclass_fields__) - {"cert_dir"}
+    unknown = set(raw) - known
+    if unknown:
+        raise ConfigError(f"{cfg.path}: [opcua] has unknown key(s) {', '.join(sorted(unknown))}")
+    if not str(raw.get("endpoint", DEFAULT_ENDPOINT)).startswith("opc.tcp://"):
+        raise ConfigError(f"{cfg.path}: [opcua] endpoint must be an opc.tcp:// URL")
+    certs = {}
+    for user, path in dict(raw.pop("user_certificates", {})).items():
+        p = Path(path)
+        certs[str(user)] = p if p.is_absolute() else cfg.path.parent.parent / p
+    try:
+        s = OpcuaSettings(**raw, user_certificates=certs, cert_dir=cfg.var / "opcua")
+    except TypeError as e:
+        raise ConfigError(f"{cfg.path}: [opcua]: {e}") from None
+    for name in ("refresh", "lots_poll", "keep_done", "method_timeout"):
+        if float(getattr(s, name)) <= 0:
+            raise ConfigError(f"{cfg.path}: [opcua] {name} must be above 0")
+    return s
