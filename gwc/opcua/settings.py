@@ -19,7 +19,6 @@ class OpcuaSettings:
     users: dict[str, str] = field(default_factory=dict)  # user name -> password, or "sha256:<hex>"
     user_certificates: dict[str, Path] = field(default_factory=dict)  # user name -> DER/PEM certificate
     refresh: float = 1.0  # seconds between full re-reads of the tables (what no broadcast tells)
-    lots_poll: float = 0.25  # seconds between reads of lot states changed since the last read
     keep_done: float = 300.0  # seconds an exported or failed entity stays in the address space
     method_timeout: float = 0.9  # longest a method waits for a module's answer (see COMPLETE_WAIT)
     cert_dir: Path = Path()  # the server's certificate and key, made when missing
@@ -46,7 +45,7 @@ def load_settings(cfg: Config) -> OpcuaSettings:
         s = OpcuaSettings(**raw, user_certificates=certs, cert_dir=cfg.var / "opcua")
     except TypeError as e:
         raise ConfigError(f"{cfg.path}: [opcua]: {e}") from None
-    for name in ("refresh", "lots_poll", "keep_done", "method_timeout"):
+    for name in ("refresh", "keep_done", "method_timeout"):
         if float(getattr(s, name)) <= 0:
             raise ConfigError(f"{cfg.path}: [opcua] {name} must be above 0")
     return s
