@@ -20,7 +20,8 @@ from typing import Any
 from gwc.errors import ConfigError
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
-SERVER_MODULES = ("cas", "ers", "ms", "ls", "sls", "msched", "opcua")
+SERVER_MODULES = ("cas", "ers", "ms", "ls", "sls", "msched")
+OPTIONAL_MODULES = ("opcua",)  # modules a cell may list, not part of every cell (private cells leave them out)
 LEVELS = ("trace", "note", "warning", "error")
 
 
@@ -216,8 +217,8 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
         for m in raw.get("module", [])
     )
     for m in modules:
-        if m.name not in SERVER_MODULES:
-            raise ValueError(f"module {m.name!r} is not one of {', '.join(SERVER_MODULES)}")
+        if m.name not in SERVER_MODULES + OPTIONAL_MODULES:
+            raise ValueError(f"module {m.name!r} is not one of {', '.join(SERVER_MODULES + OPTIONAL_MODULES)}")
     machines = []
     for m in raw.get("machine", []):
         m = dict(m)

@@ -81,8 +81,6 @@ def operation_mode(status: str | None) -> str:
 
 
 def _variant(value: Any, vtype: ua.VariantType) -> ua.Variant:
-    if value is None:
-        return ua.Variant()  # Null: the column is null (no run yet, no recipe)
     if vtype == V.LocalizedText and isinstance(value, str):
         value = ua.LocalizedText(value)
     return ua.Variant(value, vtype)
@@ -154,7 +152,9 @@ class Space:
         if path in self._values and self._values[path] == value:
             return
         self._values[path] = value
-        await self.server.write_attribute_value(self.nodeid(path), ua.DataValue(_variant(value, self._types[path])))
+        # A null column is a DataValue without a value: asyncua refuses a Null variant over a typed one.
+        variant = None if value is None else _variant(value, self._types[path])
+        await self.server.write_attribute_value(self.nodeid(path), ua.DataValue(variant))
 
     async def set_all(self, path: str, row: dict[str, Any], layout: dict[str, ua.VariantType]) -> None:
         for var in layout:

@@ -42,6 +42,7 @@ LATENCY = 0.5  # from a status change on the bus to the subscriber's notificatio
 # asyncua's client drops a connection whose server misses its 1 s probe; on a shared, loaded machine
 # the test's clients allow 5 s (the gateway's own answers are held to well under 1 s: gateway.py).
 WATCHDOG = 5.0
+STARTUP = 60.0  # the gateway's start: asyncua builds its standard address space (2 s alone, 15 s on a loaded machine)
 
 
 def free_port() -> int:
@@ -141,7 +142,7 @@ def opcua_cell(lot_cell: Any) -> Any:
         endpoint = with_gateway(cell)
         ears.append(StatusEar(cell))
         cell_with_machines(cell)
-        cell.start("opcua")
+        cell.start("opcua", timeout=STARTUP)
         return cell, endpoint, ears[-1]
 
     yield make
@@ -258,7 +259,7 @@ def test_a_client_sees_machines_lots_and_alarms_live_and_commands_the_cell(opcua
             await asyncio.to_thread(cell.kill, "opcua")
             ok(await asyncio.to_thread(gwc, cell, "machine", "stop", "wc1"))
             assert rec.values(wc1.nodeid)[-1] == "Idle"
-            await asyncio.to_thread(cell.start, "opcua")
+            await asyncio.to_thread(cell.start, "opcua", timeout=STARTUP)
             await until(lambda: rec.values(wc1.nodeid)[-1] == "Shutdown", 20, "the restarted gateway's Shutdown")
             assert await wc1.read_value() == "Shutdown"
         finally:
