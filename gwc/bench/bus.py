@@ -9,6 +9,10 @@ ping-pong through one asyncio loop a side, to show what asyncio alone costs. All
 invocation on private groups, so the ratios compare like with like on a shared, noisy machine.
 Authentication is on in `bus` mode, as in the cell; what the seal costs alone is measured apart
 (`mac`): sealing and checking one Ping datagram, in this process.
+
+`--hosts` measures the same between two hosts: it builds two network namespaces joined by a veth
+bridge (gwc/netns.py, root only), runs this client in one and the servers in the other, so every
+datagram crosses a real interface pair, as between two computers of a cell (minus the wire).
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from typing import Any
 
 import click
 
+from gwc import netns
 from gwc.bench import summary
 from gwc.config import BusConfig
 from gwc.errors import GwcError
@@ -45,11 +50,12 @@ SERVER = "bench.srv"
 MODES = ("bare", "asyncio", "bus")  # the floor, the floor plus one asyncio loop a side, the bus
 
 
-def _cfg(group: str, port: int, key_dir: str) -> BusConfig:
+def _cfg(group: str, port: int, key_dir: str, interface: str = "127.0.0.1") -> BusConfig:
     where = Path(key_dir)
     return BusConfig(
         group=group,
         port=port,
+        interface=interface,
         reply_timeout=10.0,
         key_file=str(where / "cell.key"),
         lot_key_file=str(where / "lot.key"),
@@ -371,9 +377,12 @@ def _pin(which: int) -> None:
         os.sched_setaffinity(0, {cpus[which % len(cpus)]})
 
 
-def _spawn(mode: str, cfg: BusConfig, pin: bool) -> subprocess.Popen[bytes]:
+def _spawn(mode: str, cfg: BusConfig, pin: bool, peer: tuple[str, str] | None) -> subprocess.Popen[bytes]:
+    """One server; with `peer` (its namespace and address), on that other host."""
+    where = ["ip", "netns", "exec", peer[0]] if peer else []
     return subprocess.Popen(
         [
+            *where,
             sys.executable,
             "-m",
             "gwc.bench.bus",
@@ -385,24 +394,31 @@ def _spawn(mode: str, cfg: BusConfig, pin: bool) -> subprocess.Popen[bytes]:
             str(cfg.port),
             "--keys",
             str(Path(cfg.key_file or "").parent),
+            "--interface",
+            peer[1] if peer else cfg.interface,
             *(["--pin"] if pin else []),
         ],
         stdin=subprocess.DEVNULL,
     )
 
 
-def _private_cfg(key_dir: str) -> BusConfig:
+def _private_cfg(key_dir: str, interface: str = "127.0.0.1") -> BusConfig:
     rnd = random.Random()
-    return _cfg(f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}", rnd.randrange(20000, 60000), key_dir)
+    group = f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}"
+    return _cfg(group, rnd.randrange(20000, 60000), key_dir, interface)
 
 
-def run(n: int = 5000, window: int = 16, pin: bool = True) -> dict[str, Any]:
-    """All three measurements, each against its own server process; figures in microseconds."""
+def run(
+    n: int = 5000, window: int = 16, pin: bool = True, interface: str = "127.0.0.1", peer: tuple[str, str] | None = None
+) -> dict[str, Any]:
+    """All three measurements, each against its own server process; figures in microseconds.
+    With `peer` (a namespace and its address), the servers run on that host and this client's bus is
+    on `interface`."""
     key_dir = tempfile.mkdtemp(prefix="gwc-bench-keys-")
-    cfgs = {mode: _private_cfg(key_dir) for mode in MODES}
+    cfgs = {mode: _private_cfg(key_dir, interface) for mode in MODES}
     keys.new(cfgs["bus"])
     mask = os.sched_getaffinity(0)
-    servers = {mode: _spawn(mode, cfgs[mode], pin) for mode in MODES}
+    servers = {mode: _spawn(mode, cfgs[mode], pin, peer) for mode in MODES}
     if pin:
         _pin(0)
     try:
@@ -445,10 +461,11 @@ def run(n: int = 5000, window: int = 16, pin: bool = True) -> dict[str, Any]:
     show_default=True,
     help="Put client and server on different CPUs (both modes alike).",
 )
+@click.option("--hosts", is_flag=True, help="Between two namespace hosts over veth (root), not on loopback.")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON for machines.")
-def command(count: int, window: int, pin: bool, as_json: bool) -> None:
+def command(count: int, window: int, pin: bool, hosts: bool, as_json: bool) -> None:
     """Bus request->reply round trip (median, p99) and conversations/s, beside bare multicast UDP."""
-    r = run(count, window, pin)
+    r = _between_hosts(count, window, pin) if hosts else run(count, window, pin)
     if as_json:
         click.echo(json.dumps(r, indent=1))
         return
@@ -471,15 +488,40 @@ def command(count: int, window: int, pin: bool, as_json: bool) -> None:
     )
 
 
+def _between_hosts(count: int, window: int, pin: bool) -> dict[str, Any]:
+    """The measurement with the client on host h1 and the servers on h2: this command again, in h1."""
+    why = netns.unavailable()
+    if why:
+        raise GwcError(f"gwc bench bus --hosts: {why}")
+    with netns.Hosts(2) as hosts:
+        h1, h2 = hosts.hosts
+        argv = [sys.executable, "-m", "gwc.bench.bus", "--client", "-n", str(count), "--window", str(window)]
+        argv += ["--interface", h1.address, "--peer", f"{h2.netns}:{h2.address}", *(["--pin"] if pin else [])]
+        out = subprocess.run(h1.argv(argv), capture_output=True, text=True, timeout=600)
+        if out.returncode != 0:
+            raise GwcError(f"gwc bench bus --hosts: the client in {h1.netns} failed: {out.stderr.strip()[-400:]}")
+    return {**json.loads(out.stdout), "between": f"{h1.name} {h1.address} -> {h2.name} {h2.address} (veth)"}
+
+
 def _main() -> None:
-    ap = argparse.ArgumentParser(description="gwc bench bus server process")
-    ap.add_argument("--serve", choices=MODES, required=True)
-    ap.add_argument("--group", required=True)
-    ap.add_argument("--port", type=int, required=True)
+    ap = argparse.ArgumentParser(description="gwc bench bus server process (or, with --client, the client)")
+    ap.add_argument("--serve", choices=MODES)
+    ap.add_argument("--client", action="store_true", help="run the measurement, print JSON (for --hosts)")
+    ap.add_argument("-n", type=int, default=5000)
+    ap.add_argument("--window", type=int, default=16)
+    ap.add_argument("--peer", help="NETNS:ADDRESS of the servers' host")
+    ap.add_argument("--group")
+    ap.add_argument("--port", type=int)
+    ap.add_argument("--interface", default="127.0.0.1")
     ap.add_argument("--pin", action="store_true")
-    ap.add_argument("--keys", required=True, help="the folder holding the bench cell's key files")
+    ap.add_argument("--keys", help="the folder holding the bench cell's key files")
     args = ap.parse_args()
-    cfg = _cfg(args.group, args.port, args.keys)
+    if args.client:
+        ns, _, address = (args.peer or "").partition(":")
+        result = run(args.n, args.window, args.pin, args.interface, (ns, address) if args.peer else None)
+        sys.stdout.write(json.dumps(result) + "\n")
+        return
+    cfg = _cfg(args.group, args.port, args.keys, args.interface)
     if args.pin:
         _pin(1)
     if args.serve == "bus":

@@ -1,5 +1,5 @@
-"""Test hosts: network namespaces joined by a bridge, so a cell can be spread over several "hosts" on
-one machine (issue 18).
+"""Hosts on one machine: network namespaces joined by a bridge, so a cell can be spread over several
+"hosts" for its tests and benchmarks (tests/e2e/test_hosts.py, `gwc bench bus --hosts`).
 
 Each host is a namespace with one interface, eth0, on 10.<n>.0.<i>/24, a veth whose other end sits on
 a bridge in a namespace of its own. Putting the bridge in a namespace too means one `ip netns del`
@@ -22,15 +22,15 @@ import subprocess
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-PREFIX = "gwcn"  # every namespace and link a test makes starts with this, so leftovers can be swept
+PREFIX = "gwcn"  # every namespace and link made here starts with this, so leftovers can be found
 
 
 def unavailable() -> str | None:
-    """Why test hosts cannot be built here (None when they can): they need root and iproute2."""
+    """Why hosts cannot be built here (None when they can): they need root and iproute2."""
     if os.geteuid() != 0:
-        return "test hosts need root (network namespaces)"
+        return "namespace hosts need root (network namespaces)"
     if shutil.which("ip") is None:
-        return "test hosts need iproute2's `ip`"
+        return "namespace hosts need iproute2's `ip`"
     probe = f"{PREFIX}probe{os.getpid()}"
     made = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True)
     if made.returncode != 0:
@@ -59,10 +59,8 @@ class Host:
         return ["ip", "netns", "exec", self.netns, *argv]
 
 
-class TestHosts:
+class Hosts:
     """N hosts on one bridge. Use as a context manager; everything is removed on exit."""
-
-    __test__ = False  # not a test class, for pytest
 
     def __init__(self, count: int) -> None:
         self.tag = f"{os.getpid() % 10000}{random.randrange(100):02d}"
@@ -73,7 +71,7 @@ class TestHosts:
             for i in range(1, count + 1)
         ]
 
-    def __enter__(self) -> TestHosts:
+    def __enter__(self) -> Hosts:
         try:
             self._build()
         except BaseException:
@@ -118,6 +116,6 @@ class TestHosts:
 
 
 def leftovers() -> list[str]:
-    """Namespaces of test hosts still present (a leak check for tests)."""
+    """Namespaces of such hosts still present (a leak check for tests)."""
     out = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
     return [line.split()[0] for line in out.splitlines() if line.startswith(PREFIX)]
