@@ -26,7 +26,7 @@ from typing import Any
 from gwc import db
 from gwc.agent import control as agent_control
 from gwc.config import Config
-from gwc.errors import GwcError, ModuleError
+from gwc.errors import ConfigError, GwcError, ModuleError
 from gwc.ipc import keys
 from gwc.ipc.bus import BlockingBus, Bus
 from gwc.ipc.catalogue import message
@@ -273,6 +273,12 @@ def start_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = pr
         say("database: embedded cluster running")
     if cfg.embedded or cfg.database_url:  # another host's embedded cluster is that host's to set up
         db.init_schema(cfg, log)
+    if cfg.database_host is not None and not cfg.embedded and not Path(cfg.bus.key_file or "").exists():
+        # A key made here would not be the cell's: the other hosts would refuse every datagram.
+        raise ConfigError(
+            f"no cell key at {cfg.bus.key_file}: copy var/secrets/ from {cfg.database_host.name} first "
+            "(docs/deploying.md, Keys)"
+        )
     if keys.ensure(cfg.bus):
         say(f"bus: new cell key in {cfg.bus.key_file} (copy it to the cell's other hosts: docs/security.md)")
     start_agent(cfg, say)

@@ -156,6 +156,8 @@ def lots_done(cell: HostCell, entities: list[int]) -> bool:
 def test_a_cell_over_three_hosts_makes_the_chess_order_and_rides_out_a_cut_cable(host_cell: HostCell) -> None:
     cell = host_cell
     cell.gwc("h1", "start")
+    refused = cell.run("h2", "start")  # before the one explicit step: no cell key of its own is made
+    assert refused.returncode != 0 and "copy var/secrets/ from h1" in refused.stderr, refused.stderr
     cell.copy_secrets()
     cell.gwc("h2", "start")
     cell.gwc("h3", "start")
