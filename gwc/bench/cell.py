@@ -39,9 +39,9 @@ import psycopg
 from gwc import db
 from gwc.bench import summary
 from gwc.cell import machine_procs
+from gwc.client.orders import decide
+from gwc.client.session import context
 from gwc.errors import GwcError
-from gwc.hi import context
-from gwc.hi.orders import decide
 from gwc.ipc.codes import LotState
 from gwc.log import log_file_name
 from gwc.lot.entity import create_lot

@@ -37,9 +37,9 @@ from psycopg import sql
 
 from gwc import db
 from gwc.bench import summary
+from gwc.client.session import context
 from gwc.config import Config, private_bus, write_config
 from gwc.errors import GwcError
-from gwc.hi import context
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode

@@ -40,14 +40,14 @@ from textual.widgets import (
 )
 
 from gwc.cell import cell_status
+from gwc.client.alarms import alarm_rows
+from gwc.client.machines import machine_rows
+from gwc.client.orders import list_lots, list_orders, rows_of
+from gwc.client.requests import request_tables
 from gwc.config import Config
 from gwc.console.link import VIEWS_OF, WAITING, Answer, CellLink
 from gwc.errors import GwcError
-from gwc.hi.alarm import alarm_rows
-from gwc.hi.machine import machine_rows
 from gwc.hi.monitor import line_of, matches
-from gwc.hi.orders import list_lots, list_orders, rows_of
-from gwc.hi.requests import request_tables
 from gwc.ipc.codes import MachineStatus
 from gwc.log import open_log
 

@@ -26,13 +26,13 @@ import psycopg
 
 from gwc import cell, db
 from gwc.agent import control as agent_control
+from gwc.client.alarms import clear_alarm, read_status_line
+from gwc.client.machines import start_machine, stop_machine
+from gwc.client.orders import decide, enter_order
+from gwc.client.requests import cancel_request
 from gwc.config import Config
 from gwc.errors import GwcError, Refused
-from gwc.hi.alarm import clear_alarm, read_status_line
-from gwc.hi.machine import start_machine, stop_machine
 from gwc.hi.monitor import watch
-from gwc.hi.orders import decide, enter_order
-from gwc.hi.requests import cancel_request
 from gwc.ipc.bus import BlockingBus, Peer
 from gwc.ipc.codes import AckCode, LotState
 from gwc.module import module_name

@@ -1,22 +1,19 @@
-"""The Human Interface: the operator's commands, one module per group of the thesis's screens."""
+"""The Human Interface: the operator's commands, one module per group of the thesis's screens.
+
+The commands parse their arguments and print; what they do with the cell is gwc.client's.
+"""
 
 from __future__ import annotations
 
 import json
-import logging
 from collections.abc import Sequence
 from typing import Any
 
 import click
 
-from gwc.config import Config, load_config
-from gwc.log import open_log
+from gwc.client.session import context
 
-
-def context() -> tuple[Config, logging.Logger]:
-    """The configuration and the HI's log (var/log/hi.log) for one command."""
-    cfg = load_config()
-    return cfg, open_log("hi", cfg.log_dir, cfg.level_of("hi"))
+__all__ = ["context", "json_option", "table"]
 
 
 def table(rows: Sequence[dict[str, Any]], columns: Sequence[str], as_json: bool = False) -> None:

@@ -27,14 +27,15 @@ from psycopg import sql
 
 from gwc import cell, db
 from gwc.check import check_database
+from gwc.client.alarms import clear_alarm, read_status_line
+from gwc.client.machines import start_machine, stop_machine
+from gwc.client.orders import decide, enter_order, read_traveller
+from gwc.client.session import hi_bus
 from gwc.config import PROJECT_ROOT, Config, load_config
 from gwc.errors import GwcError
-from gwc.hi.orders import decide, enter_order
 from gwc.ipc.bus import BlockingBus
-from gwc.ipc.catalogue import message
-from gwc.ipc.codes import AckCode, LotState
+from gwc.ipc.codes import LotState
 from gwc.log import open_log
-from gwc.lot.entity import read_traveller
 
 DEMO_CONFIG = PROJECT_ROOT / "etc" / "demo.toml"
 BY = "demo operator"
@@ -79,7 +80,7 @@ class Demo:
             self.say("database: embedded PostgreSQL cluster running, fresh database 'gwc'")
         try:
             cell.start_cell(cfg, self.log, say=lambda s: self.say(f"start: {s}"))
-            self.bus = cell.hi_bus(cfg, self.log)
+            self.bus = hi_bus(cfg, self.log)
             watcher = threading.Thread(target=self._watch, name="demo-operator", daemon=True)
             watcher.start()
             ok = self._production()
@@ -96,7 +97,7 @@ class Demo:
 
     def _bus_is_free(self) -> None:
         """Another cell on this bus group and port would answer for ours: refuse to mix with it."""
-        with cell.hi_bus(self.cfg, self.log) as bus:
+        with hi_bus(self.cfg, self.log) as bus:
             time.sleep(self.cfg.bus.heartbeat * 2)  # a window for hellos, not a wait for a condition
             others = sorted(p for p in bus.peers() if not p.startswith("hi."))
         if others:
@@ -120,7 +121,7 @@ class Demo:
         first_mill, spare_mill = mills[0], mills[1]
         for mid in ("cmm_wc", first_mill):
             self.say(f"operator: start machine {mid}")
-            self.say(f"machine {mid}: {cell.startup(self.bus, f'wc:{mid}', 'ME_START', timeout=60)}")
+            self.say(f"machine {mid}: {start_machine(self.cfg, self.bus, mid, timeout=60)}")
         items = [(p, n) for p, n in (("alum_chess_set", self.chess), ("milled_pawn", self.pawns)) if n]
         self.say("operator: work order entry (WOEN) for NJIT: " + ", ".join(f"{n} x {p}" for p, n in items))
         order = enter_order(self.cfg, self.log, self.bus, "NJIT", items, note="section 7 demonstration")
@@ -139,9 +140,9 @@ class Demo:
                 f"a run on {first_mill}",
             )
             self.say(f"operator: start machine {spare_mill} while lots run")
-            self.say(f"machine {spare_mill}: {cell.startup(self.bus, f'wc:{spare_mill}', 'ME_START', timeout=60)}")
+            self.say(f"machine {spare_mill}: {start_machine(self.cfg, self.bus, spare_mill, timeout=60)}")
             self.say(f"operator: stop machine {first_mill} while lots run")
-            done = cell.shutdown(self.bus, f"wc:{first_mill}", "ME_SHUT", timeout=60)
+            done = stop_machine(self.cfg, self.bus, first_mill, timeout=60)
             self.say(f"machine {first_mill}: {done} (a machine in a run finishes it first)")
         self._wait(lambda: all(self.states.get(e) in FINAL for e in entities), deadline, "every lot to be exported")
         return self._report(entities)
@@ -179,12 +180,10 @@ class Demo:
             self.say(f"alarm {alarm_no} {alarm_id} on {machine_id or '-'}: {text}")
             if alarm_id == "HOME_CMM":
                 self.say(f"operator: pushes the start button on the CMM (clears alarm {alarm_no})")
-                conv, batch = self.bus.request(
-                    "ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=alarm_no, cleared_by=BY), to="cas"
-                )
-                conv.end()
-                if batch.first.ack_code != AckCode.ACK_OK:
-                    self.errors.append(f"alarm {alarm_no} could not be cleared: {batch.first.ack_code}")
+                try:
+                    clear_alarm(self.bus, alarm_no, BY)
+                except GwcError as e:
+                    self.errors.append(f"alarm {alarm_no} could not be cleared: {e}")
         for mid, status, run_id, recipe in conn.execute(
             "SELECT machine_id, status, machine_run_id, recipe_id FROM machine_status "
             "WHERE machine_id = ANY(%s) ORDER BY 1",
@@ -220,11 +219,9 @@ class Demo:
         """What the Status Line Server shows the operator now (STATUS_LN)."""
         assert self.bus is not None
         try:
-            conv, batch = self.bus.request("STATUS_LN", message("Status_Line_Get"), to="sls", timeout=3)
+            return str(read_status_line(self.bus, timeout=3).text)
         except GwcError as e:
             return f"(not available: {e})"
-        conv.end()
-        return str(batch.first.text)
 
     # ----------------------------------------------------------------- the results
 

@@ -7,65 +7,32 @@ process per entity, detached with a pid file (the thesis's HI fork/exec'd the sc
 List; `gwc import` / `gwc export` the operator's decisions (IMPORT_LOT / EXPORT_LOT to the Lot
 Server, which tells the entity with LOT_MOVED). `gwc customer`, `gwc product` and `gwc script`
 keep the tables an order names; `gwc script register` is how a new lot script joins the cell.
+What they do with the cell is gwc.client.orders'; this module parses and prints.
 """
 
 from __future__ import annotations
 
-import getpass
 import json
-import logging
-import os
-import time
 from pathlib import Path
-from typing import Any
 
 import click
-import psycopg
 
-from gwc import db
-from gwc.cell import hi_bus, read_pid
-from gwc.config import PROJECT_ROOT, Config
-from gwc.errors import GwcError, Refused
+from gwc.client.orders import (
+    add_customer,
+    decide,
+    enter_order,
+    list_customers,
+    list_lots,
+    list_orders,
+    list_products,
+    list_scripts,
+    read_traveller,
+    register_script,
+)
+from gwc.client.session import hi_bus, need_server, operator
+from gwc.errors import GwcError
 from gwc.hi import context, json_option, table
-from gwc.ipc.bus import BlockingBus
-from gwc.ipc.catalogue import message
-from gwc.ipc.codes import AckCode, LotState
-from gwc.lot.entity import create_lot, read_traveller
-from gwc.lot.run import load_script, spawn_lot_script
-
-ON_BUS_WAIT = 3.0  # how long a command waits to see a server on the bus before saying it is not running
-
-
-# ----------------------------------------------------------------------------- helpers
-
-
-def hi_conn(cfg: Config, log: logging.Logger) -> psycopg.Connection[Any]:
-    """The Human Interface's connection, as role gwc_hi (it owns orders, customers, products, scripts)."""
-    return db.connect(cfg, role="hi", log=log)
-
-
-def rows_of(conn: psycopg.Connection[Any], sql: str, *params: Any) -> list[dict[str, Any]]:
-    cur = conn.execute(sql, params)
-    cols = [d.name for d in cur.description or []]
-    rows = [dict(zip(cols, r)) for r in cur.fetchall()]
-    conn.rollback()
-    return rows
-
-
-def need_server(bus: BlockingBus, name: str, what: str) -> None:
-    """Fail in one line unless server `name` is on the bus (the cell is started)."""
-    deadline = time.monotonic() + ON_BUS_WAIT
-    while name not in bus.peers():
-        if time.monotonic() > deadline:
-            raise GwcError(f"the {what} ({name}) is not on the bus: start the cell with `gwc start`")
-        time.sleep(0.05)
-
-
-def operator() -> str:
-    try:
-        return f"hi:{getpass.getuser()}"
-    except (KeyError, OSError):
-        return f"hi:{os.getuid()}"
+from gwc.ipc.codes import LotState
 
 
 def parse_items(items: tuple[str, ...]) -> list[tuple[str, int]]:
@@ -86,71 +53,7 @@ def parse_items(items: tuple[str, ...]) -> list[tuple[str, int]]:
     return list(out.items())
 
 
-def script_alive(cfg: Config, entity_id: int, pid: int | None) -> str:
-    if pid is None:
-        return "-"
-    st = read_pid(cfg, f"lot:{entity_id}")
-    alive = st.alive and st.pid == pid
-    return f"{pid}" if alive else f"{pid} (ended)"
-
-
 # ----------------------------------------------------------------------------- work orders (WOEN, WOSU)
-
-
-def enter_order(
-    cfg: Config,
-    log: logging.Logger,
-    bus: BlockingBus,
-    customer: str,
-    items: list[tuple[str, int]],
-    note: str | None = None,
-    priority: int | None = None,
-    start_scripts: bool = True,
-) -> dict[str, Any]:
-    """Work Order Entry: the order, its lots (CREATE_LOT), one lot script process per entity."""
-    with hi_conn(cfg, log) as conn:
-        if not conn.execute("SELECT 1 FROM customers WHERE customer_id = %s", (customer,)).fetchone():
-            known = ", ".join(r[0] for r in conn.execute("SELECT customer_id FROM customers ORDER BY 1")) or "none"
-            raise GwcError(f"unknown customer {customer!r} (known: {known}; add one with `gwc customer add`)")
-        for product, _ in items:
-            row = conn.execute("SELECT script_id FROM products WHERE product_id = %s", (product,)).fetchone()
-            if row is None:
-                known = ", ".join(r[0] for r in conn.execute("SELECT product_id FROM products ORDER BY 1"))
-                raise GwcError(f"unknown product {product!r} (known: {known})")
-            if row[0] is None:
-                raise GwcError(f"product {product!r} has no lot script: `gwc script register ... --product {product}`")
-        conn.rollback()
-        need_server(bus, "ls", "Lot Server")
-
-        def write(cur: psycopg.Cursor[Any]) -> int:
-            wo = db.get_new_max_value(cur, "WORK_ORDER")
-            cur.execute(
-                "INSERT INTO work_orders (work_order_id, customer_id, note) VALUES (%s, %s, %s)", (wo, customer, note)
-            )
-            for product, qty in items:
-                cur.execute(
-                    "INSERT INTO work_order_items (work_order_id, product_id, quantity) VALUES (%s, %s, %s)",
-                    (wo, product, qty),
-                )
-            return wo
-
-        wo = db.transaction(conn, write, log=log)
-    log.info("work order %d for %s: %s", wo, customer, ", ".join(f"{q} x {p}" for p, q in items))
-    lots = []
-    for product, qty in items:
-        try:
-            lot_id, entities = create_lot(bus, product, qty, work_order_id=wo, owner=customer, priority=priority)
-        except GwcError as e:
-            raise GwcError(f"work order {wo} was saved, but its lot of {product} was not created: {e}") from e
-        pids = {}
-        if start_scripts:
-            for e in entities:
-                pids[e] = spawn_lot_script(cfg, e)
-                log.info("entity %d: lot script started (pid %d)", e, pids[e])
-        lots.append(
-            {"lot_id": lot_id, "product_id": product, "quantity": qty, "entities": entities, "script_pids": pids}
-        )
-    return {"work_order_id": wo, "customer_id": customer, "lots": lots}
 
 
 @click.group("order")
@@ -192,63 +95,6 @@ def order_new(
     click.echo("the lots will ask to be imported: see `gwc lots`, then `gwc import ENTITY` (or --all)")
 
 
-ORDER_STATUS_SQL = """
-SELECT w.work_order_id AS work_order, w.customer_id AS customer, c.name AS customer_name,
-       to_char(w.created_at, 'YYYY-MM-DD HH24:MI:SS') AS created,
-       (SELECT string_agg(i.quantity || ' x ' || i.product_id, ', ' ORDER BY i.product_id)
-          FROM work_order_items i WHERE i.work_order_id = w.work_order_id) AS items,
-       (SELECT json_object_agg(state, n) FROM (
-            SELECT s.state, count(*) AS n FROM lots l JOIN lot_status s USING (lot_id)
-            JOIN lot_entities e USING (entity_id)
-            WHERE l.work_order_id = w.work_order_id AND e.destroyed_at IS NULL GROUP BY s.state) x) AS states,
-       w.note
-  FROM work_orders w LEFT JOIN customers c USING (customer_id)
-"""
-
-
-def order_status(states: dict[str, int] | None) -> str:
-    """One word for an order (Figure 6.6's Status), from where its entities are."""
-    states = states or {}
-    total = sum(states.values())
-    if not total:
-        return "NEW"
-    if states.get(LotState.CREATED, 0) == total:
-        return "NEW"
-    done = states.get(LotState.EXPORTED, 0) + states.get(LotState.FAILED, 0)
-    if done == total:
-        return "DONE" if not states.get(LotState.FAILED) else "DONE (with failures)"
-    if states.get(LotState.WAITING_IMPORT, 0) + states.get(LotState.CREATED, 0) == total:
-        return "WAITING IMPORT"
-    return "RUNNING"
-
-
-def read_rows(
-    cfg: Config, log: logging.Logger, conn: psycopg.Connection[Any] | None, sql: str, *params: Any
-) -> list[dict[str, Any]]:
-    """rows_of on the caller's connection (a screen that stays open keeps one), or on a new one."""
-    if conn is not None:
-        return rows_of(conn, sql, *params)
-    with hi_conn(cfg, log) as own:
-        return rows_of(own, sql, *params)
-
-
-def list_orders(
-    cfg: Config, log: logging.Logger, work_order: int | None = None, conn: psycopg.Connection[Any] | None = None
-) -> list[dict[str, Any]]:
-    where = " WHERE w.work_order_id = %s" if work_order is not None else ""
-    rows = read_rows(
-        cfg,
-        log,
-        conn,
-        ORDER_STATUS_SQL + where + " ORDER BY w.work_order_id",
-        *([work_order] if work_order is not None else []),
-    )
-    for r in rows:
-        r["status"] = order_status(r["states"])
-        r["lots"] = ", ".join(f"{n} {s}" for s, n in sorted((r.pop("states") or {}).items()))
-    return rows
-
-
 @order.command("list")
 @json_option
 def order_list(as_json: bool) -> None:
@@ -280,34 +126,6 @@ def order_show(work_order: int, as_json: bool) -> None:
 
 
 # ----------------------------------------------------------------------------- lots (DISP, IMPL)
-
-
-LOTS_SQL = """
-SELECT s.entity_id AS entity, s.lot_id AS lot, l.work_order_id AS work_order, l.product_id AS product,
-       l.owner, l.priority, s.state, s.reason AS result, s.script_pid,
-       to_char(s.updated_at, 'HH24:MI:SS') AS since
-  FROM lot_status s JOIN lots l USING (lot_id) JOIN lot_entities e USING (entity_id)
- WHERE e.destroyed_at IS NULL
-"""
-
-
-def list_lots(
-    cfg: Config,
-    log: logging.Logger,
-    work_order: int | None = None,
-    state: str | None = None,
-    entity: int | None = None,
-    conn: psycopg.Connection[Any] | None = None,
-) -> list[dict[str, Any]]:
-    sql, params = LOTS_SQL, []
-    for col, value in (("l.work_order_id", work_order), ("s.state", state), ("s.entity_id", entity)):
-        if value is not None:
-            sql += f" AND {col} = %s"
-            params.append(value)
-    rows = read_rows(cfg, log, conn, sql + " ORDER BY s.entity_id", *params)
-    for r in rows:
-        r["script"] = script_alive(cfg, r["entity"], r.pop("script_pid"))
-    return rows
 
 
 @click.command("lots")
@@ -347,19 +165,6 @@ def lots(entity: int | None, work_order: int | None, state: str | None, as_json:
         for run in step.get("runs", []):
             res = ", ".join(f"{k}={v}" for k, v in run["results"].items()) or "no results"
             click.echo(f"      {run['machine_id']} {run['recipe_id']} {run['ack_code']}: {res}")
-
-
-def decide(bus: BlockingBus, entity_id: int, action: str, by: str) -> int | None:
-    """IMPORT_LOT / EXPORT_LOT to the Lot Server: the operator lets an entity in or out. Returns its lot."""
-    cls = "IMPORT_LOT" if action == "import" else "EXPORT_LOT"
-    conv, batch = bus.request(cls, message("Lot_Decision", entity_id=entity_id, action=action, by=by), to="ls")
-    conv.end()
-    ack = batch.first
-    if ack.ack_code == AckCode.UNKNOWN:
-        raise GwcError(f"unknown lot entity {entity_id} (see `gwc lots`)")
-    if ack.ack_code != AckCode.ACK_OK:
-        raise Refused(ack.ack_code, ack.note or f"cannot {action} entity {entity_id}")
-    return ack.lot_id
 
 
 def _decide_command(action: str, entities: tuple[int, ...], all_waiting: bool) -> None:
@@ -409,16 +214,7 @@ def customer() -> None:
 def customer_add(customer_id: str, name: str | None) -> None:
     """Add a customer, or rename one."""
     cfg, log = context()
-    with hi_conn(cfg, log) as conn:
-        db.transaction(
-            conn,
-            lambda cur: cur.execute(
-                "INSERT INTO customers (customer_id, name) VALUES (%s, %s) "
-                "ON CONFLICT (customer_id) DO UPDATE SET name = coalesce(excluded.name, customers.name)",
-                (customer_id, name),
-            ),
-            log=log,
-        )
+    add_customer(cfg, log, customer_id, name)
     click.echo(f"customer {customer_id} saved")
 
 
@@ -427,9 +223,7 @@ def customer_add(customer_id: str, name: str | None) -> None:
 def customer_list(as_json: bool) -> None:
     """Every customer."""
     cfg, log = context()
-    with hi_conn(cfg, log) as conn:
-        rows = rows_of(conn, "SELECT customer_id AS customer, name FROM customers ORDER BY 1")
-    table(rows, ["customer", "name"], as_json)
+    table(list_customers(cfg, log), ["customer", "name"], as_json)
 
 
 @click.group("product")
@@ -442,13 +236,7 @@ def product() -> None:
 def product_list(as_json: bool) -> None:
     """Every product and its lot script."""
     cfg, log = context()
-    with hi_conn(cfg, log) as conn:
-        rows = rows_of(
-            conn,
-            "SELECT p.product_id AS product, p.description, p.script_id AS script, s.path "
-            "FROM products p LEFT JOIN lot_scripts s USING (script_id) ORDER BY 1",
-        )
-    table(rows, ["product", "script", "path", "description"], as_json)
+    table(list_products(cfg, log), ["product", "script", "path", "description"], as_json)
 
 
 @click.group("script")
@@ -466,30 +254,7 @@ def script() -> None:
 def script_register(script_id: str, path: Path, products: tuple[str, ...], description: str | None) -> None:
     """Register a lot script file (it must define main(entity)) and the products it makes."""
     cfg, log = context()
-    full = path if path.is_absolute() else (Path.cwd() / path)
-    full = full.resolve()
-    load_script(full)  # it exists, imports, and has main(entity)
-    try:
-        stored = str(full.relative_to(PROJECT_ROOT))
-    except ValueError:
-        stored = str(full)
-
-    def write(cur: psycopg.Cursor[Any]) -> None:
-        cur.execute(
-            "INSERT INTO lot_scripts (script_id, path, description) VALUES (%s, %s, %s) "
-            "ON CONFLICT (script_id) DO UPDATE SET path = excluded.path, "
-            "description = coalesce(excluded.description, lot_scripts.description)",
-            (script_id, stored, description),
-        )
-        for p in products:
-            cur.execute(
-                "INSERT INTO products (product_id, description, script_id) VALUES (%s, %s, %s) "
-                "ON CONFLICT (product_id) DO UPDATE SET script_id = excluded.script_id",
-                (p, description, script_id),
-            )
-
-    with hi_conn(cfg, log) as conn:
-        db.transaction(conn, write, log=log)
+    stored = register_script(cfg, log, script_id, path, products, description)
     click.echo(f"lot script {script_id} registered ({stored})" + (f" for {', '.join(products)}" if products else ""))
 
 
@@ -498,14 +263,7 @@ def script_register(script_id: str, path: Path, products: tuple[str, ...], descr
 def script_list(as_json: bool) -> None:
     """Every registered lot script and the products it makes."""
     cfg, log = context()
-    with hi_conn(cfg, log) as conn:
-        rows = rows_of(
-            conn,
-            "SELECT s.script_id AS script, s.path, s.description, "
-            "(SELECT string_agg(product_id, ', ' ORDER BY product_id) FROM products p "
-            "WHERE p.script_id = s.script_id) AS products FROM lot_scripts s ORDER BY 1",
-        )
-    table(rows, ["script", "path", "products", "description"], as_json)
+    table(list_scripts(cfg, log), ["script", "path", "products", "description"], as_json)
 
 
 commands = [order, lots, import_lot, export_lot, customer, product, script]

@@ -1,68 +1,16 @@
 """MSCHED's screen (MREQ, thesis 6.2.3 and Listing 8): the request queue, the reservations, cancel.
 
 `gwc requests` reads the tables (anyone may read); `gwc cancel` asks MSCHED over the bus, since only
-MSCHED writes its tables.
+MSCHED writes its tables (gwc.client.requests holds both).
 """
 
 from __future__ import annotations
 
-from typing import Any
-
 import click
-import psycopg
 
-from gwc import db
-from gwc.cell import hi_bus
-from gwc.errors import GwcError, Refused
+from gwc.client.requests import cancel_request, request_tables
+from gwc.client.session import hi_bus, hi_conn
 from gwc.hi import context, table
-from gwc.ipc.bus import BlockingBus
-from gwc.ipc.catalogue import Message, message
-from gwc.ipc.codes import AckCode
-
-CANCEL_TIMEOUT = 10.0
-
-_QUEUE = """
-select q.request_key, q.entity_id, q.op_type, string_agg(q.machine_id, ' AND ' order by q.seq) as machines,
-       min(q.priority) as priority, min(q.seq) as seq, to_char(min(q.requested_at), 'YYYY-MM-DD HH24:MI:SS') as since,
-       min(q.reply_to) as reply_to
-from request_machines q group by q.request_key, q.entity_id, q.op_type order by min(q.seq)
-"""
-_RESERVED = """
-select machine_id, entity_id, machine_run_id, request_key, to_char(reserved_at, 'YYYY-MM-DD HH24:MI:SS') as since
-from reserved_machines order by machine_id
-"""
-_TELLING = """
-select request_key, entity_id, ack_code, array_to_string(machines, ' AND ') as machines, machine_run_id,
-       case when held then 'held: entity has a live alternative' else 'waiting for Request_Comp_Ack' end as state,
-       note
-from request_outcomes order by decided_at, request_key
-"""
-
-
-def _rows(cur: Any, sql: str) -> list[dict[str, Any]]:
-    cur.execute(sql)
-    cols = [d.name for d in cur.description or []]
-    return [dict(zip(cols, r)) for r in cur.fetchall()]
-
-
-def request_tables(conn: psycopg.Connection[Any]) -> tuple[list[dict[str, Any]], ...]:
-    """MREQ's three tables: the requests waiting, the reserved machines, the answers not yet acknowledged."""
-    with conn.cursor() as cur:
-        tables = tuple(_rows(cur, q) for q in (_QUEUE, _RESERVED, _TELLING))
-    conn.rollback()
-    return tables
-
-
-def cancel_request(bus: BlockingBus, request_key: int | None, entity_id: int | None, by: str) -> Message:
-    """CANCEL_RE to MSCHED (one request, or every request of an entity); returns its Cancel_Req_Ack."""
-    conv, batch = bus.request(
-        "CANCEL_RE",
-        message("Cancel_Request", request_key=request_key, entity_id=entity_id, by=by),
-        to="msched",
-        timeout=CANCEL_TIMEOUT,
-    )
-    conv.end()
-    return batch.first
 
 
 @click.command("requests")
@@ -70,7 +18,7 @@ def cancel_request(bus: BlockingBus, request_key: int | None, entity_id: int | N
 def requests(as_json: bool) -> None:
     """The machine request queue (oldest first), the reserved machines, and answers not yet acknowledged."""
     cfg, log = context()
-    with db.connect(cfg, role="hi", log=log) as conn:
+    with hi_conn(cfg, log) as conn:
         queue, reserved, telling = request_tables(conn)
     if as_json:
         table([{"requests": queue, "reserved": reserved, "telling": telling}], [], as_json=True)
@@ -94,11 +42,7 @@ def cancel(request_key: int | None, entity_id: int | None) -> None:
     cfg, log = context()
     what = f"request {request_key}" if request_key is not None else f"the requests of entity {entity_id}"
     with hi_bus(cfg, log) as bus:
-        ack = cancel_request(bus, request_key, entity_id, f"hi.{cfg.cell_name}")
-    if ack.ack_code == AckCode.REQ_KEY_U:
-        raise GwcError(f"nothing waiting to cancel for {what} (REQ_KEY_U): see `gwc requests`")
-    if ack.ack_code != AckCode.ACK_OK:
-        raise Refused(ack.ack_code, ack.note or f"MSCHED did not cancel {what}")
+        ack = cancel_request(bus, request_key, entity_id, by=f"hi.{cfg.cell_name}")
     click.echo(f"cancelled {ack.cancelled} request(s) ({what}); the entity was told REQ_CANCEL")
 
 

@@ -38,11 +38,10 @@ import psycopg
 from gwc import db
 from gwc.cell import cell_procs, machine_procs, start_procs
 from gwc.check import check_cell
+from gwc.client.orders import create_lot, decide, read_traveller
 from gwc.errors import GwcError
-from gwc.hi.orders import decide
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.codes import LotState, MachineStatus
-from gwc.lot.entity import create_lot, read_traveller
 from gwc.lot.run import spawn_lot_script
 from gwc.soak.cell import PrivateCell
 from gwc.soak.plan import FAULTS, Action, LotSpec, Plan, make_plan

@@ -1,0 +1,83 @@
+"""Machines: ME_START and ME_SHUT with a machine's WC (6.3.2.1-2), bringing up its processes first when
+they are down, and the machines' status (MACHINE_STATUS, and whether each WC is on the bus)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import psycopg
+
+from gwc import cell
+from gwc.client.session import on_bus
+from gwc.config import Config
+from gwc.errors import ModuleError
+from gwc.ipc.bus import BlockingBus
+from gwc.module import module_name
+
+SEE_WC = 2.0  # how long to look for a WC on the bus before deciding its processes must be started
+START_TIMEOUT = 600.0  # a homing alarm waits for the operator
+STOP_TIMEOUT = 60.0
+
+__all__ = ["heard_peers", "machine_rows", "start_machine", "stop_machine"]
+
+
+def start_machine(
+    cfg: Config,
+    bus: BlockingBus,
+    machine_id: str,
+    say: Callable[[str], None] = lambda s: None,
+    timeout: float = START_TIMEOUT,
+) -> str:
+    """ME_START with the machine's WC (Shutdown -> Idle), after spawning its processes (simulator, ME, WC)
+    if its WC is not on the bus. Returns how it ended ("started", "already started"); ModuleError if
+    refused. `say` hears each step, that a homing alarm may now wait for the operator, and the end."""
+    cfg.machine(machine_id)  # ConfigError naming the known machines
+    wc = module_name("wc", machine_id)
+    if not on_bus(bus, wc, SEE_WC):
+        cell.start_procs(cfg, cell.machine_procs(cfg, machine_id), bus, say)
+    say(
+        f"{wc}: ME_START (a machine that must be homed raises its alarm now: "
+        "`gwc alarm list`, then `gwc alarm clear N` once it is done)"
+    )
+    done = cell.startup(bus, wc, "ME_START", timeout=timeout)
+    say(f"{wc}: {done}")
+    return done
+
+
+def stop_machine(cfg: Config, bus: BlockingBus, machine_id: str, timeout: float = STOP_TIMEOUT) -> str:
+    """ME_SHUT with the machine's WC; a machine in a run shuts down when the run is over. Returns how it
+    ended; ModuleError if its WC is not on the bus."""
+    cfg.machine(machine_id)
+    wc = module_name("wc", machine_id)
+    if not on_bus(bus, wc, SEE_WC):
+        raise ModuleError(f"{wc} is not on the bus: the machine is not running")
+    return cell.shutdown(bus, wc, "ME_SHUT", timeout=timeout)
+
+
+def heard_peers(cfg: Config, bus: BlockingBus) -> set[str]:
+    """Who is on the bus, once every module's hello has come (one heartbeat after joining)."""
+    time.sleep(cfg.bus.heartbeat)
+    return set(bus.peers())
+
+
+def machine_rows(conn: psycopg.Connection[Any], cfg: Config, peers: set[str]) -> list[dict[str, Any]]:
+    """MSTT's rows: each configured machine's MACHINE_STATUS, kind, accept types and whether its WC is among
+    `peers` (on the bus). On the caller's connection (a screen keeps one open)."""
+    cur = conn.execute(
+        "select s.machine_id, c.kind, s.status, s.recipe_id, s.machine_run_id, s.start_time, s.end_time, "
+        "coalesce((select string_agg(a.op_type, ',' order by a.op_type) from accept_types a "
+        "          where a.machine_id = s.machine_id), '') as accepts, s.note "
+        "from machine_status s join me_config c using (machine_id) order by s.machine_id"
+    )
+    names = [d.name for d in cur.description or []]
+    rows = [dict(zip(names, r)) for r in cur.fetchall()]
+    conn.rollback()
+    configured = {m.id for m in cfg.machines}
+    rows = [r for r in rows if r["machine_id"] in configured] if configured else rows
+    for r in rows:
+        r["wc"] = "on bus" if module_name("wc", r["machine_id"]) in peers else "-"
+        for k in ("start_time", "end_time"):
+            r[k] = r[k].strftime("%Y-%m-%d %H:%M:%S") if r[k] else None
+    return rows

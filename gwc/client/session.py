@@ -1,0 +1,87 @@
+"""What every client conversation stands on: the HI's bus and database attachment, who acts, waiting
+for a server to be on the bus, and a conversation of one question and one answer."""
+
+from __future__ import annotations
+
+import getpass
+import logging
+import os
+import time
+from typing import Any
+
+import psycopg
+
+from gwc import db
+from gwc.cell import hi_bus
+from gwc.config import Config, load_config
+from gwc.errors import GwcError
+from gwc.ipc.bus import BlockingBus
+from gwc.ipc.catalogue import Message
+from gwc.log import open_log
+
+ON_BUS_WAIT = 3.0  # how long to wait to see a server on the bus before saying it is not running
+ANSWER = 10.0  # a server's answer to one question
+
+__all__ = [
+    "ANSWER",
+    "ON_BUS_WAIT",
+    "ask",
+    "context",
+    "hi_bus",
+    "hi_conn",
+    "need_server",
+    "on_bus",
+    "operator",
+    "rows_of",
+]
+
+
+def context(name: str = "hi") -> tuple[Config, logging.Logger]:
+    """The configuration and a client's log (var/log/<name>.log)."""
+    cfg = load_config()
+    return cfg, open_log(name, cfg.log_dir, cfg.level_of(name))
+
+
+def operator() -> str:
+    """Who the HI acts for, as the cell records it (alarm history, recipe versions, lot decisions)."""
+    try:
+        return f"{getpass.getuser()}@hi.{os.getpid()}"
+    except (KeyError, OSError):
+        return f"{os.getuid()}@hi.{os.getpid()}"
+
+
+def hi_conn(cfg: Config, log: logging.Logger) -> psycopg.Connection[Any]:
+    """The Human Interface's connection, as role gwc_hi (it owns orders, customers, products, scripts)."""
+    return db.connect(cfg, role="hi", log=log)
+
+
+def rows_of(conn: psycopg.Connection[Any], sql: str, *params: Any) -> list[dict[str, Any]]:
+    """One read as a list of dicts (column -> value), its transaction ended."""
+    cur = conn.execute(sql, params)
+    cols = [d.name for d in cur.description or []]
+    rows = [dict(zip(cols, r)) for r in cur.fetchall()]
+    conn.rollback()
+    return rows
+
+
+def on_bus(bus: BlockingBus, name: str, timeout: float = ON_BUS_WAIT) -> bool:
+    """Whether module `name` is (or, within `timeout`, comes) on the bus."""
+    deadline = time.monotonic() + timeout
+    while name not in bus.peers():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def need_server(bus: BlockingBus, name: str, what: str) -> None:
+    """Fail in one line unless server `name` is on the bus (the cell is started)."""
+    if not on_bus(bus, name):
+        raise GwcError(f"the {what} ({name}) is not on the bus: start the cell with `gwc start`")
+
+
+def ask(bus: BlockingBus, cls: str, first: Message, to: str, timeout: float | None = ANSWER) -> Message:
+    """A conversation of one question to `to` and its one answer (ConversationTimeout if none comes)."""
+    conv, batch = bus.request(cls, first, to=to, timeout=timeout)
+    conv.end()
+    return batch.first
