@@ -4,6 +4,9 @@ Database: `pg_cluster` starts ONE embedded PostgreSQL cluster for the whole sess
 /var/tmp, which the postgres OS user can traverse when we are root) with a template database
 holding the schema and seed; `database_url` clones a fresh database from it for each test.
 `make_config` writes a cell.toml for a test.
+
+Every test fails if it leaves a process, POSIX queue, socket or database cluster behind (tests/leaks.py),
+and every test under tests/e2e/ is marked `e2e`, so `bin/test -m "not e2e"` is the fast inner loop.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from psycopg import sql
 
 from gwc import db
 from gwc.config import Config, write_config
+from tests.leaks import leak_check, unmarked
 
 TEMPLATE_DB = "gwc_template"
 # Test clusters trade durability for speed: a crashed test cluster is thrown away anyway.
@@ -76,7 +80,8 @@ def pg_cluster() -> Iterator[PgCluster]:
     base.chmod(0o755)
     cfg = dataclasses.replace(make_config(base, None, database={"settings": TEST_PG_SETTINGS}), database_url=None)
     try:
-        db.cluster_start(cfg)
+        with unmarked():  # the session's cluster outlives the test that happens to start it
+            db.cluster_start(cfg)
         cluster = PgCluster(cfg)
         with cluster.admin() as conn:
             conn.execute(sql.SQL("create database {}").format(sql.Identifier(TEMPLATE_DB)))
@@ -114,11 +119,28 @@ def db_conn(database_url: str) -> Iterator[psycopg.Connection[Any]]:
         yield conn
 
 
-# ----------------------------------------------------------------------------- the long soak
+# ----------------------------------------------------------------------------- what a test leaves behind
 
 
+@pytest.fixture(autouse=True)
+def no_leaks(tmp_path: Path) -> Iterator[None]:
+    """Fail the test if it leaves a process, POSIX queue, socket or database cluster behind."""
+    with leak_check(tmp_path):
+        yield
+
+
+# ----------------------------------------------------------------------------- markers: e2e, the long soak
+
+E2E_DIR = Path(__file__).parent / "e2e"
+
+
+@pytest.hookimpl(tryfirst=True)  # before -m deselects
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Tests marked `soak` (the long chaos soak) run only when asked for: `bin/test -m soak`."""
+    """Every test under tests/e2e/ is `e2e`; tests marked `soak` (the long chaos soak) run only when asked
+    for: `bin/test -m soak`."""
+    for item in items:
+        if E2E_DIR in item.path.parents:
+            item.add_marker(pytest.mark.e2e)
     if "soak" in (config.getoption("markexpr") or ""):
         return
     skip = pytest.mark.skip(reason="the long chaos soak runs apart: bin/test -m soak")

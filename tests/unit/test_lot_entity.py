@@ -111,6 +111,7 @@ class FakeCell:
             asyncio.run_coroutine_threadsafe(bus.close(flush=0.2), self.loop).result(5)
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join(5)
+        self.loop.close()  # its self-pipe sockets, else left open (the leak check finds them)
 
     def sql(self, text: str, *params: Any) -> None:
         with psycopg.connect(self.url, autocommit=True) as conn:
