@@ -33,6 +33,7 @@ from gwc.client.orders import decide, enter_order, read_traveller
 from gwc.client.session import hi_bus
 from gwc.config import PROJECT_ROOT, Config, load_config
 from gwc.errors import GwcError
+from gwc.ipc import keys
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.codes import LotState
 from gwc.log import open_log
@@ -71,6 +72,8 @@ class Demo:
     def run(self, keep: bool) -> bool:
         cfg = self.cfg
         self.say(f"GWC demonstration (thesis section 7) on cell {cfg.cell_name}: config {cfg.path}, state {cfg.var}")
+        if keys.ensure(cfg.bus):  # the demonstration's cell is its own: fresh state makes its keys (gwc key new)
+            self.say(f"bus: new keys for the demonstration's cell in {keys.key_files(cfg.bus)[0].parent}")
         self.say("stopping anything left from an earlier demonstration")
         cell.stop_cell(cfg, self.log, say=lambda s: None, database=False)
         self._bus_is_free()
