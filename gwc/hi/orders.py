@@ -26,6 +26,7 @@ from gwc.client.orders import (
     list_orders,
     list_products,
     list_scripts,
+    parse_items,
     read_traveller,
     register_script,
 )
@@ -33,25 +34,6 @@ from gwc.client.session import hi_bus, need_server, operator
 from gwc.errors import GwcError
 from gwc.hi import context, json_option, table
 from gwc.ipc.codes import LotState
-
-
-def parse_items(items: tuple[str, ...]) -> list[tuple[str, int]]:
-    """PRODUCT=QTY arguments (QTY defaults to 1), each product once."""
-    out: dict[str, int] = {}
-    for item in items:
-        product, sep, qty = item.partition("=")
-        product = product.strip()
-        try:
-            n = int(qty) if sep else 1
-        except ValueError:
-            raise GwcError(f"bad order item {item!r}: write PRODUCT=QUANTITY, e.g. alum_chess_set=2") from None
-        if not product or n <= 0:
-            raise GwcError(f"bad order item {item!r}: write PRODUCT=QUANTITY with a quantity of 1 or more")
-        out[product] = out.get(product, 0) + n
-    if not out:
-        raise GwcError("an order needs at least one PRODUCT=QUANTITY")
-    return list(out.items())
-
 
 # ----------------------------------------------------------------------------- work orders (WOEN, WOSU)
 

@@ -557,7 +557,7 @@ class Gateway(Module):
     ) -> ua.CallMethodResult:
         """Work Order Entry by the HI's own code (it writes WORK_ORDERS as the HI, the table's owner,
         asks the Lot Server for the lots and starts their lot scripts), in a thread: it is blocking."""
-        from gwc.hi.orders import enter_order, parse_items
+        from gwc.client.orders import enter_order, parse_items
 
         async def enter() -> ua.CallMethodResult:
             parsed = parse_items(tuple(re.split(r"[\s,]+", str(items.Value or "").strip())))

@@ -11,9 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from gwc.cli import cli
-from gwc.client.orders import order_status
+from gwc.client.orders import order_status, parse_items
 from gwc.errors import GwcError
-from gwc.hi.orders import parse_items
 from gwc.lot.errors import LotError
 from gwc.lot.run import load_script, resolve_path
 from tests.conftest import make_config
