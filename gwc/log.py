@@ -16,6 +16,7 @@ import contextlib
 import contextvars
 import getpass
 import logging
+import logging.handlers
 import os
 import sys
 from collections.abc import Iterator
@@ -27,6 +28,11 @@ logging.addLevelName(TRACE, "Trace")
 logging.addLevelName(logging.INFO, "Note")
 logging.addLevelName(logging.WARNING, "Warning")
 logging.addLevelName(logging.ERROR, "Error")
+
+# Each log file is rotated at this size, keeping this many older files (<name>.log.1, ...): no flood
+# or loop of errors can fill the disk (docs/operating.md, Logs).
+MAX_LOG_BYTES = 8 * 1024 * 1024
+LOG_BACKUPS = 3
 
 LEVELS = {"trace": TRACE, "note": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}
 
@@ -96,7 +102,9 @@ def open_log(module: str, log_dir: Path | None, level: str = "note", echo: bool 
     fmt = Figure2Formatter(module)
     if log_dir is not None:
         log_dir.mkdir(parents=True, exist_ok=True)
-        fh = logging.FileHandler(log_dir / log_file_name(module), encoding="utf-8")
+        fh = logging.handlers.RotatingFileHandler(
+            log_dir / log_file_name(module), maxBytes=MAX_LOG_BYTES, backupCount=LOG_BACKUPS, encoding="utf-8"
+        )
         fh.setFormatter(fmt)
         logger.addHandler(fh)
     if echo or log_dir is None:

@@ -51,13 +51,14 @@ def mac_of(secret: bytes) -> Any:
 
 
 class DropLog:
-    """Dropped traffic, counted per source and reported one line per source per interval."""
+    """Dropped traffic, counted per source and reported in one line per source at most every
+    REPORT_EVERY: a quiet source's first drop at the next heartbeat, then a summary per interval."""
 
     def __init__(self, log: logging.Logger, stats: collections.Counter[str]) -> None:
         self.log = log
         self.stats = stats
         self._counts: dict[Any, collections.Counter[str]] = {}
-        self._next = time.monotonic() + REPORT_EVERY
+        self._next: dict[Any, float] = {}  # source -> when its next line may be written
 
     def drop(self, reason: str, source: Any) -> None:
         self.stats["dropped_" + reason] += 1
@@ -68,16 +69,19 @@ class DropLog:
             counts = self._counts.setdefault(source, collections.Counter())
         counts[reason] += 1
 
-    def report(self, now: float, first: bool = False) -> None:
-        """The summary lines, if the interval is over (or at once for a `first` drop from a source)."""
-        if now < self._next and not first:
-            return
-        for source, counts in self._counts.items():
+    def report(self, now: float) -> None:
+        """Write the lines that are due (called every heartbeat)."""
+        for source, counts in list(self._counts.items()):
+            if now < self._next.get(source, 0.0):
+                continue
             what = ", ".join(f"{n} {reason.replace('_', ' ')}" for reason, n in counts.most_common())
             where = f"{source[0]}:{source[1]}" if isinstance(source, tuple) else source
-            self.log.warning("dropped from %s in the last %.0fs: %s", where, REPORT_EVERY, what)
-        self._counts.clear()
-        self._next = now + REPORT_EVERY
+            self.log.warning("dropped from %s (at most one line per %.0fs): %s", where, REPORT_EVERY, what)
+            del self._counts[source]
+            self._next[source] = now + REPORT_EVERY
+        for source, at in list(self._next.items()):
+            if at <= now and source not in self._counts:
+                del self._next[source]
 
 
 class Guard:

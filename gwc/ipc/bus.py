@@ -510,7 +510,7 @@ class Bus:
         if flood != self._following_beats:
             self._following_beats = flood
             self._transport.follow_beats(self._read_beats if flood else None)
-            self.log.warning("beat port %s: beats read as they come", "flooded" if flood else "quiet again")
+            self.log.warning("beat port %s", "flooded: beats read as they come" if flood else "quiet again")
 
     def _send_beat(self) -> None:
         """Our hello, to the beat port: a change of interest or a query goes to the bus port instead."""

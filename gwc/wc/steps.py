@@ -25,6 +25,29 @@ class WCSteps(WCDevice):
         self.log.info("refused %s: %s (%s)", conv.cls, code, note)
         await conv.send(message(ack, ack_code=code, note=note[:500]))
 
+    def _not_reserved(self, conv: Conversation) -> tuple[str, str] | None:
+        """Defence in depth (docs/security.md): a lot entity (lot:E) sets up and starts only a run that
+        RESERVED_MACHINES gives to E on this machine. Other askers hold the module key and are trusted
+        (the operator's tools, tests driving a machine by hand)."""
+        assert conv.first is not None
+        req = conv.first.first
+        asker = conv.initiator
+        if not asker.startswith("lot:"):
+            return None
+        entity, named = asker[4:], req.fields.get("entity_id")  # Setup_Run names its entity; Start_Run does not
+        if not entity.isdigit() or (named is not None and str(named) != entity):
+            return AckCode.NOT_RESERVED, f"{asker} asks for entity {named}"
+        try:
+            row = self._read(
+                "SELECT 1 FROM reserved_machines WHERE machine_id = %s AND machine_run_id = %s AND entity_id = %s",
+                (self.machine_id, req.machine_run_id, int(entity)),
+            )
+        except DatabaseError as e:
+            return AckCode.DB_BADREA, str(e)
+        if row is None:
+            return AckCode.NOT_RESERVED, f"run {req.machine_run_id} on {self.machine_id} is not reserved to {asker}"
+        return None
+
     def _check(self, req: Message, allowed: tuple[MachineStatus, ...]) -> tuple[str, str] | None:
         """Why this request cannot be served now, as (ack code, note); None if it can."""
         if req.machine_id != self.machine_id:
@@ -71,6 +94,10 @@ class WCSteps(WCDevice):
         assert conv.first is not None
         req = conv.first.first
         self.log.info("SETUP_RUN run %d recipe %s op %s", req.machine_run_id, req.recipe_id, req.op_type)
+        refusal = self._not_reserved(conv)
+        if refusal is not None:
+            await self._refuse_now(conv, "Setup_Run_Ack", *refusal)
+            return
         if not await self._serve_step(conv, "Setup_Run_Ack", (S.IDLE,), self._setup):
             return
         self.log.info("set up run %d with recipe %s", req.machine_run_id, req.recipe_id)
@@ -157,6 +184,10 @@ class WCSteps(WCDevice):
         assert conv.first is not None
         req = conv.first.first
         self.log.info("START_RUN run %d", req.machine_run_id)
+        refusal = self._not_reserved(conv)
+        if refusal is not None:
+            await self._refuse_now(conv, "Start_Run_Ack", *refusal)
+            return
         if not await self._serve_step(conv, "Start_Run_Ack", (S.SETUP, S.SETUP_SHUT), self._run_on_me):
             return
         self.log.info("run %d started", req.machine_run_id)
