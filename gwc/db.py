@@ -494,6 +494,16 @@ def connect(
     ) from error
 
 
+def probe(cfg: Config) -> str | None:
+    """Whether the cell database answers now: None if it does, else why not (for `gwc status`)."""
+    try:
+        with psycopg.connect(database_url(cfg), connect_timeout=3) as conn:
+            conn.execute("select 1")
+    except psycopg.Error as e:
+        return _one_line(e)
+    return None
+
+
 ConnectionSource = psycopg.Connection[Any] | Callable[[], psycopg.Connection[Any]]
 
 

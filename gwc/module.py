@@ -20,12 +20,14 @@ import asyncio
 import gc
 import importlib
 import logging
+import math
 import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Awaitable, Callable
-from typing import Any
+from typing import Any, TypeVar
 
 import psycopg
 
@@ -37,12 +39,19 @@ from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.log import conversation, open_log
-from gwc.retry import Backoff
+from gwc.retry import Backoff, Deadline
 
 Handler = Callable[[Conversation], Awaitable[None]]
+T = TypeVar("T")
 # The note of the Notnow a module answers before its STARTUP (or after its SHUTDOWN): a passing state,
 # so callers (the lot library) ask again after a pause rather than give up.
 NOT_STARTED = "module not started"
+# How often a module that uses the database looks at it while nothing else does: a lost database
+# is noticed (and reconnected to) within this, not at the next conversation that needs it.
+DATABASE_PROBE_S = 1.0
+# How long a module waits for its database at startup, and asks to other modules go on while
+# their database is away: the outage the cell rides out without a step failing (docs/reliability.md).
+DATABASE_OUTAGE_S = 60.0
 
 # Bus modules: name -> "module:Class". Machine halves take --machine and are named kind:ID.
 BUS_MODULES = {
@@ -64,8 +73,11 @@ MACHINE_KINDS = ("wc", "me", "cmmsim")
 
 
 def ask_again(answer: catalogue.Message) -> bool:
-    """Whether an answer means "not now, ask again": the module is not started (yet, or any more)."""
-    return answer.ack_code == AckCode.NOTNOW and answer.fields.get("note") == NOT_STARTED
+    """Whether an answer means "not now, ask again": the module is not started (yet, or any more),
+    or its database is away (DB_Badrea: nothing was done, thesis 3.2.2)."""
+    return answer.ack_code == AckCode.DB_BADREA or (
+        answer.ack_code == AckCode.NOTNOW and answer.fields.get("note") == NOT_STARTED
+    )
 
 
 def module_name(kind: str, machine: str | None = None) -> str:
@@ -127,6 +139,10 @@ class Module:
         self._stop = asyncio.Event()
         self._conn: psycopg.Connection | None = None
         self._tasks: set[asyncio.Task[None]] = set()
+        self.database_down: float | None = None  # monotonic time the database was found away, if it is
+        self._database_why = ""
+        self._database_up = asyncio.Event()
+        self._database_used = 0.0  # monotonic time of the last step, for the probe
 
     # ----------------------------------------------------------------- what subclasses declare
 
@@ -179,14 +195,116 @@ class Module:
     # ----------------------------------------------------------------- database
 
     def db(self) -> psycopg.Connection:
-        """This module's connection, made on first use and remade after a failure (3.2.2)."""
-        if self._conn is None or self._conn.closed:
-            self._conn = db.connect(self.cfg, role=self.role, log=self.log)
-        return self._conn
+        """This module's connection, made on first use and remade after a failure (3.2.2).
 
-    def transaction(self, fn: Callable[[psycopg.Cursor[Any]], Any]) -> Any:
+        While the database is away this raises DatabaseUnavailable at once: a task of its own
+        reconnects with backoff, so no step and no heartbeat ever waits for a database that is gone.
+        """
+        if self._conn is not None and not self._conn.closed:
+            return self._conn
+        if self.database_down is not None:
+            raise DatabaseUnavailable(
+                f"the cell database is away (for {time.monotonic() - self.database_down:.0f}s): ask again later"
+            )
+        try:
+            conn = db.connect(self.cfg, role=self.role, log=self.log, attempts=1)
+            self.on_connect(conn)
+        except DatabaseUnavailable as e:
+            self._database_lost(e)
+            raise
+        self._conn = conn
+        self._database_up.set()
+        return conn
+
+    def transaction(self, fn: Callable[[psycopg.Cursor[Any]], T]) -> T:
         """Run one step's database work as one transaction, retried on transient failures."""
+        self._database_used = time.monotonic()
         return db.transaction(self.db, fn, log=self.log)
+
+    async def transaction_when_up(self, fn: Callable[[psycopg.Cursor[Any]], T], within: float | None = None) -> T:
+        """A step that must not be lost though nobody waits for it (a broadcast heard, a dead lot
+        reaped, a run's results): run now, or as soon as the database is back, for up to `within`
+        seconds (None: as long as the module runs); then DatabaseUnavailable."""
+        deadline = Deadline(within)
+        while True:
+            try:
+                return self.transaction(fn)
+            except DatabaseUnavailable:
+                if not await self.wait_database(deadline):
+                    raise
+
+    async def wait_database(self, deadline: Deadline) -> bool:
+        """Wait until the database is back (True), or the deadline passes (False)."""
+        if self.database_down is None:
+            return True
+        try:
+            left = deadline.left()
+            await asyncio.wait_for(self._database_up.wait(), None if left == math.inf else left)
+        except TimeoutError:
+            return False
+        return True
+
+    def on_connect(self, conn: psycopg.Connection) -> None:
+        """Called with every new connection, before it is used (MSCHED takes its lock here).
+        DatabaseUnavailable from it counts as no connection: the module reconnects later."""
+
+    async def on_database_back(self, down_for: float) -> None:
+        """Called once the database is back after an outage of `down_for` seconds."""
+
+    def _database_lost(self, e: DatabaseUnavailable) -> None:
+        """The database is away: say so once, and reconnect in the background until it is back."""
+        self._database_why = str(e)
+        if self.database_down is not None:
+            return
+        self.database_down = time.monotonic()
+        self._database_up.clear()
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        self.log.error("the cell database is away (%s): serving what does not need it, reconnecting", e)
+        task = asyncio.get_running_loop().create_task(self._reconnect())
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _reconnect(self) -> None:
+        assert self.database_down is not None
+        backoff = Backoff(0.2, 1.0)  # unbounded: until the database is back or the module stops
+        said = time.monotonic()
+        while await backoff.asleep():
+            try:
+                # In a thread: connecting to a server that is away (a TCP address that does not answer)
+                # may take up to connect_timeout, which the module's event loop must not wait for.
+                conn = await asyncio.to_thread(db.connect, self.cfg, self.role, self.log, 1)
+            except DatabaseError as e:
+                self._database_why = str(e)
+            else:
+                try:
+                    self.on_connect(conn)
+                except DatabaseUnavailable as e:
+                    conn.close()
+                    self._database_why = str(e)
+                else:
+                    break
+            if time.monotonic() - said >= 10:
+                said = time.monotonic()
+                self.log.warning(
+                    "the cell database is still away after %.0fs: %s", said - self.database_down, self._database_why
+                )
+        down_for = time.monotonic() - self.database_down
+        self._conn, self.database_down = conn, None
+        self._database_up.set()
+        self.log.warning("the cell database is back after %.1fs", down_for)
+        try:
+            await self.on_database_back(down_for)
+        except GwcError as e:
+            self.log.error("work after the database came back failed: %s", e)
+
+    async def _probe_database(self) -> None:
+        """Look at the database when no step did for a while, so that an outage is noticed."""
+        if self.role is None or self.database_down is not None:
+            return
+        if time.monotonic() - self._database_used >= DATABASE_PROBE_S:
+            self.transaction(lambda cur: cur.execute("select 1"))
 
     # ----------------------------------------------------------------- running
 
@@ -236,15 +354,12 @@ class Module:
         while True:
             await asyncio.sleep(self.cfg.bus.heartbeat)
             try:
+                await self._probe_database()
                 await self.on_idle()
-            except DatabaseUnavailable as e:
-                self._fatal(e)
+            except DatabaseUnavailable:
+                pass  # said once when it went; done again once it is back
             except Exception:
                 self.log.exception("idle work failed")
-
-    def _fatal(self, e: Exception) -> None:
-        self.log.error("fatal: %s; stopping cleanly", e)
-        self.stop(3)
 
     async def _serve(self, conv: Conversation) -> None:
         with conversation(conv.id, conv.cls):
@@ -270,8 +385,8 @@ class Module:
             except asyncio.CancelledError:
                 raise
             except DatabaseUnavailable as e:
+                self.log.warning("%s from %s not served now: %s", head.name, conv.first.sender, e)
                 await self._refuse(conv, AckCode.DB_BADREA, str(e))
-                self._fatal(e)
             except DatabaseError as e:
                 self.log.error("%s failed: %s", head.name, e)
                 await self._refuse(conv, AckCode.DB_BADUPD, str(e))
@@ -297,7 +412,15 @@ class Module:
             self.log.warning("could not refuse %s: %s", conv.cls, e)
 
     async def _start(self) -> str:
-        code = await self.on_startup()
+        deadline = Deadline(DATABASE_OUTAGE_S)
+        while True:
+            try:
+                code = await self.on_startup()
+                break
+            except DatabaseUnavailable:
+                self.log.warning("startup waits for the cell database")
+                if not await self.wait_database(deadline):
+                    raise
         if code == AckCode.ACK_OK:
             self.started = True
             self.bus.set_interest(self.busy_interest())
@@ -318,7 +441,7 @@ class Module:
             code = await self._start()
         except Exception as e:
             # The starter waits for Startup_Complete: tell it how the startup failed, then let
-            # _serve log the error (and stop the module if the database is gone).
+            # _serve log the error.
             failed = (
                 AckCode.DB_BADREA
                 if isinstance(e, DatabaseUnavailable)

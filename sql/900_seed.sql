@@ -34,7 +34,8 @@ insert into alarm_description (alarm_id, alarm_text, severity) values
     ('MAINT_DUE', 'Maintenance is due on the machine', 'warning'),
     ('RUN_FAIL',  'The machine reported a failed run', 'error'),
     ('REC_INVAL', 'Recipe unknown, not for this machine or op type, or its checksum is wrong', 'error'),
-    ('MODULE_FATAL', 'A module failed at every start: its host''s agent left it down', 'error')
+    ('MODULE_FATAL', 'A module failed at every start: its host''s agent left it down', 'error'),
+    ('DB_DOWN',   'The cell database was away longer than the cell rides out unnoticed', 'error')
 on conflict do nothing;
 
 insert into recipes (recipe_id, description) values

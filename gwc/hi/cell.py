@@ -81,8 +81,9 @@ def status(as_json: bool) -> None:
     cfg, _ = context()
     agent, rows = cell.cell_status(cfg)
     if not as_json:
-        if cfg.embedded:
-            click.echo(f"database: embedded, {'running' if db.cluster_running(cfg) else 'stopped'}")
+        down = db.probe(cfg)
+        where = f"embedded, {'running' if db.cluster_running(cfg) else 'stopped'}" if cfg.embedded else "external"
+        click.echo(f"database: {where}, " + (f"DOWN ({down})" if down else "up"))
         click.echo(f"agent: {agent['name']} (pid {agent['pid']})" if agent else "agent: not running (unsupervised)")
     table(rows, ["module", "state", "pid", "uptime", "restarts", "last_exit"], as_json)
 

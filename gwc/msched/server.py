@@ -31,8 +31,9 @@ from gwc.module import Module
 from gwc.msched import store
 from gwc.msched.policy import make_policy
 from gwc.msched.store import Outcome, Step
+from gwc.retry import Deadline
 
-LOCK_TRIES = 50  # x 0.1 s: a killed predecessor's database session takes a moment to go
+LOCK_WAIT_S = 5.0  # a killed predecessor's database session takes a moment to go
 DEFAULT_SWEEP_S = 5.0
 # Group commit: the step worker takes its batch once GATHER_TURNS event-loop turns brought no new
 # change (a datagram already received needs about three turns - read, open the conversation, run its
@@ -42,6 +43,10 @@ LAZY_S = 0.5  # an acknowledged outcome waits at most this long for a step to ri
 MAX_GATHER_TURNS = 200
 
 Op = Callable[[Step], Any]
+
+
+class SchedulerLocked(DatabaseUnavailable):
+    """Another MSCHED holds the scheduler lock: this one cannot use the database (yet)."""
 
 
 class Msched(Module):
@@ -88,6 +93,14 @@ class Msched(Module):
         worker = asyncio.get_running_loop().create_task(self._worker())
         self._tasks.add(worker)  # cancelled with the module's other tasks when it stops
 
+    def on_connect(self, conn: Any) -> None:
+        """One MSCHED per database: a session lock, freed by PostgreSQL when its holder dies. Taken
+        on every connection, for a connection lost (the database restarted) loses it."""
+        if not conn.execute("select pg_try_advisory_lock(hashtext('gwc.msched'))").fetchone()[0]:
+            conn.close()
+            raise SchedulerLocked("another MSCHED holds the scheduler lock in this database")
+        conn.commit()
+
     async def on_startup(self) -> str:
         if not await self._lock():
             self.log.error("another MSCHED holds the scheduler lock in this database: not starting")
@@ -124,15 +137,17 @@ class Msched(Module):
             self._last_sweep = time.monotonic()
             self._submit(lambda s: s.sweep(), wait=False)
 
+    async def on_database_back(self, down_for: float) -> None:
+        """Whatever happened meanwhile (a lot that finished, a machine that went): sweep at once."""
+        self._submit(lambda s: s.sweep(), wait=False)
+
     async def _lock(self) -> bool:
-        """One MSCHED per database: a session lock, freed by PostgreSQL when its holder dies."""
-        for _ in range(LOCK_TRIES):
-            if self.transaction(
-                lambda cur: cur.execute("select pg_try_advisory_lock(hashtext('gwc.msched'))").fetchone()[0]
-            ):
-                return True
-            await asyncio.sleep(0.1)
-        return False
+        """Connect (on_connect takes the lock); a killed predecessor's session takes a moment to go."""
+        try:
+            self.db()
+        except SchedulerLocked:
+            return await self.wait_database(Deadline(LOCK_WAIT_S))
+        return True
 
     # ------------------------------------------------------------------ conversations
 
@@ -310,10 +325,13 @@ class Msched(Module):
         try:
             results, outcomes = self.transaction(lambda cur: store.run_step(cur, self.policy, [op for op, _ in ops]))
         except DatabaseUnavailable as e:
-            for _, fut in ops:
-                if fut is not None and not fut.done():
+            # Nothing was done: whoever waits is answered DB_Badrea (asks again); what nobody waits
+            # for (forgetting told outcomes, the sweep) rides on the first step once it is back.
+            for op, fut in ops:
+                if fut is None:
+                    self._ops.append((op, None))
+                elif not fut.done():
                     fut.set_exception(e)
-            self._fatal(e)
             return
         except Exception as e:
             if len(ops) > 1:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Coroutine
+from collections.abc import Callable, Coroutine
 from typing import Any
 
 from gwc.config import Config
@@ -18,6 +18,7 @@ from gwc.errors import GwcError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
+from gwc.module import DATABASE_OUTAGE_S
 
 SERVER_TIMEOUT = 5.0  # longest one server waits for another's answer
 
@@ -30,6 +31,7 @@ class Server:
     cfg: Config
     bus: Any
     _tasks: set[asyncio.Task[None]]
+    ask: Callable[..., Coroutine[Any, Any, Message]]
 
     @staticmethod
     def request(conv: Conversation) -> Message:
@@ -61,21 +63,23 @@ class Server:
         task.add_done_callback(self._tasks.discard)
 
     async def raise_alarm(self, alarm_id: str, text: str, machine_id: str | None = None) -> int | None:
-        """Send an alarm to the CAS (ALARM_SEND); its alarm_no, or None (logged) if it was not taken."""
+        """Send an alarm to the CAS (ALARM_SEND); its alarm_no, or None (logged) if it was not taken.
+
+        A CAS restarting or without its database is asked again for up to DATABASE_OUTAGE_S (call
+        this in the background: `spawn`)."""
         try:
-            conv, batch = await self.bus.request(
+            ack = await self.ask(
                 "ALARM_SEND",
                 message(
                     "Alarm_Send", alarm_id=alarm_id, alarm_text=text[:500], machine_id=machine_id, raised_by=self.name
                 ),
-                to="cas",
-                timeout=SERVER_TIMEOUT,
+                "cas",
+                SERVER_TIMEOUT,
+                within=DATABASE_OUTAGE_S,
             )
-            conv.end()
         except GwcError as e:  # ConversationTimeout among them
             self.log.error("alarm %s (%s) not taken by the Cell Alarm Server: %s", alarm_id, text, e)
             return None
-        ack = batch.first
         if ack.ack_code != AckCode.ACK_OK:
             self.log.error("Cell Alarm Server refused alarm %s: %s %s", alarm_id, ack.ack_code, ack.note or "")
             return None

@@ -24,7 +24,7 @@ from gwc.errors import GwcError
 from gwc.ipc.bus import Conversation, Peer
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, LotState
-from gwc.module import Handler, Module
+from gwc.module import DATABASE_OUTAGE_S, Handler, Module
 from gwc.servers.common import SERVER_TIMEOUT, Server
 
 L = LotState
@@ -148,7 +148,7 @@ class LotServer(Server, Module):
             )
             return True
 
-        if not self.transaction(fail):
+        if not await self.transaction_when_up(fail):  # a dead script is reaped once the database is back
             return
         self.log.warning("entity %d failed: %s; asking msched to cancel and unreserve", entity_id, reason)
         await self.event(f"entity {entity_id} failed: {reason}")
@@ -157,7 +157,7 @@ class LotServer(Server, Module):
             ("UNRESERVE", message("Unreserve_Me", entity_id=entity_id, by=self.name)),
         ):
             try:
-                answer = await self.ask(cls, msg, "msched", SERVER_TIMEOUT)
+                answer = await self.ask(cls, msg, "msched", SERVER_TIMEOUT, within=DATABASE_OUTAGE_S)
                 self.log.info("%s for entity %d: %s %s", cls, entity_id, answer.ack_code, answer.note or "")
             except GwcError as e:  # ConversationTimeout among them
                 self.log.error("%s for dead entity %d not done: %s", cls, entity_id, e)

@@ -287,7 +287,7 @@ class MachineServer(Server, Module):
                 (1 if failed else 0, done.machine_id),
             ).fetchone()
 
-        row = self.transaction(count)
+        row = await self.transaction_when_up(count)  # heard once: kept until the database is back
         if row is None:
             self.log.warning("Run_Complete for unknown machine %s ignored", done.machine_id)
             return

@@ -5,6 +5,7 @@ Lot Server's LOT_STATUS), pending alarms (the Cell Alarm Server's ALARMS), and t
 heard on the bus (a Cell_Event, a machine status change, an alarm cleared, a lot moved, a run
 completed). The counts are read from the owners' tables at every STATUS_LN, so the line is never
 stale; the server writes nothing (role gwc_sls reads only) and keeps only the last event in memory.
+While the database is away the line says so (DATABASE DOWN), with the last event heard.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import time
 from typing import Any
 
 from gwc.config import Config
+from gwc.errors import DatabaseUnavailable
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
@@ -98,7 +100,14 @@ class StatusLineServer(Server, Module):
         return " | ".join(parts)[:500]
 
     async def status_line(self, conv: Conversation) -> None:
-        r = self.read()
+        try:
+            r = self.read()
+        except DatabaseUnavailable:
+            assert self.database_down is not None
+            away = time.monotonic() - self.database_down
+            text = f"DATABASE DOWN for {away:.0f}s: imports, exports and alarms unknown | LAST {self.last_event}"
+            await conv.send(message("Status_Line", text=text[:500], last_event=self.last_event))
+            return
         await conv.send(
             message(
                 "Status_Line",

@@ -13,14 +13,15 @@ from gwc.errors import ConversationTimeout, DatabaseError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, MachineStatus
-from gwc.module import Module
+from gwc.module import DATABASE_OUTAGE_S, Module
 from gwc.wc.link import MeLink
 
 ME_PING = 0.5  # ping the ME after this long without hearing from it
 ME_DEADLINE = 1.5  # an ME silent this long after a ping is dead
 ME_ANSWER = 10.0  # longest an ME may take to acknowledge a request (not counting operator alarms)
 SERVER_TIMEOUT = 5.0  # longest a server may take to answer the WC
-SERVER_RESTART = 30.0  # how long the WC asks a restarting server again (status, accept types)
+# How long the WC asks a restarting server (or one whose database is away) again: status, accept types.
+SERVER_RESTART = DATABASE_OUTAGE_S
 ABANDONED_S = 10.0  # a setup whose run has not been reserved this long is given up (its lot is gone)
 SETUP_CHECK_S = 2.0  # how often a machine in Setup looks for its run's reservation
 ALL_OPERATIONS = ["*"]

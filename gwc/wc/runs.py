@@ -14,6 +14,7 @@ from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import MeMessage, MessageId
 from gwc.me.results import read_outcome, read_results
+from gwc.module import DATABASE_OUTAGE_S
 from gwc.wc.base import ALL_OPERATIONS, ME_ANSWER, S, WCBase
 from gwc.wc.link import MeDied
 
@@ -42,7 +43,7 @@ class WCRuns(WCBase):
         except asyncio.CancelledError:
             raise
         except DatabaseUnavailable as e:
-            self._fatal(e)
+            self.log.error("work on a message from the ME failed: %s", e)
         except Exception:
             self.log.exception("work on a message from the ME failed")
 
@@ -209,7 +210,8 @@ class WCRuns(WCBase):
             )
 
         try:
-            self.transaction(store)
+            # Results are kept (file and all) through a database outage rather than failing the run.
+            await self.transaction_when_up(store, within=DATABASE_OUTAGE_S)
         except DatabaseError as e:
             self.log.error("results of run %d not stored: %s (file %s kept)", run_id, e, path)
             code = AckCode.DB_BADUPD

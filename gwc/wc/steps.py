@@ -114,7 +114,7 @@ class WCSteps(WCDevice):
             )
         except DatabaseUnavailable:
             fetch.cancel()
-            raise  # fatal (3.2.2): the module answers DB_Badrea and stops cleanly
+            raise  # the module answers DB_Badrea: the lot may ask again once the database is back
         except DatabaseError as e:
             fetch.cancel()
             return AckCode.DB_BADREA, str(e)
