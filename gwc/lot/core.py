@@ -17,7 +17,7 @@ import psycopg
 
 from gwc import db
 from gwc.config import Config
-from gwc.errors import DatabaseError
+from gwc.errors import DatabaseError, DatabaseUnavailable
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import Message
 from gwc.ipc.codes import AckCode
@@ -81,11 +81,22 @@ class EntityCore:
 
     def _db(self) -> psycopg.Connection[Any]:
         if self._conn is None or self._conn.closed:
-            self._conn = db.connect(self.cfg, role="lot", log=self.log)
+            self._conn = db.connect(self.cfg, role="lot", log=self.log, attempts=1)  # _query asks again
         return self._conn
 
-    def _query(self, sql: str, *params: Any) -> list[tuple[Any, ...]]:
-        return db.transaction(self._db, lambda cur: cur.execute(sql, params).fetchall(), log=self.log)
+    def _query(self, sql: str, *params: Any, within: float | None = None) -> list[tuple[Any, ...]]:
+        """Read rows. A database away is read again after a pause, as a server away is asked again, for
+        `within` seconds (Timeouts.retry by default; 0 for a read that is only a fallback)."""
+        backoff = self.timeouts.asking(within)
+        while True:
+            try:
+                return db.transaction(self._db, lambda cur: cur.execute(sql, params).fetchall(), log=self.log)
+            except DatabaseUnavailable as e:
+                pause = backoff.next()
+                if pause is None:
+                    raise
+                self.log.warning("%s; reading again in %.1fs", e, pause)
+                time.sleep(pause)
 
     def _query_one(self, sql: str, *params: Any) -> tuple[Any, ...] | None:
         rows = self._query(sql, *params)
@@ -181,6 +192,7 @@ class EntityCore:
             rows = self._query(
                 "SELECT machine_id, status, machine_run_id FROM machine_status WHERE machine_id = ANY(%s)",
                 list(machines),
+                within=0,
             )
         except DatabaseError as e:
             self.log.warning("could not read MACHINE_STATUS: %s", e)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import time
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -16,7 +15,7 @@ from gwc.config import Config
 from gwc.errors import BusError, GwcError
 from gwc.ipc.catalogue import Message
 from gwc.ipc.codes import AckCode, LotState, MachineStatus
-from gwc.module import NOT_STARTED
+from gwc.retry import Backoff
 
 T = TypeVar("T")
 S = LotState
@@ -55,29 +54,10 @@ class Timeouts:
     backoff_max: float = 2.0  # ... up to this
     pause: float = 1.0  # before an operation's next try after a machine was lost, doubling per try
 
-
-class Backoff:
-    """The pauses between asks of a server that cannot answer now: short, doubling, for a bounded time."""
-
-    def __init__(self, timeouts: Timeouts, within: float | None = None) -> None:
-        self.deadline = time.monotonic() + (timeouts.retry if within is None else within)
-        self.delay = timeouts.backoff
-        self.most = timeouts.backoff_max
-        self.tries = 0
-
-    def next(self) -> float | None:
-        """The pause before the next ask, or None when the time for asking is up."""
-        self.tries += 1
-        left = self.deadline - time.monotonic()
-        if left <= 0:
-            return None
-        pause, self.delay = min(self.delay, left), min(self.delay * 2, self.most)
-        return pause
-
-
-def not_started(ack: Message) -> bool:
-    """The module is on the bus but not started (yet, or any more): ask again later."""
-    return ack.ack_code == AckCode.NOTNOW and ack.note == NOT_STARTED
+    def asking(self, within: float | None = None) -> Backoff:
+        """The pauses between asks of a server that cannot answer now: from `backoff`, doubling to
+        `backoff_max`, for `within` seconds (`retry` by default)."""
+        return Backoff(self.backoff, self.backoff_max, within=self.retry if within is None else within)
 
 
 @dataclass

@@ -228,6 +228,7 @@ class EntityReserve(EntityTalk):
                 "AND machine_id = ANY(%s) GROUP BY machine_id",
                 op_type,
                 sorted(machines),
+                within=0,
             )
         except DatabaseError as e:  # recipe_for reads them again, and says so if it cannot
             self.log.warning("recipes for %s not read ahead: %s", op_type, e)

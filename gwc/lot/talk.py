@@ -15,7 +15,8 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.lot.core import EntityCore
 from gwc.lot.errors import LotError, LotTimeout, MachineLost
-from gwc.lot.model import ALREADY, FOREVER, LISTENS, SHUT, Alternative, Backoff, WcCall, not_started
+from gwc.lot.model import ALREADY, FOREVER, LISTENS, SHUT, Alternative, WcCall
+from gwc.module import ask_again
 
 
 class EntityTalk(EntityCore):
@@ -107,14 +108,15 @@ class EntityTalk(EntityCore):
     ) -> Message:
         """One conversation with a server (ls, msched): its answer.
 
-        A server away from the bus, not started (Notnow "module not started": it is restarting) or
-        silent past `timeout` is asked again, in a NEW conversation, after a pause (Timeouts.backoff,
-        doubling to backoff_max) until `within` (Timeouts.retry) has passed; then LotTimeout. So every
-        request sent through here must be safe to repeat (ENTITY_REQ, CANCEL_RE, UNRESERVE are).
+        A server away from the bus, unable to answer now (`ask_again`: not started as it restarts,
+        or its database away) or silent past `timeout` is asked again, in a NEW conversation, after a
+        pause (Timeouts.backoff, doubling to backoff_max) until `within` (Timeouts.retry) has passed;
+        then LotTimeout. So every request sent through here must be safe to repeat (ENTITY_REQ,
+        CANCEL_RE, UNRESERVE are).
         """
         if self._bus is None:
             raise LotError(f"entity {self.entity_id} is not open")
-        backoff = Backoff(self.timeouts, within)
+        backoff = self.timeouts.asking(within)
         while True:
             error: ConversationTimeout | None = None
             if not self._present(to):
@@ -126,11 +128,11 @@ class EntityTalk(EntityCore):
                     why, error = f"no answer within {timeout or self.timeouts.answer:.1f}s", e
                 else:
                     conv.end()
-                    if not not_started(batch.first):
+                    if not ask_again(batch.first):
                         if backoff.tries:
                             self.log.info("%s answered %s after %d more tries", to, cls, backoff.tries)
                         return batch.first
-                    why = f"{to} is not started (Notnow)"
+                    why = f"{to} cannot answer now ({batch.first.ack_code} {batch.first.note or ''})"
             pause = backoff.next()
             if pause is None:
                 self.log.error("%s to %s: %s; gave up after %d tries", cls, to, why, backoff.tries)
@@ -264,7 +266,7 @@ class EntityTalk(EntityCore):
         bus = self._bus.bus
         group = alt.group
         conv: Conversation | None = None
-        backoff = Backoff(self.timeouts)
+        backoff = self.timeouts.asking()
         try:
             while alt.ack is None and not alt.done:
                 if group is not None and group.winner is not None:  # no need to ask any more
@@ -293,10 +295,10 @@ class EntityTalk(EntityCore):
                     except ConversationTimeout:
                         why = f"no answer within {self.timeouts.answer:.1f}s"
                     else:
-                        if not not_started(batch.first):
+                        if not ask_again(batch.first):
                             await self._answered(alt, conv, batch)
                             continue
-                        why = "msched is not started (Notnow)"
+                        why = f"msched cannot answer now ({batch.first.ack_code} {batch.first.note or ''})"
                     conv.end()
                     conv = None
                 pause = backoff.next()

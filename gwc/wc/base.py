@@ -7,8 +7,6 @@ import asyncio
 from pathlib import Path
 from typing import Any
 
-import psycopg
-
 from gwc.errors import ConversationTimeout, DatabaseError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import message
@@ -56,16 +54,12 @@ class WCBase(Module):
         return (MachineStatus(row[0]), row[1], row[2]) if row else (S.SHUTDOWN, None, None)
 
     def _read(self, sql: str, params: tuple[Any, ...]) -> tuple[Any, ...] | None:
-        """One row read; DatabaseError (answered DB_Badrea by the callers) if the database fails."""
-        try:
-            conn = self.db()
-            row = conn.execute(sql, params).fetchone()
-            conn.rollback()
-            return row
-        except psycopg.Error as e:
-            if self._conn is not None and (self._conn.broken or self._conn.closed):
-                self._conn.close()
-            raise DatabaseError(f"database read failed: {' '.join(str(e).split())}") from e
+        """One row read; DatabaseError if the database refuses it, DatabaseUnavailable if it is away."""
+        return self.transaction(lambda cur: cur.execute(sql, params).fetchone())
+
+    async def _read_when_up(self, sql: str, params: tuple[Any, ...]) -> tuple[Any, ...] | None:
+        """One row read for a step a lot waits on: a database outage is waited out (DATABASE_OUTAGE_S)."""
+        return await self.transaction_when_up(lambda cur: cur.execute(sql, params).fetchone(), DATABASE_OUTAGE_S)
 
     async def change_status(
         self, status: MachineStatus, expect: list[MachineStatus] | None = None, **fields: Any

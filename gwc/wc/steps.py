@@ -13,7 +13,7 @@ from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.mq import MeMessage, MessageId
-from gwc.wc.base import ALL_OPERATIONS, SERVER_TIMEOUT, S
+from gwc.wc.base import ALL_OPERATIONS, SERVER_RESTART, SERVER_TIMEOUT, S
 from gwc.wc.device import WCDevice
 from gwc.wc.link import MeDied
 
@@ -108,7 +108,7 @@ class WCSteps(WCDevice):
         fetch = asyncio.ensure_future(self.fetch_recipe(req.recipe_id))
         await asyncio.sleep(0)  # let it send before the (blocking) read
         try:
-            ok = self._read(
+            ok = await self._read_when_up(
                 "SELECT 1 FROM op_machine_recipe WHERE machine_id = %s AND recipe_id = %s AND op_type = %s",
                 (self.machine_id, req.recipe_id, req.op_type),
             )
@@ -164,6 +164,7 @@ class WCSteps(WCDevice):
                 message("Recipe_Fetch", recipe_id=recipe_id, machine_id=self.machine_id),
                 "ers",
                 SERVER_TIMEOUT,
+                within=SERVER_RESTART,
             )
         except ConversationTimeout:
             return None, "the Equipment Recipe Server did not answer"

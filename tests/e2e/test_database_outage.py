@@ -22,7 +22,7 @@ import pytest
 
 from gwc import db
 from gwc.config import Config
-from tests.conftest import TEST_PG_SETTINGS, make_config
+from tests.conftest import make_config
 from tests.e2e.lotkit import (
     cell_with_machines,
     gwc,
@@ -77,7 +77,9 @@ class OwnCluster:
 def own_cluster() -> Iterator[OwnCluster]:
     base = Path(tempfile.mkdtemp(prefix="gwc-out-", dir="/var/tmp"))
     base.chmod(0o755)
-    cfg = dataclasses.replace(make_config(base, None, database={"settings": TEST_PG_SETTINGS}), database_url=None)
+    # Commits must survive the postmaster's death, as in a real cell (the suite's clusters turn
+    # synchronous_commit off, which loses the last commits to a crash); fsync only matters to an OS crash.
+    cfg = dataclasses.replace(make_config(base, None, database={"settings": {"fsync": False}}), database_url=None)
     try:
         db.cluster_start(cfg)
         db.init_schema(cfg)

@@ -556,14 +556,14 @@ def test_a_machine_refusing_a_setup_is_asked_again_after_a_pause_once_it_is_up(
 # ----------------------------------------------------------------- servers that restart (soak BUG-2)
 
 
-def test_the_lot_server_and_msched_are_asked_again_while_not_started_or_silent(
+def test_the_lot_server_and_msched_are_asked_again_while_not_started_silent_or_without_database(
     fake: tuple[FakeCell, OperationEntity],
 ) -> None:
     cell, entity = fake
     entity.timeouts = Timeouts(
         answer=0.5, machines=5, setup=3, run=5, lost_grace=0.2, cleanup=2, retry=10, backoff=0.05, backoff_max=0.2
     )
-    attaches = unreserves = 0
+    attaches = unreserves = requests = 0
 
     async def entity_req(conv: Conversation, m: Message) -> None:
         nonlocal attaches
@@ -575,20 +575,30 @@ def test_the_lot_server_and_msched_are_asked_again_while_not_started_or_silent(
                 return
         await FakeCell.entity_req(cell, conv, m)
 
+    async def mach_req(conv: Conversation, m: Message) -> None:
+        nonlocal requests
+        requests += 1
+        if requests == 1:  # its database is away: nothing was queued
+            return await conv.send(message("Machine_Req_Ack", ack_code=AckCode.DB_BADREA, note="database away"))
+        await FakeCell.mach_req(cell, conv, m)
+
     async def unreserve(conv: Conversation, m: Message) -> None:
         nonlocal unreserves
         unreserves += 1
         if unreserves == 1:
             return await conv.send(message("Unreserve_Me_Ack", ack_code=AckCode.NOTNOW, note=NOT_STARTED))
+        if unreserves == 2:
+            return await conv.send(message("Unreserve_Me_Ack", ack_code=AckCode.DB_BADREA, note="database away"))
         await FakeCell.unreserve(cell, conv, m)
 
     cell.handlers["ENTITY_REQ"] = entity_req
+    cell.handlers["MACH_REQ"] = mach_req
     cell.handlers["UNRESERVE"] = unreserve
     with entity:
         entity.wait_for_import()
         op = entity.operate("dummy_op", [["m1"]])
         entity.lot_completed("PASS")
-    assert op.ok and attaches == 3 and unreserves == 2
+    assert op.ok and attaches == 3 and requests == 2 and unreserves == 3
     assert cell.actions()[:3] == ["attach", "attach", "attach"] and cell.actions()[-1] == "completed"
 
 
@@ -616,7 +626,7 @@ def test_a_server_that_never_starts_fails_the_step_after_the_retry_window(
 
     cell.handlers["ENTITY_REQ"] = not_started
     t0 = time.monotonic()
-    with pytest.raises(LotTimeout, match="ls is not started"), entity:
+    with pytest.raises(LotTimeout, match=r"ls cannot answer now \(Notnow module not started\)"), entity:
         pass
     assert 0.6 <= time.monotonic() - t0 < 10
     assert cell.actions().count("attach") >= 3
