@@ -325,7 +325,8 @@ def test_monitor_shows_and_records_conversations_decoded_with_filters(make_lab: 
     everything = subprocess.Popen([*cmd, "--record", str(record)], **popen)  # type: ignore[call-overload]
     only_ping = subprocess.Popen([*cmd[:-2], "--count", "2", "--class", "PING", "--json"], **popen)  # type: ignore[call-overload]
     machine = subprocess.Popen([*cmd[:-2], "--count", "2", "--machine", "wc7", "--json"], **popen)  # type: ignore[call-overload]
-    procs = (everything, only_ping, machine)
+    keyless = subprocess.Popen([*cmd[:4], "--duration", "4", "--no-key", "--json"], **popen)  # type: ignore[call-overload]
+    procs = (everything, only_ping, machine, keyless)
     try:
         for p in procs:  # each says so on stderr once it has joined the group
             assert p.stderr is not None and "monitoring bus" in p.stderr.readline()
@@ -354,6 +355,8 @@ def test_monitor_shows_and_records_conversations_decoded_with_filters(make_lab: 
     assert "Ping" in outs[0] and "MACH_REQ" in outs[0]
     assert {json.loads(x)["class"] for x in outs[1].splitlines()} == {"PING"}
     assert [json.loads(x)["message"] for x in outs[2].splitlines()] == ["Machine_Entry", "Machine_Req_Ack"]
+    without_key = [json.loads(x) for x in outs[3].splitlines()]  # only that traffic exists, nothing decoded
+    assert without_key and all(set(x) == {"time", "bus", "unauthenticated", "keyed"} for x in without_key)
 
 
 def test_bench_bus_runs_and_reports_bus_and_floor(tmp_path: Path) -> None:
