@@ -4,6 +4,11 @@ Configuration lives in etc/, state in var/ (GUIDE 4). Overrides, in order of str
 GWC_CONFIG (the file), GWC_VAR (the state folder), GWC_DATABASE_URL (use that server, not the
 embedded cluster), GWC_HOST (which of the cell's [[host]]s this is, when it cannot be found from the
 machine's own addresses).
+
+Run from a checkout, etc/ and sql/ are the checkout's and state defaults to its var/ (ignored by git).
+Installed (`pip install .`), etc/ and sql/ are the copies shipped in the package (gwc/data/), and state
+defaults to the user's state folder, never the package: $XDG_STATE_HOME/gwc, ~/.local/state/gwc, or
+/var/lib/gwc for root (docs/operating.md).
 """
 
 from __future__ import annotations
@@ -19,7 +24,8 @@ from typing import Any
 
 from gwc.errors import ConfigError
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
+PROJECT_ROOT = Path(__file__).resolve().parent.parent  # the checkout; installed, the folder holding gwc/
+PACKAGE_DATA = Path(__file__).resolve().parent / "data"  # sql/ and etc/ as shipped in the package (setup.py)
 SERVER_MODULES = ("cas", "ers", "ms", "ls", "sls", "msched")
 OPTIONAL_MODULES = ("opcua",)  # modules a cell may list, not part of every cell (private cells leave them out)
 LEVELS = ("trace", "note", "warning", "error")
@@ -165,8 +171,27 @@ def _check_level(level: str, where: str) -> str:
     return level
 
 
+def from_checkout() -> bool:
+    """Whether gwc runs from a checkout (editable install, `python -m gwc` in it), not an installed copy."""
+    return (PROJECT_ROOT / "pyproject.toml").is_file() and (PROJECT_ROOT / "sql").is_dir()
+
+
+def shipped(folder: str) -> Path:
+    """sql/ or etc/: the checkout's when running from one, else the copy installed with the package."""
+    return PROJECT_ROOT / folder if from_checkout() else PACKAGE_DATA / folder
+
+
+def cell_home() -> Path:
+    """What a relative or missing [cell] var is under: the checkout, or the user's state folder."""
+    if from_checkout():
+        return PROJECT_ROOT
+    if os.environ.get("XDG_STATE_HOME"):
+        return Path(os.environ["XDG_STATE_HOME"]) / "gwc"
+    return Path("/var/lib/gwc") if os.geteuid() == 0 else Path.home() / ".local" / "state" / "gwc"
+
+
 def default_config_path() -> Path:
-    return Path(os.environ.get("GWC_CONFIG") or PROJECT_ROOT / "etc" / "cell.toml")
+    return Path(os.environ.get("GWC_CONFIG") or shipped("etc") / "cell.toml")
 
 
 def load_config(path: Path | str | None = None) -> Config:
@@ -186,9 +211,10 @@ def load_config(path: Path | str | None = None) -> Config:
 
 def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
     cell = raw.get("cell", {})
-    var = Path(os.environ.get("GWC_VAR") or cell.get("var") or PROJECT_ROOT / "var")
-    if not var.is_absolute():
-        var = cfg_path.resolve().parent.parent / var  # absolute: the database socket's folder is named by it
+    var = Path(os.environ.get("GWC_VAR") or cell.get("var") or cell_home() / "var")
+    if not var.is_absolute():  # under the cell's folder (etc/..); the configuration shipped in the package: its home
+        home = cell_home() if PACKAGE_DATA in cfg_path.resolve().parents else cfg_path.resolve().parent.parent
+        var = home / var  # absolute: the database socket's folder is named by it
     bus_raw = dict(raw.get("bus", {}))
     for name, default in (("key_file", "cell.key"), ("lot_key_file", "lot.key")):
         where = Path(bus_raw.get(name) or var / "secrets" / default)

@@ -33,13 +33,13 @@ from urllib.parse import quote, urlsplit, urlunsplit
 import psycopg
 from psycopg import sql
 
-from gwc.config import PROJECT_ROOT, Config, HostSpec
+from gwc.config import Config, HostSpec, shipped
 from gwc.errors import DatabaseError, DatabaseUnavailable
 from gwc.retry import Backoff
 
 T = TypeVar("T")
 
-SQL_DIR = PROJECT_ROOT / "sql"
+SQL_DIR = shipped("sql")
 DB_NAME = "gwc"
 SUPERUSER = "gwc"
 PG_OS_USER = "postgres"  # who runs initdb/postgres when we are root: Debian's package creates it

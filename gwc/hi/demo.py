@@ -31,14 +31,14 @@ from gwc.client.alarms import clear_alarm, read_status_line
 from gwc.client.machines import start_machine, stop_machine
 from gwc.client.orders import decide, enter_order, read_traveller
 from gwc.client.session import hi_bus
-from gwc.config import PROJECT_ROOT, Config, load_config
+from gwc.config import Config, load_config, shipped
 from gwc.errors import GwcError
 from gwc.ipc import keys
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.codes import LotState
 from gwc.log import open_log
 
-DEMO_CONFIG = PROJECT_ROOT / "etc" / "demo.toml"
+DEMO_CONFIG = shipped("etc") / "demo.toml"
 BY = "demo operator"
 POLL = 0.1
 FINAL = (LotState.EXPORTED, LotState.FAILED)
