@@ -99,6 +99,7 @@ class Guard:
         self._counters = [0, 0]  # per channel: bus, beat
         self._windows: dict[bytes, list[Any]] = {}  # inc + src tag + channel/role -> [highest, bits, seen]
         self._started = time.time()
+        self._complaint = ""  # the key file's trouble last logged
         self.beat_drops = 0  # beats refused since the last heartbeat (the flood detector reads it)
 
     def _stat(self) -> int:
@@ -121,6 +122,11 @@ class Guard:
         self._lot_send = (lot_key.id, mac_of(lot_key.secret))
         self._module_send = (module_key.id, mac_of(module_key.secret)) if module_key else (0, None)
 
+    @property
+    def key_ids(self) -> tuple[int, int]:
+        """The ids of the (module, lot) keys this member signs with now (module 0: a lot script)."""
+        return self._module_send[0], self._lot_send[0]
+
     def refresh(self) -> None:
         """At each heartbeat: re-read the key file if it changed, take up keys whose time has come."""
         mtime = self._stat()
@@ -133,7 +139,11 @@ class Guard:
                 keyset = self.keyset
             self._use(keyset)
         except BusError as e:  # keep the keys we have: a half-copied file must not stop the cell
-            self.log.error("%s", e)
+            if str(e) != self._complaint:  # said once, not every heartbeat
+                self._complaint = str(e)
+                self.log.error("%s", e)
+        else:
+            self._complaint = ""
         now = time.time()
         horizon = now - 2 * self.cfg.replay_window
         for k, w in list(self._windows.items()):

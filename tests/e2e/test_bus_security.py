@@ -96,6 +96,20 @@ def test_the_bus_obeys_only_its_own_cell(lot_cell: Any, outsider: Any, tmp_path:
     ok(gwc(cell, "check"))
 
 
+def the_keys_change_on_the_running_cell(cell: CellHarness) -> None:
+    """`gwc key rotate`: every module takes up the new keys; past the overlap only they are accepted,
+    and nobody was refused on the way (no module left the bus, none seemed to restart)."""
+    incs = {name: p.inc for name, p in cell.bus.peers().items()}
+    ok(gwc(cell, "key", "rotate", "--take-up", "3", "--overlap", "5"))
+    expired = time.time() + 5.5
+    wait_for(lambda: time.time() > expired, 10, "the old keys to expire")
+    answer = ask(cell, "CANCEL_RE", message("Cancel_Request", request_key=2, by="test"), "msched")
+    assert answer.ack_code == AckCode.REQ_KEY_U
+    assert {name: p.inc for name, p in cell.bus.peers().items() if name in incs} == incs
+    assert status(cell, "wc1") == "Idle"
+    assert cell.bus.bus._guard.key_ids == (2, 2)
+
+
 def forgeries_and_replays_are_refused_and_change_nothing(cell: CellHarness, out: Outsider) -> None:
     raised = ask(cell, "ALARM_SEND", message("Alarm_Send", alarm_id="SPILT_COFFEE", raised_by="test"), "cas")
     alarm = raised.alarm_no
@@ -296,7 +310,7 @@ def second_database_url(pg_cluster: Any) -> Iterator[str]:
         conn.execute(sql.SQL("drop database if exists {} with (force)").format(sql.Identifier(name)))
 
 
-@pytest.mark.soak  # ~70 s: two whole cells
+@pytest.mark.soak  # ~80 s: two whole cells, then a key rotation
 def test_two_cells_with_their_own_keys_share_a_group_and_port(
     lot_cell: Any, xprocess: Any, tmp_path: Path, second_database_url: str
 ) -> None:
@@ -323,5 +337,6 @@ def test_two_cells_with_their_own_keys_share_a_group_and_port(
             assert c.query("SELECT count(*) FROM lot_status") == [(1,)]
             ok(gwc(c, "check"))
         assert "other cell" in one.log_text("msched") and "other cell" in two.log_text("msched")
+        the_keys_change_on_the_running_cell(one)
     finally:
         two.close()

@@ -100,7 +100,7 @@ def test_rotation_keeps_old_and_new_accepted_through_the_overlap(tmp_path: Path)
     receiver = guard(cfg, "msched")
     keys.rotate(cfg, overlap=60, take_up=3, now=time.time() - 10)  # new keys in use now
     new_sender = guard(cfg, "ms")
-    assert new_sender._module_send[0] == 2
+    assert new_sender.key_ids == (2, 2)
     receiver._mtime = 0
     receiver.refresh()
     assert receiver.open(old_sender.seal(body()), False, "x") is not None
