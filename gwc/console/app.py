@@ -45,11 +45,10 @@ from gwc.client.machines import machine_rows
 from gwc.client.orders import list_lots, list_orders, rows_of
 from gwc.client.requests import request_tables
 from gwc.config import Config
-from gwc.console.link import VIEWS_OF, WAITING, Answer, CellLink
+from gwc.console.link import VIEWS_OF, WAITING, Answer, CellLink, console_log
 from gwc.errors import GwcError
 from gwc.hi.monitor import line_of, matches
 from gwc.ipc.codes import MachineStatus
-from gwc.log import open_log
 
 TICK = 0.1  # how often the console takes what it heard on the bus
 RELOAD_EVERY = 0.25  # a view is read at most this often, however busy the bus
@@ -67,10 +66,6 @@ def later(widget: Any, at: float, fn: Callable[[], Any]) -> None:
         widget.set_timer(wait, fn)
     else:
         fn()
-
-
-def _cell(value: Any) -> Text:
-    return Text("" if value is None else str(value))
 
 
 class Confirm(ModalScreen[bool]):
@@ -124,7 +119,7 @@ class View(Vertical):
         yield DataTable(id=f"table-{self.name_}", cursor_type="row", zebra_stripes=True)
 
     def on_mount(self) -> None:
-        self.query_one(f"#table-{self.name_}", DataTable).add_columns(*self.columns)
+        add_columns(self.query_one(f"#table-{self.name_}", DataTable), self.columns)
 
     def focus_main(self) -> None:
         self.query_one(DataTable).focus()
@@ -173,16 +168,35 @@ class View(Vertical):
 
 
 def fill_table(table: DataTable[Any], rows: list[dict[str, Any]], columns: tuple[str, ...], key: str) -> None:
-    """Replace the table's rows, keeping the cursor on the same row (by key) where it still is."""
-    current = selected_key(table)
-    table.clear()
-    for r in rows:
-        table.add_row(*(_cell(r.get(c)) for c in columns), key=str(r[key]))
-    if current is not None:
-        try:
+    """Show `rows`, touching only what changed: a busy cell changes a few cells of a long table, and
+    redrawing all of it at every change would cost the machine the cell runs on. A table whose rows
+    were removed or reordered is filled again, keeping the cursor on the same row (by key)."""
+    shown: dict[str, tuple[str, ...]] = table.__dict__.setdefault("_gwc_shown", {})
+    new = {str(r[key]): tuple("" if r.get(c) is None else str(r.get(c)) for c in columns) for r in rows}
+    if list(new)[: len(shown)] != list(shown):
+        current = selected_key(table)
+        table.clear()
+        shown.clear()
+        for k, cells in new.items():
+            table.add_row(*map(Text, cells), key=k)
+            shown[k] = cells
+        if current in shown:
             table.move_cursor(row=table.get_row_index(current))
-        except Exception:  # the row is gone: the cursor stays where clear() put it
-            pass
+        return
+    for k, cells in new.items():
+        before = shown.get(k)
+        if before is None:
+            table.add_row(*map(Text, cells), key=k)
+        else:
+            for column, old_value, value in zip(columns, before, cells):
+                if value != old_value:
+                    table.update_cell(k, column, Text(value))
+        shown[k] = cells
+
+
+def add_columns(table: DataTable[Any], columns: tuple[str, ...]) -> None:
+    for c in columns:
+        table.add_column(c, key=c)  # keyed by name, for update_cell
 
 
 def selected_key(table: DataTable[Any]) -> str | None:
@@ -279,7 +293,7 @@ class RequestsView(View):
         yield DataTable(id="table-reserved", cursor_type="row", zebra_stripes=True)
 
     def on_mount(self) -> None:  # View's on_mount has run too (Textual calls each class's handler)
-        self.query_one("#table-reserved", DataTable).add_columns(*self.reserved_columns)
+        add_columns(self.query_one("#table-reserved", DataTable), self.reserved_columns)
 
     def focus_main(self) -> None:
         self.query_one(f"#table-{self.name_}", DataTable).focus()
@@ -773,7 +787,7 @@ class ConsoleApp(App[None]):
 def run_beside(cfg: Config, job: Callable[[Callable[[str], None]], bool], echo: Callable[[str], None]) -> bool:
     """The console in the foreground while job(say) runs in a thread, its narration in the console's
     Demo tab; quitting the console leaves the job running, narrating to `echo`. Returns job's result."""
-    app = ConsoleApp(cfg, open_log("console", cfg.log_dir, cfg.level_of("hi")), narration=True)
+    app = ConsoleApp(cfg, console_log(cfg), narration=True)
     outcome: dict[str, bool] = {}
     console_open = threading.Event()
 

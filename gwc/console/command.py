@@ -7,7 +7,8 @@ from pathlib import Path
 
 import click
 
-from gwc.hi import context
+from gwc.config import load_config
+from gwc.console.link import console_log
 
 
 @click.command("console")
@@ -21,8 +22,8 @@ def console(screenshots: Path | None) -> None:
     alarms, STRT, the monitor), the status line always shown. Keys 1-8 switch screens, q quits."""
     from gwc.console.app import ConsoleApp, screenshot_every_view
 
-    cfg, log = context()
-    app = ConsoleApp(cfg, log)
+    cfg = load_config()
+    app = ConsoleApp(cfg, console_log(cfg))
     if screenshots is None:
         app.run()
         return

@@ -35,6 +35,7 @@ from gwc.errors import GwcError, Refused
 from gwc.hi.monitor import watch
 from gwc.ipc.bus import BlockingBus, Peer
 from gwc.ipc.codes import AckCode, LotState
+from gwc.log import open_log
 from gwc.module import module_name
 
 T = TypeVar("T")
@@ -87,6 +88,11 @@ def in_words(code: str) -> str:
         return f"{code} ({AckCode(code).words})"
     except ValueError:
         return str(code)
+
+
+def console_log(cfg: Config) -> logging.Logger:
+    """The console's log, var/log/console.log (at the HI's level)."""
+    return open_log("console", cfg.log_dir, cfg.level_of("hi"))
 
 
 def operator() -> str:

@@ -6,40 +6,30 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import shlex
 import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
-from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
-from textual.pilot import Pilot
 from textual.widgets import DataTable, Input, Select
 
 from gwc.console.app import ConsoleApp
 from gwc.ipc.catalogue import message
 from gwc.log import open_log
 from tests.e2e.lotkit import gwc, ok
-from tests.harness import SERVERS, CellHarness, wait_for
+from tests.e2e.test_demo import demo_env  # noqa: F401 (the fixture)
+from tests.harness import SERVERS, CellHarness, until, wait_for
 
 pytestmark = pytest.mark.e2e
 
 MACHINES = [{"id": "wc1", "kind": "dummy", "run_time": 0.2}, {"id": "wc2", "kind": "dummy", "run_time": 0.2}]
-
-
-async def until(pilot: Pilot[Any], predicate: Callable[[], Any], timeout: float, what: str) -> Any:
-    """wait_for for the pilot: the app keeps running while we wait."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.1f}s waiting for {what}")
-        await pilot.pause(0.05)
 
 
 def table_keys(app: ConsoleApp, table_id: str) -> list[str]:
@@ -69,19 +59,19 @@ def test_order_entered_in_the_form_makes_its_lots_and_a_waiting_lot_is_imported_
         async with app.run_test(size=(160, 45)) as pilot:
             await pilot.press("3")  # WOEN
             customer, product = app.query_one("#customer", Select), app.query_one("#product", Select)
-            await until(pilot, lambda: len(product._options) > 1, 10, "the product picker to be filled")
+            await until(pilot.pause, lambda: len(product._options) > 1, 10, "the product picker to be filled")
             customer.value = "NJIT"
             product.value = "milled_pawn"
             app.query_one("#quantity", Input).value = "2"
             await pilot.press("ctrl+s")
-            answer = await until(pilot, lambda: [a for a in app.answers if "work order" in a.text], 30, "the answer")
+            answer = await until(pilot.pause, lambda: [a for a in app.answers if "work order" in a.text], 30, "answer")
             assert answer[0].ok, answer[0].text
             entities = sorted(lot_states(cell))
             assert len(entities) == 2, answer[0].text
 
             await pilot.press("2")  # DISP: the lots appear as they ask to be imported
             await until(
-                pilot,
+                pilot.pause,
                 lambda: (
                     all(lot_states(cell).get(e) == "waiting_import" for e in entities)
                     and {str(e) for e in entities} <= set(table_keys(app, "lots"))
@@ -90,20 +80,20 @@ def test_order_entered_in_the_form_makes_its_lots_and_a_waiting_lot_is_imported_
                 "both lots listed, waiting for import",
             )
             await until(
-                pilot,
+                pilot.pause,
                 lambda: [r for r in app._views["lots"].rows if r["state"] == "waiting_import"],
                 2,
                 "the dispatch list to show them waiting",
             )
             select_row(app, "lots", str(entities[0]))
             await pilot.press("i")  # one key
-            await until(pilot, lambda: lot_states(cell)[entities[0]] != "waiting_import", 15, "the import")
+            await until(pilot.pause, lambda: lot_states(cell)[entities[0]] != "waiting_import", 15, "the import")
             assert lot_states(cell)[entities[1]] == "waiting_import"
             assert any(a.ok and f"import entity {entities[0]}: ACK_OK (done)" in a.text for a in app.answers)
             # The view follows the cell by itself (the bus said so), within half a second.
             imported = time.monotonic()
             await until(
-                pilot,
+                pilot.pause,
                 lambda: (
                     next(r for r in app._views["lots"].rows if r["entity"] == entities[0])["state"] != "waiting_import"
                 ),
@@ -131,10 +121,10 @@ def test_machine_stopped_and_alarm_cleared_from_the_console_change_the_cell(cell
     async def drive() -> None:
         app = console(cell)
         async with app.run_test(size=(160, 45)) as pilot:
-            await until(pilot, lambda: "Idle" in str(app._views["machines"].rows), 10, "wc1 Idle in MSTT")
+            await until(pilot.pause, lambda: "Idle" in str(app._views["machines"].rows), 10, "wc1 Idle in MSTT")
             select_row(app, "machines", "wc1")
             await pilot.press("x")  # Idle: no run to lose, no question
-            await until(pilot, lambda: any("stop machine wc1" in a.text for a in app.answers), 30, "the answer")
+            await until(pilot.pause, lambda: any("stop machine wc1" in a.text for a in app.answers), 30, "the answer")
             assert [a.text for a in app.answers if "stop machine wc1" in a.text] == [
                 "stop machine wc1 (ME_SHUT): shut down"
             ]
@@ -143,12 +133,12 @@ def test_machine_stopped_and_alarm_cleared_from_the_console_change_the_cell(cell
             )
 
             await pilot.press("6")
-            await until(pilot, lambda: str(alarm_no) in table_keys(app, "alarms"), 10, "the alarm listed")
+            await until(pilot.pause, lambda: str(alarm_no) in table_keys(app, "alarms"), 10, "the alarm listed")
             select_row(app, "alarms", str(alarm_no))
             await pilot.press("c")
-            await until(pilot, lambda: any("clear alarm" in a.text for a in app.answers), 15, "the answer")
+            await until(pilot.pause, lambda: any("clear alarm" in a.text for a in app.answers), 15, "the answer")
             assert any(a.text == f"clear alarm {alarm_no}: ACK_OK (done)" for a in app.answers), app.answers
-            await until(pilot, lambda: str(alarm_no) not in table_keys(app, "alarms"), 2, "the alarm to go")
+            await until(pilot.pause, lambda: str(alarm_no) not in table_keys(app, "alarms"), 2, "the alarm to go")
             await pilot.press("q")
 
     asyncio.run(drive())
@@ -158,7 +148,42 @@ def test_machine_stopped_and_alarm_cleared_from_the_console_change_the_cell(cell
     assert cell.query("SELECT cleared_by FROM alarms WHERE alarm_no = %s", alarm_no)[0][0].startswith("console:")
 
 
-@pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed (bin/setup installs it when root)")
+class Terminal:
+    """A real terminal: a tmux server of its own running `python -m gwc ARGS` with `env`, read as text."""
+
+    def __init__(self, name: str, env: dict[str, str], *args: str) -> None:
+        self.tmux = ["tmux", "-L", name]
+        self.exit_file = Path(tempfile.mkdtemp(prefix="gwc-term-")) / "exit"
+        pairs = " ".join(shlex.quote(f"{k}={v}") for k, v in env.items() if k.startswith(("GWC_", "PYTHON", "PATH")))
+        gwc_cmd = shlex.join([sys.executable, "-m", "gwc", *args])
+        cmd = f"env {pairs} TERM=xterm-256color {gwc_cmd}; echo $? > {self.exit_file}"
+        subprocess.run([*self.tmux, "new-session", "-d", "-s", name, "-x", "160", "-y", "45", cmd], check=True)
+
+    def screen(self) -> str:
+        return subprocess.run([*self.tmux, "capture-pane", "-p"], capture_output=True, text=True).stdout
+
+    def wait(self, what: str, *texts: str, timeout: float = 30) -> None:
+        try:
+            wait_for(lambda: all(t in self.screen() for t in texts), timeout, what)
+        except AssertionError as e:
+            raise AssertionError(f"{e}; the terminal shows:\n{self.screen()}") from None
+
+    def keys(self, *keys: str) -> None:
+        subprocess.run([*self.tmux, "send-keys", *keys], check=True)
+
+    def exit_code(self) -> int:
+        wait_for(self.exit_file.exists, 10, "the command to end")
+        return int(self.exit_file.read_text())
+
+    def close(self) -> None:
+        subprocess.run([*self.tmux, "kill-server"], capture_output=True)
+        shutil.rmtree(self.exit_file.parent, ignore_errors=True)
+
+
+needs_tmux = pytest.mark.skipif(shutil.which("tmux") is None, reason="no tmux (bin/setup installs it when run as root)")
+
+
+@needs_tmux
 def test_gwc_console_in_a_terminal_shows_every_machine_survives_the_cell_stopping_and_quits_on_q(
     make_cell: Any,
 ) -> None:
@@ -166,38 +191,37 @@ def test_gwc_console_in_a_terminal_shows_every_machine_survives_the_cell_stoppin
     cell.start_servers()
     for m in MACHINES:
         cell.start_machine_processes(m["id"])
-    session = f"gwc-console-{cell.tag}"
-    env = [shlex.quote(f"{k}={v}") for k, v in cell.env().items() if k.startswith(("GWC_", "PYTHON", "PATH", "HOME"))]
-    done = cell.var / "console.exit"
-    cmd = f"env {' '.join(env)} TERM=xterm-256color {sys.executable} -m gwc console; echo $? > {done}"
-    tmux = ["tmux", "-L", session]
-    subprocess.run([*tmux, "new-session", "-d", "-s", session, "-x", "160", "-y", "45", cmd], check=True)
-
-    def screen() -> str:
-        return subprocess.run([*tmux, "capture-pane", "-p", "-t", session], capture_output=True, text=True).stdout
-
-    def shows(*texts: str) -> Callable[[], bool]:
-        return lambda: all(t in screen() for t in texts)
-
-    def wait_screen(what: str, *texts: str) -> None:
-        try:
-            wait_for(shows(*texts), 30, what)
-        except AssertionError as e:
-            raise AssertionError(f"{e}; the terminal shows:\n{screen()}") from None
-
+    term = Terminal(f"gwc-console-{cell.tag}", cell.env(), "console")
     try:
-        wait_screen("every machine in MSTT", "wc1", "wc2", "Shutdown", "cell UP")
+        term.wait("every machine in MSTT", "wc1", "wc2", "Shutdown", "cell UP")
         # The cell stops under the console (every module on the bus goes), then starts again.
         bus_modules = [*((s, None) for s in SERVERS), *(("wc", m["id"]) for m in MACHINES)]
         for kind, machine in reversed(bus_modules):
             cell.kill(kind, machine, sig=signal.SIGTERM)
-        wait_screen("the console to say the cell is down", "cell DOWN")
+        term.wait("the console to say the cell is down", "cell DOWN")
         cell.start_servers()
         for m in MACHINES:
             cell.start("wc", m["id"], start=False)
-        wait_screen("the console to say the cell is back", "cell UP", "wc1", "wc2")
-        subprocess.run([*tmux, "send-keys", "-t", session, "q"], check=True)
-        wait_for(done.exists, 10, "the console to quit")
-        assert done.read_text().strip() == "0"
+        term.wait("the console to say the cell is back", "cell UP", "wc1", "wc2")
+        term.keys("q")
+        assert term.exit_code() == 0
     finally:
-        subprocess.run([*tmux, "kill-server"], capture_output=True)
+        term.close()
+
+
+@pytest.mark.soak  # a whole demonstration (about 30 s): more than this file's share of the suite's time
+@needs_tmux
+def test_gwc_demo_console_shows_the_demonstration_live_and_it_succeeds(demo_env: tuple[Path, dict[str, str]]) -> None:
+    config, env = demo_env
+    args = ("demo", "--config", str(config), "--console", "--pawns", "1")
+    term = Terminal(f"gwc-demo-console-{os.getpid()}", env, *args)
+    try:
+        term.wait("a machine running in MSTT", "cell UP", "Running", timeout=60)
+        term.keys("9")
+        term.wait("the demonstration to finish", "finished: q quits the console", timeout=90)
+        assert "demonstration succeeded" in term.screen(), term.screen()
+        term.wait("the console to see the cell stopped", "cell DOWN")
+        term.keys("q")
+        assert term.exit_code() == 0
+    finally:
+        term.close()
