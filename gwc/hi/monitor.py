@@ -188,6 +188,12 @@ def render_catalogue() -> str:
     ]
     for c in catalogue.CONVERSATION_CLASSES.values():
         out.append(f"| `{c.name}` | {c.answered_by} | {', '.join(c.messages)} | {c.doc} |")
+    lot = ", ".join(f"`{c}`" for c in catalogue.CONVERSATION_CLASSES if c in catalogue.LOT_CLASSES)
+    out += [
+        "",
+        f"Under the lot key (lot scripts, docs/security.md) receivers accept only {lot};",
+        "anything else a lot script sends is refused `Not_Auth`.",
+    ]
     out += ["", "## Message classes", "", "| Message | Fields | What it says |", "|---|---|---|"]
     for m in catalogue.MESSAGE_CLASSES.values():
         fields = ", ".join(f"`{f.name}: {f.type}{'?' if f.nullable else ''}`" for f in m.fields) or "(none)"

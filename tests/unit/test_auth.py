@@ -159,3 +159,15 @@ def test_refusal_answers_with_the_class_ack_message() -> None:
     assert answer is not None and answer.name == "Shutdown_Ack" and answer.ack_code == "Not_Auth"
     assert catalogue.refusal("UPD_ME_ST", AckCode.NOT_AUTH, "no") is None  # a broadcast: nothing to answer
     assert auth.SEAL_BYTES == 61
+
+
+def test_the_lot_classes_are_the_conversations_the_lot_library_starts() -> None:
+    """The lot key's rights are what a lot entity needs: every class the library opens, nothing more."""
+    source = "".join(p.read_text() for p in (Path(__file__).parents[2] / "gwc" / "lot").glob("*.py"))
+    started = {c for c in catalogue.CONVERSATION_CLASSES if f'"{c}"' in source} - {
+        "RUN_COMPL",
+        "UPD_ME_ST",
+        "LOT_MOVED",
+    }
+    started -= {"CREATE_LOT"}  # create_lot() is the operator's (the HI and the soak call it), not an entity's
+    assert started == catalogue.LOT_CLASSES
