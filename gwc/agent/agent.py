@@ -28,6 +28,7 @@ import logging
 import os
 import signal
 import socket
+import sys
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, fields
@@ -80,13 +81,37 @@ def agent_name(host: str | None = None) -> str:
     return module_name("agent", host or socket.gethostname().split(".")[0])
 
 
+def systemd_unit(cfg: Config) -> str:
+    """A unit for this host's agent (docs/deploying.md): the agent is supervised by systemd, the modules
+    by the agent; KillMode=process, so restarting the unit does not take the modules with it."""
+    env = {"GWC_CONFIG": cfg.path.resolve(), "GWC_VAR": cfg.var.resolve(), "GWC_HOST": cfg.host}
+    lines = [
+        "[Unit]",
+        f"Description=GWC cell {cfg.cell_name}: the agent of host {cfg.host or socket.gethostname()}",
+        "After=network-online.target",
+        "Wants=network-online.target",
+        "",
+        "[Service]",
+        "Type=simple",
+        *(f"Environment={k}={v}" for k, v in env.items() if v),
+        f"ExecStart={sys.executable} -m gwc agent",
+        "Restart=always",
+        "RestartSec=2",
+        "KillMode=process",
+        "",
+        "[Install]",
+        "WantedBy=multi-user.target",
+    ]
+    return "\n".join(lines) + "\n"
+
+
 class Agent(Server):
     """One host's supervisor (see the module docstring)."""
 
     def __init__(self, cfg: Config, log: logging.Logger, host: str | None = None) -> None:
         self.cfg = cfg
         self.log = log
-        self.name = agent_name(host)
+        self.name = agent_name(host or cfg.host)
         self.policy = Policy.of(cfg)
         self.bus = Bus(self.name, cfg.bus, log)
         self._tasks: set[asyncio.Task[None]] = set()
@@ -421,4 +446,4 @@ def run_agent(cfg: Config, log: logging.Logger, host: str | None = None) -> int:
     return asyncio.run(Agent(cfg, log, host).run())
 
 
-__all__ = ["Agent", "Policy", "agent_name", "run_agent"]
+__all__ = ["Agent", "Policy", "agent_name", "run_agent", "systemd_unit"]

@@ -8,7 +8,7 @@ import click
 
 from gwc import cell, db
 from gwc.agent import control as agent_control
-from gwc.agent.agent import agent_name, run_agent
+from gwc.agent.agent import agent_name, run_agent, systemd_unit
 from gwc.hi import context, json_option, table
 from gwc.log import open_log
 from gwc.module import BUS_MODULES, MACHINE_PROCESSES, run_module
@@ -97,11 +97,17 @@ def restart(modules: tuple[str, ...]) -> None:
 
 
 @click.command("agent")
-def agent() -> None:
+@click.option(
+    "--systemd-unit", "unit", is_flag=True, help="Print a systemd unit that runs this host's agent, and exit."
+)
+def agent(unit: bool) -> None:
     """Run this host's agent in the foreground (`gwc start` starts it detached): it starts the host's
     modules, restarts the ones that die, and stops them on SIGTERM."""
     cfg, _ = context()
-    log = open_log(agent_name(), cfg.log_dir, cfg.level_of("agent"))
+    if unit:
+        click.echo(systemd_unit(cfg), nl=False)
+        return
+    log = open_log(agent_name(cfg.host), cfg.log_dir, cfg.level_of("agent"))
     sys.exit(run_agent(cfg, log))
 
 

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from gwc import db
+from gwc.agent.agent import systemd_unit
 from gwc.cell import cell_procs
 from gwc.config import write_config
 from gwc.errors import ConfigError, DatabaseError
@@ -94,3 +96,10 @@ def test_a_placement_that_cannot_work_is_one_clear_error(
     monkeypatch.setenv("GWC_HOST", env)
     with pytest.raises(ConfigError, match=message):
         placed(tmp_path, **doc)
+
+
+def test_gwc_agent_prints_a_systemd_unit_for_this_host(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("GWC_HOST", "h2")
+    unit = systemd_unit(placed(tmp_path))
+    assert "Environment=GWC_HOST=h2\n" in unit and "KillMode=process\n" in unit and "Restart=always\n" in unit
+    assert f"ExecStart={sys.executable} -m gwc agent\n" in unit
