@@ -227,10 +227,12 @@ class Guard:
         n = body[_SRC_LEN_AT] if len(body) > _SRC_LEN_AT else 0
         return body[start : start + min(n, 4)] == b"lot:"
 
-    def _drop(self, reason: str, beat: bool, source: Any) -> None:
+    def _drop(self, reason: str, beat: bool, source: Any) -> tuple[bytes, bool] | None:
+        """What open() returns for a dropped datagram (None), once it is counted."""
         self.drops.drop(reason, source)
         if beat:
             self.beat_drops += 1
+        return None
 
     def beats(self, transport: Transport) -> Iterator[bytes]:
         """The bodies of the authentic, fresh beats that came since the last call."""

@@ -143,10 +143,10 @@ class Inbound:
         # A sender retransmits for at most retry_deadline after the first send: twice that is safe.
         remember = 2 * self.cfg.retry_deadline
         horizon = now - remember
-        for key, seen in list(self.seen.items()):
+        for sender, seen in list(self.seen.items()):
             if seen.since <= horizon:
                 if not seen.new and not seen.old:
-                    del self.seen[key]
+                    del self.seen[sender]
                     continue
                 seen.old, seen.new, seen.since = seen.new, set(), now
         for key, st in list(self.gaps.items()):

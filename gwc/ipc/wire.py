@@ -119,15 +119,15 @@ def _encoded(name: str) -> tuple[bytes, int]:
     return got
 
 
-_dumps = json.JSONEncoder(separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode
+_ENCODER = json.JSONEncoder(separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+_dumps = _ENCODER.encode
 # The C encoder and scanner behind json.dumps/json.loads, called directly: the Python layers around
 # them (a new encoder object per call, whitespace regexes) cost more than the work on a small object.
 # No circular-reference bookkeeping: a cyclic value ends in RecursionError, refused like any other.
+_c_make_encoder: Any = getattr(json.encoder, "c_make_encoder", None)
 _c_encode = (
-    json.encoder.c_make_encoder(
-        None, _dumps.__self__.default, json.encoder.encode_basestring, None, ":", ",", False, False, False
-    )
-    if json.encoder.c_make_encoder
+    _c_make_encoder(None, _ENCODER.default, json.encoder.encode_basestring, None, ":", ",", False, False, False)
+    if _c_make_encoder
     else None
 )
 
@@ -145,7 +145,7 @@ def _finite(text: str) -> float:
 
 INF = float("inf")
 # NaN and Infinity are not JSON: Python's decoder takes them by default, the bus does not.
-_scan = json.JSONDecoder(parse_constant=_no_constant, parse_float=_finite).scan_once
+_scan = json.JSONDecoder(parse_constant=_no_constant, parse_float=_finite).scan_once  # type: ignore[attr-defined]
 _json_loads = json.JSONDecoder(parse_constant=_no_constant, parse_float=_finite).decode
 
 
@@ -228,14 +228,13 @@ def encode_parts(
         raise MessageError(f"{msg or kind} in {conv or '-'}: a name is over {MAX_NAME} bytes")
     src = orig.src
     parts = [orig.prefix, b"", src, c, k, t, m]  # parts[1]: the rest of the fixed part, packed last
+    acks, interest = tuple(acks), tuple(interest)
     try:
         if acks:
-            acks = tuple(acks)
             if 0 in acks:
                 raise MessageError("acks must be positive integers")
             parts.append(struct.pack(f"!{len(acks)}Q", *acks))
         if interest:
-            interest = tuple(interest)
             for cl in interest:
                 name = cl.encode()
                 if len(name) > MAX_NAME:
