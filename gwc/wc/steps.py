@@ -25,7 +25,7 @@ class WCSteps(WCDevice):
         self.log.info("refused %s: %s (%s)", conv.cls, code, note)
         await conv.send(message(ack, ack_code=code, note=note[:500]))
 
-    def _not_reserved(self, conv: Conversation) -> tuple[str, str] | None:
+    async def _not_reserved(self, conv: Conversation) -> tuple[str, str] | None:
         """Defence in depth (docs/security.md): a lot entity (lot:E) sets up and starts only a run that
         RESERVED_MACHINES gives to E on this machine. Other askers hold the module key and are trusted
         (the operator's tools, tests driving a machine by hand)."""
@@ -38,7 +38,7 @@ class WCSteps(WCDevice):
         if not entity.isdigit() or (named is not None and str(named) != entity):
             return AckCode.NOT_RESERVED, f"{asker} asks for entity {named}"
         try:
-            row = self._read(
+            row = await self._read_when_up(
                 "SELECT 1 FROM reserved_machines WHERE machine_id = %s AND machine_run_id = %s AND entity_id = %s",
                 (self.machine_id, req.machine_run_id, int(entity)),
             )
@@ -94,7 +94,7 @@ class WCSteps(WCDevice):
         assert conv.first is not None
         req = conv.first.first
         self.log.info("SETUP_RUN run %d recipe %s op %s", req.machine_run_id, req.recipe_id, req.op_type)
-        refusal = self._not_reserved(conv)
+        refusal = await self._not_reserved(conv)
         if refusal is not None:
             await self._refuse_now(conv, "Setup_Run_Ack", *refusal)
             return
@@ -185,7 +185,7 @@ class WCSteps(WCDevice):
         assert conv.first is not None
         req = conv.first.first
         self.log.info("START_RUN run %d", req.machine_run_id)
-        refusal = self._not_reserved(conv)
+        refusal = await self._not_reserved(conv)
         if refusal is not None:
             await self._refuse_now(conv, "Start_Run_Ack", *refusal)
             return

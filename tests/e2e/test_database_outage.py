@@ -41,7 +41,6 @@ pytestmark = pytest.mark.e2e
 MACHINES = [
     {"id": "wc1", "kind": "dummy", "run_time": 1.0},
     {"id": "wc2", "kind": "dummy", "run_time": 1.0},
-    {"id": "wc3", "kind": "dummy", "run_time": 1.0},
     {
         "id": "cmm_wc",
         "kind": "cmm",
@@ -108,10 +107,10 @@ def modules(cell: CellHarness) -> dict[str, int | None]:
 
 
 def outage_with_lots_running(cell: CellHarness, cluster: OwnCluster, outage: float) -> None:
-    """Lots milled and measured on three mills and the CMM; the postmaster killed -9 while they run and
+    """Lots milled and measured on two mills and the CMM; the postmaster killed -9 while they run and
     started again `outage` seconds later; every lot exported, nobody but the database restarted."""
     cell_with_machines(cell, *MACHINE_IDS)
-    entities = order(cell, "milled_pawn=4", "alum_chess_set=2")
+    entities = order(cell, "milled_pawn=3", "alum_chess_set=1")
     for e in entities:
         wait_state(cell, e, "waiting_import")
     ok(gwc(cell, "import", "--all"))
@@ -165,3 +164,34 @@ def test_postmaster_killed_for_30s_while_lots_run_no_module_exits_and_an_alarm_i
     outage_with_lots_running(outage_cell, own_cluster, 30.0)
     ((_, text),) = wait_for(lambda: outage_alarms(outage_cell), 10, "alarm DB_DOWN")
     assert "the cell database was away for" in text, text
+
+
+def test_machine_server_killed_and_restarted_keeps_statuses_and_the_run_in_progress_completes(
+    lot_cell: Any,
+) -> None:
+    cell = cell_with_machines(
+        lot_cell(machines=[MACHINES[0], {**MACHINES[2], "sim": {"measure_time": 4.0, "pattern": "P"}}]),
+        "wc1",
+        "cmm_wc",
+    )
+    (entity,) = order(cell, "alum_chess_set=1")
+    wait_state(cell, entity, "waiting_import")
+    ok(gwc(cell, "import", str(entity)))
+    statuses = {"wc1": "Idle", "cmm_wc": "Running"}
+    wait_for(lambda: machine_statuses(cell) == statuses, 20, f"machines {statuses}")
+    cell.kill("ms")
+    cell.start("ms")  # as the agent (or the operator) does: a new process, started through STARTUP
+    assert machine_statuses(cell) == statuses
+    import_export_all(cell, [entity], timeout=40)
+    st, reason = state(cell, entity)
+    assert st == "exported" and reason.startswith("PASS"), (st, reason)
+    # Longer than the liveness window (3 s) since the restart: nobody was taken for dead, and no
+    # `gwc machine start` was needed.
+    wait_for(lambda: cell.log_has("ms", "cmm_wc: Running -> Idle"), 20, "the run's end to be recorded")
+    assert machine_statuses(cell) == {"wc1": "Idle", "cmm_wc": "Idle"}
+    assert cell.query("SELECT alarm_id FROM alarms WHERE alarm_id = 'WC_SILENT'") == []
+
+
+def machine_statuses(cell: CellHarness) -> dict[str, str]:
+    """The statuses of this cell's machines (the seed's others stay Shutdown)."""
+    return dict(cell.query("SELECT machine_id, status FROM machine_status WHERE machine_id IN ('wc1', 'cmm_wc')"))
