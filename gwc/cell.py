@@ -32,6 +32,7 @@ from gwc.ipc.bus import BlockingBus, Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.log import log_file_name
+from gwc.me.cmm_sim import simulated
 from gwc.module import module_name
 
 GRACE = 5.0
@@ -62,7 +63,7 @@ def machine_procs(cfg: Config, machine_id: str) -> list[Proc]:
     """The processes of one machine in start order: simulator (if any), ME, then WC."""
     spec = cfg.machine(machine_id)
     procs = []
-    if spec.kind == "cmm" and spec.options.get("serial", {}).get("port") == "sim":
+    if simulated(spec):
         procs.append(Proc("cmmsim", spec.id))
     return procs + [Proc("me", spec.id), Proc("wc", spec.id)]
 

@@ -22,6 +22,7 @@ from xprocess import ProcessStarter
 from gwc.config import Config, private_bus, write_config
 from gwc.ipc.bus import BlockingBus
 from gwc.log import log_file_name, open_log
+from gwc.me.cmm_sim import simulated
 from gwc.module import module_name
 
 T = TypeVar("T")
@@ -176,7 +177,7 @@ class CellHarness:
     def start_machine_processes(self, machine: str) -> None:
         """Start a machine's processes (simulator if any, ME, WC); the machine stays Shutdown."""
         spec = self.cfg.machine(machine)
-        if spec.kind == "cmm" and spec.options.get("serial", {}).get("port") == "sim":
+        if simulated(spec):
             self.start("cmmsim", machine)
         self.start("me", machine)
         self.start("wc", machine, start=False)

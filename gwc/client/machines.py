@@ -30,13 +30,17 @@ def start_machine(
     say: Callable[[str], None] = lambda s: None,
     timeout: float = START_TIMEOUT,
 ) -> str:
-    """ME_START with the machine's WC (Shutdown -> Idle), after spawning its processes (simulator, ME, WC)
-    if its WC is not on the bus. Returns how it ended ("started", "already started"); ModuleError if
-    refused. `say` hears each step, that a homing alarm may now wait for the operator, and the end."""
+    """ME_START with the machine's WC (Shutdown -> Idle), after spawning whichever of its processes
+    (simulator, ME, WC) is down: an ME dead behind a live WC too (start_procs skips what runs; the ME
+    and the simulator write their own pid files). Returns how it ended ("started", "already started");
+    ModuleError if refused. `say` hears each step, that a homing alarm may now wait for the operator,
+    and the end."""
     cfg.machine(machine_id)  # ConfigError naming the known machines
     wc = module_name("wc", machine_id)
-    if not on_bus(bus, wc, SEE_WC):
-        cell.start_procs(cfg, cell.machine_procs(cfg, machine_id), bus, say)
+    procs = cell.machine_procs(cfg, machine_id)
+    if on_bus(bus, wc, SEE_WC):  # a WC on the bus runs, whoever started it (its pid file may be elsewhere)
+        procs = [p for p in procs if p.kind != "wc"]
+    cell.start_procs(cfg, procs, bus, say)
     say(
         f"{wc}: ME_START (a machine that must be homed raises its alarm now: "
         "`gwc alarm list`, then `gwc alarm clear N` once it is done)"

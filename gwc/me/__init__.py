@@ -8,11 +8,25 @@ protocol). The ME talks only to its WC, over the machine's queue pair (gwc.ipc.m
 from __future__ import annotations
 
 import logging
+import os
+import sys
 import threading
 
-from gwc.config import Config
+from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError
 from gwc.me.machine import MachineSide
+
+ME_ANSWER = 10.0  # longest an ME may take to acknowledge a request (not counting operator alarms)
+
+
+def answer_deadline(spec: MachineSpec) -> float:
+    """How long the WC waits for its ME's answer to one request: a CMM's exchange may take its serial
+    timeouts (a resync, then the answer), and a Kermit transfer its own, before it is answered."""
+    if spec.kind == "cmm":
+        from gwc.me.cmm import exchange_deadline
+
+        return exchange_deadline(spec)
+    return ME_ANSWER
 
 
 def make_machine(cfg: Config, machine_id: str, log: logging.Logger) -> MachineSide:
@@ -29,6 +43,17 @@ def make_machine(cfg: Config, machine_id: str, log: logging.Logger) -> MachineSi
     raise ConfigError(f"machine {machine_id}: no ME for kind {spec.kind!r}")
 
 
+def own_pid_file(cfg: Config, kind: str, machine_id: str) -> None:
+    """An off-bus process writes its pid file itself, however it was started (gwc start, the agent, a
+    test, by hand): `gwc machine start` tells from it whether the ME (or simulator) is down."""
+    from gwc.cell import write_pid_file
+    from gwc.module import module_name
+
+    write_pid_file(cfg, module_name(kind, machine_id), os.getpid(), sys.argv)
+
+
 def main(cfg: Config, machine_id: str, log: logging.Logger, stop: threading.Event) -> int:
     """Run the ME of `machine_id` until `stop` is set (SIGTERM); returns the exit code."""
-    return make_machine(cfg, machine_id, log).serve(stop)
+    machine = make_machine(cfg, machine_id, log)
+    own_pid_file(cfg, "me", machine_id)
+    return machine.serve(stop)

@@ -60,7 +60,21 @@ from gwc.me.machine import MachineSide, Refusal, RunOutcome
 T = TypeVar("T")
 VERDICTS = ("PASS!", "FAIL!")
 TRANSFERS = ("line", "kermit")
+KERMIT_TIMEOUT = 60.0  # longest one Kermit transfer may take
 QUIET = 0.1  # resynchronising without STATUS (Kermit devices): the line must be quiet this long
+
+
+def exchange_deadline(spec: MachineSpec) -> float:
+    """The longest one exchange can take before the ME answers its request: the resync and the answer
+    (the serial timeout each), the Kermit transfer, and a margin for the ME's own loop."""
+    serial = spec.options.get("serial", {})
+    timeout = float(serial.get("timeout", 5.0)) if isinstance(serial, dict) else 5.0
+    kermit_time = float(spec.options.get("kermit_timeout", KERMIT_TIMEOUT)) if _is_kermit(spec) else 0.0
+    return 2 * timeout + kermit_time + 2.0
+
+
+def _is_kermit(spec: MachineSpec) -> bool:
+    return spec.options.get("transfer", "line") == "kermit"
 
 
 def check_name(name: str) -> str:
@@ -84,7 +98,7 @@ class CmmMachine(MachineSide):
         if self.transfer not in TRANSFERS:
             raise ConfigError(f"machine {spec.id}: transfer must be one of {', '.join(TRANSFERS)}")
         self.probe = self.options.get("probe", bool, self.transfer == "line")
-        self.kermit_timeout = self.options.get("kermit_timeout", float, 60.0)
+        self.kermit_timeout = self.options.get("kermit_timeout", float, KERMIT_TIMEOUT)
         self.reprobe_min = self.options.get("reprobe_min", float, 0.5)
         self.reprobe_max = self.options.get("reprobe_max", float, 2.0)
         self._ser: serial.SerialBase | None = None
@@ -138,6 +152,8 @@ class CmmMachine(MachineSide):
         """A record nobody asked for: a late verdict of a run given up, or garbage. Logged, dropped."""
         if rec.rstrip("!") in ("PASS", "FAIL") and self._given_up:
             self.log.warning("late verdict %s for run %d (given up) %s: dropped", rec, self._given_up, when)
+        elif rec.startswith("READY "):
+            self.log.info("answer %s to an earlier STATUS %s: dropped", rec, when)
         else:
             self.log.warning("unexpected record from the CMM %s: %r dropped", when, rec)
 
@@ -320,21 +336,24 @@ class CmmMachine(MachineSide):
                     return
                 line.drain(QUIET, QUIET)  # a Kermit device: an open line that does not hang up is there
             except LineError as e:
-                self._probe_failed(str(e))
+                self._probe_failed(str(e), gone=True)
                 return
             self._found()
             return
         try:
             rec = self.line().poll_record(bare_verdict=True)
+        except Garbage as e:
+            self.log.warning("garbage from the CMM while probing dropped: %s", e)
+            return
         except LineError as e:
-            self._probe_failed(str(e))
+            self._probe_failed(str(e), gone=True)
             return
         if rec == self._ready:
             self._found()
         elif rec is not None:
             self._stale(rec, "while probing")
         elif now > self._probe_deadline:
-            self._probe_failed(f"the CMM did not answer STATUS within {self.answer_timeout:.1f}s")
+            self._probe_failed(f"the CMM did not answer STATUS within {self.answer_timeout:.1f}s", gone=False)
 
     def _found(self) -> None:
         self._probe_deadline = None
@@ -344,20 +363,25 @@ class CmmMachine(MachineSide):
         self._backoff = self.reprobe_min
         self.device_back()
 
-    def _probe_failed(self, why: str) -> None:
+    def _probe_failed(self, why: str, gone: bool) -> None:
+        """A probe failed: the CMM is lost (if it was not), and probed again after the backoff. The line
+        is closed (and opened again) only when the port is `gone`: a silent CMM's line stays open, so
+        that what it says when it wakes up (a late verdict) is read, logged and dropped."""
         self._probe_deadline = None
         if self.lost is None:
-            self._lose(f"{self._suspect}; then {why}" if self._suspect else why)
+            self._lose(f"{self._suspect}; then {why}" if self._suspect else why, gone)
             return
-        self.drop_line(why)
+        if gone:
+            self.drop_line(why)
         self._backoff = min(self._backoff * 2, self.reprobe_max)
         self._next_probe = time.monotonic() + self._backoff
         self.log.info("the CMM still does not answer (%s): next try in %.1fs", why, self._backoff)
 
-    def _lose(self, why: str) -> None:
-        """The CMM is lost: line closed, the WC told, probes from now on with backoff."""
+    def _lose(self, why: str, gone: bool = True) -> None:
+        """The CMM is lost: the WC told, probes from now on with backoff (the line closed if `gone`)."""
         self._suspect, self._probe_deadline = None, None
-        self.drop_line(why)
+        if gone:
+            self.drop_line(why)
         self._backoff = self.reprobe_min
         self._next_probe = time.monotonic() + self._backoff
         self.device_lost(why)

@@ -392,6 +392,20 @@ class CmmSimulator:
             line.write_bytes(content)
 
 
+def simulated(spec: MachineSpec) -> bool:
+    """Is this machine's CMM the simulator (started with the machine: on a pty, or as its TCP server)?"""
+    sim = spec.options.get("sim", {})
+    serial = spec.options.get("serial", {})
+    return spec.kind == "cmm" and (
+        (isinstance(serial, dict) and serial.get("port") == "sim")
+        or (isinstance(sim, dict) and bool(sim.get("listen")))
+    )
+
+
 def main(cfg: Config, machine_id: str, log: logging.Logger, stop: threading.Event) -> int:
     """Run the CMM simulator of `machine_id` until `stop` is set."""
-    return CmmSimulator(cfg, cfg.machine(machine_id), log).serve(stop)
+    from gwc.me import own_pid_file
+
+    simulator = CmmSimulator(cfg, cfg.machine(machine_id), log)
+    own_pid_file(cfg, "cmmsim", machine_id)
+    return simulator.serve(stop)

@@ -8,7 +8,7 @@ behave like a real machine that needs an operator or goes wrong:
     run_time = 0.2              # seconds a run takes (default 1.0)
     setup_time = 0.0            # seconds SETUP_RUN takes before it is acknowledged
     homing_alarm = true         # raise HOME_CMM at ME_START, as the CMM does (or name another alarm id)
-    fail_runs = [2]             # these runs (1 = the first run of this ME process) end Run_Fail;
+    fail_runs = [2]             # these runs (RUN_NO, counted across ME restarts) end Run_Fail;
                                 # true: every run fails
     fail_start = true           # refuse ME_START (homing fails): the WC answers Start_Fail
     results = { DIAMETER = "25.02" }   # extra param/value pairs in every results file

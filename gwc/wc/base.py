@@ -16,7 +16,6 @@ from gwc.wc.link import MeLink
 
 ME_PING = 0.5  # ping the ME after this long without hearing from it
 ME_DEADLINE = 1.5  # an ME silent this long after a ping is dead
-ME_ANSWER = 10.0  # longest an ME may take to acknowledge a request (not counting operator alarms)
 SERVER_TIMEOUT = 5.0  # longest a server may take to answer the WC
 # How long the WC asks a restarting server (or one whose database is away) again: status, accept types.
 SERVER_RESTART = DATABASE_OUTAGE_S

@@ -13,9 +13,10 @@ from gwc.errors import DatabaseError, DatabaseUnavailable, QueueError
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import MeMessage, MessageId
+from gwc.me import answer_deadline
 from gwc.me.results import read_outcome, read_results
 from gwc.module import DATABASE_OUTAGE_S
-from gwc.wc.base import ALL_OPERATIONS, ME_ANSWER, S, WCBase
+from gwc.wc.base import ALL_OPERATIONS, S, WCBase
 from gwc.wc.link import MeDied
 
 
@@ -47,9 +48,11 @@ class WCRuns(WCBase):
         except Exception:
             self.log.exception("work on a message from the ME failed")
 
-    async def me_request(self, msg: MeMessage, timeout: float = ME_ANSWER) -> MeMessage:
-        """One request to the ME; the wait stays open while an alarm of ours waits for the operator."""
-        return await self.me.request(msg, timeout, hold_open=lambda: self._alarm_pending > 0)
+    async def me_request(self, msg: MeMessage, timeout: float | None = None) -> MeMessage:
+        """One request to the ME, waited for `timeout` or as long as this machine's ME may take
+        (gwc.me.answer_deadline); the wait stays open while an alarm of ours waits for the operator."""
+        wait = timeout if timeout is not None else answer_deadline(self.cfg.machine(self.machine_id))
+        return await self.me.request(msg, wait, hold_open=lambda: self._alarm_pending > 0)
 
     async def me_died(self, why: str) -> None:
         """6.3's ME is gone: alarm, a run in progress failed, machine Shutdown until the next ME_START.

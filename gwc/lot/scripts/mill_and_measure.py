@@ -26,8 +26,12 @@ def main(entity: OperationEntity) -> None:
             entity.log.warning("milling run %d on %s failed: milling again", mill.machine_run_id, mill.machines[0])
             result = f"milling failed on {mill.machines[0]}"
             continue
-        measure = entity.operate(MEASURE)
-        ok, why = verdict(measure.results) if measure.ok else (False, "measuring run failed")
+        for _ in range(MAX_MILLS):  # a measuring run that failed measured nothing: measure again, not mill
+            measure = entity.operate(MEASURE)
+            if measure.ok:
+                break
+            entity.log.warning("measuring run %d failed: the part was not measured", measure.machine_run_id)
+        ok, why = verdict(measure.results) if measure.ok else (False, "measuring runs failed")
         entity.log.info(
             "mill %d on %s (run %d), measured on %s (run %d): %s",
             attempt,

@@ -1,0 +1,232 @@
+"""A CMM that misbehaves (issue 16), end to end: real WC, ME, simulator, servers, bus and database.
+
+The simulator plays a CMM on a shop floor's ordinary days (gwc/me/cmm_sim.py: silent, garbage,
+hang-up, power cycle, late or slow verdict), on a pty or behind a TCP socket (the ME's port is then
+`socket://`). For each fault: the run in progress ends with the right ack code and reason, the
+machine is Shutdown with MACH_LOST pending while the CMM is gone, and back (Idle, alarm cleared) by
+itself within 5 s of the CMM answering again; the next run measures its own part; no traceback in
+any log; no run twice.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from typing import Any
+
+import pytest
+
+from gwc.ipc.codes import AckCode
+from gwc.me.cmm_sim import fault_file, inject_fault
+from tests.e2e.lotkit import cell_with_machines, import_export_all, lot_log, order, state
+from tests.e2e.test_machine import (  # noqa: F401 (machine_cell is a fixture)
+    Ear,
+    accepts,
+    clear,
+    gwc,
+    machine_cell,
+    pending_alarm,
+    results,
+    setup_run,
+    start_machine,
+    start_run,
+    status,
+    story,
+)
+from tests.harness import CellHarness, wait_for
+
+pytestmark = pytest.mark.e2e
+
+OK = AckCode.ACK_OK
+BACK_S = 5.0  # the machine is back this soon after the CMM answers again
+RUN_TIMEOUT = 1.5  # the CMM's verdict is given up after this (cell.toml run_timeout; 120 s on a real cell)
+TRANSPORTS = ["pty", "socket"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def cmm(transport: str, **sim: Any) -> dict[str, Any]:
+    """The CMM, its timeouts small for a test, its simulator on a pty or a TCP device server."""
+    spec: dict[str, Any] = {
+        "id": "cmm_wc",
+        "kind": "cmm",
+        "serial": {"port": "sim", "baudrate": 9600, "timeout": 0.5},
+        "sim": {"measure_time": 0.3, "pattern": "P", **sim},
+        "run_timeout": RUN_TIMEOUT,
+        "reprobe_max": 0.5,
+    }
+    if transport == "socket":
+        port = free_port()
+        spec["serial"]["port"] = f"socket://127.0.0.1:{port}"
+        spec["sim"]["listen"] = f"127.0.0.1:{port}"
+    return spec
+
+
+class Cmm:
+    """The CMM machine of one test: runs through its WC as a lot does, faults through its simulator."""
+
+    def __init__(self, cell: CellHarness, ear: Ear) -> None:
+        self.cell, self.ear = cell, ear
+        self.run_id = 100
+        self.operations = accepts(cell, "cmm_wc")  # what the started machine accepts
+
+    def fault(self, fault: str, **params: Any) -> None:
+        inject_fault(self.cell.cfg, "cmm_wc", fault, **params)
+        wait_for(lambda: not fault_file(self.cell.cfg, "cmm_wc").exists(), 5, f"the simulator to take {fault}")
+
+    def start(self) -> int:
+        self.run_id += 1
+        assert setup_run(self.cell, "cmm_wc", self.run_id, "alum_chess_set", "alum_chess").ack_code == OK
+        assert start_run(self.cell, "cmm_wc", self.run_id).ack_code == OK
+        return self.run_id
+
+    def ended(self, run_id: int, timeout: float = 20) -> tuple[str, str]:
+        done = self.ear.wait(f"Run_Complete of run {run_id}", lambda m: m.machine_run_id == run_id, timeout)
+        note = self.cell.query(
+            "select note from machine_run_outcome where machine_id = 'cmm_wc' and machine_run_id = %s", run_id
+        )
+        return str(done.ack_code), str(note[0][0] if note and note[0][0] else "")
+
+    def measures(self) -> str:
+        """A run that works: its verdict."""
+        run_id = self.start()
+        code, note = self.ended(run_id)
+        assert code == OK, note
+        return results(self.cell, "cmm_wc", run_id)["RESULT"]
+
+    def lost_then_back(self, answers_again: float) -> None:
+        """Shutdown with MACH_LOST pending while the CMM is gone; Idle, alarm cleared, within BACK_S of
+        `answers_again` (monotonic) -- when the CMM answers again."""
+        alarm = pending_alarm(self.cell, "MACH_LOST", "cmm_wc")
+        wait_for(lambda: status(self.cell, "cmm_wc")[0] == "Shutdown", 5, "Shutdown while the CMM is gone")
+        assert accepts(self.cell, "cmm_wc") == []
+        wait_for(lambda: status(self.cell, "cmm_wc")[0] == "Idle", answers_again - time.monotonic() + BACK_S, "back")
+        assert time.monotonic() - answers_again < BACK_S
+        assert self.cell.query("select cleared_by from alarms where alarm_no = %s", alarm)[0][0] == "wc:cmm_wc"
+        assert accepts(self.cell, "cmm_wc") == self.operations
+
+
+def fault_walk(machine_cell: Any, transport: str, hangup_s: float) -> None:
+    cell, ear = machine_cell(cmm(transport, pattern="PPPPPPPF"))
+    start_machine(cell, "cmm_wc", homing=True)
+    m = Cmm(cell, ear)
+
+    # Power cycle while Idle: the hang-up is seen between exchanges.
+    m.fault("power_cycle", **{"for": 1.0})
+    m.lost_then_back(time.monotonic() + 1.0)
+    assert m.measures() == "PASS"  # the CMM forgot the program: the setup downloads it again
+
+    # Power cycle while Running: the run was never measured.
+    m.fault("delay", **{"for": 2.0})  # a long measurement, to power-cycle it in the middle
+    run_id = m.start()
+    m.fault("power_cycle", **{"for": 1.0})
+    code, note = m.ended(run_id)
+    assert code == AckCode.RUN_FAIL and "line lost during the run" in note
+    m.lost_then_back(time.monotonic() + 1.0)
+    assert m.measures() == "PASS"
+
+    # Silent (hung) during a run: its verdict is given up at the run's deadline.
+    m.fault("delay", **{"for": 2.0})
+    run_id = m.start()
+    m.fault("silent", **{"for": RUN_TIMEOUT + 1.5})
+    silent_until = time.monotonic() + RUN_TIMEOUT + 1.5
+    code, note = m.ended(run_id)
+    assert code == AckCode.RUN_FAIL and f"no verdict from the CMM within {RUN_TIMEOUT:g}s" in note
+    m.lost_then_back(silent_until)
+    assert m.measures() == "PASS"
+
+    # Garbage instead of a verdict: that run fails, shown escaped; the CMM still answers: not lost.
+    m.fault("garbage", kind="binary")
+    code, note = m.ended(m.start())
+    assert code == AckCode.RUN_FAIL and r"not a record: \x00\xfe\x13PA\x81SS!" in note
+    assert m.measures() == "PASS" and status(cell, "cmm_wc")[0] == "Idle"
+
+    # Late verdict (FAIL, the 8th of the pattern) after the run was given up: logged and dropped, never
+    # taken for the next run's (PASS).
+    m.fault("delay", **{"for": RUN_TIMEOUT + 2.0})
+    late = time.monotonic() + RUN_TIMEOUT + 2.0
+    late_run = m.start()
+    code, note = m.ended(late_run)
+    assert code == AckCode.RUN_FAIL and "run given up" in note
+    m.lost_then_back(late)  # measuring, the CMM reads nothing: it answers once its verdict is out
+    assert m.measures() == "PASS"
+    story(cell, "me:cmm_wc", r"late verdict FAIL! for run \d+ \(given up\).*: dropped")
+
+    # A slow verdict within the run's deadline is just a slow run.
+    m.fault("delay", **{"for": RUN_TIMEOUT - 0.7})
+    assert m.measures() == "PASS"
+
+    # Hang-up, then the line back after hangup_s.
+    m.fault("hangup", **{"for": hangup_s})
+    m.lost_then_back(time.monotonic() + hangup_s)
+    assert m.measures() == "PASS"
+
+    runs = cell.query("select value from machine_run_result where machine_id = 'cmm_wc' and param = 'RUN_NO'")
+    assert len(runs) == len({r[0] for r in runs}) == m.run_id - 100  # one result set per run, RUN_NO unique
+    for name in ("me:cmm_wc", "wc:cmm_wc", "cmmsim:cmm_wc", "cas", "ms", "msched"):
+        assert "Traceback" not in cell.log_text(name), name
+
+
+@pytest.mark.parametrize(
+    "transport", [pytest.param("pty"), pytest.param("socket", marks=pytest.mark.soak)]
+)  # the socket walk is the same walk: the suite runs socket:// through the thesis-mode lot below
+def test_each_cmm_fault_fails_only_its_run_and_the_machine_comes_back_by_itself(
+    machine_cell: Any, transport: str
+) -> None:
+    fault_walk(machine_cell, transport, hangup_s=1.5)
+
+
+@pytest.mark.soak
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_cmm_hung_up_for_30_s_comes_back_by_itself(machine_cell: Any, transport: str) -> None:
+    fault_walk(machine_cell, transport, hangup_s=30.0)
+
+
+@pytest.mark.parametrize("transport", [pytest.param("pty", marks=pytest.mark.soak), "socket"])
+def test_thesis_mode_cmm_kermit_and_verdicts_without_bang_runs_the_chess_lot_to_pass(
+    lot_cell: Any, transport: str
+) -> None:
+    spec = cmm(transport, bang=False)  # Listing 9's output(): PASS without its '!'
+    spec["transfer"] = "kermit"  # Listing 9's recipe transfer, G-Kermit on both ends
+    cell = cell_with_machines(lot_cell(machines=[spec]), "cmm_wc")
+    [entity] = order(cell, "alum_chess_set=1")
+    import_export_all(cell, [entity])
+    assert state(cell, entity) == ("exported", None) or state(cell, entity)[0] == "exported"
+    assert "PASS" in lot_log(cell, entity)
+    story(cell, "cmmsim:cmm_wc", "Kermit transfer", "part program alum_chess_set received by Kermit", "measured: PASS")
+    story(cell, "me:cmm_wc", "the CMM answered PASS!")
+
+
+def test_me_killed_while_idle_one_gwc_machine_start_brings_the_machine_back_with_one_homing_alarm(
+    machine_cell: Any,
+) -> None:
+    cell, ear = machine_cell(cmm("pty"))
+    start_machine(cell, "cmm_wc", homing=True)
+    cell.kill("me", "cmm_wc")
+    wait_for(lambda: status(cell, "cmm_wc")[0] == "Shutdown", 10, "the machine to be Shutdown")
+    pending_alarm(cell, "ME_DIED", "cmm_wc")
+    started = subprocess.Popen(
+        [sys.executable, "-m", "gwc", "machine", "start", "cmm_wc"],
+        env=cell.env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        clear(cell, pending_alarm(cell, "HOME_CMM", "cmm_wc"))  # the operator pushes the start button
+        out, err = started.communicate(timeout=60)
+    finally:
+        if started.poll() is None:
+            started.kill()
+    assert started.returncode == 0, err + out
+    assert "me:cmm_wc: spawned" in out and "wc:cmm_wc: started" in out
+    assert Cmm(cell, ear).measures() == "PASS"
+    homing = cell.query("select count(*), count(cleared_at) from alarms where alarm_id = 'HOME_CMM'")[0]
+    assert homing == (2, 2)  # one per start: none from a stale ME_START left in the queue
+    assert gwc(cell, "machine", "status").returncode == 0
