@@ -21,12 +21,11 @@ import pytest
 
 from gwc.ipc.codes import AckCode
 from gwc.me.cmm_sim import fault_file, inject_fault
-from tests.e2e.lotkit import cell_with_machines, import_export_all, lot_log, order, state
+from tests.e2e.lotkit import cell_with_machines, gwc, import_export_all, lot_log, ok, order, state, wait_state
 from tests.e2e.test_machine import (  # noqa: F401 (machine_cell is a fixture)
     Ear,
     accepts,
     clear,
-    gwc,
     machine_cell,
     pending_alarm,
     results,
@@ -191,18 +190,28 @@ def test_cmm_hung_up_for_30_s_comes_back_by_itself(machine_cell: Any, transport:
 
 @pytest.mark.skipif(shutil.which("gkermit") is None, reason="gkermit is not installed (bin/setup installs it as root)")
 @pytest.mark.parametrize("transport", [pytest.param("pty", marks=pytest.mark.soak), "socket"])
-def test_thesis_mode_cmm_kermit_and_verdicts_without_bang_runs_the_chess_lot_to_pass(
+def test_thesis_mode_cmm_runs_the_chess_lot_to_pass_and_its_failed_run_is_measured_again(
     lot_cell: Any, transport: str
 ) -> None:
     spec = cmm(transport, bang=False)  # Listing 9's output(): PASS without its '!'
     spec["transfer"] = "kermit"  # Listing 9's recipe transfer, G-Kermit on both ends
     cell = cell_with_machines(lot_cell(machines=[spec]), "cmm_wc")
     [entity] = order(cell, "alum_chess_set=1")
-    import_export_all(cell, [entity])
-    assert state(cell, entity) == ("exported", None) or state(cell, entity)[0] == "exported"
-    assert "PASS" in lot_log(cell, entity)
+    wait_state(cell, entity, "waiting_import")
+    inject_fault(cell.cfg, "cmm_wc", "delay", **{"for": 3.0})  # the lot's first run: long enough to cut
+    wait_for(lambda: not fault_file(cell.cfg, "cmm_wc").exists(), 5, "the simulator to take the delay")
+    ok(gwc(cell, "import", str(entity)))
+    wait_for(lambda: status(cell, "cmm_wc")[0] == "Running", 20, "the lot's run on the CMM")
+    inject_fault(cell.cfg, "cmm_wc", "power_cycle", **{"for": 1.0})  # the set is never measured
+    import_export_all(cell, [entity], timeout=60)
+
+    st, reason = state(cell, entity)
+    assert st == "exported" and reason.startswith("PASS"), (st, reason)  # measured the second time
+    outcomes = cell.query("select ack_code from machine_run_outcome where machine_id = 'cmm_wc' order by 1")
+    assert sorted(r[0] for r in outcomes) == ["ACK_OK", "Run_Fail"]  # one run failed, one measured
+    assert "the set was not measured (try 1 of 3)" in lot_log(cell, entity)
     story(cell, "cmmsim:cmm_wc", "Kermit transfer", "part program alum_chess_set received by Kermit", "measured: PASS")
-    story(cell, "me:cmm_wc", "the CMM answered PASS!")
+    story(cell, "me:cmm_wc", "line lost during the run", "the machine answers again", "the CMM answered PASS!")
 
 
 def test_me_killed_while_idle_one_gwc_machine_start_brings_the_machine_back_with_one_homing_alarm(
