@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 import psycopg
 from xprocess import ProcessStarter
 
+from gwc.cell import write_pid_file
 from gwc.config import Config, private_bus, write_config
 from gwc.ipc.bus import BlockingBus
 from gwc.log import log_file_name, open_log
@@ -150,6 +151,7 @@ class CellHarness:
                 return not start or STOP_CLASS.get(kind, "SHUTDOWN") in peer.interest
 
         pid, _ = self.xprocess.ensure(self._xname(name), Starter, restart=True)
+        write_pid_file(self.cfg, name, int(pid), args)  # as gwc start does: `gwc machine start` reads it
         if name not in self.started:
             self.started.append(name)
         return int(pid)

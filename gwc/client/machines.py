@@ -31,10 +31,9 @@ def start_machine(
     timeout: float = START_TIMEOUT,
 ) -> str:
     """ME_START with the machine's WC (Shutdown -> Idle), after spawning whichever of its processes
-    (simulator, ME, WC) is down: an ME dead behind a live WC too (start_procs skips what runs; the ME
-    and the simulator write their own pid files). Returns how it ended ("started", "already started");
-    ModuleError if refused. `say` hears each step, that a homing alarm may now wait for the operator,
-    and the end."""
+    (simulator, ME, WC) is down, by their pid files: an ME dead behind a live WC too. Returns how it
+    ended ("started", "already started"); ModuleError if refused. `say` hears each step, that a homing
+    alarm may now wait for the operator, and the end."""
     cfg.machine(machine_id)  # ConfigError naming the known machines
     wc = module_name("wc", machine_id)
     procs = cell.machine_procs(cfg, machine_id)

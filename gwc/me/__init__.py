@@ -8,8 +8,6 @@ protocol). The ME talks only to its WC, over the machine's queue pair (gwc.ipc.m
 from __future__ import annotations
 
 import logging
-import os
-import sys
 import threading
 
 from gwc.config import Config, MachineSpec
@@ -43,17 +41,6 @@ def make_machine(cfg: Config, machine_id: str, log: logging.Logger) -> MachineSi
     raise ConfigError(f"machine {machine_id}: no ME for kind {spec.kind!r}")
 
 
-def own_pid_file(cfg: Config, kind: str, machine_id: str) -> None:
-    """An off-bus process writes its pid file itself, however it was started (gwc start, the agent, a
-    test, by hand): `gwc machine start` tells from it whether the ME (or simulator) is down."""
-    from gwc.cell import write_pid_file
-    from gwc.module import module_name
-
-    write_pid_file(cfg, module_name(kind, machine_id), os.getpid(), sys.argv)
-
-
 def main(cfg: Config, machine_id: str, log: logging.Logger, stop: threading.Event) -> int:
     """Run the ME of `machine_id` until `stop` is set (SIGTERM); returns the exit code."""
-    machine = make_machine(cfg, machine_id, log)
-    own_pid_file(cfg, "me", machine_id)
-    return machine.serve(stop)
+    return make_machine(cfg, machine_id, log).serve(stop)

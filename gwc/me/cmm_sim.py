@@ -404,8 +404,4 @@ def simulated(spec: MachineSpec) -> bool:
 
 def main(cfg: Config, machine_id: str, log: logging.Logger, stop: threading.Event) -> int:
     """Run the CMM simulator of `machine_id` until `stop` is set."""
-    from gwc.me import own_pid_file
-
-    simulator = CmmSimulator(cfg, cfg.machine(machine_id), log)
-    own_pid_file(cfg, "cmmsim", machine_id)
-    return simulator.serve(stop)
+    return CmmSimulator(cfg, cfg.machine(machine_id), log).serve(stop)
