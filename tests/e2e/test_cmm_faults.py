@@ -19,6 +19,7 @@ from typing import Any
 
 import pytest
 
+from gwc.cell import stop_proc
 from gwc.ipc.codes import AckCode
 from gwc.me.cmm_sim import fault_file, inject_fault
 from tests.e2e.lotkit import cell_with_machines, gwc, import_export_all, lot_log, ok, order, state, wait_state
@@ -232,12 +233,12 @@ def test_me_killed_while_idle_one_gwc_machine_start_brings_the_machine_back_with
     try:
         clear(cell, pending_alarm(cell, "HOME_CMM", "cmm_wc"))  # the operator pushes the start button
         out, err = started.communicate(timeout=60)
+        assert started.returncode == 0, err + out
+        assert "me:cmm_wc: spawned" in out and "wc:cmm_wc: started" in out
+        assert Cmm(cell, ear).measures() == "PASS"
+        homing = cell.query("select count(*), count(cleared_at) from alarms where alarm_id = 'HOME_CMM'")[0]
+        assert homing == (2, 2)  # one per start: none from a stale ME_START left in the queue
     finally:
         if started.poll() is None:
             started.kill()
-    assert started.returncode == 0, err + out
-    assert "me:cmm_wc: spawned" in out and "wc:cmm_wc: started" in out
-    assert Cmm(cell, ear).measures() == "PASS"
-    homing = cell.query("select count(*), count(cleared_at) from alarms where alarm_id = 'HOME_CMM'")[0]
-    assert homing == (2, 2)  # one per start: none from a stale ME_START left in the queue
-    assert gwc(cell, "machine", "status").returncode == 0
+        stop_proc(cell.cfg, "me:cmm_wc")  # spawned by `gwc machine start`, not by the harness
