@@ -10,7 +10,7 @@ import importlib
 
 import click
 
-BENCH_MODULES = ["gwc.bench.bus", "gwc.bench.mq", "gwc.bench.sched", "gwc.bench.cell"]
+BENCH_MODULES = ["gwc.bench.bus", "gwc.bench.mq", "gwc.bench.sched", "gwc.bench.cell", "gwc.bench.opcua"]
 
 
 @click.group("bench")

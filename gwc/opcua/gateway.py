@@ -300,6 +300,12 @@ class Gateway(Module):
             except Exception:
                 self.log.exception("refreshing %s failed", ", ".join(sorted(what)))
 
+    async def _read(self, fn: Callable[[Any], Any]) -> Any:
+        """One read of the tables, in a thread: the OPC UA server shares this event loop, and its
+        notifications must not wait while PostgreSQL answers. Only the refresher reads, one read at a
+        time, so the module's one connection is never used by two threads at once."""
+        return await asyncio.to_thread(self.transaction, fn)
+
     async def _refresh(self, what: set[str]) -> None:
         if "machines" in what:
             await self._refresh_machines()
@@ -321,7 +327,7 @@ class Gateway(Module):
             results = _rows(cur, RESULTS_SQL, [r["machine_run_id"] for r in last], [r["machine_id"] for r in last])
             return machines, last, results
 
-        machines, last, results = self.transaction(read)
+        machines, last, results = await self._read(read)
         for row in machines:
             m = row["machine_id"]
             if self._heard[m] != heard[m]:  # a newer UPD_ME_ST came while we read: the next refresh
@@ -351,7 +357,7 @@ class Gateway(Module):
 
     async def _refresh_alarms(self) -> None:
         cleared = self._cleared
-        rows = self.transaction(lambda cur: _rows(cur, ALARMS_SQL))
+        rows = await self._read(lambda cur: _rows(cur, ALARMS_SQL))
         if cleared != self._cleared:  # an ALARM_CLE came while we read
             self._poke("alarms")
             return
@@ -407,7 +413,7 @@ class Gateway(Module):
     async def _refresh_lots(self) -> None:
         sp = self.space
         assert sp is not None
-        rows = self.transaction(lambda cur: _rows(cur, LOTS_SQL, self.settings.keep_done))
+        rows = await self._read(lambda cur: _rows(cur, LOTS_SQL, self.settings.keep_done))
         now = {int(r["entity_id"]): r for r in rows}
         for entity, lot in list(self.entities.items()):
             if entity not in now or int(now[entity]["lot_id"]) != lot:

@@ -87,3 +87,18 @@ def test_settings_are_checked_and_certificates_go_under_var(tmp_path: Path) -> N
     for bad in ({"endpoint": "http://x"}, {"refresh": 0}, {"colour": "red"}):
         with pytest.raises(ConfigError, match=r"\[opcua\]"):
             load_settings(make_config(tmp_path, None, opcua=bad))
+
+
+def test_bench_pairs_each_status_change_with_its_notification_in_order() -> None:
+    from gwc.bench.opcua import latencies
+
+    heard = [(1.0, "wc1", "Setup"), (1.1, "wc1", "Running"), (1.2, "wc2", "Idle"), (1.3, "wc1", "Idle")]
+    seen = [
+        (1.01, "machines/wc1/status", "Setup"),
+        (1.02, "machines/wc1/machine_run_id", 7),
+        (1.15, "machines/wc1/status", "Running"),
+        (1.35, "machines/wc1/status", "Idle"),
+    ]
+    lat, missed = latencies(heard, seen)
+    assert [(t, round(x, 3)) for t, x in lat] == [(1.0, 0.01), (1.1, 0.05), (1.3, 0.05)]
+    assert missed == 1  # wc2's change was never notified
