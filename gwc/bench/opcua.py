@@ -32,9 +32,9 @@ from asyncua import Client, Node, ua
 
 from gwc.bench import summary
 from gwc.bench.cell import _ms, log_events
+from gwc.client.session import context
 from gwc.config import load_config, write_config
 from gwc.errors import GwcError
-from gwc.hi import context
 from gwc.ipc.bus import BlockingBus
 from gwc.log import log_file_name
 from gwc.module import module_name
