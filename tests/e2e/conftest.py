@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from tests.e2e.lotkit import lot_cell  # noqa: F401 (a fixture the lot tests share)
+from tests.e2e.lotkit import default_machines, lot_cell  # noqa: F401 (lot_cell: a fixture the lot tests share)
 from tests.harness import CellHarness
 
 
@@ -30,15 +30,4 @@ def make_cell(xprocess: Any, tmp_path: Path, database_url: str) -> Iterator[Any]
 @pytest.fixture
 def cell(make_cell: Any) -> CellHarness:
     """A private cell with the default test machines: wc1, wc2 (dummy) and cmm_wc (CMM simulator)."""
-    return make_cell(
-        machines=[
-            {"id": "wc1", "kind": "dummy", "run_time": 0.2},
-            {"id": "wc2", "kind": "dummy", "run_time": 0.2},
-            {
-                "id": "cmm_wc",
-                "kind": "cmm",
-                "serial": {"port": "sim", "baudrate": 9600, "timeout": 5.0},
-                "sim": {"measure_time": 0.2, "pattern": "P"},
-            },
-        ]
-    )
+    return make_cell(machines=default_machines())

@@ -22,6 +22,20 @@ from gwc.lot.entity import read_traveller
 from tests.harness import CellHarness, wait_for
 
 
+def default_machines(run_time: float = 0.2, measure_time: float = 0.2) -> list[dict[str, Any]]:
+    """The default test machines: wc1, wc2 (dummy mills) and cmm_wc (the CMM simulator, every part PASS)."""
+    return [
+        {"id": "wc1", "kind": "dummy", "run_time": run_time},
+        {"id": "wc2", "kind": "dummy", "run_time": run_time},
+        {
+            "id": "cmm_wc",
+            "kind": "cmm",
+            "serial": {"port": "sim", "baudrate": 9600, "timeout": 5.0},
+            "sim": {"measure_time": measure_time, "pattern": "P"},
+        },
+    ]
+
+
 def gwc(cell: CellHarness, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
     """Run a `gwc` command against this cell, as the operator would."""
     return subprocess.run(

@@ -25,6 +25,7 @@ from gwc.config import Config
 from tests.conftest import make_config
 from tests.e2e.lotkit import (
     cell_with_machines,
+    default_machines,
     gwc,
     import_export_all,
     ok,
@@ -38,16 +39,7 @@ from tests.harness import SERVERS, CellHarness, wait_for
 
 pytestmark = pytest.mark.e2e
 
-MACHINES = [
-    {"id": "wc1", "kind": "dummy", "run_time": 1.0},
-    {"id": "wc2", "kind": "dummy", "run_time": 1.0},
-    {
-        "id": "cmm_wc",
-        "kind": "cmm",
-        "serial": {"port": "sim", "baudrate": 9600, "timeout": 5.0},
-        "sim": {"measure_time": 0.3, "pattern": "P"},
-    },
-]
+MACHINES = default_machines(run_time=1.0, measure_time=0.3)
 MACHINE_IDS = [m["id"] for m in MACHINES]
 
 
@@ -170,7 +162,7 @@ def test_machine_server_killed_and_restarted_keeps_statuses_and_the_run_in_progr
     lot_cell: Any,
 ) -> None:
     cell = cell_with_machines(
-        lot_cell(machines=[MACHINES[0], {**MACHINES[2], "sim": {"measure_time": 4.0, "pattern": "P"}}]),
+        lot_cell(machines=[m for m in default_machines(measure_time=4.0) if m["id"] != "wc2"]),
         "wc1",
         "cmm_wc",
     )

@@ -3,15 +3,20 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
+import time
 from pathlib import Path
 
+import pytest
+
 from gwc.config import private_bus
-from gwc.errors import DatabaseError
+from gwc.errors import DatabaseError, DatabaseUnavailable
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.module import Module
+from gwc.retry import Deadline
 from tests.conftest import make_config
 
 
@@ -78,3 +83,38 @@ def test_ask_within_rides_out_a_server_that_is_not_up_yet(tmp_path: Path) -> Non
             await asker.bus.close()
 
     assert asyncio.run(asyncio.wait_for(scenario(), 30)) == "Idle"
+
+
+def test_a_module_whose_database_is_away_fails_fast_waits_for_it_and_carries_on_when_it_is_back(
+    tmp_path: Path, database_url: str
+) -> None:
+    """No step waits for a database that is gone (DatabaseUnavailable at once, no new connect), a step
+    that must not be lost waits for it, and the module reconnects by itself: it never exits."""
+    dead = tmp_path / "nosocket"
+    dead.mkdir()
+    cfg = make_config(tmp_path, f"postgresql://gwc@/gwc?host={dead}&connect_timeout=1", bus=private_bus())
+    log = logging.getLogger("test.module")
+
+    async def scenario() -> None:
+        module = Module(cfg, "dbless", log)
+        module.role = "ms"
+        with pytest.raises(DatabaseUnavailable):
+            module.transaction(lambda cur: cur.execute("select 1"))
+        assert module.database_down is not None
+        started = time.monotonic()
+        with pytest.raises(DatabaseUnavailable, match="away"):
+            module.transaction(lambda cur: cur.execute("select 1"))
+        assert time.monotonic() - started < 0.05  # refused at once: the reconnect task tries, not the step
+        assert not await module.wait_database(Deadline(0.3))
+        with pytest.raises(DatabaseUnavailable):
+            await module.transaction_when_up(lambda cur: cur.execute("select 1"), within=0.3)
+        # The database comes back (here: the module is pointed at one that answers).
+        module.cfg = dataclasses.replace(cfg, database_url=database_url)
+        row = await asyncio.wait_for(module.transaction_when_up(lambda cur: cur.execute("select 7").fetchone()), 10)
+        assert row == (7,) and module.database_down is None
+        module.db().close()
+        await module.bus.close()
+        for task in list(module._tasks):
+            task.cancel()
+
+    asyncio.run(scenario())
