@@ -343,6 +343,20 @@ def test_cmm_fault_during_a_run_fails_the_run_with_its_reason(
     assert read_results(out)["RUN_NO"] == "2"
 
 
+def test_cmm_silent_at_a_setup_refuses_it_notnow_is_lost_then_back(machine, tmp_path: Path) -> None:
+    m = machine(**cmm_on("pty"))
+    assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
+    inject_fault(m.cfg, m.machine, "silent", **{"for": 1.5})
+    wait_for(lambda: not fault_file(m.cfg, m.machine).exists(), 5, "the simulator to take the fault")
+    m.wc.send(MeMessage(MessageId.SETUP_RUN, seq=77, file_name=recipe(tmp_path), recipe_id="alum_chess_set"))
+    lost, refused = next_from_me(m), next_from_me(m)  # the WC hears the machine is lost, then the refusal
+    assert lost.message_id == MessageId.ME_LOST and "did not answer STATUS" in lost.alarm_text
+    assert (refused.seq, refused.ack_code) == (77, AckCode.NOTNOW)  # a lot takes Notnow as: ask again
+    assert next_from_me(m).message_id == MessageId.ME_BACK
+    out = setup_and_start(m, tmp_path, 1)
+    assert next_from_me(m).ack_code == AckCode.ACK_OK and read_results(out)["RESULT"] == "PASS"
+
+
 def test_cmm_late_verdict_is_dropped_not_taken_for_the_next_run(machine, tmp_path: Path) -> None:
     m = machine(**cmm_on("pty", sim={"pattern": "FP"}))
     assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
