@@ -275,10 +275,14 @@ class CmmMachine(MachineSide):
 
     def progress(self) -> RunOutcome | None:
         """The verdict, or why the run failed (the CMM is then probed by watch(), after RUN_COMPL)."""
+        line = self.line()
         try:
-            rec = self.line().poll_record(bare_verdict=True)
+            rec = line.poll_record(bare_verdict=True)
         except LineError as e:
-            return self._run_failed(e, f"{'line lost' if isinstance(e, LineLost) else 'garbage'} during the run: {e}")
+            # The note leads with what came (RUN_COMPL carries 80 bytes of it; the port is in the ME's log).
+            what = str(e).removeprefix(f"{line.name}: ")
+            kind = "line lost" if isinstance(e, LineLost) else "garbage"
+            return self._run_failed(e, f"{kind} during the run: {what}")
         if rec is None:
             if time.monotonic() > self._run_deadline:
                 return self._run_failed(
