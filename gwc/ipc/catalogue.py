@@ -9,6 +9,7 @@ Field types are written as strings: "str", "int", "float", "bool", "list", "dict
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from typing import Any
 
@@ -423,3 +424,30 @@ def refusal(cls: str, ack_code: str, note: str) -> Message | None:
         if "ack_code" in mc._known and all(f.nullable or f.name == "ack_code" for f in mc.fields):  # type: ignore[attr-defined]
             return Message(name, {"ack_code": ack_code, "note": note})
     return None
+
+
+# ----------------------------------------------------------------------------- names checked before run time
+
+NAMES_HEADER = '''"""Conversation classes and message names as constants, so that a misspelt name fails at import
+(and in mypy and ruff), not in a conversation at run time. Generated from the catalogue (gwc/ipc/catalogue.py):
+do not edit; write it again with `python -m gwc.ipc.catalogue > gwc/ipc/names.py`.
+tests/unit/test_catalogue.py fails when it and the catalogue differ.
+
+They are str enums: `Conv.MACH_REQ == "MACH_REQ"`, and they go on the wire as the thesis spells them.
+"""
+
+from enum import StrEnum
+'''
+
+
+def render_names() -> str:
+    """The source of gwc/ipc/names.py for this catalogue."""
+    lines = [NAMES_HEADER, "", "class Conv(StrEnum):", '    """The conversation classes."""', ""]
+    lines += [f'    {name} = "{name}"' for name in sorted(CONVERSATION_CLASSES)]
+    lines += ["", "", "class Msg(StrEnum):", '    """The message classes."""', ""]
+    lines += [f'    {name.upper()} = "{name}"' for name in sorted(MESSAGE_CLASSES, key=str.upper)]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.stdout.write(render_names())

@@ -9,7 +9,7 @@ import pytest
 from gwc.errors import MessageError
 from gwc.hi.monitor import render_catalogue
 from gwc.ipc import catalogue
-from gwc.ipc.catalogue import check, message
+from gwc.ipc.catalogue import check, message, render_names
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "conversations.md"
 
@@ -59,4 +59,12 @@ def test_ack_codes_are_spelled_as_the_thesis_spells_them() -> None:
 def test_docs_conversations_md_is_generated_from_the_catalogue() -> None:
     assert DOC.read_text() == render_catalogue(), (
         "docs/conversations.md is out of date: run `gwc monitor --catalogue > docs/conversations.md`"
+    )
+
+
+def test_names_py_is_generated_from_the_catalogue() -> None:
+    """gwc/ipc/names.py (Conv, Msg) names exactly the catalogue's classes: regenerate it after a change."""
+    names = Path(__file__).resolve().parents[2] / "gwc" / "ipc" / "names.py"
+    assert names.read_text() == render_names(), (
+        "gwc/ipc/names.py is stale: python -m gwc.ipc.catalogue > gwc/ipc/names.py"
     )
