@@ -24,6 +24,7 @@ import psycopg
 from gwc.config import Config
 from gwc.ipc.bus import BlockingBus, Peer
 from gwc.ipc.codes import LotState, MachineStatus
+from gwc.ipc.names import Conv
 
 # An entity in one of these states will never ask for a machine again.
 FINISHED = (LotState.COMPLETED.value, LotState.WAITING_EXPORT.value, LotState.EXPORTED.value, LotState.FAILED.value)
@@ -184,7 +185,7 @@ def check_live(cfg: Config, conn: psycopg.Connection[Any], peers: dict[str, Peer
             if st != MachineStatus.SHUTDOWN:
                 missing.append({"machine_id": mid, "status": st})
             continue
-        wc_started = "SETUP_RUN" in peer.interest
+        wc_started = Conv.SETUP_RUN in peer.interest
         if wc_started != (st in STARTED):
             disagree.append({"machine_id": mid, "status": st, "wc": "started" if wc_started else "not started"})
     if missing:
@@ -194,7 +195,7 @@ def check_live(cfg: Config, conn: psycopg.Connection[Any], peers: dict[str, Peer
     down = []
     for m in cfg.modules:
         peer = peers.get(m.name)
-        if peer is None or "SHUTDOWN" not in peer.interest:
+        if peer is None or Conv.SHUTDOWN not in peer.interest:
             down.append({"module": m.name, "state": "absent" if peer is None else "not started"})
     if down:
         breaches.append(Breach("module_down", "every configured server is on the bus and started", down))

@@ -13,6 +13,7 @@ from gwc.errors import Refused
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 
 STATUS_LINE_FIELDS = ("text", "imports", "exports", "alarms", "last_event")
 
@@ -41,8 +42,8 @@ def clear_alarm(bus: BlockingBus, alarm_no: int, by: str | None = None, timeout:
     Alarm_Clear_Ack; Refused if the CAS says no (unknown or already cleared)."""
     ack = ask(
         bus,
-        "ALARM_CLR_REQ",
-        message("Alarm_Clear_Request", alarm_no=alarm_no, cleared_by=by or operator()),
+        Conv.ALARM_CLR_REQ,
+        message(Msg.ALARM_CLEAR_REQUEST, alarm_no=alarm_no, cleared_by=by or operator()),
         "cas",
         timeout,
     )
@@ -54,4 +55,4 @@ def clear_alarm(bus: BlockingBus, alarm_no: int, by: str | None = None, timeout:
 def read_status_line(bus: BlockingBus, timeout: float = ANSWER) -> Message:
     """STATUS_LN to the Status Line Server: lots waiting for import or export, pending alarms, the last
     event (fields STATUS_LINE_FIELDS; `text` is the line as shown)."""
-    return ask(bus, "STATUS_LN", message("Status_Line_Get"), "sls", timeout)
+    return ask(bus, Conv.STATUS_LN, message(Msg.STATUS_LINE_GET), "sls", timeout)

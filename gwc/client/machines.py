@@ -14,6 +14,7 @@ from gwc.client.session import on_bus
 from gwc.config import Config
 from gwc.errors import ModuleError
 from gwc.ipc.bus import BlockingBus
+from gwc.ipc.names import Conv
 from gwc.module import module_name
 
 SEE_WC = 2.0  # how long to look for a WC on the bus before deciding its processes must be started
@@ -44,7 +45,7 @@ def start_machine(
         f"{wc}: ME_START (a machine that must be homed raises its alarm now: "
         "`gwc alarm list`, then `gwc alarm clear N` once it is done)"
     )
-    done = cell.startup(bus, wc, "ME_START", timeout=timeout)
+    done = cell.startup(bus, wc, Conv.ME_START, timeout=timeout)
     say(f"{wc}: {done}")
     return done
 
@@ -56,7 +57,7 @@ def stop_machine(cfg: Config, bus: BlockingBus, machine_id: str, timeout: float 
     wc = module_name("wc", machine_id)
     if not on_bus(bus, wc, SEE_WC):
         raise ModuleError(f"{wc} is not on the bus: the machine is not running")
-    return cell.shutdown(bus, wc, "ME_SHUT", timeout=timeout)
+    return cell.shutdown(bus, wc, Conv.ME_SHUT, timeout=timeout)
 
 
 def heard_peers(cfg: Config, bus: BlockingBus) -> set[str]:

@@ -18,6 +18,7 @@ from gwc.errors import GwcError, Refused
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, LotState
+from gwc.ipc.names import Conv, Msg
 from gwc.lot.entity import create_lot, read_traveller
 from gwc.lot.run import load_script, spawn_lot_script
 
@@ -121,8 +122,8 @@ def enter_order(
 def decide(bus: BlockingBus, entity_id: int, action: str, by: str) -> int | None:
     """IMPORT_LOT / EXPORT_LOT to the Lot Server: the operator lets an entity in or out (the Lot Server
     then tells the entity with LOT_MOVED). Returns its lot; Refused if the Lot Server says no."""
-    cls = "IMPORT_LOT" if action == "import" else "EXPORT_LOT"
-    ack = ask(bus, cls, message("Lot_Decision", entity_id=entity_id, action=action, by=by), "ls", None)
+    cls = Conv.IMPORT_LOT if action == "import" else Conv.EXPORT_LOT
+    ack = ask(bus, cls, message(Msg.LOT_DECISION, entity_id=entity_id, action=action, by=by), "ls", None)
     if ack.ack_code == AckCode.UNKNOWN:
         raise GwcError(f"unknown lot entity {entity_id} (see `gwc lots`)")
     if ack.ack_code != AckCode.ACK_OK:

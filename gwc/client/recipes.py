@@ -12,6 +12,7 @@ from gwc.errors import Refused
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.servers.recipe import sha256, version_path
 
 __all__ = ["approve_recipe", "file_state", "list_recipes", "recipe_versions", "store_recipe"]
@@ -29,15 +30,17 @@ def store_recipe(bus: BlockingBus, recipe_id: str, content: str, description: st
     version, checksum, note; Refused if it says no."""
     return _ask_ers(
         bus,
-        "RECIPE_PUT",
-        message("Recipe_Store", recipe_id=recipe_id, content=content, by=operator(), description=description),
+        Conv.RECIPE_PUT,
+        message(Msg.RECIPE_STORE, recipe_id=recipe_id, content=content, by=operator(), description=description),
     )
 
 
 def approve_recipe(bus: BlockingBus, recipe_id: str, version: int | None = None) -> Message:
     """RECIPE_APPR: approve a version (default the latest; an edited library file is stored as a new
     version first). The ERS's answer: version, checksum, note; Refused if it says no."""
-    return _ask_ers(bus, "RECIPE_APPR", message("Recipe_Approve", recipe_id=recipe_id, version=version, by=operator()))
+    return _ask_ers(
+        bus, Conv.RECIPE_APPR, message(Msg.RECIPE_APPROVE, recipe_id=recipe_id, version=version, by=operator())
+    )
 
 
 def file_state(cfg: Config, recipe_id: str, version: int, checksum: str) -> str:

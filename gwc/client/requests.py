@@ -12,6 +12,7 @@ from gwc.errors import GwcError, Refused
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 
 QUEUE_SQL = """
 select q.request_key, q.entity_id, q.op_type, string_agg(q.machine_id, ' AND ' order by q.seq) as machines,
@@ -57,8 +58,8 @@ def cancel_request(
     what = f"request {request_key}" if request_key is not None else f"the requests of entity {entity_id}"
     ack = ask(
         bus,
-        "CANCEL_RE",
-        message("Cancel_Request", request_key=request_key, entity_id=entity_id, by=by),
+        Conv.CANCEL_RE,
+        message(Msg.CANCEL_REQUEST, request_key=request_key, entity_id=entity_id, by=by),
         "msched",
         timeout,
     )

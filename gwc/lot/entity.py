@@ -50,6 +50,7 @@ from gwc.errors import GwcError
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import LotError, MachineLost, ScriptStopped
 from gwc.lot.model import (
     IMPORTED,
@@ -277,9 +278,9 @@ def create_lot(
     ack = bus.run(
         ask(
             bus.bus,
-            "CREATE_LOT",
+            Conv.CREATE_LOT,
             message(
-                "Create_Lot_Entity",
+                Msg.CREATE_LOT_ENTITY,
                 product_id=product_id,
                 quantity=quantity,
                 work_order_id=work_order_id,

@@ -15,14 +15,15 @@ from gwc.config import Config
 from gwc.errors import BusError, GwcError
 from gwc.ipc.catalogue import Message
 from gwc.ipc.codes import AckCode, LotState, MachineStatus
+from gwc.ipc.names import Conv
 from gwc.retry import Backoff
 
 T = TypeVar("T")
 S = LotState
-LISTENS = ("RUN_COMPL", "UPD_ME_ST", "LOT_MOVED")
+LISTENS = (Conv.RUN_COMPL, Conv.UPD_ME_ST, Conv.LOT_MOVED)
 # Until its lot is imported an entity hears only its moves: the cell's machine traffic is no
 # business of a lot waiting at the door, and in a busy cell many wait there.
-WAITING_LISTENS = ("LOT_MOVED",)
+WAITING_LISTENS = (Conv.LOT_MOVED,)
 UP = (MachineStatus.IDLE.value, MachineStatus.SETUP.value, MachineStatus.RUNNING.value)
 FINISHED = (S.COMPLETED, S.WAITING_EXPORT, S.EXPORTED, S.FAILED)
 IMPORTED = (S.IMPORTED, S.WAITING_MACHINE, S.RUNNING, *FINISHED)

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from gwc.errors import DatabaseError, GwcError
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import LotError, LotTimeout, RequestCancelled, RequestRefused
 from gwc.lot.model import BOUND_AT_ONCE, POLL, UP, Alternative, MachineRequest, Reservation, S
 from gwc.lot.talk import EntityTalk
@@ -150,9 +151,9 @@ class EntityReserve(EntityTalk):
     ) -> int:
         """CANCEL_RE: cancel one request, or all of the entity's. Returns how many were cancelled."""
         ack = self._ask(
-            "CANCEL_RE",
+            Conv.CANCEL_RE,
             message(
-                "Cancel_Request",
+                Msg.CANCEL_REQUEST,
                 request_key=request_key,
                 entity_id=None if request_key else self.entity_id,
                 by=self.name,
@@ -170,8 +171,8 @@ class EntityReserve(EntityTalk):
     ) -> int:
         """UNRESERVE: free one reserved machine, or all of the entity's. Returns how many were freed."""
         ack = self._ask(
-            "UNRESERVE",
-            message("Unreserve_Me", entity_id=self.entity_id, machine_id=machine_id, by=self.name),
+            Conv.UNRESERVE,
+            message(Msg.UNRESERVE_ME, entity_id=self.entity_id, machine_id=machine_id, by=self.name),
             "msched",
             timeout,
             within,

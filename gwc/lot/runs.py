@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from gwc.errors import DatabaseError
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, MachineStatus
+from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import MachineLost, RunFailed
 from gwc.lot.model import ENDED, Reservation, Run
 from gwc.lot.reserve import EntityReserve
@@ -40,9 +41,9 @@ class EntityRuns(EntityReserve):
         with self._cond:  # the run's life on this machine begins: what happens to it from now on counts
             self._began[(machine_id, machine_run_id)] = (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
         ack = self._ask_wc(
-            "SETUP_RUN",
+            Conv.SETUP_RUN,
             message(
-                "Setup_Run",
+                Msg.SETUP_RUN,
                 machine_id=machine_id,
                 recipe_id=recipe_id,
                 op_type=op_type,
@@ -67,8 +68,8 @@ class EntityRuns(EntityReserve):
                 (machine_id, machine_run_id), (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
             )
         ack = self._ask_wc(
-            "START_RUN",
-            message("Start_Run", machine_id=machine_id, machine_run_id=machine_run_id),
+            Conv.START_RUN,
+            message(Msg.START_RUN, machine_id=machine_id, machine_run_id=machine_run_id),
             machine_id,
             machine_run_id,
             self.timeouts.answer,

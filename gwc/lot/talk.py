@@ -13,6 +13,7 @@ from gwc.errors import ConversationTimeout, GwcError
 from gwc.ipc.bus import Batch, Bus, Conversation, Peer
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.lot.core import EntityCore
 from gwc.lot.errors import LotError, LotTimeout, MachineLost
 from gwc.lot.model import ALREADY, FOREVER, LISTENS, SHUT, Alternative, WcCall
@@ -71,8 +72,8 @@ class EntityTalk(EntityCore):
         keep_state: bool = False,
     ) -> Message:
         ack = self._ask(
-            "ENTITY_REQ",
-            message("Entity_Request", entity_id=self.entity_id, action=action, reason=reason, script_pid=script_pid),
+            Conv.ENTITY_REQ,
+            message(Msg.ENTITY_REQUEST, entity_id=self.entity_id, action=action, reason=reason, script_pid=script_pid),
             "ls",
             timeout,
             within,
@@ -229,11 +230,11 @@ class EntityTalk(EntityCore):
             conv.end()
             m = conv.first.first
             with self._cond:
-                if m.name == "Run_Complete" and m.machine_run_id is not None:
+                if m.name == Msg.RUN_COMPLETE and m.machine_run_id is not None:
                     self._runs[(m.machine_id, int(m.machine_run_id))] = m.ack_code
-                elif m.name == "Update_ME_Status":
+                elif m.name == Msg.UPDATE_ME_STATUS:
                     self._note(m.machine_id, m.status, m.machine_run_id)
-                elif m.name == "Lot_Moved" and int(m.entity_id) == self.entity_id:
+                elif m.name == Msg.LOT_MOVED and int(m.entity_id) == self.entity_id:
                     self._moved.append((m.action, m.lot_id))
                 self._cond.notify_all()
 
@@ -278,16 +279,16 @@ class EntityTalk(EntityCore):
                     why = "msched is not on the bus"
                 else:
                     conv = await bus.start(
-                        "MACH_REQ",
+                        Conv.MACH_REQ,
                         message(
-                            "Machine_Request",
+                            Msg.MACHINE_REQUEST,
                             entity_id=self.entity_id,
                             op_type=alt.op_type,
                             num_machines=len(alt.machines),
                             priority=priority,
                             alt_group=group.alt_group if group else None,
                         ),
-                        *[message("Machine_Entry", machine_id=m) for m in alt.machines],
+                        *[message(Msg.MACHINE_ENTRY, machine_id=m) for m in alt.machines],
                         to="msched",
                     )
                     try:
@@ -327,26 +328,28 @@ class EntityTalk(EntityCore):
     async def _answered(self, alt: Alternative, conv: Conversation, batch: Batch) -> None:
         """MSCHED's Machine_Req_Ack or Machine_Req_Comp for one alternative."""
         head = batch.first
-        if head.name == "Machine_Req_Comp":
-            await conv.send(message("Request_Comp_Ack", entity_id=self.entity_id, ack_code=AckCode.ACK_OK))
+        if head.name == Msg.MACHINE_REQ_COMP:
+            await conv.send(message(Msg.REQUEST_COMP_ACK, entity_id=self.entity_id, ack_code=AckCode.ACK_OK))
         with self._cond:
-            if head.name == "Machine_Req_Ack":
+            if head.name == Msg.MACHINE_REQ_ACK:
                 alt.ack = head
                 alt.done = head.ack_code != AckCode.ACK_OK
-            elif head.name == "Machine_Req_Comp":
+            elif head.name == Msg.MACHINE_REQ_COMP:
                 alt.comp = head
-                alt.reserved = [m.machine_id for m in batch.messages[1:] if m.name == "Reserved_Machine"]
+                alt.reserved = [m.machine_id for m in batch.messages[1:] if m.name == Msg.RESERVED_MACHINE]
                 alt.done = True
             taken = alt.group is not None and alt.group.winner not in (None, alt) and head.ack_code == AckCode.ACK_OK
-            surplus = alt.group.surplus(alt) if taken and alt.group and head.name == "Machine_Req_Comp" else []
-            queued = taken and head.name == "Machine_Req_Ack"
+            surplus = alt.group.surplus(alt) if taken and alt.group and head.name == Msg.MACHINE_REQ_COMP else []
+            queued = taken and head.name == Msg.MACHINE_REQ_ACK
             self._cond.notify_all()
         for m in surplus:  # bound after the entity took another alternative: give it back
             self.log.warning("%s was bound after another alternative was taken: giving it back", m)
-            await self._tell("UNRESERVE", message("Unreserve_Me", entity_id=self.entity_id, machine_id=m, by=self.name))
+            await self._tell(
+                Conv.UNRESERVE, message(Msg.UNRESERVE_ME, entity_id=self.entity_id, machine_id=m, by=self.name)
+            )
         if queued:  # queued after the entity took another alternative: it must not wait there
             self.log.warning("request %s was queued after another alternative was taken: cancelling it", alt.key)
-            await self._tell("CANCEL_RE", message("Cancel_Request", request_key=alt.key, by=self.name))
+            await self._tell(Conv.CANCEL_RE, message(Msg.CANCEL_REQUEST, request_key=alt.key, by=self.name))
 
     async def _tell(self, cls: str, first: Message) -> None:
         """(bus thread) A cleanup conversation with MSCHED whose answer only goes to the log."""

@@ -23,6 +23,7 @@ from gwc.config import SERVER_MODULES, Config, private_bus, write_config
 from gwc.errors import GwcError, ModuleError
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.mq import queue_exists, queue_names
+from gwc.ipc.names import Conv
 
 UP_TIMEOUT = 30.0  # a restarted module must be back on the bus within this (machines are shared and busy)
 HI_TIMEOUT = 60.0  # one `gwc machine start|stop` command
@@ -157,7 +158,7 @@ class PrivateCell:
         if via_hi:
             return self.hi("machine", "start", machine)
         assert self.bus is not None
-        return startup(self.bus, f"wc:{machine}", "ME_START", timeout=UP_TIMEOUT)
+        return startup(self.bus, f"wc:{machine}", Conv.ME_START, timeout=UP_TIMEOUT)
 
     def hi(self, *args: str) -> str:
         """Run one Human Interface command against this cell; its output. ModuleError if it fails."""

@@ -42,6 +42,7 @@ from gwc.client.orders import create_lot, decide, read_traveller
 from gwc.errors import GwcError
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.codes import LotState, MachineStatus
+from gwc.ipc.names import Conv
 from gwc.lot.run import spawn_lot_script
 from gwc.soak.cell import PrivateCell
 from gwc.soak.plan import FAULTS, Action, LotSpec, Plan, make_plan
@@ -269,7 +270,7 @@ class Soak:
     def _observe(self) -> None:
         """Thread: count every RUN_COMPL on the bus, to find a run reported twice."""
         assert self.cell is not None
-        with BlockingBus(f"soak.obs.{id(self):x}", self.cell.cfg.bus, self.log, interest=("RUN_COMPL",)) as bus:
+        with BlockingBus(f"soak.obs.{id(self):x}", self.cell.cfg.bus, self.log, interest=(Conv.RUN_COMPL,)) as bus:
             while not self._observer_stop.is_set():
                 conv = bus.first_message(timeout=0.5)
                 if conv is None or conv.first is None:
@@ -346,7 +347,7 @@ class Soak:
         """Whether these servers are on the bus and started: asking one that is not only blocks the desk."""
         assert self.bus is not None
         peers = self.bus.peers()
-        return all(n in peers and "SHUTDOWN" in peers[n].interest for n in names)
+        return all(n in peers and Conv.SHUTDOWN in peers[n].interest for n in names)
 
     def _operate(self, force: bool = False) -> None:
         now = time.monotonic()
