@@ -119,7 +119,9 @@ def test_lot_script_killed_mid_run_leaves_its_machine_free_and_its_entity_failed
 
 
 def test_request_cancelled_from_the_human_interface_reaches_the_lot_as_req_cancel(lot_cell: Any) -> None:
-    cell = cell_with_machines(lot_cell(machines=[{**CMM, "sim": {"measure_time": 4.0, "pattern": "P"}}]), "cmm_wc")
+    # The first lot holds the CMM while the second's request is imported, listed and cancelled: three
+    # `gwc` processes, which on a loaded machine took longer than a 4 s measurement (the request was bound).
+    cell = cell_with_machines(lot_cell(machines=[{**CMM, "sim": {"measure_time": 12.0, "pattern": "P"}}]), "cmm_wc")
     first, cancelled = _first_on_the_cmm(cell)
     ok(gwc(cell, "import", str(cancelled)))
     wait_for(lambda: holdings(cell, cancelled)[0], 15, "the second lot's request to be queued")
