@@ -2,5 +2,5 @@
 
 link.py is the console's side of the cell (its bus attachment, a listener on the bus, one database
 connection, the operator's actions as the `gwc` commands hold them), with no user interface in it;
-app.py is the Textual application drawn over it; command.py the click command.
+views.py the screens, app.py the Textual application that holds them; command.py the click command.
 """

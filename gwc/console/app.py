@@ -1,10 +1,11 @@
-"""The console's Textual application: one tab per screen of the thesis's HI, the status line always shown.
+"""The console's Textual application: one tab per screen of the thesis's HI (views.py), the status
+line always shown.
 
-Views are read again only when the cell says something that concerns them (link.VIEWS_OF), at most
-every RELOAD_EVERY seconds each and only while shown (a hidden view is read when it is shown again),
-plus once every SAFETY seconds in case a change was not heard. Every read and every action runs in a
-worker thread, so the screen never waits for the cell; a cell that stops and starts under the
-console is noticed from the bus's membership and said on the bottom line.
+Views are read again only when the cell says something that concerns them (link.VIEWS_OF), and only
+while shown (a hidden view is read when it is shown again), plus once every SAFETY seconds in case a
+change was not heard. Every read and every action runs in a worker thread, so the screen never waits
+for the cell; a cell that stops and starts under the console is noticed from the bus's membership
+and said on the bottom line.
 """
 
 from __future__ import annotations
@@ -17,529 +18,35 @@ from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import Any, ClassVar
 
-import psycopg
 from rich.text import Text
 from textual import on
 from textual.app import App, ComposeResult
 from textual.binding import Binding, BindingType
-from textual.containers import Horizontal, Vertical
 from textual.pilot import Pilot
-from textual.screen import ModalScreen
-from textual.widgets import (
-    Button,
-    DataTable,
-    Footer,
-    Header,
-    Input,
-    Label,
-    RichLog,
-    Select,
-    Static,
-    TabbedContent,
-    TabPane,
-)
+from textual.widgets import Footer, Header, RichLog, Static, TabbedContent, TabPane
 
-from gwc.cell import cell_status
-from gwc.client.alarms import alarm_rows
-from gwc.client.machines import machine_rows
-from gwc.client.orders import list_lots, list_orders, rows_of
-from gwc.client.requests import request_tables
 from gwc.config import Config
-from gwc.console.link import VIEWS_OF, WAITING, Answer, CellLink, console_log
+from gwc.console.link import VIEWS_OF, Answer, CellLink, console_log
+from gwc.console.views import (
+    MONITOR_LINES,
+    RELOAD_EVERY,
+    AlarmsView,
+    Confirm,
+    EntryView,
+    LotsView,
+    MachinesView,
+    ModulesView,
+    MonitorView,
+    OrdersView,
+    RequestsView,
+    later,
+)
 from gwc.errors import GwcError
-from gwc.hi.monitor import line_of, matches
-from gwc.ipc.codes import MachineStatus
 
 TICK = 0.1  # how often the console takes what it heard on the bus
-RELOAD_EVERY = 0.25  # a view is read at most this often, however busy the bus
 PEERS_EVERY = 0.5  # how often the bus's membership is looked at (in memory, no traffic)
 SAFETY = 5.0  # the shown view is read this often even when nothing concerning it was heard
-MONITOR_LINES = 2000
 SCREENSHOT_WAIT = 5.0  # a view's read, at most, before its screenshot is taken anyway
-IN_A_RUN = {MachineStatus.SETUP, MachineStatus.RUNNING, MachineStatus.SETUP_SHUT, MachineStatus.RUN_SHUT}
-
-
-def later(widget: Any, at: float, fn: Callable[[], Any]) -> None:
-    """fn at monotonic time `at`: now if that has passed (Textual's timers refuse a zero delay)."""
-    wait = at - time.monotonic()
-    if wait > 0:
-        widget.set_timer(wait, fn)
-    else:
-        fn()
-
-
-class Confirm(ModalScreen[bool]):
-    """A yes/no question before a destructive action."""
-
-    BINDINGS: ClassVar[list[BindingType]] = [("y", "answer(True)", "Yes"), ("n,escape", "answer(False)", "No")]
-
-    def __init__(self, question: str) -> None:
-        super().__init__()
-        self.question = question
-
-    def compose(self) -> ComposeResult:
-        with Vertical(id="confirm"):
-            yield Label(Text(self.question))
-            with Horizontal():
-                yield Button("Yes (y)", id="yes", variant="error")
-                yield Button("No (n)", id="no", variant="primary")
-
-    def action_answer(self, yes: bool) -> None:
-        self.dismiss(yes)
-
-    @on(Button.Pressed)
-    def pressed(self, event: Button.Pressed) -> None:
-        self.dismiss(event.button.id == "yes")
-
-
-class View(Vertical):
-    """A pane that shows rows read from the cell, read again when stale and shown."""
-
-    name_: ClassVar[str] = ""
-    columns: ClassVar[tuple[str, ...]] = ()
-    key: ClassVar[str] = ""
-    help: ClassVar[str] = ""
-
-    def __init__(self) -> None:
-        super().__init__(id=f"view-{self.name_}")
-        self.stale = True
-        self._loading = False
-        self._again = False
-        self._last = 0.0
-        self.rows: list[dict[str, Any]] = []
-
-    @property
-    def console(self) -> ConsoleApp:
-        app = self.app
-        assert isinstance(app, ConsoleApp)
-        return app
-
-    def compose(self) -> ComposeResult:
-        yield Static(Text(self.help), classes="help")
-        yield DataTable(id=f"table-{self.name_}", cursor_type="row", zebra_stripes=True)
-
-    def on_mount(self) -> None:
-        add_columns(self.query_one(f"#table-{self.name_}", DataTable), self.columns)
-
-    def focus_main(self) -> None:
-        self.query_one(DataTable).focus()
-
-    def fetch(self, link: CellLink) -> list[dict[str, Any]] | None:
-        """The view's rows (in a worker thread); None when the database cannot be reached."""
-        raise NotImplementedError
-
-    def reload(self) -> None:
-        """Read the rows again (in a worker); one read at a time, at most every RELOAD_EVERY seconds."""
-        self.stale = False
-        if self._loading:
-            self._again = True
-            return
-        self._loading = True
-        later(self, self._last + RELOAD_EVERY, self._start)
-
-    def _start(self) -> None:
-        self._last = time.monotonic()
-        self.console.run_worker(self._fetch, thread=True)
-
-    def _fetch(self) -> None:
-        try:
-            rows = self.fetch(self.console.link)
-        except Exception as e:  # a bad row must not end the console: shown, logged, read again later
-            self.console.log_.exception("console: reading view %s failed", self.name_)
-            rows = None
-            self.console.call_from_thread(self.console.say, Answer(False, f"reading {self.name_} failed: {e}"))
-        self.console.call_from_thread(self._show, rows)
-
-    def _show(self, rows: list[dict[str, Any]] | None) -> None:
-        self._loading = False
-        if rows is not None:
-            self.rows = rows
-            self.fill(rows)
-        self.console.show_cell_state()
-        if self._again:
-            self._again = False
-            self.reload()
-
-    def fill(self, rows: list[dict[str, Any]]) -> None:
-        fill_table(self.query_one(DataTable), rows, self.columns, self.key)
-
-    def selected(self) -> dict[str, Any] | None:
-        return selected_row(self.query_one(DataTable), self.rows, self.key)
-
-
-def fill_table(table: DataTable[Any], rows: list[dict[str, Any]], columns: tuple[str, ...], key: str) -> None:
-    """Show `rows`, touching only what changed: a busy cell changes a few cells of a long table, and
-    redrawing all of it at every change would cost the machine the cell runs on. A table whose rows
-    were removed or reordered is filled again, keeping the cursor on the same row (by key)."""
-    shown: dict[str, tuple[str, ...]] = table.__dict__.setdefault("_gwc_shown", {})
-    new = {str(r[key]): tuple("" if r.get(c) is None else str(r.get(c)) for c in columns) for r in rows}
-    if list(new)[: len(shown)] != list(shown):
-        current = selected_key(table)
-        table.clear()
-        shown.clear()
-        for k, cells in new.items():
-            table.add_row(*map(Text, cells), key=k)
-            shown[k] = cells
-        if current in shown:
-            table.move_cursor(row=table.get_row_index(current))
-        return
-    for k, cells in new.items():
-        before = shown.get(k)
-        if before is None:
-            table.add_row(*map(Text, cells), key=k)
-        else:
-            for column, old_value, value in zip(columns, before, cells):
-                if value != old_value:
-                    table.update_cell(k, column, Text(value))
-        shown[k] = cells
-
-
-def add_columns(table: DataTable[Any], columns: tuple[str, ...]) -> None:
-    for c in columns:
-        table.add_column(c, key=c)  # keyed by name, for update_cell
-
-
-def selected_key(table: DataTable[Any]) -> str | None:
-    if not table.row_count:
-        return None
-    return table.coordinate_to_cell_key(table.cursor_coordinate).row_key.value
-
-
-def selected_row(table: DataTable[Any], rows: list[dict[str, Any]], key: str) -> dict[str, Any] | None:
-    k = selected_key(table)
-    return next((r for r in rows if str(r[key]) == k), None)
-
-
-class MachinesView(View):
-    name_ = "machines"
-    columns = ("machine_id", "kind", "status", "recipe_id", "machine_run_id", "start_time", "end_time", "accepts", "wc")
-    key = "machine_id"
-    help = "MSTT: each machine's status, its current run and what it accepts.  s start  x stop"
-    BINDINGS: ClassVar[list[BindingType]] = [("s", "start", "Start machine"), ("x", "stop", "Stop machine")]
-
-    def fetch(self, link: CellLink) -> list[dict[str, Any]] | None:
-        peers = set(link.peers())
-        return link.read(lambda conn: machine_rows(conn, link.cfg, peers))
-
-    def action_start(self) -> None:
-        row = self.selected()
-        if row:
-            self.console.act(lambda link: link.start_machine(row["machine_id"]))
-
-    def action_stop(self) -> None:
-        row = self.selected()
-        if not row:
-            return
-        mid = row["machine_id"]
-        if row["status"] in IN_A_RUN:
-            self.console.confirm(
-                f"Machine {mid} is {row['status']} (run {row['machine_run_id']}). Stop it? "
-                "It shuts down when the run is over.",
-                lambda link: link.stop_machine(mid),
-            )
-        else:
-            self.console.act(lambda link: link.stop_machine(mid))
-
-
-class LotsView(View):
-    name_ = "lots"
-    columns = ("entity", "lot", "work_order", "product", "state", "since", "script", "result")
-    key = "entity"
-    help = "DISP: every lot entity.  i import  e export (the selected entity)  I import all waiting  E export all"
-    BINDINGS: ClassVar[list[BindingType]] = [
-        ("i", "decide('import')", "Import"),
-        ("e", "decide('export')", "Export"),
-        ("I", "decide_all('import')", "Import all"),
-        ("E", "decide_all('export')", "Export all"),
-    ]
-
-    def fetch(self, link: CellLink) -> list[dict[str, Any]] | None:
-        return link.read(lambda conn: list_lots(link.cfg, link.log, conn=conn))
-
-    def action_decide(self, action: str) -> None:
-        row = self.selected()
-        if row:
-            self.console.act(lambda link: link.decide(row["entity"], action))
-
-    def action_decide_all(self, action: str) -> None:
-        entities = [r["entity"] for r in self.rows if r["state"] == WAITING[action]]
-        if not entities:
-            self.console.say(Answer(False, f"no entity waits to be {action}ed"))
-            return
-        self.console.act_many(lambda link: link.decide_all(action, entities))
-
-
-class OrdersView(View):
-    name_ = "orders"
-    columns = ("work_order", "customer", "created", "items", "status", "lots")
-    key = "work_order"
-    help = "WOSU: every work order, its items and where its lots are."
-
-    def fetch(self, link: CellLink) -> list[dict[str, Any]] | None:
-        return link.read(lambda conn: list_orders(link.cfg, link.log, conn=conn))
-
-
-class RequestsView(View):
-    name_ = "requests"
-    columns = ("request_key", "entity_id", "op_type", "machines", "priority", "since")
-    reserved_columns = ("machine_id", "entity_id", "machine_run_id", "request_key", "since")
-    key = "request_key"
-    help = "MREQ: machine requests waiting (oldest first), then the reserved machines.  c cancel the request"
-    BINDINGS: ClassVar[list[BindingType]] = [("c", "cancel", "Cancel request")]
-
-    def compose(self) -> ComposeResult:
-        yield from super().compose()
-        yield Static(Text("Reserved machines"), classes="help")
-        yield DataTable(id="table-reserved", cursor_type="row", zebra_stripes=True)
-
-    def on_mount(self) -> None:  # View's on_mount has run too (Textual calls each class's handler)
-        add_columns(self.query_one("#table-reserved", DataTable), self.reserved_columns)
-
-    def focus_main(self) -> None:
-        self.query_one(f"#table-{self.name_}", DataTable).focus()
-
-    def fetch(self, link: CellLink) -> list[dict[str, Any]] | None:
-        tables = link.read(request_tables)
-        if tables is None:
-            return None
-        queue, reserved, _ = tables
-        return [*queue, *({"reserved": r} for r in reserved)]
-
-    def fill(self, rows: list[dict[str, Any]]) -> None:
-        queue = [r for r in rows if "reserved" not in r]
-        reserved = [r["reserved"] for r in rows if "reserved" in r]
-        fill_table(self.query_one(f"#table-{self.name_}", DataTable), queue, self.columns, self.key)
-        fill_table(self.query_one("#table-reserved", DataTable), reserved, self.reserved_columns, "machine_id")
-
-    def selected(self) -> dict[str, Any] | None:
-        queue = [r for r in self.rows if "reserved" not in r]
-        return selected_row(self.query_one(f"#table-{self.name_}", DataTable), queue, self.key)
-
-    def action_cancel(self) -> None:
-        row = self.selected()
-        if row:
-            key = row["request_key"]
-            self.console.confirm(
-                f"Cancel request {key} of entity {row['entity_id']} ({row['op_type']} on {row['machines']})? "
-                "The entity is told REQ_CANCEL.",
-                lambda link: link.cancel_request(key),
-            )
-
-
-class AlarmsView(View):
-    name_ = "alarms"
-    columns = ("alarm_no", "alarm_id", "machine_id", "alarm_text", "raised_by", "raised_at")
-    key = "alarm_no"
-    help = "Pending alarms, oldest first (a machine may wait on one).  c clear the alarm"
-    BINDINGS: ClassVar[list[BindingType]] = [("c", "clear", "Clear alarm")]
-
-    def fetch(self, link: CellLink) -> list[dict[str, Any]] | None:
-        return link.read(alarm_rows)
-
-    def action_clear(self) -> None:
-        row = self.selected()
-        if row:
-            self.console.act(lambda link: link.clear_alarm(row["alarm_no"]))
-
-
-class ModulesView(View):
-    name_ = "modules"
-    columns = ("module", "state", "pid", "uptime", "restarts", "last_exit", "bus")
-    key = "module"
-    help = (
-        "STRT: the cell's modules (under this host's agent where one runs).  s start  x stop  R restart  "
-        "S start the cell"
-    )
-    BINDINGS: ClassVar[list[BindingType]] = [
-        ("s", "start", "Start"),
-        ("x", "stop", "Stop"),
-        ("R", "restart", "Restart"),
-        ("S", "start_cell", "Start cell"),
-    ]
-
-    def fetch(self, link: CellLink) -> list[dict[str, Any]] | None:
-        peers = link.peers()
-        agent, rows = cell_status(link.cfg)
-        for r in rows:
-            peer = peers.get(r["module"])
-            if peer is None:
-                r["bus"] = "-"
-            elif r["module"].startswith("wc:"):
-                r["bus"] = "on bus"
-            else:
-                r["bus"] = "started" if "SHUTDOWN" in peer.interest else "on bus, not started"
-        agent_row = {"module": "agent", "state": "RUNNING" if agent else "not running (unsupervised)"}
-        return [{**agent_row, **(agent or {}), "module": "agent"}, *rows]
-
-    def action_start(self) -> None:
-        row = self.selected()
-        if row and row["module"] != "agent":
-            self.console.act(lambda link: link.start_module(row["module"]))
-
-    def action_stop(self) -> None:
-        row = self.selected()
-        if row and row["module"] != "agent":
-            name = row["module"]
-            self.console.confirm(f"Stop {name}?", lambda link: link.stop_module(name))
-
-    def action_restart(self) -> None:
-        row = self.selected()
-        if row and row["module"] != "agent":
-            name = row["module"]
-            self.console.confirm(
-                f"Restart {name} (stop its process, start it again)?", lambda link: link.restart_module(name)
-            )
-
-    def action_start_cell(self) -> None:
-        self.console.act(lambda link: link.start_cell())
-
-
-class EntryView(Vertical):
-    """WOEN: a work order from a customer and product pickers; each item adds a lot."""
-
-    BINDINGS: ClassVar[list[BindingType]] = [Binding("ctrl+s", "enter_order", "Enter order", priority=True)]
-
-    def __init__(self) -> None:
-        super().__init__(id="view-entry")
-        self.items: list[tuple[str, int]] = []
-        self.stale = True
-
-    def compose(self) -> ComposeResult:
-        yield Static(Text("WOEN: pick a customer and products, then Enter order (ctrl+s)."), classes="help")
-        yield Select([], prompt="Customer", id="customer")
-        with Horizontal(classes="row"):
-            yield Select([], prompt="Product", id="product")
-            yield Input("1", placeholder="quantity", type="integer", id="quantity")
-            yield Button("Add item", id="add")
-        yield Static(Text("items: (none yet: the product above is ordered)"), id="items")
-        yield Button("Enter order", id="enter", variant="success")
-
-    def focus_main(self) -> None:
-        self.query_one("#customer", Select).focus()
-
-    def reload(self) -> None:
-        """The pickers' choices, from CUSTOMERS and PRODUCTS (read when the form is shown)."""
-        self.stale = False
-        app = self.app
-        assert isinstance(app, ConsoleApp)
-        app.run_worker(self._fetch, thread=True)
-
-    def _fetch(self) -> None:
-        app = self.app
-        assert isinstance(app, ConsoleApp)
-
-        def read(conn: psycopg.Connection[Any]) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-            return (
-                rows_of(conn, "SELECT customer_id, name FROM customers ORDER BY 1"),
-                rows_of(conn, "SELECT product_id, description FROM products WHERE script_id IS NOT NULL ORDER BY 1"),
-            )
-
-        got = app.link.read(read)
-        if got is not None:
-            app.call_from_thread(self._options, *got)
-
-    def _options(self, customers: list[dict[str, Any]], products: list[dict[str, Any]]) -> None:
-        for widget, rows, key, label in (
-            (self.query_one("#customer", Select), customers, "customer_id", "name"),
-            (self.query_one("#product", Select), products, "product_id", "description"),
-        ):
-            value = widget.value
-            widget.set_options([(f"{r[key]}  {r[label] or ''}".rstrip(), r[key]) for r in rows])
-            if any(r[key] == value for r in rows):
-                widget.value = value
-
-    def _current(self) -> tuple[str, int] | None:
-        product = self.query_one("#product", Select).value
-        try:
-            qty = int(self.query_one("#quantity", Input).value)
-        except ValueError:
-            qty = 0
-        if product is Select.NULL or qty < 1:
-            return None
-        return str(product), qty
-
-    def _show_items(self) -> None:
-        text = ", ".join(f"{q} x {p}" for p, q in self.items) or "(none yet: the product above is ordered)"
-        self.query_one("#items", Static).update(Text(f"items: {text}"))
-
-    @on(Button.Pressed, "#add")
-    def add(self) -> None:
-        item = self._current()
-        app = self.app
-        assert isinstance(app, ConsoleApp)
-        if item is None:
-            app.say(Answer(False, "pick a product and a quantity of 1 or more"))
-            return
-        self.items.append(item)
-        self._show_items()
-
-    @on(Button.Pressed, "#enter")
-    def action_enter_order(self) -> None:
-        app = self.app
-        assert isinstance(app, ConsoleApp)
-        customer = self.query_one("#customer", Select).value
-        items = self.items or ([c] if (c := self._current()) else [])
-        if customer is Select.NULL or not items:
-            app.say(Answer(False, "a work order needs a customer and at least one product"))
-            return
-        self.items = []
-        self._show_items()
-        app.act(lambda link: link.enter_order(str(customer), items))
-
-
-class MonitorView(Vertical):
-    """The Conversation Monitor inside the console, with its filters (class, module, machine)."""
-
-    def __init__(self) -> None:
-        super().__init__(id="view-monitor")
-        self.records: collections.deque[dict[str, Any]] = collections.deque(maxlen=MONITOR_LINES)
-        self.filters: tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]] = ((), (), ())
-        self.machine_convs: set[str] = set()
-        self.stale = False
-        self.own_name = ""
-
-    def compose(self) -> ComposeResult:
-        yield Static(Text("Every conversation on the bus. Filters (comma-separated, empty: all):"), classes="help")
-        with Horizontal(classes="row"):
-            yield Input(placeholder="class, e.g. MACH_REQ", id="f-class")
-            yield Input(placeholder="module, e.g. msched", id="f-module")
-            yield Input(placeholder="machine, e.g. wc1", id="f-machine")
-        yield RichLog(id="monitor-log", max_lines=MONITOR_LINES, wrap=False)
-
-    def focus_main(self) -> None:
-        self.query_one("#f-class", Input).focus()
-
-    def reload(self) -> None:
-        self._redraw()
-
-    def _match(self, rec: dict[str, Any]) -> bool:
-        # The console's own status-line asks are left out: they would drown a quiet cell's conversations.
-        own = rec.get("initiator") == self.own_name and rec.get("class") == "STATUS_LN"
-        return "message" in rec and not own and matches(rec, *self.filters, self.machine_convs)
-
-    def heard(self, records: list[dict[str, Any]], shown: bool) -> None:
-        self.records.extend(records)
-        if shown:
-            log = self.query_one(RichLog)
-            for rec in records[-MONITOR_LINES:]:
-                if self._match(rec):
-                    log.write(Text(line_of(rec)))
-
-    def _redraw(self) -> None:
-        log = self.query_one(RichLog)
-        log.clear()
-        self.machine_convs = set()
-        for rec in self.records:
-            if self._match(rec):
-                log.write(Text(line_of(rec)))
-
-    @on(Input.Changed)
-    def filter_changed(self) -> None:
-        def split(widget_id: str) -> tuple[str, ...]:
-            return tuple(x.strip() for x in self.query_one(widget_id, Input).value.split(",") if x.strip())
-
-        self.filters = (split("#f-class"), split("#f-module"), split("#f-machine"))
-        self._redraw()
 
 
 class ConsoleApp(App[None]):
@@ -708,7 +215,10 @@ class ConsoleApp(App[None]):
             cell = f"cell DOWN since {self.cell_since}: no module on the bus; the console waits for it"
         dbs = f"database: {self.link.db_error}" if self.link.db_error else "database: ok"
         self._lines["cellstate"].update(
-            Text(f"{cell} | {dbs} | heard {self.heard_count} messages", style="bold" if not self.cell_up else "")
+            Text(
+                f"{cell} | {dbs} | heard {self.heard_count} messages, read the database {self.link.reads} times",
+                style="" if self.cell_up else "bold",
+            )
         )
 
     def reload_status_line(self) -> None:

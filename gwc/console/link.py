@@ -112,6 +112,7 @@ class CellLink:
         self.bus: BlockingBus | None = None
         self.name = f"hi.console.{os.getpid()}"
         self.db_error: str | None = None
+        self.reads = 0  # database reads made for the views: the console's cost to the cell, shown on screen
         self._conn: psycopg.Connection[Any] | None = None
         self._conn_lock = threading.Lock()
         self._next_connect = 0.0
@@ -191,6 +192,7 @@ class CellLink:
                 self._conn = None
                 return None
             self.db_error = None
+            self.reads += 1
             return result
 
     # ----------------------------------------------------------------- actions (worker threads)

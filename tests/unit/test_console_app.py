@@ -9,7 +9,8 @@ from pathlib import Path
 from textual.widgets import DataTable
 
 from gwc.config import Config, private_bus
-from gwc.console.app import Confirm, ConsoleApp, fill_table
+from gwc.console.app import ConsoleApp
+from gwc.console.views import Confirm, fill_table
 from gwc.log import open_log
 from tests.conftest import make_config
 from tests.harness import until
