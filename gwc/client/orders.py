@@ -5,6 +5,7 @@ List; the customers, products and lot scripts an order names."""
 from __future__ import annotations
 
 import logging
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -214,12 +215,19 @@ def list_lots(
     state: str | None = None,
     entity: int | None = None,
     conn: psycopg.Connection[Any] | None = None,
+    changed_since: datetime | None = None,
 ) -> list[dict[str, Any]]:
-    """The Dispatch List (DISP): every lot entity (or those of an order, a state, one entity) and its script."""
+    """The Dispatch List (DISP): every lot entity (or those of an order, a state, one entity, or changed
+    since a time: a screen that stays open reads only what changed) and its script."""
     sql, params = LOTS_SQL, []
-    for col, value in (("l.work_order_id", work_order), ("s.state", state), ("s.entity_id", entity)):
+    for cond, value in (
+        ("l.work_order_id = %s", work_order),
+        ("s.state = %s", state),
+        ("s.entity_id = %s", entity),
+        ("s.updated_at >= %s", changed_since),
+    ):
         if value is not None:
-            sql += f" AND {col} = %s"
+            sql += f" AND {cond}"
             params.append(value)
     rows = read_rows(cfg, log, conn, sql + " ORDER BY s.entity_id", *params)
     for r in rows:

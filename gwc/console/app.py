@@ -45,6 +45,7 @@ from gwc.errors import GwcError
 
 TICK = 0.1  # how often the console takes what it heard on the bus
 PEERS_EVERY = 0.5  # how often the bus's membership is looked at (in memory, no traffic)
+STATUS_EVERY = 0.5  # the status line is asked of the Status Line Server at most this often
 SAFETY = 5.0  # the shown view is read this often even when nothing concerning it was heard
 SCREENSHOT_WAIT = 5.0  # a view's read, at most, before its screenshot is taken anyway
 
@@ -214,19 +215,25 @@ class ConsoleApp(App[None]):
         else:
             cell = f"cell DOWN since {self.cell_since}: no module on the bus; the console waits for it"
         dbs = f"database: {self.link.db_error}" if self.link.db_error else "database: ok"
-        self._lines["cellstate"].update(
-            Text(
-                f"{cell} | {dbs} | heard {self.heard_count} messages, read the database {self.link.reads} times",
-                style="" if self.cell_up else "bold",
-            )
+        self.set_line(
+            "cellstate",
+            f"{cell} | {dbs} | heard {self.heard_count} messages, read the database {self.link.reads} times",
+            "" if self.cell_up else "bold",
         )
+
+    def set_line(self, name: str, text: str, style: str = "") -> None:
+        """Change one of the bottom lines, only if it changed: every update redraws (milliseconds each)."""
+        line = self._lines[name]
+        if getattr(line, "_gwc_text", None) != (text, style):
+            line._gwc_text = (text, style)  # type: ignore[attr-defined]
+            line.update(Text(text, style=style))
 
     def reload_status_line(self) -> None:
         if self._status_busy:
             self._status_again = True
             return
         self._status_busy = True
-        later(self, self._status_last + RELOAD_EVERY * 2, lambda: self.run_worker(self._status_line, thread=True))
+        later(self, self._status_last + STATUS_EVERY, lambda: self.run_worker(self._status_line, thread=True))
 
     def _status_line(self) -> None:
         self._status_last = time.monotonic()
@@ -234,7 +241,7 @@ class ConsoleApp(App[None]):
         self.call_from_thread(self._show_status_line, text)
 
     def _show_status_line(self, text: str) -> None:
-        self._lines["statusline"].update(Text(f"Status line: {text}"))
+        self.set_line("statusline", f"Status line: {text}")
         self._status_busy = False
         if self._status_again:
             self._status_again = False
@@ -287,9 +294,7 @@ class ConsoleApp(App[None]):
 
     def say(self, answer: Answer) -> None:
         self.answers.append(answer)
-        self._lines["answer"].update(
-            Text(answer.text, style="" if answer.ok else "bold red"),
-        )
+        self.set_line("answer", answer.text, "" if answer.ok else "bold red")
         if answer.text != "asking the cell ...":
             self.notify(answer.text, severity="information" if answer.ok else "error", markup=False, timeout=6)
 
