@@ -112,10 +112,10 @@ class Space:
     async def folder(self, parent: Node, path: str, name: str) -> Node:
         return await parent.add_folder(self.nodeid(path), ua.QualifiedName(name, self.ns))
 
-    async def object(self, parent: Node, path: str, name: str, layout: dict[str, ua.VariantType] = {}) -> Node:  # noqa: B006
+    async def object(self, parent: Node, path: str, name: str, layout: dict[str, ua.VariantType] | None = None) -> Node:
         """An object with the variables of `layout` (all null until written)."""
         node = await parent.add_object(self.nodeid(path), ua.QualifiedName(name, self.ns))
-        for var, vtype in layout.items():
+        for var, vtype in (layout or {}).items():
             await node.add_variable(
                 self.nodeid(f"{path}/{var}"), ua.QualifiedName(var, self.ns), ua.Variant(), datatype=vtype.value
             )

@@ -202,9 +202,15 @@ def test_a_client_sees_machines_lots_and_alarms_live_and_commands_the_cell(opcua
             assert [a["alarm_no"] for a in pending] == [alarm_no]
             # The CMM waits to be homed: the start answers that it completes later (the client is not held).
             assert (await starting)[0] == "GoodCompletesAsynchronously"
-            code, _ = await call(operator, "alarms", "ClearAlarm", ua.Variant(alarm_no, ua.VariantType.Int64))
+            # The standard Acknowledge of the condition clears the cell's alarm; ClearAlarm then finds it
+            # cleared already (the cell's Notnow, BadInvalidState).
+            condition = operator.get_node(alarm.NodeId)
+            acknowledge = ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge)
+            code, _ = await condition.call_method(acknowledge, alarm.EventId, ua.LocalizedText("homed"))
             assert code == "ACK_OK"
             assert json.loads(ok(await asyncio.to_thread(gwc, cell, "alarm", "list", "--json"))) == []
+            with pytest.raises(ua.UaStatusCodeError, match="BadInvalidState"):
+                await call(operator, "alarms", "ClearAlarm", ua.Variant(alarm_no, ua.VariantType.Int64))
             await until(lambda: [e for _, e in rec.events if e.NodeId == alarm.NodeId and not e.Retain], 10, "cleared")
             await until(lambda: "Idle" in rec.values(status.nodeid), 10, "the CMM Idle")
             assert rec.values(node("machines/cmm_wc/MachineryItemState/CurrentState").nodeid)[-1].Text == "NotExecuting"
