@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import json
 import logging
 import os
 import stat
@@ -10,12 +11,15 @@ import time
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
+from gwc.cli import cli
 from gwc.config import BusConfig
 from gwc.errors import BusError, MessageError
 from gwc.ipc import auth, catalogue, keys, wire
 from gwc.ipc.auth import Guard
 from gwc.ipc.codes import AckCode
+from tests.conftest import make_config
 
 LOG = logging.getLogger("gwc.test.auth")
 
@@ -168,3 +172,20 @@ def test_the_lot_classes_are_the_conversations_the_lot_library_starts() -> None:
     started -= {"RUN_COMPL", "UPD_ME_ST", "LOT_MOVED"}  # listened to, never sent
     started -= {"CREATE_LOT"}  # create_lot() is the operator's (the HI and the soak call it), not an entity's
     assert started == catalogue.LOT_CLASSES
+
+
+def test_gwc_key_commands_make_show_and_rotate_without_printing_secrets(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg = make_config(tmp_path, None)  # a private cell: its keys made at set-up
+    monkeypatch.setenv("GWC_CONFIG", str(cfg.path))
+    runner = CliRunner()
+    _, keyset = keys.load(cfg.bus, "module")
+    again = runner.invoke(cli, ["key", "new"])
+    assert again.exit_code != 0 and "exists" in again.output  # never replaced by accident
+    assert runner.invoke(cli, ["key", "rotate", "--overlap", "2"]).exit_code != 0  # shorter than the take-up
+    assert runner.invoke(cli, ["key", "rotate", "--take-up", "3", "--overlap", "30"]).exit_code == 0
+    shown = runner.invoke(cli, ["key", "show", "--json"])
+    assert shown.exit_code == 0 and len(json.loads(shown.output)) == 4
+    assert all(k.secret.hex() not in shown.output for k in keys.load(cfg.bus, "module")[1].keys)
+    assert keys.load(cfg.bus, "module")[1].cell_id == keyset.cell_id
