@@ -94,6 +94,7 @@ def test_bench_pairs_each_status_change_with_its_notification_in_order() -> None
 
     heard = [(1.0, "wc1", "Setup"), (1.1, "wc1", "Running"), (1.2, "wc2", "Idle"), (1.3, "wc1", "Idle")]
     seen = [
+        (0.5, "machines/wc1/status", "Idle"),  # the initial value
         (1.01, "machines/wc1/status", "Setup"),
         (1.02, "machines/wc1/machine_run_id", 7),
         (1.15, "machines/wc1/status", "Running"),
@@ -102,3 +103,12 @@ def test_bench_pairs_each_status_change_with_its_notification_in_order() -> None
     lat, missed = latencies(heard, seen)
     assert [(t, round(x, 3)) for t, x in lat] == [(1.0, 0.01), (1.1, 0.05), (1.3, 0.05)]
     assert missed == 1  # wc2's change was never notified
+
+
+def test_bench_counts_two_changes_shown_as_one_without_losing_the_next() -> None:
+    from gwc.bench.opcua import latencies
+
+    heard = [(1.0, "wc1", "Setup"), (1.001, "wc1", "Running"), (1.2, "wc1", "Idle")]
+    seen = [(1.05, "machines/wc1/status", "Running"), (1.25, "machines/wc1/status", "Idle")]
+    lat, missed = latencies(heard, seen)
+    assert missed == 1 and [round(x, 3) for _, x in lat] == [0.049, 0.05]
