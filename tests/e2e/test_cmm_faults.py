@@ -231,13 +231,20 @@ def test_me_killed_while_idle_one_gwc_machine_start_brings_the_machine_back_with
         text=True,
     )
     try:
-        clear(cell, pending_alarm(cell, "HOME_CMM", "cmm_wc"))  # the operator pushes the start button
+        # The homing alarm comes once the command has started, spawned the ME (a Python process importing
+        # the package: seconds on a loaded 2-core machine) and held ME_START with the WC.
+        homing = wait_for(
+            lambda: cell.query("select alarm_no from alarms where alarm_id = 'HOME_CMM' and cleared_at is null"),
+            60,
+            "the new start's HOME_CMM",
+        )
+        clear(cell, int(homing[0][0]))  # the operator pushes the start button
         out, err = started.communicate(timeout=60)
         assert started.returncode == 0, err + out
         assert "me:cmm_wc: spawned" in out and "wc:cmm_wc: started" in out
         assert Cmm(cell, ear).measures() == "PASS"
-        homing = cell.query("select count(*), count(cleared_at) from alarms where alarm_id = 'HOME_CMM'")[0]
-        assert homing == (2, 2)  # one per start: none from a stale ME_START left in the queue
+        homings = cell.query("select count(*), count(cleared_at) from alarms where alarm_id = 'HOME_CMM'")[0]
+        assert homings == (2, 2)  # one per start: none from a stale ME_START left in the queue
     finally:
         if started.poll() is None:
             started.kill()
