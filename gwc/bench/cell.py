@@ -38,6 +38,7 @@ import psycopg
 
 from gwc import db
 from gwc.bench import summary
+from gwc.bench.heal import freeze_trials
 from gwc.cell import machine_procs
 from gwc.client.orders import decide
 from gwc.client.session import context
@@ -106,21 +107,24 @@ class CellBench:
         log: logging.Logger,
         say: Callable[[str], None],
         kernel_filter: bool = True,
+        freezes: int = 0,
     ) -> None:
         self.var = var.resolve()
         self.n = machines
         self.m = lots
         self.solo = solo
         self.deaths = deaths
+        self.freezes = freezes
         self.log = log
         self.say = say
         self.fast = [f"wc{i}" for i in range(1, machines + 1)]
-        self.slow = ["slow1", "slow2"] if deaths else []
+        self.slow = ["slow1", "slow2"] if deaths or freezes else []
         specs = [{"id": m, "kind": "dummy", "run_time": 0.0} for m in self.fast]
         specs += [{"id": m, "kind": "dummy", "run_time": SLOW_RUN} for m in self.slow]
         if self.var.exists():
             shutil.rmtree(self.var)
-        self.cell = PrivateCell(self.var, specs, log, database_url, bus={"kernel_filter": kernel_filter})
+        # With the host's agent, as `gwc start` runs a cell: it announces a death the moment it happens.
+        self.cell = PrivateCell(self.var, specs, log, database_url, bus={"kernel_filter": kernel_filter}, agent=True)
         self.conn: psycopg.Connection[Any] | None = None
 
     def run(self) -> dict[str, Any]:
@@ -145,6 +149,8 @@ class CellBench:
                 result.update(self._solo())
             if self.deaths:
                 result["death_to_reroute_s"] = summary(self._death_trials())
+            if self.freezes:
+                result["freezes"] = freeze_trials(self, self.freezes)
             return result
         finally:
             if self.conn is not None:
@@ -278,21 +284,7 @@ class CellBench:
         self.say(f"{self.deaths} death trials: kill -9 the machine pair a lot runs on, time until it gets the other")
         times = []
         for k in range(self.deaths):
-            entity = self._order([[m] for m in self.slow])
-            decided: set[tuple[int, str]] = set()
-            deadline = time.monotonic() + LOT_TIMEOUT
-            victim = None
-            while victim is None:  # its run has started on one of the two
-                self._operator(decided, [entity])
-                row = self.conn.execute(
-                    "SELECT r.machine_id FROM reserved_machines r JOIN machine_status s USING (machine_id) "
-                    "WHERE r.entity_id = %s AND s.status = 'Running'",
-                    (entity,),
-                ).fetchone()
-                victim = row[0] if row else None
-                if time.monotonic() > deadline:
-                    raise GwcError(f"death trial {k + 1}: the lot's run never started (entity {entity})")
-                time.sleep(POLL)
+            entity, victim, deadline, decided = self.running_lot(f"death trial {k + 1}")
             other = next(m for m in self.slow if m != victim)
             killed_at = time.time()
             for p in machine_procs(self.cell.cfg, victim):
@@ -321,6 +313,26 @@ class CellBench:
                 time.sleep(POLL * 5)
             self._machine_up(victim)
         return times
+
+    def running_lot(self, what: str) -> tuple[int, str, float, set[tuple[int, str]]]:
+        """A lot ordered on either slow machine, once its run has started: (entity, its machine, the
+        trial's deadline, the operator's decisions so far)."""
+        assert self.conn is not None
+        entity = self._order([[m] for m in self.slow])
+        decided: set[tuple[int, str]] = set()
+        deadline = time.monotonic() + LOT_TIMEOUT
+        while True:
+            self._operator(decided, [entity])
+            row = self.conn.execute(
+                "SELECT r.machine_id FROM reserved_machines r JOIN machine_status s USING (machine_id) "
+                "WHERE r.entity_id = %s AND s.status = 'Running'",
+                (entity,),
+            ).fetchone()
+            if row:
+                return entity, str(row[0]), deadline, decided
+            if time.monotonic() > deadline:
+                raise GwcError(f"{what}: the lot's run never started (entity {entity})")
+            time.sleep(POLL)
 
     def _machine_up(self, machine: str) -> None:
         """The killed machine back up (its WC resumes it or it needs ME_START), ready for the next trial."""
@@ -373,15 +385,29 @@ def _ms(s: dict[str, float]) -> str:
     show_default=True,
     help="The bus's kernel filter (docs/protocol.md): off shows what it saves.",
 )
+@click.option(
+    "--freezes",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Freeze trials (gwc/bench/heal.py): SIGSTOP a running machine's WC for 8 s, count runs done twice.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 def command(
-    machines: int, lots: int, solo: int, deaths: int, where: Path | None, kernel_filter: bool, as_json: bool
+    machines: int,
+    lots: int,
+    solo: int,
+    deaths: int,
+    where: Path | None,
+    kernel_filter: bool,
+    freezes: int,
+    as_json: bool,
 ) -> None:
     """Run lots through a private cell of N dummy machines: lots/s, the cell's overhead per lot
     (machine request to unreserve, median and p99) and the time from a machine's death to the
     first lot served by its alternative. Uses $GWC_DATABASE_URL if set, else an embedded cluster
     of its own."""
-    if machines < 1 or lots < 1 or solo < 0 or deaths < 0:
+    if machines < 1 or lots < 1 or solo < 0 or deaths < 0 or freezes < 0:
         raise click.BadParameter("--machines and --lots must be at least 1, --solo and --deaths at least 0")
     cfg, log = context()
     bench = CellBench(
@@ -394,6 +420,7 @@ def command(
         log,
         (lambda s: None) if as_json else click.echo,
         kernel_filter,
+        freezes,
     )
     result = bench.run()
     if as_json:
@@ -418,3 +445,9 @@ def command(
             click.echo(f"    {k:22s} (ms): {_ms(v)}")
     if "death_to_reroute_s" in result:
         click.echo(f"death to reroute (s): {_ms(result['death_to_reroute_s'])}")
+    if "freezes" in result:
+        f = result["freezes"]
+        click.echo(
+            f"WC frozen {f['freeze_s']:g}s mid-run, {f['trials']} trials: "
+            f"runs done twice {f['runs_done_twice']}, lots {f['lots']}"
+        )

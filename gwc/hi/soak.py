@@ -36,6 +36,12 @@ from gwc.soak.plan import ACTION_WEIGHTS
     type=click.Path(file_okay=False, path_type=Path),
     help="The soak's folder (default: var/soak): actions.jsonl, report.json, the private cell.",
 )
+@click.option(
+    "--agent/--no-agent",
+    default=True,
+    show_default=True,
+    help="The host's agent restarts what is killed (--no-agent: the driver restarts it, as a cell without one).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 def soak(
     minutes: float,
@@ -44,6 +50,7 @@ def soak(
     kinds: tuple[str, ...],
     replay: Path | None,
     where: Path | None,
+    agent: bool,
     as_json: bool,
 ) -> None:
     """Run lots through a private cell of MSCHED, the servers and dummy machines while a seeded
@@ -56,7 +63,7 @@ def soak(
     actions.jsonl; the same seed gives the same faults in the same order.
     """
     cfg, log = context()
-    options = dict(seed=seed, minutes=minutes, machines=machines, kinds=tuple(kinds))
+    options = dict(seed=seed, minutes=minutes, machines=machines, kinds=tuple(kinds), agent=agent)
     if replay is not None:
         h = read_header(replay)
         options = dict(
@@ -69,6 +76,7 @@ def soak(
             action_every=tuple(h["action_every"]),
             max_active=h["max_active"],
             script_path=h["script_path"],
+            agent=h.get("agent", False),
         )
         click.echo(f"replaying {replay}: seed {h['seed']}, {h['minutes']:g} min")
     opts = SoakOptions(var=(where or cfg.var / "soak"), database_url=os.environ.get("GWC_DATABASE_URL"), **options)

@@ -12,11 +12,22 @@ from gwc.lot.entity import (
     traveller_path,
     verdict,
 )
-from gwc.lot.errors import LotError, LotTimeout, MachineLost, RequestCancelled, RequestRefused, RunFailed, ScriptStopped
+from gwc.lot.errors import (
+    LotError,
+    LotTimeout,
+    MachineDied,
+    MachineLost,
+    RequestCancelled,
+    RequestRefused,
+    RunFailed,
+    RunInDoubt,
+    ScriptStopped,
+)
 
 __all__ = [
     "LotError",
     "LotTimeout",
+    "MachineDied",
     "MachineLost",
     "MachineRequest",
     "Operation",
@@ -26,6 +37,7 @@ __all__ = [
     "Reservation",
     "Run",
     "RunFailed",
+    "RunInDoubt",
     "ScriptStopped",
     "Timeouts",
     "create_lot",

@@ -50,6 +50,9 @@ class EntityCore:
         self.log = log
         self.timeouts = timeouts or Timeouts()
         self.max_tries = max_tries
+        # What the lot script decides for a run in doubt past its bound (runs.py): "hold" (the safe
+        # default for a physical part: the entity stops, failed with the reason) or "reroute".
+        self.in_doubt = "hold"
         self.lot_id: int | None = None
         self.state: str | None = None
         self.product_id: str | None = None
@@ -63,6 +66,7 @@ class EntityCore:
         # Every machine's status changes as (when, status, machine_run_id), from UPD_ME_ST (and MACHINE_STATUS
         # when a wait reads it): a Shutdown stays known after the machine is up again.
         self._history: dict[str, list[tuple[float, str, int | None]]] = {}
+        self._deaths: dict[str, list[tuple[float, str]]] = {}  # module -> (when, how), from MOD_DIED
         self._peer_inc: dict[str, int] = {}  # bus peers present now -> incarnation
         self._peer_left: dict[str, float] = {}  # bus peers that left -> when
         self._began: dict[tuple[str, int], tuple[float, int | None]] = {}  # (machine, run) -> when, its WC's inc
@@ -170,9 +174,19 @@ class EntityCore:
                 return when, status, run
         return None
 
+    def _died(self, module: str, since: float) -> tuple[float, str] | None:
+        """(under the lock) The first death of `module` an agent announced since `since`: (when, how)."""
+        for when, how in self._deaths.get(module, ()):
+            if when >= since:
+                return when, how
+        return None
+
     def _lost(self, machine_id: str, machine_run_id: int) -> str | None:
         """(under the lock) Why the machine's WC will not answer for this run any more, if it will not."""
         since, inc = self._began.get((machine_id, machine_run_id), (time.monotonic(), None))
+        died = self._died(f"me:{machine_id}", since)
+        if died is not None:
+            return f"me:{machine_id} died ({died[1]})"
         if self._went(machine_id, since, SHUT) is not None:
             return f"{machine_id} shut down"
         wc = f"wc:{machine_id}"

@@ -51,7 +51,7 @@ from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
-from gwc.lot.errors import LotError, MachineLost, ScriptStopped
+from gwc.lot.errors import LotError, MachineDied, MachineLost, ScriptStopped
 from gwc.lot.model import (
     IMPORTED,
     LISTENS,
@@ -230,11 +230,12 @@ class OperationEntity(EntityRuns):
         A machine lost (it shut down, its WC went silent or left, or it turned Idle without completing
         the run) is given back and the operation asked for again, up to `max_tries` times, each try
         after a pause (Timeouts.pause, doubling) and once a machine that can serve it is up; then
-        MachineLost.
+        MachineLost. A machine whose ME's death its agent announced (MachineDied) is known to be out of
+        service already (its machine is Shutdown), so the next try goes without the pause.
         """
         lost: MachineLost | None = None
         for attempt in range(1, self.max_tries + 1):
-            if lost is not None:
+            if lost is not None and not isinstance(lost, MachineDied):
                 self._pause(attempt - 1, f"trying {op_type} again")
                 self._wait_machine_up(op_type, alternatives, time.monotonic() + self.timeouts.machines)
             res = self.reserve(op_type, alternatives, priority)

@@ -31,6 +31,14 @@ class MachineLost(LotError):
     """A machine reserved by the entity shut down (or its WC went silent) before the run completed."""
 
 
+class MachineDied(MachineLost):
+    """A reserved machine's ME died (its agent said so): the run is lost for certain, not in doubt."""
+
+
+class RunInDoubt(LotError):
+    """A machine's run could not be heard of within its bound, and the lot script holds the entity."""
+
+
 class RunFailed(LotError):
     """A machine refused to set up or start a run."""
 

@@ -20,7 +20,7 @@ from gwc.retry import Backoff
 
 T = TypeVar("T")
 S = LotState
-LISTENS = (Conv.RUN_COMPL, Conv.UPD_ME_ST, Conv.LOT_MOVED)
+LISTENS = (Conv.RUN_COMPL, Conv.UPD_ME_ST, Conv.MOD_DIED, Conv.LOT_MOVED)
 # Until its lot is imported an entity hears only its moves: the cell's machine traffic is no
 # business of a lot waiting at the door, and in a busy cell many wait there.
 WAITING_LISTENS = (Conv.LOT_MOVED,)
@@ -49,6 +49,12 @@ class Timeouts:
     setup: float = 300.0  # SETUP_RUN (the CMM waits for its start button to be pushed)
     run: float = 600.0  # from START_RUN to RUN_COMPL
     lost_grace: float = 3.0  # RUN_COMPL may still follow a machine's Shutdown (Run_Shut) or Idle
+    # After an agent announced an ME's death: time for its WC to store a RUN_COMPL the ME had already
+    # queued (it then completes the run as usual) before the run is counted lost.
+    death_settle: float = 0.2
+    # A run whose machine went Shutdown unheard (WC silent) is in doubt until its expected time
+    # (the machine's `run_time` in cell.toml) plus this from its start; then the lot script decides.
+    in_doubt: float = 30.0
     cleanup: float = 5.0  # each cleanup conversation of a failing entity
     retry: float = 60.0  # asking a server (ls, msched) again while it is away, restarting or not started
     backoff: float = 0.2  # the first pause between those asks, doubling ...

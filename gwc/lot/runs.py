@@ -6,12 +6,12 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 
-from gwc.errors import DatabaseError
+from gwc.errors import DatabaseError, GwcError
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.names import Conv, Msg
-from gwc.lot.errors import MachineLost, RunFailed
-from gwc.lot.model import ENDED, Reservation, Run
+from gwc.lot.errors import MachineDied, MachineLost, RunFailed, RunInDoubt
+from gwc.lot.model import ENDED, SHUT, Reservation, Run, now_text
 from gwc.lot.reserve import EntityReserve
 
 
@@ -62,18 +62,29 @@ class EntityRuns(EntityReserve):
             )
 
     def start_run(self, machine_id: str, machine_run_id: int) -> None:
-        """START_RUN to the machine's WC: run what was set up (MachineLost if the machine goes meanwhile)."""
+        """START_RUN to the machine's WC: run what was set up (MachineLost if the machine goes meanwhile).
+
+        A machine that goes Shutdown unheard (no death known) before its answer may have started the
+        run all the same (its WC froze after telling the ME): the run is then waited for as a run in
+        doubt (wait_run_complete), never given up and run elsewhere blindly."""
+        started = time.monotonic()
         with self._cond:
-            self._began.setdefault(
-                (machine_id, machine_run_id), (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
+            self._began.setdefault((machine_id, machine_run_id), (started, self._peer_inc.get(f"wc:{machine_id}")))
+        try:
+            ack = self._ask_wc(
+                Conv.START_RUN,
+                message(Msg.START_RUN, machine_id=machine_id, machine_run_id=machine_run_id),
+                machine_id,
+                machine_run_id,
+                self.timeouts.answer,
             )
-        ack = self._ask_wc(
-            Conv.START_RUN,
-            message(Msg.START_RUN, machine_id=machine_id, machine_run_id=machine_run_id),
-            machine_id,
-            machine_run_id,
-            self.timeouts.answer,
-        )
+        except MachineLost as e:
+            with self._cond:
+                doubt = self._doubt_since(machine_id, machine_run_id, started) is not None
+            if not doubt:
+                raise
+            self.log.warning("START_RUN of run %d unanswered (%s): it may have started: in doubt", machine_run_id, e)
+            return
         if ack.ack_code != AckCode.ACK_OK:
             self._raise_if_lost(machine_id, machine_run_id, ack)
             raise RunFailed(
@@ -87,13 +98,20 @@ class EntityRuns(EntityReserve):
     ) -> dict[str, str]:
         """Wait for RUN_COMPL of this run from every machine.
 
-        A machine has left the run when, since the run began there, it went Shutdown, or Idle with no
-        or another machine_run_id, or on to another run, and no RUN_COMPL followed within lost_grace.
-        That it is up again by now (restarted by the operator) changes nothing: the status history
+        A machine has left the run when, since the run began there, its ME died (its agent said so:
+        the run is lost for certain, MachineDied, after `death_settle`), or it went Idle with no or
+        another machine_run_id, or on to another run, or up again after a Shutdown, and no RUN_COMPL
+        followed within lost_grace. That it is up again by now changes nothing: the status history
         remembers. A machine Idle after our run is how every run ends, a moment before its RUN_COMPL:
         that one gets `answer` to come. A machine that left the run may still have completed it: its
         WC stores the outcome in MACHINE_RUN_OUTCOME before it goes Idle, and may have died before its
         RUN_COMPL went out. So the outcome is read there, and only a run with none is lost (MachineLost).
+
+        A machine that went Shutdown and stays so, with no death known, only cannot be heard (its WC
+        silent: frozen, cut off, or dead where no agent runs): its run is **in doubt**, not lost. The
+        entity waits for its RUN_COMPL or stored outcome (read every POLL) or a death, until the run's
+        expected time (cell.toml `run_time` of the machine) plus Timeouts.in_doubt from its start;
+        then the lot script decides (`in_doubt`): hold (the default) or reroute. Never run again blindly.
         """
         started = time.monotonic()
         deadline = started + (timeout or self.timeouts.run)
@@ -103,7 +121,7 @@ class EntityRuns(EntityReserve):
                 lambda: self._run_ended(machine_run_id, machines, started),
                 max(0.0, deadline - time.monotonic()),
                 what,
-                poll=lambda: self._read_status(machines, ENDED, machine_run_id),
+                poll=lambda: self._poll_run(machine_run_id, machines, started),
             )
             if done:
                 self.log.info(
@@ -117,22 +135,43 @@ class EntityRuns(EntityReserve):
                         "run %d on %s: no RUN_COMPL came, MACHINE_RUN_OUTCOME says %s", machine_run_id, m, code
                     )
                     self._runs[(m, machine_run_id)] = code
-            lost = [why for m, why in by_machine.items() if m not in outcomes]
+            lost = [m for m in by_machine if m not in outcomes]
             if lost:
-                self.log.error("%s, and no RUN_COMPL followed nor is its outcome stored", lost[0])
-                raise MachineLost(f"{lost[0]}: the run cannot complete")
+                why = by_machine[lost[0]]
+                with self._cond:
+                    doubt = any(self._doubt_since(m, machine_run_id, started) is not None for m in lost)
+                    died = all(self._run_death(m, machine_run_id, started) for m in lost)
+                if doubt:
+                    self._decide_in_doubt(lost[0], machine_run_id, why)
+                self.log.error("%s, and no RUN_COMPL followed nor is its outcome stored", why)
+                raise (MachineDied if died else MachineLost)(f"{why}: the run cannot complete")
 
     def _run_ended(
         self, machine_run_id: int, machines: Sequence[str], started: float
     ) -> tuple[bool, dict[str, str]] | None:
         """(under the lock) (True, machine -> ack code) once every machine's RUN_COMPL of the run came;
-        (False, machine -> why) once some left the run without one; else None."""
+        (False, machine -> why) once some left the run without one, or its doubt outlived its bound;
+        else None."""
         if all((m, machine_run_id) in self._runs for m in machines):
             return True, {m: self._runs[(m, machine_run_id)] for m in machines}
         now = time.monotonic()
         left: dict[str, str] = {}
         for m in machines:
             if (m, machine_run_id) in self._runs:
+                continue
+            died = self._run_death(m, machine_run_id, started)
+            if died is not None:  # known for certain: no grace, only the moment its WC needs to settle
+                if now - died[0] >= self.timeouts.death_settle:
+                    left[m] = f"me:{m} died ({died[1]}) during run {machine_run_id}"
+                continue
+            shut = self._doubt_since(m, machine_run_id, started)
+            if shut is not None:
+                bound = self._doubt_bound(m, machine_run_id, started)
+                if now > bound:
+                    left[m] = (
+                        f"{m} went Shutdown during run {machine_run_id} and has not been heard of since "
+                        f"({now - shut:.0f}s; the run's bound is {bound - shut:.0f}s after that)"
+                    )
                 continue
             since = self._began.get((m, machine_run_id), (started, None))[0]
             went = self._went(m, since, ENDED, machine_run_id)
@@ -145,6 +184,75 @@ class EntityRuns(EntityReserve):
                 other = f" (run {run})" if run != machine_run_id else ""
                 left[m] = f"{m} went {status}{other} during run {machine_run_id}"
         return (False, left) if left else None
+
+    def _doubt_since(self, machine_id: str, machine_run_id: int, started: float) -> float | None:
+        """(under the lock) When the machine went Shutdown during the run, if it is Shutdown still (not up
+        again, not on another run) with no death known: the run is in doubt since then; else None."""
+        since = self._began.get((machine_id, machine_run_id), (started, None))[0]
+        went = self._went(machine_id, since, SHUT)
+        if went is None or self._run_death(machine_id, machine_run_id, started) is not None:
+            return None
+        last = self._history[machine_id][-1]
+        if last[1] not in SHUT or (last[2] is not None and last[2] != machine_run_id):
+            return None
+        return went[0]
+
+    def _doubt_bound(self, machine_id: str, machine_run_id: int, started: float) -> float:
+        """The moment a run in doubt is given up on: its expected time after it began, plus in_doubt."""
+        began = self._began.get((machine_id, machine_run_id), (started, None))[0]
+        try:
+            expected = float(self.cfg.machine(machine_id).options.get("run_time", 0.0))
+        except (GwcError, TypeError, ValueError):
+            expected = 0.0
+        return began + expected + self.timeouts.in_doubt
+
+    def _poll_run(self, machine_run_id: int, machines: Sequence[str], started: float) -> None:
+        """The wait's fallback reads: MACHINE_STATUS, and for a run in doubt MACHINE_RUN_OUTCOME (a WC that
+        was frozen stores the run when it wakes, though its machine stays Shutdown)."""
+        self._read_status(machines, ENDED, machine_run_id)
+        with self._cond:
+            doubted = [
+                m
+                for m in machines
+                if (m, machine_run_id) not in self._runs and self._doubt_since(m, machine_run_id, started) is not None
+            ]
+        if not doubted:
+            return
+        outcomes = self._run_outcomes(machine_run_id, doubted)
+        with self._cond:
+            for m, code in outcomes.items():
+                self.log.warning("run %d on %s was in doubt: MACHINE_RUN_OUTCOME says %s", machine_run_id, m, code)
+                self._runs[(m, machine_run_id)] = code
+            self._cond.notify_all()
+
+    def _decide_in_doubt(self, machine_id: str, machine_run_id: int, why: str) -> None:
+        """The run's doubt outlived its bound: the lot script's decision (`in_doubt`), logged and kept in
+        the traveller. reroute (or retry): MachineLost, so the operation is asked for again; hold:
+        RunInDoubt, the entity stops and fails with the reason, for the operator to see to the part."""
+        decision = self.in_doubt
+        self.log.error(
+            "run %d on %s is in doubt (%s): the lot script decides: %s", machine_run_id, machine_id, why, decision
+        )
+        self.traveller.setdefault("decisions", []).append(
+            {
+                "machine_run_id": machine_run_id,
+                "machine": machine_id,
+                "why": why,
+                "decision": decision,
+                "at": now_text(),
+            }
+        )
+        self._save()
+        if decision in ("reroute", "retry"):
+            raise MachineLost(f"{why}: in doubt, {decision} by the lot script's decision")
+        raise RunInDoubt(
+            f"{why}: in doubt, held for the operator (if the run completes on {machine_id} it is recorded, "
+            "not run again)"
+        )
+
+    def _run_death(self, machine_id: str, machine_run_id: int, started: float) -> tuple[float, str] | None:
+        """(under the lock) The ME death an agent announced since the run began on the machine."""
+        return self._died(f"me:{machine_id}", self._began.get((machine_id, machine_run_id), (started, None))[0])
 
     def _run_outcomes(self, machine_run_id: int, machines: Sequence[str]) -> dict[str, str]:
         """machine -> ack code of the run as its WC stored it (MACHINE_RUN_OUTCOME); {} if unreadable."""

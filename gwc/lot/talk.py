@@ -16,7 +16,7 @@ from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.core import EntityCore
 from gwc.lot.errors import LotError, LotTimeout, MachineLost
-from gwc.lot.model import ALREADY, FOREVER, LISTENS, SHUT, Alternative, WcCall
+from gwc.lot.model import ALREADY, FOREVER, HISTORY, LISTENS, SHUT, Alternative, WcCall
 from gwc.module import ask_again
 
 
@@ -218,7 +218,7 @@ class EntityTalk(EntityCore):
     # ----------------------------------------------------------------- broadcasts and peers
 
     async def _listen(self) -> None:
-        """Broadcasts this entity listens to: RUN_COMPL, UPD_ME_ST, LOT_MOVED."""
+        """Broadcasts this entity listens to: RUN_COMPL, UPD_ME_ST, MOD_DIED, LOT_MOVED."""
         assert self._bus is not None
         bus = self._bus.bus
         while True:
@@ -234,6 +234,10 @@ class EntityTalk(EntityCore):
                     self._runs[(m.machine_id, int(m.machine_run_id))] = m.ack_code
                 elif m.name == Msg.UPDATE_ME_STATUS:
                     self._note(m.machine_id, m.status, m.machine_run_id)
+                elif m.name == Msg.MODULE_DIED:
+                    deaths = self._deaths.setdefault(m.module, [])
+                    deaths.append((time.monotonic(), m.how))
+                    del deaths[:-HISTORY]
                 elif m.name == Msg.LOT_MOVED and int(m.entity_id) == self.entity_id:
                     self._moved.append((m.action, m.lot_id))
                 self._cond.notify_all()

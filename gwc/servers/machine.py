@@ -7,9 +7,11 @@ asker expects, so two askers can never both win a race; and it broadcasts every 
 Update_ME_Status, so MSCHED and the operator learn of it without polling.
 
 It also watches that each machine's WC is alive: a WC beats on the bus every heartbeat; one silent
-longer than its machine's me_config.liveness_s while the machine is not Shutdown has died with its
-machine (a kill -9 of the pair says nothing), so the machine is set Shutdown, the change broadcast
-(MSCHED then routes around it) and alarm WC_SILENT raised. Only MSCHED touches reservations.
+longer than its machine's me_config.liveness_s while the machine is not Shutdown cannot be heard
+(dead on a host without an agent, frozen, or cut off), so the machine is set Shutdown, the change
+broadcast (MSCHED then routes around it) and alarm WC_SILENT raised. Where an agent runs, a death
+is known at once: an ME's death (MOD_DIED) shuts its machine down then and there. Only MSCHED
+touches reservations.
 
 And it keeps the machines' books (1.4.2): every Run_Complete counts a run since maintenance, a
 failed one a scrap too; when the runs reach the machine's maintenance_every (cell.toml
@@ -85,6 +87,7 @@ class MachineServer(Server, Module):
             "GET_STATUS": self.get_status,
             "RUN_COMPL": self.run_complete,
             "MAINT_DONE": self.maintenance_done,
+            "MOD_DIED": self.module_died,
         }
 
     def refusal(self, cls: str, req: Message, code: str, note: str) -> Message | None:
@@ -140,6 +143,28 @@ class MachineServer(Server, Module):
         """The WC of a machine that is up fell silent: the machine is Shutdown; tell the cell."""
         w = self.machines[machine_id]
         note = f"WC wc:{machine_id} silent for {silent:.1f}s (liveness {w.liveness:g}s): machine Shutdown"
+        await self.shut_down(machine_id, note, "WC_SILENT")
+
+    async def module_died(self, conv: Conversation) -> None:
+        """MOD_DIED (broadcast by a host's agent): a machine whose ME died has lost its state and its run
+        (machine-interface.md, section 7), so it is Shutdown now, not after the liveness window. A WC
+        that died is being restarted and resumes its machine, so its run is only in doubt: nothing
+        changes unless the agent gave it up (FATAL)."""
+        died = self.request(conv)
+        kind, _, machine_id = died.module.partition(":")
+        if machine_id not in self.machines or kind not in ("me", "wc"):
+            return
+        if kind == "wc" and died.state != "FATAL":
+            self.log.info("wc:%s died (%s); its agent restarts it (%s)", machine_id, died.how, died.state)
+            return
+        what = "ME" if kind == "me" else "WC, given up by its agent,"
+        note = f"{what} {died.module} died ({died.how}, told by {died.host}): machine Shutdown"
+        await self.shut_down(machine_id, note, None)
+
+    async def shut_down(self, machine_id: str, note: str, alarm_id: str | None) -> None:
+        """A machine the cell cannot use any more goes Shutdown at once, broadcast (MSCHED then routes
+        around it, lots on it hear of it), with an alarm if one is named."""
+        w = self.machines[machine_id]
         self.log.error("%s", note)
 
         def shut(cur: Any) -> tuple[str, int | None] | None:
@@ -170,7 +195,8 @@ class MachineServer(Server, Module):
                 note=note,
             ),
         )
-        self.spawn(self._alarm("WC_SILENT", note, machine_id))
+        if alarm_id is not None:
+            self.spawn(self._alarm(alarm_id, note, machine_id))
 
     async def _alarm(self, alarm_id: str, text: str, machine_id: str) -> None:
         await self.raise_alarm(alarm_id, text, machine_id)

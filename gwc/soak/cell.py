@@ -2,7 +2,9 @@
 
 It is the operator's cell in miniature, started and stopped with the same gwc.cell functions
 `gwc start` / `gwc stop` use, plus what chaos needs: kill -9 one process, restart it (with the bus
-fault injector on, if asked), and, at the end, a list of whatever the cell left behind.
+fault injector on, if asked), and, at the end, a list of whatever the cell left behind. With
+`agent=True` (as `gwc start` runs a cell) the host's agent starts the modules and restarts the ones
+killed; restart() then only makes sure the agent has the module running.
 """
 
 from __future__ import annotations
@@ -18,7 +20,20 @@ from pathlib import Path
 from typing import Any
 
 from gwc import db
-from gwc.cell import Proc, cell_procs, hi_bus, pid_file, read_pid, spawn, start_procs, startup, stop_cell, wait_on_bus
+from gwc.agent import control as agent_control
+from gwc.cell import (
+    Proc,
+    cell_procs,
+    hi_bus,
+    pid_file,
+    read_pid,
+    spawn,
+    start_agent,
+    start_procs,
+    startup,
+    stop_cell,
+    wait_on_bus,
+)
 from gwc.config import SERVER_MODULES, Config, private_bus, write_config
 from gwc.errors import GwcError, ModuleError
 from gwc.ipc.bus import BlockingBus
@@ -64,8 +79,10 @@ class PrivateCell:
         policy: str = "priority",
         db_settings: dict[str, Any] | None = None,
         bus: dict[str, Any] | None = None,
+        agent: bool = False,
     ) -> None:
         self.var = var.resolve()
+        self.agent = agent
         self.log = log
         self.machines = [m["id"] for m in machines]
         # Not the soak's seed: two soaks of one seed may run side by side.
@@ -86,6 +103,8 @@ class PrivateCell:
             db.cluster_start(self.cfg, self.log)
         db.init_schema(self.cfg, self.log)
         self.bus = hi_bus(self.cfg, self.log)
+        if self.agent:
+            start_agent(self.cfg, self.log.info)
         start_procs(self.cfg, cell_procs(self.cfg), self.bus, self.log.info)
         if start_machines:
             for m in self.machines:
@@ -119,9 +138,10 @@ class PrivateCell:
         except ProcessLookupError:
             return st.pid
         deadline = time.monotonic() + 10
-        while read_pid(self.cfg, name).alive and time.monotonic() < deadline:
+        while (now := read_pid(self.cfg, name)).alive and now.pid == st.pid and time.monotonic() < deadline:
             time.sleep(0.02)
-        pid_file(self.cfg, name).unlink(missing_ok=True)
+        if read_pid(self.cfg, name).pid == st.pid:  # not the pid file of an agent's restart since
+            pid_file(self.cfg, name).unlink(missing_ok=True)
         return st.pid
 
     def faults_config(self, seed: int, faults: dict[str, float]) -> Path:
@@ -133,6 +153,11 @@ class PrivateCell:
     def restart(self, name: str, config: Path | None = None) -> int:
         """Start one process again and bring it up: a server through STARTUP, a WC onto the bus."""
         assert self.bus is not None
+        if self.agent:
+            if config is None:  # the agent restarted it, or brings it up now (BACKOFF, FATAL, STOPPED)
+                agent_control.call(self.cfg, "start", names=[name])
+                return int(read_pid(self.cfg, name).pid or 0)
+            agent_control.call(self.cfg, "stop", names=[name])  # off its watch while it runs with faults
         kind, _, machine = name.partition(":")
         old = self.bus.peers().get(name)
         extra = {"GWC_CONFIG": str(config)} if config else None

@@ -72,6 +72,7 @@ class SoakOptions:
     max_active: int = 12
     drain_timeout: float = 360.0  # longer than the lot library's longest step deadline (setup, 300 s)
     script_path: str = SCRIPT_PATH  # the lot script the soak's product runs (a test may break it)
+    agent: bool = True  # the host's agent restarts what chaos kills (False: the driver does, as before it)
 
     def header(self) -> dict[str, Any]:
         return {
@@ -84,6 +85,7 @@ class SoakOptions:
             "kinds": list(self.kinds),
             "max_active": self.max_active,
             "script_path": self.script_path,
+            "agent": self.agent,
         }
 
 
@@ -213,7 +215,7 @@ class Soak:
         self.actions_path.write_text(json.dumps(plan_header(self.opts, self.plan)) + "\n")
         (self.dir / "plan.json").write_text(json.dumps(self.plan.as_dict(), indent=1))
         machines = [{"id": m, "kind": "dummy", "run_time": self.opts.run_time} for m in self.plan.machines]
-        self.cell = PrivateCell(cell_dir, machines, self.log, self.opts.database_url)
+        self.cell = PrivateCell(cell_dir, machines, self.log, self.opts.database_url, agent=self.opts.agent)
         observer = None
         try:
             self.say(f"starting a private cell in {cell_dir} ({len(machines)} machines)")
@@ -491,6 +493,10 @@ class Soak:
                 elif action.kind == "faults":
                     self.cell.kill(action.target)
                     detail = f"healed: restarted pid {self.cell.restart(action.target)} without faults"
+                elif self.cell.agent:  # it restarted them already: make sure they are up
+                    detail = "up again (agent): " + ", ".join(
+                        f"{n} pid {self.cell.restart(n)}" for n in self._procs_of(action)
+                    )
                 else:
                     pids = [f"{n} pid {self.cell.restart(n)}" for n in self._procs_of(action) if not self.cell.alive(n)]
                     detail = "restarted " + (", ".join(pids) or "nothing")

@@ -30,6 +30,7 @@ from gwc.lot import (
     OperationEntity,
     RequestCancelled,
     RunFailed,
+    RunInDoubt,
     Timeouts,
     read_traveller,
     verdict,
@@ -54,7 +55,7 @@ class FakeCell:
         self.at: list[float] = []  # when each of `seen` came (monotonic)
         self.run_id = 100
         self.key = 0
-        self.complete_runs = True
+        self.complete_runs = True  # False: the next run's ME dies (its agent says so) and the machine shuts down
         self.lose_run: list[tuple[str, int | None]] = []  # instead of completing the next run: these UPD_ME_ST
         self.comp: dict[str, Any] = {}  # how MSCHED ends requests: machine -> (ack_code, note)
         self.ack: dict[str, Any] = {}  # how MSCHED answers requests at once: machine -> (ack_code, note)
@@ -236,6 +237,16 @@ class FakeCell:
                 )
             return
         if not self.complete_runs:
+            died = message(
+                "Module_Died",
+                module=f"me:{m.machine_id}",
+                host="agent:test",
+                how="killed by SIGKILL",
+                state="BACKOFF",
+                restarts=0,
+                restart_in=0.0,
+            )
+            await self.broadcast(wc, "MOD_DIED", died)
             await self.broadcast(
                 wc,
                 "UPD_ME_ST",
@@ -345,15 +356,19 @@ def test_a_cancelled_request_reaches_the_lot_as_req_cancel(fake: tuple[FakeCell,
     assert "REQ_CANCEL" in failed[0]["reason"]
 
 
-def test_a_machine_lost_mid_run_is_given_back_and_the_operation_asked_again(
+def test_a_machine_whose_me_died_mid_run_is_given_back_and_the_operation_asked_again_at_once(
     fake: tuple[FakeCell, OperationEntity],
 ) -> None:
     cell, entity = fake
-    cell.complete_runs = False  # the first run's machine shuts down instead of completing
+    entity.timeouts = Timeouts(answer=3, machines=5, setup=3, run=60, lost_grace=3, pause=5)
+    cell.complete_runs = False  # the first run's ME dies, announced by its agent, and the machine shuts down
     with entity:
         entity.wait_for_import()
+        t0 = time.monotonic()
         op = entity.operate("dummy_op", [["m1"]])
+        took = time.monotonic() - t0
         assert op.tries == 2 and op.ok
+        assert took < 2.0, f"a known death waits neither lost_grace (3 s) nor the pause (5 s): {took:.1f}s"
         entity.lot_completed("PASS")
     unreserves = [cls for cls, _ in cell.seen if cls == "UNRESERVE"]
     assert len(unreserves) == 2
@@ -691,3 +706,73 @@ def test_progress_reports_do_not_hold_the_operation_up_and_a_refused_one_fails_t
         entity.lot_completed("PASS")  # waits for the report first: its refusal fails the script here
     assert operated, "the operation waited for the Lot Server's answer to a progress report"
     assert cell.actions()[-2:] == ["running", "failed"]  # and "completed" was never asked
+
+
+def _shut_unheard(cell: FakeCell, outcome_after: float | None) -> None:
+    """The next run's machine goes Shutdown with no death announced (its WC went silent); if
+    outcome_after is given, its WC stores the run's outcome that long after (it was frozen, then woke)."""
+
+    async def start(conv: Conversation, m: Message) -> None:
+        cell.status(m.machine_id, "Running", m.machine_run_id)
+        await conv.send(message("Start_Run_Ack", ack_code=OK))
+        if m.machine_run_id != 101:
+            return await FakeCell.start(cell, conv, m)
+        await cell.broadcast(
+            f"wc:{m.machine_id}",
+            "UPD_ME_ST",
+            message("Update_ME_Status", machine_id=m.machine_id, status="Shutdown", previous="Running"),
+        )
+        cell.status(m.machine_id, "Shutdown")
+        if outcome_after is not None:
+            await asyncio.sleep(outcome_after)
+            cell.sql(
+                "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) VALUES (%s, %s, "
+                "'RESULT', 'PASS')",
+                m.machine_run_id,
+                m.machine_id,
+            )
+            cell.sql(
+                "INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code) VALUES (%s, %s, 'ACK_OK')",
+                m.machine_run_id,
+                m.machine_id,
+            )
+
+    cell.handlers["START_RUN"] = start
+
+
+def test_a_run_whose_machine_went_shutdown_unheard_is_in_doubt_and_counts_once_its_outcome_is_stored(
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=3, machines=5, setup=3, run=60, lost_grace=0.2, in_doubt=20, pause=0.1)
+    _shut_unheard(cell, outcome_after=4.0)  # longer than lost_grace: before, the run was counted lost
+    with entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", [["m1"], ["m2"]])
+        entity.lot_completed("PASS")
+    assert op.tries == 1 and op.ok and op.machine_run_id == 101 and op.results == {"RESULT": "PASS"}
+    assert [cls for cls, _ in cell.seen].count("START_RUN") == 1, "run once, never twice"
+
+
+@pytest.mark.parametrize("decision", ["hold", "reroute"])
+def test_a_run_in_doubt_past_its_bound_is_the_lot_scripts_decision(
+    fake: tuple[FakeCell, OperationEntity], decision: str
+) -> None:
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=3, machines=5, setup=3, run=60, lost_grace=0.2, in_doubt=1.0, pause=0.1)
+    if decision != "hold":
+        entity.in_doubt = decision
+    _shut_unheard(cell, outcome_after=None)  # never heard of again
+    if decision == "hold":
+        with pytest.raises(RunInDoubt, match="held for the operator"), entity:
+            entity.wait_for_import()
+            entity.operate("dummy_op", [["m1"], ["m2"]])
+        assert [cls for cls, _ in cell.seen].count("START_RUN") == 1
+    else:
+        with entity:
+            entity.wait_for_import()
+            op = entity.operate("dummy_op", [["m1"], ["m2"]])
+            entity.lot_completed("PASS")
+        assert op.tries == 2 and op.ok
+    decisions = read_traveller(entity.cfg, 7)["decisions"]  # type: ignore[index]
+    assert [(d["machine_run_id"], d["decision"]) for d in decisions] == [(101, decision)]
