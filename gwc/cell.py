@@ -10,6 +10,7 @@ message queue and pty link so that the next start finds a clean state. Both are 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -317,6 +318,24 @@ def stop_proc(cfg: Config, name: str, grace: float = GRACE) -> str:
     return how
 
 
+def _wait_gone(st: ProcStatus, grace: float = GRACE) -> str:
+    """Wait for a process that is exiting of itself (it removed its own pid file); SIGKILL after grace."""
+    assert st.pid is not None
+    ticks = _proc_start_ticks(st.pid)
+
+    def alive() -> bool:
+        return ticks is not None and _proc_start_ticks(st.pid) == ticks and not _zombie(st.pid)
+
+    deadline = time.monotonic() + grace
+    while alive() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if not alive():
+        return "stopped"
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(st.pid, signal.SIGKILL)
+    return "killed"
+
+
 def clean_machine_state(cfg: Config, machine_ids: list[str]) -> list[str]:
     """Remove the queues and pty links of these machines (they outlive their processes by design)."""
     from gwc.ipc.mq import remove_queues
@@ -344,8 +363,9 @@ def stop_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = pri
     for name in lots:
         say(f"{name}: {stop_proc(cfg, name)}")
     if agent_control.running(cfg):  # the agent stops its modules in reverse order, then itself
+        agent = read_pid(cfg, AGENT.name)
         agent_control.call(cfg, "stop", say=say, exit=True)
-        say(f"agent: {stop_proc(cfg, AGENT.name)}")
+        say(f"agent: {_wait_gone(agent) if agent.pid else stop_proc(cfg, AGENT.name)}")
     for proc in reversed(cell_procs(cfg)):
         what = stop_proc(cfg, proc.name)
         if what != "not running":

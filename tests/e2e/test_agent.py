@@ -7,10 +7,13 @@ import json
 import logging
 import os
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
+import psycopg
 import pytest
 
 from gwc.ipc.bus import BlockingBus
@@ -117,3 +120,30 @@ def test_a_module_failing_at_every_start_ends_fatal_with_an_alarm(agent_cell) ->
     log = (cfg.log_dir).glob("agent-*.log")
     text = next(log).read_text()
     assert "me:wc1: STARTING -> BACKOFF" in text and "me:wc1: STARTING -> FATAL" in text
+
+
+@pytest.mark.soak
+def test_both_cores_saturated_for_60s_no_machine_is_shut_down(agent_cell, database_url: str) -> None:
+    machines = [{"id": f"wc{i}", "kind": "dummy", "run_time": 0.2} for i in (1, 2)]
+    cfg, env = agent_cell(machines)
+    assert gwc(env, "start").returncode == 0
+    for m in machines:
+        started = gwc(env, "machine", "start", m["id"])
+        assert started.returncode == 0, started.stderr
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(os.cpu_count() or 2)]
+    t0 = time.monotonic()
+    try:
+
+        def sixty_seconds_all_up() -> bool:
+            with psycopg.connect(database_url) as conn:
+                rows = conn.execute("SELECT machine_id, status, note FROM machine_status").fetchall()
+            down = [r for r in rows if r[1] != "Idle"]
+            assert not down, f"after {time.monotonic() - t0:.0f}s of saturation: {down}"
+            return time.monotonic() - t0 >= 60
+
+        wait_for(sixty_seconds_all_up, 120, "60 s of both cores saturated", interval=0.5)
+    finally:
+        for p in busy:
+            p.kill()
+            p.wait()
+    assert all(r["restarts"] == 0 and r["state"] == "RUNNING" for r in status(env).values())

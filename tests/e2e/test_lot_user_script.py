@@ -157,7 +157,7 @@ def test_a_run_whose_wc_died_before_announcing_it_counts_from_its_stored_outcome
     st, reason = state(cell, pawn)
     assert st == "exported" and reason == "PASS: milled on mazak (try 1)", reason
     assert [s["machines"] for s in steps(cell, pawn)] == [["mazak"]]
-    assert re.search(rf"run {run} on mazak: .*MACHINE_RUN_OUTCOME says ACK_OK", lot_log(cell, pawn))
+    assert re.search(rf"run {run} on mazak\b.*MACHINE_RUN_OUTCOME says ACK_OK", lot_log(cell, pawn))
     assert cell.query("SELECT count(*) FROM machine_run_result WHERE machine_id = 'wc2'")[0][0] == 0
     assert not cell.log_has("wc:mazak", f"run {run} complete (ACK_OK)"), "its Run_Complete went out after all"
     assert cell.query("SELECT count(*) FROM reserved_machines")[0][0] == 0
