@@ -16,6 +16,7 @@ from typing import Any
 import psycopg
 import pytest
 
+from gwc.agent import control as agent_control
 from gwc.ipc.bus import BlockingBus
 from tests.e2e.test_cell import gwc
 from tests.harness import wait_for, write_cell_config
@@ -29,6 +30,10 @@ def status(env: dict[str, str]) -> dict[str, dict[str, Any]]:
     out = gwc(env, "status", "--json")
     assert out.returncode == 0, out.stderr
     return {r["module"]: r for r in json.loads(out.stdout)}
+
+
+def agent_rows(cfg: Any) -> dict[str, dict[str, Any]]:
+    return {r["module"]: r for r in agent_control.call(cfg, "status")["modules"]}
 
 
 def agent_pid(cfg: Any) -> int:
@@ -67,8 +72,8 @@ def test_kill_9_of_each_module_kind_is_announced_and_running_again_within_3s(age
             conv.end()
             assert (died.module, died.pid, died.how) == (name, old["pid"], "killed by SIGKILL"), died
             assert died.restart_in == 0.0
-            now = wait_for(
-                lambda n=name, p=old["pid"]: (r := status(env)[n])["state"] == "RUNNING" and r["pid"] != p and r,
+            now = wait_for(  # asked of the agent in-process: a `gwc status` process takes a while to start
+                lambda n=name, p=old["pid"]: (r := agent_rows(cfg)[n])["state"] == "RUNNING" and r["pid"] != p and r,
                 10,
                 f"{name} RUNNING again",
                 interval=0.05,
