@@ -41,9 +41,9 @@ from gwc.cell import cell_procs, hold_startup, pid_file, read_pid, spawn_process
 from gwc.config import Config
 from gwc.errors import ConfigError, GwcError, ModuleError
 from gwc.ipc.bus import Bus
-from gwc.ipc.catalogue import message
+from gwc.ipc.catalogue import Message, message
 from gwc.log import TRACE
-from gwc.module import module_name
+from gwc.module import ask, module_name
 from gwc.servers.common import Server
 
 S = ProcessState
@@ -118,6 +118,18 @@ class Agent(Server):
         self.children = {p.name: Child(p, log) for p in cell_procs(cfg)}
         self._stop = asyncio.Event()
         self._stopping = False
+
+    async def ask(
+        self,
+        cls: str,
+        first: Message,
+        to: str | None,
+        timeout: float | None = None,
+        *more: Message,
+        within: float = 0.0,
+    ) -> Message:
+        """module.ask() on the agent's bus (Server.raise_alarm asks the Cell Alarm Server through it)."""
+        return await ask(self.bus, cls, first, to, timeout, *more, within=within)
 
     # ----------------------------------------------------------------- the agent's life
 
