@@ -42,6 +42,7 @@ from gwc.config import Config
 from gwc.errors import ConfigError, GwcError, ModuleError
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import Message, message
+from gwc.ipc.names import Conv, Msg
 from gwc.log import TRACE
 from gwc.module import ask, module_name
 from gwc.servers.common import Server
@@ -316,9 +317,9 @@ class Agent(Server):
     async def _announce(self, child: Child, pid: int | None, how: str, delay: float | None) -> None:
         try:
             await self.broadcast(
-                "MOD_DIED",
+                Conv.MOD_DIED,
                 message(
-                    "Module_Died",
+                    Msg.MODULE_DIED,
                     module=child.name,
                     host=self.name,
                     pid=pid,
