@@ -35,6 +35,7 @@ from gwc.errors import GwcError, Refused
 from gwc.hi.monitor import watch
 from gwc.ipc.bus import BlockingBus, Peer
 from gwc.ipc.codes import AckCode, LotState
+from gwc.ipc.names import Conv
 from gwc.log import open_log
 from gwc.module import module_name
 
@@ -47,30 +48,31 @@ STOP_TIMEOUT = 60.0
 
 # Which views each conversation class makes stale. The status line follows what it counts.
 VIEWS_OF: dict[str, tuple[str, ...]] = {
-    "STARTUP": ("modules",),
-    "SHUTDOWN": ("modules",),
-    "ME_START": ("machines", "modules"),
-    "ME_SHUT": ("machines", "modules", "requests"),
-    "UPD_ME_ST": ("machines", "requests"),
-    "CHG_STATUS": ("machines",),
-    "ACC_TYP_C": ("machines",),
-    "MAINT_DONE": ("machines",),
-    "SETUP_RUN": ("machines",),
-    "START_RUN": ("machines",),
-    "RUN_COMPL": ("machines", "lots"),
-    "MACH_REQ": ("requests", "lots"),
-    "CANCEL_RE": ("requests", "lots"),
-    "UNRESERVE": ("requests", "lots"),
-    "CREATE_LOT": ("lots", "orders"),
-    "ENTITY_REQ": ("lots", "orders", "status"),
-    "IMPORT_LOT": ("lots", "orders", "status"),
-    "EXPORT_LOT": ("lots", "orders", "status"),
-    "LOT_MOVED": ("lots", "orders", "status"),
-    "DIV_MERGE": ("lots", "orders"),
-    "ALARM_SEND": ("alarms", "status"),
-    "ALARM_CLE": ("alarms", "status"),
-    "ALARM_CLR_REQ": ("alarms", "status"),
-    "CELL_EVENT": ("status",),
+    Conv.MOD_DIED: ("modules",),
+    Conv.STARTUP: ("modules",),
+    Conv.SHUTDOWN: ("modules",),
+    Conv.ME_START: ("machines", "modules"),
+    Conv.ME_SHUT: ("machines", "modules", "requests"),
+    Conv.UPD_ME_ST: ("machines", "requests"),
+    Conv.CHG_STATUS: ("machines",),
+    Conv.ACC_TYP_C: ("machines",),
+    Conv.MAINT_DONE: ("machines",),
+    Conv.SETUP_RUN: ("machines",),
+    Conv.START_RUN: ("machines",),
+    Conv.RUN_COMPL: ("machines", "lots"),
+    Conv.MACH_REQ: ("requests", "lots"),
+    Conv.CANCEL_RE: ("requests", "lots"),
+    Conv.UNRESERVE: ("requests", "lots"),
+    Conv.CREATE_LOT: ("lots", "orders"),
+    Conv.ENTITY_REQ: ("lots", "orders", "status"),
+    Conv.IMPORT_LOT: ("lots", "orders", "status"),
+    Conv.EXPORT_LOT: ("lots", "orders", "status"),
+    Conv.LOT_MOVED: ("lots", "orders", "status"),
+    Conv.DIV_MERGE: ("lots", "orders"),
+    Conv.ALARM_SEND: ("alarms", "status"),
+    Conv.ALARM_CLE: ("alarms", "status"),
+    Conv.ALARM_CLR_REQ: ("alarms", "status"),
+    Conv.CELL_EVENT: ("status",),
 }
 
 

@@ -32,6 +32,7 @@ from gwc.client.requests import request_tables
 from gwc.console.link import WAITING, Answer, CellLink
 from gwc.hi.monitor import line_of, matches
 from gwc.ipc.codes import MachineStatus
+from gwc.ipc.names import Conv
 
 if TYPE_CHECKING:
     from gwc.console.app import ConsoleApp
@@ -380,7 +381,7 @@ class ModulesView(View):
             elif r["module"].startswith("wc:"):
                 r["bus"] = "on bus"
             else:
-                r["bus"] = "started" if "SHUTDOWN" in peer.interest else "on bus, not started"
+                r["bus"] = "started" if Conv.SHUTDOWN in peer.interest else "on bus, not started"
         agent_row = {"module": "agent", "state": "RUNNING" if agent else "not running (unsupervised)"}
         return [{**agent_row, **(agent or {}), "module": "agent"}, *rows]
 
@@ -523,7 +524,7 @@ class MonitorView(Vertical):
 
     def _match(self, rec: dict[str, Any]) -> bool:
         # The console's own status-line asks are left out: they would drown a quiet cell's conversations.
-        own = rec.get("initiator") == self.own_name and rec.get("class") == "STATUS_LN"
+        own = rec.get("initiator") == self.own_name and rec.get("class") == Conv.STATUS_LN
         return "message" in rec and not own and matches(rec, *self.filters, self.machine_convs)
 
     def heard(self, records: list[dict[str, Any]], shown: bool) -> None:
