@@ -109,7 +109,9 @@ class View(Vertical):
         yield DataTable(id=f"table-{self.name_}", cursor_type="row", zebra_stripes=True)
 
     def on_mount(self) -> None:
-        add_columns(self.query_one(f"#table-{self.name_}", DataTable), self.columns)
+        table = self.query_one(f"#table-{self.name_}", DataTable)
+        add_columns(table, self.columns)
+        self.watch(table, "scroll_y", lambda _: self.fill(self.rows), init=False)
 
     def focus_main(self) -> None:
         self.query_one(DataTable).focus()
@@ -157,9 +159,10 @@ class View(Vertical):
 
 
 def fill_table(table: DataTable[Any], rows: list[dict[str, Any]], columns: tuple[str, ...], key: str) -> None:
-    """Show `rows`, touching only what changed: a busy cell changes a few cells of a long table, and
-    redrawing all of it at every change would cost the machine the cell runs on. A table whose rows
-    were removed or reordered is filled again, keeping the cursor on the same row (by key)."""
+    """Show `rows`, touching only what changed and can be seen: Textual draws every visible cell again
+    after any change, some 30 ms of CPU, which a busy cell's machine should not pay for rows nobody
+    sees (a row off screen is brought up to date when it scrolls into view: fill again then). A table
+    whose rows were removed or reordered is filled again, keeping the cursor on the same row (by key)."""
     shown: dict[str, tuple[str, ...]] = table.__dict__.setdefault("_gwc_shown", {})
     new = {str(r[key]): tuple("" if r.get(c) is None else str(r.get(c)) for c in columns) for r in rows}
     if list(new)[: len(shown)] != list(shown):
@@ -172,11 +175,14 @@ def fill_table(table: DataTable[Any], rows: list[dict[str, Any]], columns: tuple
         if current in shown:
             table.move_cursor(row=table.get_row_index(current))
         return
-    for k, cells in new.items():
+    top, height = int(table.scroll_y), table.size.height
+    for index, (k, cells) in enumerate(new.items()):
         before = shown.get(k)
         if before is None:
             table.add_row(*map(Text, cells), key=k)
-        else:
+        elif cells != before:
+            if height and not top - 1 <= index <= top + height:
+                continue  # off screen: left as it was (and as `shown` says it is) until it is seen
             for column, old_value, value in zip(columns, before, cells):
                 if value != old_value:
                     table.update_cell(k, column, Text(value))
