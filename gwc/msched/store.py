@@ -299,11 +299,14 @@ class Step:
 
     def end_finished(self) -> int:
         """Entities that finished (or were destroyed) will never take a machine: end their queued
-        requests REQ_CANCEL ("entity finished") and forget the alternative groups they were served.
+        requests REQ_CANCEL ("entity finished"), free the machines they still hold, and forget the
+        alternative groups they were served.
 
         The pass never binds such a request; this takes it out of the queue, so that an orphan cannot
         linger (e.g. an alternative sent without alt_group that arrived just after its sibling was
-        bound). How many requests ended.
+        bound). A finished entity holding machines failed while it could not unreserve them (its
+        UNRESERVE went unanswered, the database away) after its failure was recorded: the lot
+        library unreserves before it completes. How many requests ended.
         """
         ended = self._end_queued(
             "not exists (select 1 from live_entities v where v.entity_id = request_machines.entity_id)",
@@ -312,6 +315,11 @@ class Step:
             "entity finished",
         )
         self._settle({o.entity_id for o in ended})
+        freed = self.cur.execute(
+            "delete from reserved_machines r where not exists (select 1 from live_entities v "
+            "where v.entity_id = r.entity_id) returning r.machine_id"
+        ).fetchall()
+        self.triggers.update(m for (m,) in freed)
         self.cur.execute(
             "delete from satisfied_alt_groups g where not exists (select 1 from live_entities v "
             "where v.entity_id = g.entity_id)"
