@@ -8,6 +8,7 @@ are marked `soak` and run apart (`bin/test -m soak`). Each soak brings up its ow
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import uuid
@@ -111,6 +112,7 @@ def test_gwc_check_passes_a_live_cell_and_names_a_breach(make_cell: Callable[...
 
     ok = check()
     assert ok.returncode == 0 and "all invariants hold" in ok.stdout, ok.stdout + ok.stderr
+    cell.kill("msched", sig=signal.SIGTERM)  # its sweep would free the planted reservation within 5 s
     with cell.db() as conn:  # an exported lot still holding wc1
         conn.execute("insert into lots (lot_id) values (900)")
         conn.execute("insert into lot_entities (entity_id, lot_id) values (900, 900)")
