@@ -64,14 +64,16 @@ end;
 $$;
 revoke all on function msched_analyze() from public;
 
--- msched_candidates(machines, usable, per): MSCHED's scheduling pass (gwc/msched/store.py). For each
--- of the machines, the first `per` queued requests in the policy's order (request_machines
--- (machine_id, rank, seq)) whose every 'machine:op_type' slot is usable, of live entities. The walk of the index stops after `per`
--- matches, so a freed machine costs a few index probes however long the queue. The SET clauses make
--- that walk the plan whatever the statistics say: with a queue grown faster than autovacuum
--- analyzes it, PostgreSQL sorted every request of each machine instead (105 ms for 100 freed
--- machines with 10,000 queued, against about 2).
-create or replace function msched_candidates(p_machines text[], p_usable text[], p_per int)
+-- msched_candidates(machines, up, per): MSCHED's scheduling pass (gwc/msched/store.py). For each of
+-- the machines (null: all), the first `per` queued requests in the policy's order (request_machines
+-- (machine_id, rank, seq)) whose every 'machine:op_type' slot is usable (the machine's status is in
+-- `up`, it is not reserved and it accepts the op type), of live entities. The walk of the index
+-- stops after `per` matches, so a freed machine costs a few index probes however long the queue.
+-- The SET clauses make that walk the plan whatever the statistics say: with a queue grown faster
+-- than autovacuum analyzes it, PostgreSQL sorted every request of each machine instead (105 ms for
+-- 100 freed machines with 10,000 queued, against about 4).
+drop function if exists msched_candidates(text[], text[], int);  -- its parameters were renamed
+create function msched_candidates(p_machines text[], p_up text[], p_per int)
 returns table (request_key bigint, entity_id bigint, op_type text, priority int, seq bigint,
                requested_at timestamptz, slots text[])
 language sql
@@ -80,13 +82,19 @@ set enable_sort = off
 set enable_bitmapscan = off
 set enable_seqscan = off
 as $$
+    with usable (slots) as materialized (
+        select coalesce(array_agg(s.machine_id || ':' || a.op_type), '{}')
+        from machine_status s join accept_types a on a.machine_id = s.machine_id
+        where s.status = any (p_up)
+          and not exists (select 1 from reserved_machines r where r.machine_id = s.machine_id)
+    )
     select c.request_key, c.entity_id, c.op_type, c.priority, c.seq, c.requested_at, c.slots
-    from unnest(p_machines) as t (machine_id)
+    from usable, unnest(coalesce(p_machines, array(select machine_id from me_config))) as t (machine_id)
     cross join lateral (
         select q.request_key, q.entity_id, q.op_type, q.priority, q.seq, q.requested_at, q.slots
         from request_machines q
         where q.machine_id = t.machine_id
-          and q.slots <@ p_usable
+          and q.slots <@ usable.slots
           and exists (select 1 from live_entities l where l.entity_id = q.entity_id)
         order by q.rank, q.seq
         limit p_per

@@ -6,6 +6,12 @@ import statistics
 from collections.abc import Sequence
 
 
+def cpu_s(pid: int) -> float:
+    """CPU time process `pid` has had so far, in seconds (ns resolution: /proc/PID/schedstat)."""
+    with open(f"/proc/{pid}/schedstat") as f:
+        return int(f.read().split()[0]) / 1e9
+
+
 def percentile(values: Sequence[float], p: float) -> float:
     """The p-th percentile (0-100) by nearest rank; NaN for no values."""
     if not values:

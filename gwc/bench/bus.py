@@ -37,7 +37,7 @@ from typing import Any
 import click
 
 from gwc import netns
-from gwc.bench import summary
+from gwc.bench import cpu_s, summary
 from gwc.config import BusConfig
 from gwc.errors import GwcError
 from gwc.ipc import auth, keys, wire
@@ -322,12 +322,6 @@ CLIENTS = {"bare": _BareClient, "asyncio": _AsyncioClient, "bus": _BusClient}
 ROUNDS = 10
 
 
-def _cpu_s(pid: int) -> float:
-    """CPU time process `pid` has had so far, in seconds (ns resolution: /proc/PID/schedstat)."""
-    with open(f"/proc/{pid}/schedstat") as f:
-        return int(f.read().split()[0]) / 1e9
-
-
 async def _measure(
     cfgs: dict[str, BusConfig], servers: dict[str, int], n: int, window: int
 ) -> dict[str, dict[str, Any]]:
@@ -346,13 +340,13 @@ async def _measure(
                 await c.ping(i)
         for r in range(ROUNDS):
             for mode, c in clients.items():
-                c0, s0 = _cpu_s(me), _cpu_s(servers[mode])
+                c0, s0 = cpu_s(me), cpu_s(servers[mode])
                 for i in range(r * per_round, (r + 1) * per_round):
                     t0 = time.perf_counter()
                     await c.ping(i)
                     rtt[mode].append((time.perf_counter() - t0) * 1e6)
-                cpu[mode][0] += _cpu_s(me) - c0
-                cpu[mode][1] += _cpu_s(servers[mode]) - s0
+                cpu[mode][0] += cpu_s(me) - c0
+                cpu[mode][1] += cpu_s(servers[mode]) - s0
         for mode, c in clients.items():
             rates[mode] = await c.rate(n, window)
             await c.stop()

@@ -36,7 +36,7 @@ import psycopg
 from psycopg import sql
 
 from gwc import db
-from gwc.bench import summary
+from gwc.bench import cpu_s, summary
 from gwc.client.session import context
 from gwc.config import Config, private_bus, write_config
 from gwc.errors import GwcError
@@ -55,6 +55,8 @@ class Result:
     machines: int
     decisions: int
     seconds: float
+    policy: str
+    cpu_s: float  # MSCHED's CPU time while the decisions were timed
     latencies_ms: list[float] = field(default_factory=list)
 
     @property
@@ -64,11 +66,13 @@ class Result:
     def as_dict(self) -> dict[str, Any]:
         lat = summary(self.latencies_ms)
         return {
+            "policy": self.policy,
             "queued": self.queued,
             "machines": self.machines,
             "decisions": self.decisions,
             "seconds": round(self.seconds, 3),
             "decisions_per_s": round(self.rate, 1),
+            "msched_cpu_ms_per_decision": round(self.cpu_s * 1000 / self.decisions, 3) if self.decisions else None,
             "free_to_bound_median_ms": round(lat["median"], 3),
             "free_to_bound_p99_ms": round(lat["p99"], 3),
             "latency_samples": lat["n"],
@@ -100,11 +104,11 @@ def _prepare(url: str, machines: list[str], entities: int) -> None:
         )
 
 
-def _bench_config(tmp: Path, url: str, level: str) -> Config:
+def _bench_config(tmp: Path, url: str, level: str, policy: str) -> Config:
     cfg = write_config(
         tmp / "etc" / "cell.toml",
         {
-            "cell": {"name": "bench", "var": str(tmp / "var"), "policy": "fifo"},
+            "cell": {"name": "bench", "var": str(tmp / "var"), "policy": policy},
             "bus": private_bus(heartbeat=0.25, peer_timeout=3.0),
             "database": {"url": url},
             "log": {"level": level},
@@ -149,11 +153,11 @@ class Bench:
         conv.end()
         return batch.first
 
-    async def request(self, entity: int, machines: list[str]) -> Conversation:
+    async def request(self, entity: int, machines: list[str], priority: int) -> Conversation:
         async with self.sem:
             conv, batch = await self.bus.request(
                 "MACH_REQ",
-                message("Machine_Request", entity_id=entity, op_type=OP, num_machines=len(machines)),
+                message("Machine_Request", entity_id=entity, op_type=OP, num_machines=len(machines), priority=priority),
                 *[message("Machine_Entry", machine_id=m) for m in machines],
                 to="msched",
                 timeout=T,
@@ -182,9 +186,9 @@ class Bench:
                 fut.set_result(now)
         return got
 
-    async def life(self, entity: int, alts: list[list[str]]) -> None:
+    async def life(self, entity: int, alts: list[list[str]], priority: int = 20) -> None:
         """Ask and get machines; while throughput is measured free them at once, else hold them."""
-        convs = [await self.request(entity, a) for a in alts]
+        convs = [await self.request(entity, a, priority) for a in alts]
         got = [m for ms in await asyncio.gather(*(self.comp(entity, c) for c in convs)) for m in ms]
         if self.looping:
             await self.ask("UNRESERVE", message("Unreserve_Me", entity_id=entity))
@@ -192,7 +196,9 @@ class Bench:
             self.held[entity] = got
 
 
-async def _run(cfg: Config, url: str, queued: int, n_machines: int, decisions: int, samples: int, log: Any) -> Result:
+async def _run(
+    cfg: Config, url: str, queued: int, n_machines: int, decisions: int, samples: int, msched: int, log: Any
+) -> Result:
     machines = [f"bm{i:03d}" for i in range(n_machines)]
     bus = Bus(f"bench.{os.getpid()}", cfg.bus, log)
     await bus.sign_on()
@@ -216,7 +222,7 @@ async def _run(cfg: Config, url: str, queued: int, n_machines: int, decisions: i
             entity += 1
             alts = bench.alternatives()[: queued - n]
             n += len(alts)
-            task = asyncio.create_task(bench.life(entity, alts))
+            task = asyncio.create_task(bench.life(entity, alts, bench.rng.randint(1, 40)))
             task.add_done_callback(bench.check)
             tasks.append(task)
         deadline = time.monotonic() + 600
@@ -233,12 +239,14 @@ async def _run(cfg: Config, url: str, queued: int, n_machines: int, decisions: i
         decisions = min(decisions, in_queue // 2)  # the queue stays at least half full while timed
         bench.looping = True
         bench.target = decisions
+        cpu0 = cpu_s(msched)
         start = time.monotonic()
         for e in holders:
             del bench.held[e]
             tasks.append(asyncio.create_task(bench.ask("UNRESERVE", message("Unreserve_Me", entity_id=e))))
         await asyncio.wait_for(bench.enough.wait(), 600)
         took = bench.decisions[decisions - 1] - start
+        cpu = cpu_s(msched) - cpu0
         bench.looping = False
         # Rest: wait until nothing has been bound for half a second (every entity bound holds on).
         while time.monotonic() - bench.last_comp < 0.5:
@@ -258,7 +266,7 @@ async def _run(cfg: Config, url: str, queued: int, n_machines: int, decisions: i
                 if row is None:
                     break
                 lat += await _sample(bus, bench, int(row[0]))
-        return Result(in_queue, n_machines, decisions, took, lat)
+        return Result(in_queue, n_machines, decisions, took, cfg.policy, cpu, lat)
     finally:
         for t in tasks:
             t.cancel()
@@ -280,7 +288,9 @@ async def _sample(bus: Bus, bench: Bench, e: int) -> list[float]:
     return [(t1 - t0) * 1000]
 
 
-def run_size(cfg: Config, log: Any, queued: int, n_machines: int, decisions: int, samples: int, level: str) -> Result:
+def run_size(
+    cfg: Config, log: Any, queued: int, n_machines: int, decisions: int, samples: int, level: str, policy: str = "fifo"
+) -> Result:
     """One measurement on its own scratch database and MSCHED."""
     if cfg.embedded:
         db.cluster_start(cfg, log)
@@ -292,7 +302,7 @@ def run_size(cfg: Config, log: Any, queued: int, n_machines: int, decisions: int
     with psycopg.connect(_scratch_url(base_url, "postgres"), autocommit=True) as admin:
         admin.execute(sql.SQL("create database {}").format(sql.Identifier(name)))
     try:
-        bcfg = _bench_config(tmp, url, level)
+        bcfg = _bench_config(tmp, url, level, policy)
         db.init_schema(bcfg, log)
         _prepare(url, [f"bm{i:03d}" for i in range(n_machines)], n_machines + queued + 10)
         env = dict(
@@ -308,7 +318,9 @@ def run_size(cfg: Config, log: Any, queued: int, n_machines: int, decisions: int
                 stdin=subprocess.DEVNULL,
             )
         return asyncio.run(
-            _run(bcfg, url, queued, n_machines, decisions, samples, open_log("bench", bcfg.log_dir, "warning"))
+            _run(
+                bcfg, url, queued, n_machines, decisions, samples, proc.pid, open_log("bench", bcfg.log_dir, "warning")
+            )
         )
     finally:
         if proc is not None:
@@ -331,8 +343,9 @@ def run_size(cfg: Config, log: Any, queued: int, n_machines: int, decisions: int
 @click.option("--decisions", default=2000, show_default=True, help="Bindings timed per queue size.")
 @click.option("--samples", default=200, show_default=True, help="Free-to-bound latency samples per size.")
 @click.option("--level", default="note", show_default=True, help="MSCHED's log level during the run.")
+@click.option("--policy", type=click.Choice(["fifo", "priority"]), default="fifo", show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="Print JSON for scripts.")
-def command(sizes: str, n_machines: int, decisions: int, samples: int, level: str, as_json: bool) -> None:
+def command(sizes: str, n_machines: int, decisions: int, samples: int, level: str, policy: str, as_json: bool) -> None:
     """MSCHED: decisions per second and free-to-bound latency with 1,000 and 10,000 requests queued."""
     cfg, log = context()
     try:
@@ -343,7 +356,7 @@ def command(sizes: str, n_machines: int, decisions: int, samples: int, level: st
     for q in qs:
         if not as_json:
             click.echo(f"queue {q}: filling and measuring ...")
-        results.append(run_size(cfg, log, q, n_machines, decisions, samples, level).as_dict())
+        results.append(run_size(cfg, log, q, n_machines, decisions, samples, level, policy).as_dict())
     if as_json:
         click.echo(json.dumps(results, indent=1))
         return

@@ -328,23 +328,14 @@ class Step:
 
     # ------------------------------------------------------------------ the scheduling pass
 
-    def usable_slots(self) -> set[tuple[str, str]]:
-        """(machine, op_type) of every machine up, unreserved, and accepting that op type."""
-        return set(
-            self.cur.execute(
-                "select s.machine_id, a.op_type from machine_status s "
-                "join accept_types a on a.machine_id = s.machine_id "
-                "where s.status = any(%s) and not exists (select 1 from reserved_machines r "
-                "where r.machine_id = s.machine_id)",
-                (list(UP),),
-            ).fetchall()
-        )
+    def candidates(self, machines: list[str] | None) -> list[Candidate]:
+        """Per machine (None: every machine), the first few bindable requests in the policy's order.
 
-    def candidates(self, trig: set[str], usable: set[tuple[str, str]]) -> list[Candidate]:
-        """Per trigger machine, the first few bindable requests in the policy's order (sql msched_candidates)."""
+        One round trip (sql msched_candidates): the function reads which machines are usable itself,
+        so the machines bound by an earlier round of this pass are no longer.
+        """
         rows = self.cur.execute(
-            "select * from msched_candidates(%s, %s, %s)",
-            (sorted(trig), sorted(f"{m}:{op}" for m, op in usable), self.per_machine),
+            "select * from msched_candidates(%s, %s, %s)", (machines, list(UP), self.per_machine)
         ).fetchall()
         unique = {
             int(k): Candidate(int(k), int(e), op, int(p), int(s), at, tuple(x[: -len(op) - 1] for x in slots))
@@ -355,7 +346,7 @@ class Step:
     def schedule(self) -> list[Outcome]:
         """Bind every request that can be bound now, in the policy's order; return what was bound.
 
-        Each round takes, per usable machine, the first few candidates in the policy's order and
+        Each round takes, per trigger machine, the first few candidates in the policy's order and
         binds greedily; a machine whose candidates were all blocked (their other machine taken,
         their entity served) gets its next few in the next round, until a round binds nothing. The
         result is the greedy pass over the whole queue, at the cost of the few requests looked at.
@@ -364,14 +355,9 @@ class Step:
         full, self.full = self.full, False
         if not trig and not full:
             return []
-        usable = self.usable_slots()
-        free = {m for m, _ in usable}
-        trig = set(free) if full else trig & free
         bound: list[Outcome] = []
-        while trig:
-            cands = self.candidates(trig, usable)
-            if not cands:
-                break
+        while full or trig:
+            cands = self.candidates(None if full else sorted(trig))
             taken: set[str] = set()
             entities: set[int] = set()
             chosen: list[Candidate] = []
@@ -384,7 +370,6 @@ class Step:
             if not chosen:
                 break
             bound += self._bind(chosen)
-            usable = {(m, op) for m, op in usable if m not in taken}
             trig -= taken
         return bound
 

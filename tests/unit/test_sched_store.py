@@ -85,7 +85,8 @@ def test_priority_rank_is_stored_and_set_again_when_the_policy_changes(conn: psy
 def test_candidates_are_the_first_few_bindable_of_each_machine_in_order(conn: psycopg.Connection[Any]) -> None:
     fifo = Fifo()
     _accept_all(conn, fifo)
-    _step(conn, fifo, lambda s: [s.queue_request(1, "dummy_op", [m], None, "t", f"h{m}") for m in MACHINES])
+    holders = {"wc1": 1, "wc2": 8, "wc3": 9}
+    _step(conn, fifo, lambda s: [s.queue_request(e, "dummy_op", [m], None, "t", f"h{m}") for m, e in holders.items()])
     # behind the holders: on wc1, entity 2 wants wc1+wc2 (blocked while wc2 is held), then 3..7 want wc1
     _step(conn, fifo, lambda s: s.queue_request(2, "dummy_op", ["wc1", "wc2"], None, "t", "c2"))
     _step(conn, fifo, lambda s: [s.queue_request(e, "dummy_op", ["wc1"], None, "t", f"c{e}") for e in range(3, 8)])
@@ -93,12 +94,16 @@ def test_candidates_are_the_first_few_bindable_of_each_machine_in_order(conn: ps
         admin.execute("update lot_status set state = 'completed' where entity_id = 4")
     with conn.transaction(), conn.cursor() as cur:
         step = Step(cur, fifo, per_machine=2)
-        cands = step.candidates({"wc1"}, {("wc1", "dummy_op")})
+        assert step.candidates(["wc1"]) == []  # wc1 is held
+        step.unreserve(1, None)
+        cands = step.candidates(["wc1"])
         # entity 2's request is blocked (wc2 not usable), entity 4 finished: the first two others
         assert [c.entity_id for c in cands] == [3, 5]
         assert all(c.machines == ("wc1",) for c in cands)
-        both = step.candidates({"wc1"}, {("wc1", "dummy_op"), ("wc2", "dummy_op")})
+        step.unreserve(8, None)
+        both = step.candidates(["wc1"])
         assert [c.entity_id for c in both] == [2, 3]
+        assert [c.entity_id for c in step.candidates(None)] == [2, 3]  # every machine: wc3 is held
         assert both[0].machines == ("wc1", "wc2")
 
 
