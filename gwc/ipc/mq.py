@@ -22,9 +22,8 @@ from __future__ import annotations
 import logging
 import struct
 import zlib
-from dataclasses import dataclass, replace
 from enum import IntEnum
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import posix_ipc
 
@@ -66,9 +65,12 @@ class MessageId(IntEnum):
     ME_BACK = 12  # ME -> WC: the machine answers again
 
 
-@dataclass(frozen=True)
-class MeMessage:
-    """One record of the queue. Empty strings stand for the listings' "NULL"."""
+class MeMessage(NamedTuple):
+    """One record of the queue. Empty strings stand for the listings' "NULL".
+
+    A named tuple: made and unpacked on every round trip, where a frozen dataclass's construction
+    and dataclasses.replace() cost more than the rest of the record's handling together.
+    """
 
     message_id: MessageId
     file_name: str = ""
@@ -81,9 +83,18 @@ class MeMessage:
         self, ack_code: AckCode | None = AckCode.ACK_OK, message_id: MessageId | None = None, **fields: str
     ) -> MeMessage:
         """The answer to this request: same seq, same id unless told otherwise (Listing 7)."""
-        return replace(
-            self, message_id=message_id if message_id is not None else self.message_id, ack_code=ack_code, **fields
+        return MeMessage(
+            self.message_id if message_id is None else message_id,
+            fields.get("file_name", self.file_name),
+            fields.get("recipe_id", self.recipe_id),
+            ack_code,
+            fields.get("alarm_text", self.alarm_text),
+            self.seq,
         )
+
+    def with_seq(self, seq: int) -> MeMessage:
+        """The same record under another sequence number."""
+        return MeMessage(self.message_id, self.file_name, self.recipe_id, self.ack_code, self.alarm_text, seq)
 
     def describe(self) -> str:
         parts = [self.message_id.name, f"seq {self.seq}"]
@@ -154,12 +165,15 @@ def _text(name: str, raw: bytes) -> str:
         raise QueueError(f"garbled record: field {name} is not UTF-8") from None
 
 
+_RECORD = struct.Struct(_BODY.format + "I")  # the body and its CRC, read in one call
+_EMPTY = {size: bytes(size) for size in (FILE_NAME_SIZE, RECIPE_ID_SIZE, ALARM_TEXT_SIZE)}
+
+
 def unpack(data: bytes) -> MeMessage:
     """A record back from its bytes; QueueError naming what is wrong with a garbled one."""
     if len(data) != LAYOUT_SIZE:
         raise QueueError(f"garbled record: {len(data)} bytes, expected {LAYOUT_SIZE}")
-    body, (crc,) = data[: _BODY.size], _CRC.unpack(data[_BODY.size :])
-    magic, version, mid, seq, ack, recipe, file_name, alarm = _BODY.unpack(body)
+    magic, version, mid, seq, ack, recipe, file_name, alarm, crc = _RECORD.unpack(data)
     if magic != MAGIC:
         raise QueueError(f"garbled record: magic {magic!r}, expected {MAGIC!r}")
     if version != VERSION:
@@ -167,7 +181,7 @@ def unpack(data: bytes) -> MeMessage:
             f"record of layout version {version}, this program speaks {VERSION}: "
             "run the same GWC version on both halves"
         )
-    if zlib.crc32(body) != crc:
+    if zlib.crc32(data[: _BODY.size]) != crc:
         raise QueueError("garbled record: CRC mismatch")
     message_id = _IDS.get(mid)
     if message_id is None:
@@ -176,10 +190,10 @@ def unpack(data: bytes) -> MeMessage:
         raise QueueError(f"garbled record: unknown ack code {ack.rstrip(bytes(1))!r}")
     return MeMessage(
         message_id,
-        _text("file_name", file_name),
-        _text("recipe_id", recipe),
+        "" if file_name == _EMPTY[FILE_NAME_SIZE] else _text("file_name", file_name),
+        "" if recipe == _EMPTY[RECIPE_ID_SIZE] else _text("recipe_id", recipe),
         _ACK_IN[ack],
-        _text("alarm_text", alarm),
+        "" if alarm == _EMPTY[ALARM_TEXT_SIZE] else _text("alarm_text", alarm),
         seq,
     )
 
@@ -316,6 +330,9 @@ class Channel:
             raise QueueTimeout(f"wait on {self.in_name} interrupted by a signal") from None
         except posix_ipc.Error as e:
             raise QueueError(f"receiving on {self.in_name} failed: {e}") from e
+        return self._received(data)
+
+    def _received(self, data: bytes) -> MeMessage:
         msg = unpack(data)
         if self.log.isEnabledFor(TRACE):
             self.log.log(TRACE, "from %s: %s", self._peer, msg.describe())
@@ -323,10 +340,16 @@ class Channel:
 
     def poll(self) -> MeMessage | None:
         """The next record if one is waiting, else None (the listings' mq_read_nowait)."""
+        q = self._queue(self._in)
         try:
-            return self.receive(timeout=0)
-        except QueueTimeout:
+            data, _ = q.receive(0)
+        except posix_ipc.BusyError:
+            return None  # the usual answer when the queue is empty: no QueueTimeout made for it
+        except posix_ipc.SignalError:
             return None
+        except posix_ipc.Error as e:
+            raise QueueError(f"receiving on {self.in_name} failed: {e}") from e
+        return self._received(data)
 
     def drain(self) -> int:
         """Throw away every record waiting for us (stale ones from before a restart); how many."""

@@ -427,3 +427,38 @@ def test_link_matches_answers_by_seq_and_declares_a_silent_me_dead(machine) -> N
 
     asyncio.run(scenario())
     assert unsolicited == []
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.05], ids=["answer-at-once", "answer-after-the-quick-wait"])
+def test_link_takes_its_answer_among_unsolicited_and_stale_records(tmp_path: Path, delay: float) -> None:
+    """Whether the answer comes within MeLink's quick wait or later through the event loop, what the ME
+    sends first (a RUN_COMPL of its own, a late answer to an older request) is handled as such."""
+    prefix = f"/gwct.{uuid.uuid4().hex[:8]}"
+    me = Channel(prefix, "m1", "me", LOG).open()
+    unsolicited: list[MeMessage] = []
+
+    def play_me() -> None:
+        req = me.receive(5)
+        time.sleep(delay)
+        me.send(MeMessage(MessageId.RUN_COMPL, file_name="/tmp/r", ack_code=AckCode.ACK_OK))
+        me.send(req.reply(AckCode.ACK_OK, alarm_text="late").with_seq(req.seq - 1 or 1))
+        me.send(req.reply(AckCode.ACK_OK, alarm_text="idle"))
+
+    async def scenario() -> MeMessage:
+        link = MeLink(Channel(prefix, "m1", "wc", LOG), LOG, unsolicited.append)
+        link.start(asyncio.get_running_loop())
+        try:
+            return await link.request(MeMessage(MessageId.NO_MESSAGE), 5)
+        finally:
+            link.stop()
+
+    player = threading.Thread(target=play_me)
+    player.start()
+    try:
+        answer = asyncio.run(scenario())
+    finally:
+        player.join(5)
+        me.close()
+        remove_queues(prefix, ["m1"])
+    assert answer.alarm_text == "idle" and answer.ack_code == AckCode.ACK_OK
+    assert [u.message_id for u in unsolicited] == [MessageId.RUN_COMPL]
