@@ -37,9 +37,10 @@ import click
 import psycopg
 
 from gwc import db
-from gwc.bench import summary
+from gwc.bench import cpu_s, summary
 from gwc.bench.heal import freeze_trials
 from gwc.cell import machine_procs
+from gwc.check import check_cell
 from gwc.client.orders import decide
 from gwc.client.session import context
 from gwc.errors import GwcError
@@ -108,6 +109,7 @@ class CellBench:
         say: Callable[[str], None],
         kernel_filter: bool = True,
         freezes: int = 0,
+        idle_s: float = 60.0,
     ) -> None:
         self.var = var.resolve()
         self.n = machines
@@ -115,6 +117,7 @@ class CellBench:
         self.solo = solo
         self.deaths = deaths
         self.freezes = freezes
+        self.idle_s = idle_s
         self.log = log
         self.say = say
         self.fast = [f"wc{i}" for i in range(1, machines + 1)]
@@ -151,6 +154,12 @@ class CellBench:
                 result["death_to_reroute_s"] = summary(self._death_trials())
             if self.freezes:
                 result["freezes"] = freeze_trials(self, self.freezes)
+            if self.idle_s > 0:
+                result.update(self._idle())
+            assert self.cell.bus is not None
+            breaches = check_cell(self.cell.cfg, self.conn, self.cell.bus, settle=3.0)
+            result["check_held"] = not breaches
+            result["check_breaches"] = [f"{b.invariant}: {len(b.rows)} row(s)" for b in breaches]
             return result
         finally:
             if self.conn is not None:
@@ -277,6 +286,48 @@ class CellBench:
         overhead, parts = self._timings(entities)
         return {"solo_lots": len(entities), "solo_failed": failed, "overhead_ms": summary(overhead), "phases_ms": parts}
 
+    # ----------------------------------------------------------------- a resting cell
+
+    def _idle(self) -> dict[str, Any]:
+        """CPU the resting cell uses: every module and machine process, summed, in percent of one core,
+        over `idle_s` seconds with no lot anywhere; the embedded database's processes apart."""
+        self.say(f"the cell at rest for {self.idle_s:g}s: CPU of all its processes")
+        procs = self.cell.pids()
+        procs.update({pid: "postgres" for pid in self._database_pids()})
+        before = {}
+        for pid in procs:
+            try:
+                before[pid] = cpu_s(pid)
+            except OSError:
+                continue
+        began = time.monotonic()
+        time.sleep(self.idle_s)
+        took = time.monotonic() - began
+        used = {"modules": 0.0, "database": 0.0}
+        for pid, c0 in before.items():
+            try:
+                c = cpu_s(pid) - c0
+            except OSError:  # gone meanwhile (it had no lot to run)
+                continue
+            used["database" if procs[pid] == "postgres" else "modules"] += c
+        return {
+            "idle_s": round(took, 1),
+            "idle_processes": len(before),
+            "idle_cpu_percent": round(100 * used["modules"] / took, 3),
+            "idle_cpu_percent_database": round(100 * used["database"] / took, 3),
+        }
+
+    def _database_pids(self) -> list[int]:
+        """The embedded cluster's postmaster and its children (none for an outside database)."""
+        if not self.cell.cfg.embedded:
+            return []
+        try:
+            pm = int((self.cell.cfg.pg_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+            children = Path(f"/proc/{pm}/task/{pm}/children").read_text().split()
+        except (OSError, ValueError):
+            return []
+        return [pm, *(int(c) for c in children)]
+
     # ----------------------------------------------------------------- deaths
 
     def _death_trials(self) -> list[float]:
@@ -392,6 +443,14 @@ def _ms(s: dict[str, float]) -> str:
     show_default=True,
     help="Freeze trials (gwc/bench/heal.py): SIGSTOP a running machine's WC for 8 s, count runs done twice.",
 )
+@click.option(
+    "--idle",
+    "idle_s",
+    type=float,
+    default=60.0,
+    show_default=True,
+    help="Then seconds of rest: the CPU the resting cell uses (0: skip).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 def command(
     machines: int,
@@ -401,6 +460,7 @@ def command(
     where: Path | None,
     kernel_filter: bool,
     freezes: int,
+    idle_s: float,
     as_json: bool,
 ) -> None:
     """Run lots through a private cell of N dummy machines: lots/s, the cell's overhead per lot
@@ -421,6 +481,7 @@ def command(
         (lambda s: None) if as_json else click.echo,
         kernel_filter,
         freezes,
+        idle_s,
     )
     result = bench.run()
     if as_json:
@@ -451,3 +512,12 @@ def command(
             f"WC frozen {f['freeze_s']:g}s mid-run, {f['trials']} trials: "
             f"runs done twice {f['runs_done_twice']}, lots {f['lots']}"
         )
+    if "idle_cpu_percent" in result:
+        click.echo(
+            f"the cell at rest ({result['idle_processes']} processes, {result['idle_s']:g}s): "
+            f"{result['idle_cpu_percent']:.2f}% of one core (the database: {result['idle_cpu_percent_database']:.2f}%)"
+        )
+    click.echo(
+        "gwc check at the end: "
+        + ("held" if result["check_held"] else "BROKEN: " + "; ".join(result["check_breaches"]))
+    )

@@ -208,10 +208,10 @@ class PrivateCell:
 
     # ----------------------------------------------------------------- what is left behind
 
-    def processes(self) -> list[str]:
-        """Live processes started for this cell (found by the GWC_VAR their environment carries)."""
-        mark = f"GWC_VAR={self.var}".encode()
-        found = []
+    def pids(self) -> dict[int, str]:
+        """Live processes started for this cell (found by the GWC_VAR their environment carries): pid -> command."""
+        mark = f"GWC_VAR={self.cfg.var.resolve()}".encode()  # what spawn() gives them (GWC_VAR wins over var)
+        found = {}
         for d in Path("/proc").iterdir():
             if not d.name.isdigit() or int(d.name) == os.getpid():
                 continue
@@ -224,8 +224,12 @@ class PrivateCell:
                 cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
             except OSError:
                 continue
-            found.append(f"pid {d.name}: {cmd}")
+            found[int(d.name)] = cmd
         return found
+
+    def processes(self) -> list[str]:
+        """Live processes started for this cell, as "pid N: command"."""
+        return [f"pid {pid}: {cmd}" for pid, cmd in self.pids().items()]
 
     def leaks(self) -> list[str]:
         """Processes, queues, pid files, sockets, pty links and stray files the stopped cell left."""

@@ -1,4 +1,5 @@
-"""`gwc bench cell`, run small through the real CLI: it reports lots/s, overhead per lot, death to reroute."""
+"""`gwc bench cell`, run small through the real CLI: it reports lots/s, overhead per lot, death to reroute,
+the resting cell's CPU and whether `gwc check` held at the end."""
 
 from __future__ import annotations
 
@@ -29,6 +30,8 @@ def test_bench_cell_runs_lots_and_a_death_trial_and_reports_them(tmp_path: Path,
             "3",
             "--deaths",
             "1",
+            "--idle",
+            "2",
             "--dir",
             str(tmp_path / "bench"),
             "--json",
@@ -48,4 +51,7 @@ def test_bench_cell_runs_lots_and_a_death_trial_and_reports_them(tmp_path: Path,
     assert {"queued->bound", "started->complete", "complete->unreserved"} <= set(result["phases_ms"])
     death = result["death_to_reroute_s"]
     assert death["n"] == 1 and 0 < death["median"] < 60
+    # the resting cell's CPU, summed over its processes (servers, MSCHED, 2 WCs and MEs at least)
+    assert result["idle_processes"] >= 9 and 0 <= result["idle_cpu_percent"] < 100
+    assert result["check_held"] is True, result["check_breaches"]
     assert not list((tmp_path / "bench" / "run").glob("*.pid"))  # the bench stopped its cell
