@@ -129,6 +129,7 @@ class CellBench:
         # With the host's agent, as `gwc start` runs a cell: it announces a death the moment it happens.
         self.cell = PrivateCell(self.var, specs, log, database_url, bus={"kernel_filter": kernel_filter}, agent=True)
         self.conn: psycopg.Connection[Any] | None = None
+        self.reads = 0  # the operator's reads of lot_status, to tell the cell's own commits from them
 
     def run(self) -> dict[str, Any]:
         try:
@@ -181,6 +182,7 @@ class CellBench:
         """Import and export what of `entities` waits; return their states. (Only theirs: the operator
         looks every 10 ms, and reading every lot's row would load the cell it measures.)"""
         assert self.conn is not None and self.cell.bus is not None
+        self.reads += 1  # one transaction of its own (autocommit): not the cell's
         states = {
             int(e): str(s)
             for e, s in self.conn.execute(
@@ -204,6 +206,7 @@ class CellBench:
         failed: list[int] = []
         decided: set[tuple[int, str]] = set()
         entities: list[int] = []
+        cpu0, commits0, reads0 = self._cpu_by_role(), self._commits(), self.reads
         began = time.monotonic()
         last = began
         while finished < self.m:
@@ -224,7 +227,12 @@ class CellBench:
                 raise GwcError(f"no lot finished for {LOT_TIMEOUT:.0f}s: see {self.cell.cfg.log_dir}")
             time.sleep(POLL)
         wall = last - began
+        cpu1, commits1 = self._cpu_by_role(), self._commits() - (self.reads - reads0)
         overhead, parts = self._timings(entities)
+        lot_cpu = [t["operate_cpu_s"] for t in self._timing_files(entities) if "operate_cpu_s" in t]
+        cpu = {role: round((c - cpu0.get(role, 0.0)) * 1000 / self.m, 2) for role, c in sorted(cpu1.items())}
+        if lot_cpu:
+            cpu["lot (its operation)"] = round(sum(lot_cpu) * 1000 / len(lot_cpu), 2)
         return {
             "machines": self.n,
             "lots": self.m,
@@ -233,21 +241,47 @@ class CellBench:
             "lots_per_s": self.m / wall if wall > 0 else float("nan"),
             "loaded_overhead_ms": summary(overhead),
             "loaded_phases_ms": parts,
+            # where the time goes, counted: CPU per lot by process role while the lots ran, and commits
+            "loaded_cpu_ms_per_lot": cpu,
+            "db_commits_per_lot": round((commits1 - commits0) / self.m, 1),
         }
+
+    def _timing_files(self, entities: list[int]) -> list[dict[str, Any]]:
+        """What each lot's script left about its operation (gwc/lot/scripts/soak.py)."""
+        out = []
+        for e in entities:
+            try:
+                out.append({"entity": e, **json.loads((self.cell.cfg.var / "soak" / f"timing-{e}.json").read_text())})
+            except (OSError, ValueError):
+                continue
+        return out
 
     def _timings(self, entities: list[int]) -> tuple[list[float], dict[str, dict[str, float]]]:
         """Each lot's operation (request to unreserve, ms; lots that needed one try) and its phases."""
-        overhead, parts = [], {}
+        overhead = [t["operate_s"] * 1000 for t in self._timing_files(entities) if t.get("tries") == 1]
+        parts: dict[str, list[float]] = {}
         for e in entities:
-            try:
-                timing = json.loads((self.cell.cfg.var / "soak" / f"timing-{e}.json").read_text())
-            except (OSError, ValueError):
-                continue
-            if timing.get("tries") == 1:
-                overhead.append(timing["operate_s"] * 1000)
             for k, v in phases(self.cell.cfg.log_dir / log_file_name(f"lot:{e}")).items():
                 parts.setdefault(k, []).append(v * 1000)
         return overhead, {k: summary(v) for k, v in parts.items()}
+
+    def _cpu_by_role(self) -> dict[str, float]:
+        """CPU seconds so far of the cell's running processes, summed by role (all WCs together ...)."""
+        # Lot scripts come and go (their operation's CPU is in their timing files): not counted here.
+        roles = {pid: _role(cmd) for pid, cmd in self.cell.pids().items() if "gwc.lot.run" not in cmd}
+        roles.update({pid: "database" for pid in self._database_pids()})
+        out: dict[str, float] = {}
+        for pid, role in roles.items():
+            try:
+                out[role] = out.get(role, 0.0) + cpu_s(pid)
+            except OSError:
+                continue
+        return out
+
+    def _commits(self) -> int:
+        assert self.conn is not None
+        row = self.conn.execute("SELECT xact_commit FROM pg_stat_database WHERE datname = current_database()")
+        return int(row.fetchone()[0])
 
     def _wait_states(
         self, entities: list[int], states: tuple[str, ...], decided: set[tuple[int, str]], what: str, poll: float = POLL
@@ -292,29 +326,17 @@ class CellBench:
         """CPU the resting cell uses: every module and machine process, summed, in percent of one core,
         over `idle_s` seconds with no lot anywhere; the embedded database's processes apart."""
         self.say(f"the cell at rest for {self.idle_s:g}s: CPU of all its processes")
-        procs = self.cell.pids()
-        procs.update({pid: "postgres" for pid in self._database_pids()})
-        before = {}
-        for pid in procs:
-            try:
-                before[pid] = cpu_s(pid)
-            except OSError:
-                continue
+        before = self._cpu_by_role()
         began = time.monotonic()
         time.sleep(self.idle_s)
         took = time.monotonic() - began
-        used = {"modules": 0.0, "database": 0.0}
-        for pid, c0 in before.items():
-            try:
-                c = cpu_s(pid) - c0
-            except OSError:  # gone meanwhile (it had no lot to run)
-                continue
-            used["database" if procs[pid] == "postgres" else "modules"] += c
+        after = self._cpu_by_role()
+        percent = {role: 100 * (c - before.get(role, c)) / took for role, c in after.items()}
         return {
             "idle_s": round(took, 1),
-            "idle_processes": len(before),
-            "idle_cpu_percent": round(100 * used["modules"] / took, 3),
-            "idle_cpu_percent_database": round(100 * used["database"] / took, 3),
+            "idle_cpu_percent": round(sum(v for r, v in percent.items() if r != "database"), 3),
+            "idle_cpu_percent_database": round(percent.get("database", 0.0), 3),
+            "idle_cpu_percent_by_role": {r: round(v, 3) for r, v in sorted(percent.items())},
         }
 
     def _database_pids(self) -> list[int]:
@@ -401,6 +423,14 @@ class CellBench:
             if time.monotonic() > deadline:
                 raise GwcError(f"{machine} did not come back up")
             time.sleep(0.2)
+
+
+def _role(cmd: str) -> str:
+    """A process's role from its command line: the module of `gwc run X`, else what runs it."""
+    m = re.search(r"gwc run (\S+)", cmd)
+    if m:
+        return m.group(1)
+    return cmd.split(" ", 1)[0].rsplit("/", 1)[-1]
 
 
 def _ms(s: dict[str, float]) -> str:
@@ -497,6 +527,10 @@ def command(
     )
     for k, v in result["loaded_phases_ms"].items():
         click.echo(f"    {k:22s} (ms): {_ms(v)}")
+    click.echo(
+        f"  per lot: {result['db_commits_per_lot']} database commits; CPU (ms) "
+        + ", ".join(f"{k} {v}" for k, v in result["loaded_cpu_ms_per_lot"].items())
+    )
     if "overhead_ms" in result:
         click.echo(
             f"overhead per lot, one lot at a time, request to unreserve (ms): {_ms(result['overhead_ms'])} "
@@ -514,8 +548,9 @@ def command(
         )
     if "idle_cpu_percent" in result:
         click.echo(
-            f"the cell at rest ({result['idle_processes']} processes, {result['idle_s']:g}s): "
-            f"{result['idle_cpu_percent']:.2f}% of one core (the database: {result['idle_cpu_percent_database']:.2f}%)"
+            f"the cell at rest ({result['idle_s']:g}s): {result['idle_cpu_percent']:.2f}% of one core "
+            f"(the database: {result['idle_cpu_percent_database']:.2f}%): "
+            + ", ".join(f"{k} {v:.2f}" for k, v in result["idle_cpu_percent_by_role"].items())
         )
     click.echo(
         "gwc check at the end: "
