@@ -32,15 +32,17 @@ def start_machine(
     timeout: float = START_TIMEOUT,
 ) -> str:
     """ME_START with the machine's WC (Shutdown -> Idle), after spawning whichever of its processes
-    (simulator, ME, WC) is down, by their pid files: an ME dead behind a live WC too. Returns how it
+    (simulator, ME, WC) is down, by their pid files: an ME dead behind a live WC too (on the machine's
+    own host only; from another host it only asks the WC). Returns how it
     ended ("started", "already started"); ModuleError if refused. `say` hears each step, that a homing
     alarm may now wait for the operator, and the end."""
-    cfg.machine(machine_id)  # ConfigError naming the known machines
+    spec = cfg.machine(machine_id)  # ConfigError naming the known machines
     wc = module_name("wc", machine_id)
-    procs = cell.machine_procs(cfg, machine_id)
-    if on_bus(bus, wc, SEE_WC):  # a WC on the bus runs, whoever started it (its pid file may be elsewhere)
-        procs = [p for p in procs if p.kind != "wc"]
-    cell.start_procs(cfg, procs, bus, say)
+    if cfg.placed_here(spec):  # another host's machine: its processes are that host's (docs/deploying.md)
+        procs = cell.machine_procs(cfg, machine_id)
+        if on_bus(bus, wc, SEE_WC):  # a WC on the bus runs, whoever started it (its pid file may be elsewhere)
+            procs = [p for p in procs if p.kind != "wc"]
+        cell.start_procs(cfg, procs, bus, say)
     say(
         f"{wc}: ME_START (a machine that must be homed raises its alarm now: "
         "`gwc alarm list`, then `gwc alarm clear N` once it is done)"
