@@ -142,7 +142,11 @@ class ConsoleApp(App[None]):
         self.sub_title = f"cell {self.cfg.cell_name}, bus {self.cfg.bus.group}:{self.cfg.bus.port}"
         if self.narration:
             self.bind("9", "show('demo')", show=False)
-        self.link.open()
+        try:
+            self.link.open()
+        except GwcError as e:  # no cell key, a bus that cannot be joined: one line, as every gwc command
+            self.exit(return_code=1, message=f"gwc: {e}")
+            return
         self._views["monitor"].own_name = self.link.name
         self.show_cell_state()
         self.set_interval(TICK, self.tick)

@@ -26,6 +26,8 @@ def console(screenshots: Path | None) -> None:
     app = ConsoleApp(cfg, console_log(cfg))
     if screenshots is None:
         app.run()
+        if app.return_code:
+            raise SystemExit(app.return_code)
         return
     screenshots.mkdir(parents=True, exist_ok=True)
     app.run(headless=True, size=(132, 36), auto_pilot=screenshot_every_view(screenshots))

@@ -319,6 +319,7 @@ def demo(config_path: Path, chess: int, pawns: int, timeout: float, keep: bool, 
     if with_console:
         from gwc.console.app import run_beside  # Textual only when asked for
 
+        keys.ensure(cfg.bus)  # the console joins the bus before the demonstration would make its keys
         ok = run_beside(cfg, lambda say: Demo(cfg, say, chess, pawns, timeout).run(keep), click.echo)
     else:
         ok = Demo(cfg, click.echo, chess, pawns, timeout).run(keep)

@@ -210,18 +210,20 @@ def test_gwc_console_in_a_terminal_shows_every_machine_survives_the_cell_stoppin
 
 
 @pytest.mark.soak  # a whole demonstration (about 30 s): more than this file's share of the suite's time
+@pytest.mark.timeout(600)
 @needs_tmux
 def test_gwc_demo_console_shows_the_demonstration_live_and_it_succeeds(demo_env: tuple[Path, dict[str, str]]) -> None:
     config, env = demo_env
     args = ("demo", "--config", str(config), "--console", "--pawns", "1")
     term = Terminal(f"gwc-demo-console-{os.getpid()}", env, *args)
     try:
-        term.wait("a machine running in MSTT", "cell UP", "Running", timeout=60)
+        term.wait("the demonstration's machines in MSTT", "cell UP", "cmm_wc", "mazak", timeout=90)
         term.keys("9")
-        term.wait("the demonstration to finish", "finished: q quits the console", timeout=90)
-        assert "demonstration succeeded" in term.screen(), term.screen()
+        # A demonstration takes 30 s on a quiet machine, and was seen to take 214 s on a loaded one.
+        term.wait("the demonstration to finish", "finished: q quits the console", timeout=400)
+        assert "not every lot did" not in term.screen(), term.screen()
         term.wait("the console to see the cell stopped", "cell DOWN")
         term.keys("q")
-        assert term.exit_code() == 0
+        assert term.exit_code() == 0  # the demonstration's own verdict: every lot exported, every invariant kept
     finally:
         term.close()
