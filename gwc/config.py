@@ -70,12 +70,17 @@ class BusConfig:
         return self.port + 1
 
 
+# The ME kinds a machine may be: kind -> its machine side, "module:Class" (loaded by gwc.me.make_machine
+# only in that machine's ME process). A new kind of machine is one entry here.
+ME_KINDS = {"dummy": "gwc.me.dummy:DummyMachine", "cmm": "gwc.me.cmm:CmmMachine"}
+
+
 @dataclass(frozen=True)
 class MachineSpec:
     """One machine: its WC and ME processes, and for a CMM its serial line."""
 
     id: str
-    kind: str = "dummy"  # dummy | cmm
+    kind: str = "dummy"  # one of ME_KINDS
     liveness: float = 3.0  # the Machine Server marks it Shutdown after this much WC silence
     level: str = "note"
     options: dict[str, Any] = field(default_factory=dict)  # kind-specific: run_time, serial, sim, ...
@@ -250,8 +255,8 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
         m = dict(m)
         mid = m.pop("id")
         kind = m.pop("kind", "dummy")
-        if kind not in ("dummy", "cmm"):
-            raise ValueError(f"machine {mid}: kind {kind!r} is not dummy or cmm")
+        if kind not in ME_KINDS:
+            raise ValueError(f"machine {mid}: kind {kind!r} is not one of {', '.join(ME_KINDS)}")
         machines.append(
             MachineSpec(
                 id=mid,

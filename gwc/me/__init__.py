@@ -7,10 +7,11 @@ protocol). The ME talks only to its WC, over the machine's queue pair (gwc.ipc.m
 
 from __future__ import annotations
 
+import importlib
 import logging
 import threading
 
-from gwc.config import Config, MachineSpec
+from gwc.config import ME_KINDS, Config, MachineSpec
 from gwc.errors import ConfigError
 from gwc.me.machine import MachineSide
 
@@ -28,17 +29,13 @@ def answer_deadline(spec: MachineSpec) -> float:
 
 
 def make_machine(cfg: Config, machine_id: str, log: logging.Logger) -> MachineSide:
-    """The machine side for this machine's kind."""
+    """The machine side for this machine's kind (gwc.config.ME_KINDS), its module imported only here."""
     spec = cfg.machine(machine_id)
-    if spec.kind == "dummy":
-        from gwc.me.dummy import DummyMachine
-
-        return DummyMachine(cfg, spec, log)
-    if spec.kind == "cmm":
-        from gwc.me.cmm import CmmMachine
-
-        return CmmMachine(cfg, spec, log)
-    raise ConfigError(f"machine {machine_id}: no ME for kind {spec.kind!r}")
+    if spec.kind not in ME_KINDS:
+        raise ConfigError(f"machine {machine_id}: no ME for kind {spec.kind!r} (known: {', '.join(ME_KINDS)})")
+    module, _, cls = ME_KINDS[spec.kind].partition(":")
+    machine: MachineSide = getattr(importlib.import_module(module), cls)(cfg, spec, log)
+    return machine
 
 
 def main(cfg: Config, machine_id: str, log: logging.Logger, stop: threading.Event) -> int:
