@@ -164,9 +164,9 @@ class Config:
                 return m.level
         kind, _, mid = module.partition(":")
         if mid:
-            for m in self.machines:
-                if m.id == mid:
-                    return m.level
+            for machine in self.machines:
+                if machine.id == mid:
+                    return machine.level
         return str(self.raw.get("log", {}).get("level", "note"))
 
 
@@ -251,20 +251,20 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
         if m.name not in SERVER_MODULES + OPTIONAL_MODULES:
             raise ValueError(f"module {m.name!r} is not one of {', '.join(SERVER_MODULES + OPTIONAL_MODULES)}")
     machines = []
-    for m in raw.get("machine", []):
-        m = dict(m)
-        mid = m.pop("id")
-        kind = m.pop("kind", "dummy")
+    for entry in raw.get("machine", []):
+        options = dict(entry)  # what is left once the common keys are taken: the kind's own
+        mid = options.pop("id")
+        kind = options.pop("kind", "dummy")
         if kind not in ME_KINDS:
             raise ValueError(f"machine {mid}: kind {kind!r} is not one of {', '.join(ME_KINDS)}")
         machines.append(
             MachineSpec(
                 id=mid,
                 kind=kind,
-                liveness=float(m.pop("liveness", 3.0)),
-                level=_check_level(m.pop("level", default_level), f"machine {mid}"),
-                host=_placed(m.pop("host", None), hosts, f"machine {mid}"),
-                options=m,
+                liveness=float(options.pop("liveness", 3.0)),
+                level=_check_level(options.pop("level", default_level), f"machine {mid}"),
+                host=_placed(options.pop("host", None), hosts, f"machine {mid}"),
+                options=options,
             )
         )
     ids = [m.id for m in machines]

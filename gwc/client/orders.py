@@ -111,9 +111,9 @@ def enter_order(
             raise GwcError(f"work order {wo} was saved, but its lot of {product} was not created: {e}") from e
         pids = {}
         if start_scripts:
-            for e in entities:
-                pids[e] = spawn_lot_script(cfg, e)
-                log.info("entity %d: lot script started (pid %d)", e, pids[e])
+            for entity in entities:
+                pids[entity] = spawn_lot_script(cfg, entity)
+                log.info("entity %d: lot script started (pid %d)", entity, pids[entity])
         lots.append(
             {"lot_id": lot_id, "product_id": product, "quantity": qty, "entities": entities, "script_pids": pids}
         )

@@ -151,10 +151,10 @@ def verdict(results: dict[str, str]) -> tuple[bool, str]:
         if f"{k}_nominal" in lowered and f"{k}_tol" in lowered:
             with contextlib.suppress(ValueError):
                 checks.append((k, float(v), float(lowered[f"{k}_nominal"]), float(lowered[f"{k}_tol"])))
-    for name, value, nominal, tol in checks:
-        if abs(value - nominal) > abs(tol):
+    for name, measured, nominal, tol in checks:
+        if abs(measured - nominal) > abs(tol):
             fails.append(name)
-            why.append(f"{name} {value:g} off {nominal:g} by more than {abs(tol):g}")
+            why.append(f"{name} {measured:g} off {nominal:g} by more than {abs(tol):g}")
         else:
             passes += 1
     if fails:

@@ -115,7 +115,7 @@ class EntityReserve(EntityTalk):
         errors = [a.error for a in alts if a.error]
         if errors:
             raise LotError(f"machine request for {request.op_type} failed: {'; '.join(errors)}")
-        codes = sorted({(a.comp or a.ack).ack_code for a in alts if a.comp or a.ack})
+        codes = sorted({answer.ack_code for a in alts if (answer := a.comp or a.ack) is not None})
         raise RequestRefused(f"no machine for {request.op_type} ({request.describe()}): {', '.join(codes)}")
 
     def reserve(

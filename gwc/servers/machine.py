@@ -218,7 +218,7 @@ class MachineServer(Server, Module):
                 f"status {req.status!r} or expect {req.expect!r} is not a machine status ({', '.join(S)})",
             )
 
-        def step(cur: Any) -> tuple[str, str | None, int | None] | None:
+        def step(cur: Any) -> tuple[MachineStatus, str | None, int | None] | None:
             row = cur.execute(
                 "select status from machine_status where machine_id = %s for update", (req.machine_id,)
             ).fetchone()

@@ -66,7 +66,8 @@ class WCRuns(WCBase):
         if run_id is not None and self._results_path(run_id).exists():
             path = self._results_path(run_id)
             self.log.warning("run %d ended before the ME died: completing it from its results file %s", run_id, path)
-            await self._finish_run(run_id, *self._outcome_in(path), shutdown=f"ME died: {why}", tell_me=False)
+            code, note = self._outcome_in(path)
+            await self._finish_run(run_id, code, path, note, shutdown=f"ME died: {why}", tell_me=False)
             return
         await self._go_shutdown(f"ME died: {why}", tell_me=False)
         if run_id is not None:

@@ -123,8 +123,9 @@ class WC(WCSteps):
         cannot serve it.
         """
         try:
+            answer: MeMessage | None
             try:
-                answer: MeMessage | None = await self.me_request(MeMessage(MessageId.NO_MESSAGE), timeout=ME_DEADLINE)
+                answer = await self.me_request(MeMessage(MessageId.NO_MESSAGE), timeout=ME_DEADLINE)
             except (MeDied, QueueError) as e:
                 answer, why = None, f"no ME answers: {e}"
             else:
