@@ -485,9 +485,11 @@ def _ack_message_of(cls: str) -> Callable[[str, str], catalogue.Message] | None:
         names = {f.name for f in mc.fields}
         required = {f.name for f in mc.fields if not f.nullable}
         if "ack_code" in names and required <= {"ack_code"}:
-            return lambda code, note, _n=name, _has_note="note" in names: message(
-                _n, ack_code=code, **({"note": note[:500]} if _has_note else {})
-            )
+
+            def ack(code: str, note: str, name: str = name, has_note: bool = "note" in names) -> catalogue.Message:
+                return message(name, ack_code=code, **({"note": note[:500]} if has_note else {}))
+
+            return ack
     return None
 
 

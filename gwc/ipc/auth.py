@@ -45,7 +45,7 @@ MAX_SOURCES = 64  # sources counted apart in one summary; the rest together
 _SRC_LEN_AT = wire.SRC_LEN_OFFSET
 
 
-def mac_of(secret: bytes) -> Any:
+def mac_of(secret: bytes) -> hashlib.blake2b:
     """A keyed BLAKE2b-128 ready to be copied per datagram (copying skips the key schedule)."""
     return hashlib.blake2b(key=secret, digest_size=MAC_BYTES)
 

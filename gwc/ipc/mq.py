@@ -23,7 +23,7 @@ import logging
 import struct
 import zlib
 from enum import IntEnum
-from typing import Literal, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import posix_ipc
 
@@ -80,7 +80,7 @@ class MeMessage(NamedTuple):
     seq: int = 0
 
     def reply(
-        self, ack_code: AckCode | None = AckCode.ACK_OK, message_id: MessageId | None = None, **fields: str
+        self, ack_code: AckCode | None = AckCode.ACK_OK, message_id: MessageId | None = None, **fields: Any
     ) -> MeMessage:
         """The answer to this request: same seq, same id unless told otherwise (Listing 7)."""
         return MeMessage(
@@ -365,7 +365,7 @@ class Channel:
     def withdraw(self) -> list[MeMessage]:
         """Take back what we sent and the other half has not read (it is dead or hung): a request
         left in the queue would be served, out of its time, by the next incarnation."""
-        taken = []
+        taken: list[MeMessage] = []
         q = self._queue(self._out)
         while True:
             try:

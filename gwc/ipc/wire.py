@@ -260,7 +260,7 @@ def encode_parts(
             len(m),
             len(acks),
             len(interest),
-        )  # type: ignore[arg-type]
+        )
     except MessageError:
         raise
     except (TypeError, ValueError, RecursionError, KeyError, struct.error) as e:

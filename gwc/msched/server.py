@@ -113,10 +113,13 @@ class Msched(Module):
             self.log.info("resending %d answer(s) not acknowledged before the restart", len(owed))
             self._dispatch(owed)
         queued, reserved = self.transaction(
-            lambda cur: cur.execute(
-                "select (select count(distinct request_key) from request_machines), "
-                "(select count(*) from reserved_machines)"
-            ).fetchone()
+            lambda cur: (
+                cur.execute(
+                    "select (select count(distinct request_key) from request_machines), "
+                    "(select count(*) from reserved_machines)"
+                ).fetchone()
+                or (0, 0)
+            )
         )
         self.log.info("policy %s; %d request(s) queued, %d machine(s) reserved", self.policy.name, queued, reserved)
         return AckCode.ACK_OK
@@ -336,8 +339,8 @@ class Msched(Module):
         except Exception as e:
             if len(ops) > 1:
                 self.log.warning("a step of %d changes failed (%s): running them one by one", len(ops), e)
-                for op in ops:
-                    self._run([op])
+                for one in ops:
+                    self._run([one])
                 return
             fut = ops[0][1]
             if fut is None:

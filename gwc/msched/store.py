@@ -35,6 +35,12 @@ _OUTCOME_COLS = "request_key, entity_id, ack_code, machines, machine_run_id, not
 PER_MACHINE = 4
 
 
+def first(row: tuple[Any, ...] | None) -> Any:
+    """The first column of the row a statement always returns (an insert's RETURNING, a function's select)."""
+    assert row is not None, "the statement returned no row"
+    return row[0]
+
+
 @dataclass(frozen=True)
 class Outcome:
     """How a request ended: the Machine_Req_Comp its entity is owed."""
@@ -131,25 +137,27 @@ class Step:
             if status[m] not in UP:
                 return Queued(AckCode.NO_MACHINE, note=f"machine {m} is {status[m] or 'without a status'}")
         key = int(
-            cur.execute(
-                "with k (key, requested_at, priority) as "
-                "    (select get_new_max_value('MACH_R_KEY'), clock_timestamp(), %s::int) "
-                "insert into request_machines (request_key, entity_id, machine_id, op_type, priority, reply_to, "
-                "                              reply_conv, requested_at, slots, alt_group, rank) "
-                f"select k.key, %s, m, %s, k.priority, %s, %s, k.requested_at, %s, %s, {self.policy.rank_sql()} "
-                "from k, unnest(%s::text[]) with ordinality as u (m, i) order by i "
-                "returning request_key",
-                (
-                    int(lot_priority) if priority is None else priority,
-                    entity_id,
-                    op_type,
-                    reply_to,
-                    reply_conv,
-                    [f"{m}:{op_type}" for m in machines],
-                    alt_group,
-                    list(machines),
-                ),
-            ).fetchone()[0]
+            first(
+                cur.execute(
+                    "with k (key, requested_at, priority) as "
+                    "    (select get_new_max_value('MACH_R_KEY'), clock_timestamp(), %s::int) "
+                    "insert into request_machines (request_key, entity_id, machine_id, op_type, priority, reply_to, "
+                    "                              reply_conv, requested_at, slots, alt_group, rank) "
+                    f"select k.key, %s, m, %s, k.priority, %s, %s, k.requested_at, %s, %s, {self.policy.rank_sql()} "
+                    "from k, unnest(%s::text[]) with ordinality as u (m, i) order by i "
+                    "returning request_key",
+                    (
+                        int(lot_priority) if priority is None else priority,
+                        entity_id,
+                        op_type,
+                        reply_to,
+                        reply_conv,
+                        [f"{m}:{op_type}" for m in machines],
+                        alt_group,
+                        list(machines),
+                    ),
+                ).fetchone()
+            )
         )
         self.triggers.update(machines)
         return Queued(AckCode.ACK_OK, key)
@@ -295,7 +303,7 @@ class Step:
         The pass's per-machine walk is the plan PostgreSQL picks only when it knows how long the
         queue is; whether they were refreshed.
         """
-        return bool(self.cur.execute("select msched_analyze()").fetchone()[0])
+        return bool(first(self.cur.execute("select msched_analyze()").fetchone()))
 
     def end_finished(self) -> int:
         """Entities that finished (or were destroyed) will never take a machine: end their queued
