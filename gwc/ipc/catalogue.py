@@ -10,7 +10,7 @@ Field types are written as strings: "str", "int", "float", "bool", "list", "dict
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from gwc.errors import MessageError
@@ -40,6 +40,11 @@ class MessageClass:
     name: str
     fields: tuple[FieldSpec, ...]
     doc: str = ""
+    # Worked out by __post_init__ from `fields`: the names, and one check tuple per field.
+    _known: frozenset[str] = field(init=False, repr=False, compare=False)
+    _checks: tuple[tuple[str, tuple[type, ...], bool, bool, FieldSpec, int | None], ...] = field(
+        init=False, repr=False, compare=False
+    )
 
     def __post_init__(self) -> None:
         # Worked out once here, not on every check: every message sent and received is checked.
@@ -62,19 +67,19 @@ class MessageClass:
 
     def check(self, values: dict[str, Any]) -> None:
         """Raise MessageError unless values fit this class exactly."""
-        known: frozenset[str] = self._known  # type: ignore[attr-defined]
+        known = self._known
         if not known.issuperset(values):
             extra = set(values) - known
             raise MessageError(f"{self.name}: unknown field(s) {', '.join(sorted(extra))}")
-        for name, types, numeric, nullable, f, limit in self._checks:  # type: ignore[attr-defined]
-            v = values.get(name)
+        for name, types, numeric, nullable, f, limit in self._checks:
+            v: Any = values.get(name)
             if v is None:
                 if not nullable:
                     raise MessageError(f"{self.name}: field {name} ({f.type}) is required")
                 continue
             if not isinstance(v, types) or (numeric and v.__class__ is bool):
                 raise MessageError(f"{self.name}: field {name} must be {f.type}, got {type(v).__name__}")
-            if limit != -1 and ("\0" in v or (limit is not None and len(v) > limit)):
+            if limit != -1 and isinstance(v, str) and ("\0" in v or (limit is not None and len(v) > limit)):
                 raise MessageError(f"{self.name}: field {name} holds a NUL or is over {limit} characters")
             if numeric and v != v:  # NaN (the wire refuses it; a message built in Python could hold one)
                 raise MessageError(f"{self.name}: field {name} is NaN")
@@ -386,7 +391,7 @@ class Message:
         if item in fields:
             return fields[item]
         mc = MESSAGE_CLASSES.get(object.__getattribute__(self, "name"))
-        if mc and item in mc._known:  # type: ignore[attr-defined]
+        if mc and item in mc._known:
             return None
         raise AttributeError(f"{self.name} has no field {item}")
 
@@ -421,7 +426,7 @@ def refusal(cls: str, ack_code: str, note: str) -> Message | None:
     that needs nothing but an ack code; None if the class has none (a broadcast)."""
     for name in CONVERSATION_CLASSES[cls].messages[1:]:
         mc = MESSAGE_CLASSES[name]
-        if "ack_code" in mc._known and all(f.nullable or f.name == "ack_code" for f in mc.fields):  # type: ignore[attr-defined]
+        if "ack_code" in mc._known and all(f.nullable or f.name == "ack_code" for f in mc.fields):
             return Message(name, {"ack_code": ack_code, "note": note})
     return None
 
