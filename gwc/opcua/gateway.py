@@ -54,7 +54,7 @@ V = ua.VariantType
 S = ua.StatusCodes
 LISTENS = ("UPD_ME_ST", "RUN_COMPL", "ALARM_CLE", "CELL_EVENT", "LOT_MOVED")
 # The cell's ack codes as OPC UA statuses (docs/opcua.md, Methods).
-STATUS_OF = {
+STATUS_OF: dict[str, int] = {
     AckCode.ACK_OK: S.Good,
     AckCode.NOTNOW: S.BadInvalidState,
     AckCode.UNKNOWN: S.BadNotFound,
@@ -111,9 +111,9 @@ def _rows(cur: Any, sql: str, *params: Any) -> list[dict[str, Any]]:
 def result(code: str | int, note: str = "", *more: ua.Variant) -> ua.CallMethodResult:
     """A method's answer: the ack code as a status, the code and the note as outputs."""
     status = code if isinstance(code, int) else STATUS_OF.get(code, S.BadUnexpectedError)
-    name = code if isinstance(code, str) else ua.StatusCode(code).name
+    name = code if isinstance(code, str) else ua.StatusCode(ua.UInt32(code)).name
     return ua.CallMethodResult(
-        StatusCode=ua.StatusCode(status),
+        StatusCode=ua.StatusCode(ua.UInt32(status)),
         OutputArguments=[ua.Variant(name, V.String), ua.Variant(note[:500], V.String), *more],
     )
 

@@ -31,12 +31,12 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from gwc.errors import ConfigError
 from gwc.opcua.settings import OpcuaSettings
 
-CALL = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
-WRITE = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
+CALL = ua.NodeId(ua.Int32(ua.ObjectIds.CallRequest_Encoding_DefaultBinary))
+WRITE = ua.NodeId(ua.Int32(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary))
 # Calls anyone who may subscribe may make: the standard "send me the active alarms again".
 REFRESH = {
-    ua.NodeId(ua.ObjectIds.ConditionType_ConditionRefresh),
-    ua.NodeId(ua.ObjectIds.ConditionType_ConditionRefresh2),
+    ua.NodeId(ua.Int32(ua.ObjectIds.ConditionType_ConditionRefresh)),
+    ua.NodeId(ua.Int32(ua.ObjectIds.ConditionType_ConditionRefresh2)),
 }
 SECURE_POLICIES = [
     ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt,
@@ -94,7 +94,7 @@ class GatewayRules(PermissionRuleset):
     """One endpoint's rule: reads and subscriptions for every session; calls only for a user on an
     encrypted channel (and ConditionRefresh for anyone); no writes (the address space is read-only)."""
 
-    READ_TYPES = frozenset(ua.NodeId(t) for t in USER_TYPES) - {CALL, WRITE}
+    READ_TYPES = frozenset(ua.NodeId(ua.Int32(t)) for t in USER_TYPES) - {CALL, WRITE}
 
     def __init__(self, encrypted: bool) -> None:
         self.encrypted = encrypted

@@ -96,7 +96,7 @@ class Space:
         self._values: dict[str, Any] = {}
 
     def nodeid(self, path: str) -> ua.NodeId:
-        return ua.NodeId(path, self.ns)
+        return ua.NodeId(ua.String(path), ua.Int16(self.ns))
 
     def path_of(self, nodeid: ua.NodeId) -> str | None:
         """The path of one of our node ids, None for another namespace's."""
@@ -135,7 +135,7 @@ class Space:
         """A method with named, described arguments: (name, type, what it is)."""
 
         def arg(name: str, vtype: ua.VariantType, what: str) -> ua.Argument:
-            a = ua.Argument(Name=name, DataType=ua.NodeId(vtype.value), Description=ua.LocalizedText(what))
+            a = ua.Argument(Name=name, DataType=ua.NodeId(ua.Int32(vtype.value)), Description=ua.LocalizedText(what))
             a.ValueRank = -1
             return a
 
