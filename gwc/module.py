@@ -138,7 +138,7 @@ class Module:
         self.exit_code = 0
         self._stop = asyncio.Event()
         self._conn: psycopg.Connection | None = None
-        self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks: set[asyncio.Task[Any]] = set()
         self.database_down: float | None = None  # monotonic time the database was found away, if it is
         self._database_why = ""
         self._database_up = asyncio.Event()

@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import fcntl
+import functools
 import json
 import logging
 import os
@@ -170,7 +171,7 @@ class Agent(Server):
             if not st.alive or st.pid is None:
                 continue
             pid = st.pid
-            ours = child.attach(pid, None, self._exited, still_ours=lambda c=child, p=pid: _names(self.cfg, c, p))
+            ours = child.attach(pid, None, self._exited, still_ours=functools.partial(_names, self.cfg, child, pid))
             if ours:
                 child.change_state(S.STARTING, "adopted: left running by an earlier agent")
                 child.ready = asyncio.get_running_loop().create_task(self._probe(child, None))
@@ -206,7 +207,8 @@ class Agent(Server):
         probe = self._probe(child, old.inc if old else None, ready_r)
         child.ready = asyncio.get_running_loop().create_task(probe)
         if ready_r is not None:  # closed however the probe ends, even cancelled before its first step
-            child.ready.add_done_callback(lambda _t, fd=ready_r: os.close(fd))
+            fd = ready_r
+            child.ready.add_done_callback(lambda _t: os.close(fd))
 
     async def _probe(self, child: Child, old_inc: int | None, ready_fd: int | None = None) -> None:
         """Prove the new process ready (RUNNING), or kill it: a failed start, counted when it dies.
@@ -441,7 +443,12 @@ async def _read_ready(fd: int) -> None:
     """Wait for the module's byte on its readiness pipe; EOF means it ended first."""
     loop = asyncio.get_running_loop()
     got: asyncio.Future[bytes] = loop.create_future()
-    loop.add_reader(fd, lambda: got.done() or got.set_result(os.read(fd, 1)))
+
+    def take() -> None:
+        if not got.done():
+            got.set_result(os.read(fd, 1))
+
+    loop.add_reader(fd, take)
     try:
         if not await got:
             raise ModuleError("ended before it was ready")

@@ -71,7 +71,7 @@ _STAMP = re.compile(r"\| Date (\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3}) \|.*?\| (?
 
 def log_events(path: Path) -> list[tuple[float, str]]:
     """(epoch seconds, message) of every entry of a Figure 2 log."""
-    out = []
+    out: list[tuple[float, str]] = []
     try:
         lines = path.read_text(errors="replace").splitlines()
     except OSError:

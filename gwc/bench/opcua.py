@@ -143,7 +143,7 @@ async def _client(endpoint: str, machines: list[str], items: int, interval: floa
         sub = await client.create_subscription(interval * 1000, note)
         for i in range(0, len(paths), 50):
             await sub.subscribe_data_change(
-                [client.get_node(ua.NodeId(p, ns)) for p in paths[i : i + 50]], queuesize=100
+                [client.get_node(ua.NodeId(ua.String(p), ua.Int16(ns))) for p in paths[i : i + 50]], queuesize=100
             )
         while not done():
             await asyncio.sleep(0.2)
@@ -188,10 +188,10 @@ def run(log: logging.Logger, where: Path, machines: int, lots: int, items: int, 
 
         def done() -> bool:
             if "start" not in window:
-                window.update(start=time.time(), cpu=_cpu_seconds(gateway.pid))  # type: ignore[union-attr]
+                window.update(start=time.time(), cpu=_cpu_seconds(gateway.pid))
             if bench.poll() is None:
                 return False
-            window.update(end=time.time(), cpu=_cpu_seconds(gateway.pid) - window["cpu"])  # type: ignore[union-attr]
+            window.update(end=time.time(), cpu=_cpu_seconds(gateway.pid) - window["cpu"])
             return True
 
         note = asyncio.run(_client(endpoint, ids, items, interval, done))

@@ -83,7 +83,7 @@ class Result:
 
 
 def _scratch_url(url: str, dbname: str) -> str:
-    info = psycopg.conninfo.conninfo_to_dict(url)
+    info: dict[str, Any] = dict(psycopg.conninfo.conninfo_to_dict(url))
     info["dbname"] = dbname
     return psycopg.conninfo.make_conninfo(**info)
 
@@ -234,7 +234,8 @@ async def _run(
                 )
             await asyncio.sleep(0.05)
         with psycopg.connect(url, autocommit=True) as conn:
-            in_queue = conn.execute("select count(distinct request_key) from request_machines").fetchone()[0]
+            row = conn.execute("select count(distinct request_key) from request_machines").fetchone()
+            in_queue = row[0] if row else 0
         # Throughput: free everything; every entity bound frees its machines at once.
         decisions = min(decisions, in_queue // 2)  # the queue stays at least half full while timed
         bench.looping = True

@@ -332,10 +332,10 @@ def run_beside(cfg: Config, job: Callable[[Callable[[str], None]], bool], echo: 
     return outcome.get("ok", False)
 
 
-def screenshot_every_view(folder: Path) -> Callable[[Pilot[None]], Coroutine[Any, Any, None]]:
+def screenshot_every_view(folder: Path) -> Callable[[Pilot[object]], Coroutine[Any, Any, None]]:
     """An auto-pilot that shows each view in turn, once it has been read, and saves it as SVG."""
 
-    async def shoot(pilot: Pilot[None]) -> None:
+    async def shoot(pilot: Pilot[object]) -> None:
         app = pilot.app
         assert isinstance(app, ConsoleApp)
         for i, (name, _) in enumerate(app.VIEWS, 1):

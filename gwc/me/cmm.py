@@ -91,8 +91,8 @@ class CmmMachine(MachineSide):
     def __init__(self, cfg: Config, spec: MachineSpec, log: logging.Logger) -> None:
         super().__init__(cfg, spec, log)
         self.settings = serial_settings(self.options.get("serial", dict, {}), f"machine {spec.id}")
-        self.answer_timeout = float(self.settings.get("timeout", 5.0))  # type: ignore[arg-type]
-        self.open_timeout = float(self.settings.get("open_timeout", self.answer_timeout))  # type: ignore[arg-type]
+        self.answer_timeout = float(self.settings.get("timeout", 5.0))
+        self.open_timeout = float(self.settings.get("open_timeout", self.answer_timeout))
         self.run_timeout = self.options.get("run_timeout", float, 120.0)
         self.transfer = self.options.get("transfer", str, "line")
         if self.transfer not in TRANSFERS:

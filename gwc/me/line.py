@@ -21,6 +21,7 @@ import subprocess
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import serial
 
@@ -32,7 +33,7 @@ MAX_PAYLOAD = 1 << 20  # largest recipe file moved over the line
 READ_SLICE = 0.05  # pyserial read timeout: the longest one read blocks
 VERDICT_QUIET = 0.3  # a bare PASS/FAIL (no `!`, as Listing 9 writes it) is taken after this much quiet
 BARE_VERDICTS = (b"PASS", b"FAIL")
-SERIAL_KEYS = {
+SERIAL_KEYS: dict[str, type | tuple[type, ...]] = {
     "port": str,
     "baudrate": int,
     "bytesize": int,
@@ -65,7 +66,7 @@ def escaped(data: bytes | bytearray, limit: int = 60) -> str:
     return text + (f"...({len(data)} bytes)" if len(data) > limit else "")
 
 
-def serial_settings(raw: object, where: str) -> dict[str, object]:
+def serial_settings(raw: object, where: str) -> dict[str, Any]:
     """A machine's `serial` table checked: known keys, right types; ConfigError naming what is wrong."""
     if not isinstance(raw, dict):
         raise ConfigError(f"{where}: serial must be a table")
@@ -82,7 +83,7 @@ def serial_settings(raw: object, where: str) -> dict[str, object]:
     return settings
 
 
-def open_serial(settings: dict[str, object], port: str) -> serial.SerialBase:
+def open_serial(settings: dict[str, Any], port: str) -> serial.SerialBase:
     """Open a port with the machine's settings, as any URL pyserial accepts; LineLost if it cannot."""
     kwargs = {k: v for k, v in settings.items() if k not in ("port", "timeout", "open_timeout", "write_timeout")}
     try:

@@ -30,7 +30,7 @@ class Server:
     log: logging.Logger
     cfg: Config
     bus: Any
-    _tasks: set[asyncio.Task[None]]
+    _tasks: set[asyncio.Task[Any]]
     ask: Callable[..., Coroutine[Any, Any, Message]]
 
     @staticmethod
@@ -56,8 +56,8 @@ class Server:
         """A cell event for the status line (7.4)."""
         await self.broadcast("CELL_EVENT", message("Cell_Event", text=text[:500], source=self.name))
 
-    def spawn(self, coro: Coroutine[Any, Any, None]) -> None:
-        """Run work in the background, owned by the module (cancelled when it stops)."""
+    def spawn(self, coro: Coroutine[Any, Any, object]) -> None:
+        """Run work in the background, owned by the module (cancelled when it stops); its result is dropped."""
         task = asyncio.get_running_loop().create_task(coro)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
