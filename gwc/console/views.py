@@ -262,7 +262,9 @@ class LotsView(View):
         since = None if full or self._since is None else self._since - CHANGE_MARGIN
 
         def read(conn: psycopg.Connection[Any]) -> tuple[datetime, list[dict[str, Any]]]:
-            now = conn.execute("SELECT now()").fetchone()[0]
+            row = conn.execute("SELECT now()").fetchone()
+            assert row is not None  # SELECT now() always has its row
+            now: datetime = row[0]
             return now, list_lots(link.cfg, link.log, conn=conn, changed_since=since)
 
         got = link.read(read)
