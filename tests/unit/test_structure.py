@@ -1,5 +1,6 @@
 """The shape of the code: the layer rule of docs/architecture.md (no module imports from a layer above
-its own; the table is read from the page itself, so the page and the rule cannot drift).
+its own; the table is read from the page itself, so the page and the rule cannot drift), and small
+parts (no file over 700 lines, no class over 40 methods: split by concern, issue 14).
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / "docs" / "architecture.md"
 ROW = re.compile(r"^\|\s*(\d+)\s*\|([^|]*)\|")
+MAX_LINES = 700
+MAX_METHODS = 40
 
 
 def layer_table() -> dict[str, int]:
@@ -84,3 +87,17 @@ def test_the_checker_sees_relative_and_function_level_imports() -> None:
     src = "from . import wire\nfrom .bus import Bus\nimport os\ndef f():\n    from gwc.client import orders\n"
     assert [m for _, m in imports(src, "gwc.ipc.probe")] == ["gwc.ipc.wire", "gwc.ipc.bus", "gwc.client"]
     assert [m for _, m in imports("from .. import db\n", "gwc.ipc", is_package=True)] == ["gwc.db"]
+
+
+def test_no_file_over_700_lines_and_no_class_over_40_methods() -> None:
+    big = []
+    for path in sorted((ROOT / "gwc").rglob("*.py")):
+        source = path.read_text()
+        if (n := source.count("\n")) > MAX_LINES:
+            big.append(f"{path.relative_to(ROOT)}: {n} lines")
+        for node in ast.walk(ast.parse(source)):
+            if isinstance(node, ast.ClassDef):
+                methods = sum(isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef)) for f in node.body)
+                if methods > MAX_METHODS:
+                    big.append(f"{path.relative_to(ROOT)}: class {node.name} has {methods} methods")
+    assert not big, "split by concern (see docs/architecture.md):\n" + "\n".join(big)
