@@ -321,10 +321,11 @@ def stop_proc(cfg: Config, name: str, grace: float = GRACE) -> str:
 def _wait_gone(st: ProcStatus, grace: float = GRACE) -> str:
     """Wait for a process that is exiting of itself (it removed its own pid file); SIGKILL after grace."""
     assert st.pid is not None
-    ticks = _proc_start_ticks(st.pid)
+    pid = st.pid
+    ticks = _proc_start_ticks(pid)
 
     def alive() -> bool:
-        return ticks is not None and _proc_start_ticks(st.pid) == ticks and not _zombie(st.pid)
+        return ticks is not None and _proc_start_ticks(pid) == ticks and not _zombie(pid)
 
     deadline = time.monotonic() + grace
     while alive() and time.monotonic() < deadline:

@@ -280,8 +280,10 @@ class CellBench:
 
     def _commits(self) -> int:
         assert self.conn is not None
-        row = self.conn.execute("SELECT xact_commit FROM pg_stat_database WHERE datname = current_database()")
-        return int(row.fetchone()[0])
+        row = self.conn.execute(
+            "SELECT xact_commit FROM pg_stat_database WHERE datname = current_database()"
+        ).fetchone()
+        return int(row[0]) if row else 0
 
     def _wait_states(
         self, entities: list[int], states: tuple[str, ...], decided: set[tuple[int, str]], what: str, poll: float = POLL

@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -63,7 +64,7 @@ def soak(
     actions.jsonl; the same seed gives the same faults in the same order.
     """
     cfg, log = context()
-    options = dict(seed=seed, minutes=minutes, machines=machines, kinds=tuple(kinds), agent=agent)
+    options: dict[str, Any] = dict(seed=seed, minutes=minutes, machines=machines, kinds=tuple(kinds), agent=agent)
     if replay is not None:
         h = read_header(replay)
         options = dict(
