@@ -11,6 +11,7 @@ import pytest
 
 from gwc.ipc.mq import Channel, queue_exists, queue_names, remove_queues
 from tests.conftest import make_config
+from tests.harness import wait_for
 from tests.leaks import Leaked, leak_check
 
 LOG = logging.getLogger("test_leaks")
@@ -25,6 +26,8 @@ def test_a_clean_test_passes(tmp_path: Path) -> None:
 def test_a_detached_process_left_running_fails_the_test_and_is_killed(tmp_path: Path) -> None:
     with pytest.raises(Leaked, match=r"process \d+: sleep 60"), leak_check(tmp_path):
         child = subprocess.Popen(["sleep", "60"], start_new_session=True)
+        # Until its exec is done the child's /proc entry may not be readable: a leak is an older process.
+        wait_for(lambda: Path(f"/proc/{child.pid}/cmdline").read_bytes().startswith(b"sleep"), 5, "sleep to run")
     assert child.wait(timeout=10) < 0  # killed by the check
 
 
