@@ -187,7 +187,7 @@ def test_a_cell_over_three_hosts_makes_the_chess_order_and_rides_out_a_cut_cable
         5,
         "h3's machines to be Shutdown",
     )
-    assert time.monotonic() - cut_at < 2.5
+    assert time.monotonic() - cut_at < 2.0, "the issue's bar: Shutdown within 2 s of the cut"
     # The lots waiting for a mill are served by h2's; the run cut off on h3 is in doubt (its machine is
     # only silent), so its lot waits for it rather than mill that pawn again.
     good_on_wc1 = "select count(*) from machine_run_outcome where machine_id = 'wc1' and ack_code = 'ACK_OK'"
