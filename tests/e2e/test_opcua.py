@@ -259,6 +259,8 @@ def test_a_client_sees_machines_lots_and_alarms_live_and_commands_the_cell(opcua
                 await read_until(wc1, want)
                 assert cell.query("select status from machine_status where machine_id = 'wc1'")[0][0] == want
             await operator.disconnect()
+            # The subscription's notifications trail the reads above: wait for its Idle before the kill.
+            await until(lambda: rec.values(wc1.nodeid)[-1] == "Idle", 10, "the subscription's Idle")
 
             # The gateway killed while the client is subscribed; the machine stops meanwhile. asyncua's own
             # reconnect brings the subscription back, and it shows the status now, not the one before.
