@@ -5,6 +5,7 @@ malformed kinds that once got through, a flood while lots run, two cells on one 
 from __future__ import annotations
 
 import collections
+import functools
 import logging
 import random
 import socket
@@ -167,7 +168,7 @@ def forgeries_and_replays_are_refused_and_change_nothing(cell: CellHarness, out:
     # Each module says so in one line per source and interval, naming the replay too.
     wait_for(lambda: cell.log_has("msched", "replay"), 15, "msched to report the replayed datagram")
     for module in ("msched", "ms", "cas"):  # each writes its first line at its next heartbeat
-        wait_for(lambda: cell.log_has(module, "dropped from"), 15, f"{module} to report the drops")
+        wait_for(functools.partial(cell.log_has, module, "dropped from"), 15, f"{module} to report the drops")
         assert cell.log_text(module).count("dropped from") < 10, module
 
 
