@@ -32,6 +32,7 @@ from gwc.ipc import keys
 from gwc.ipc.bus import BlockingBus, Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.log import log_file_name
 from gwc.me.cmm_sim import simulated
 from gwc.module import module_name
@@ -183,9 +184,9 @@ def wait_on_bus(cfg: Config, bus: BlockingBus, name: str, timeout: float = UP_TI
     raise ModuleError(f"{name} did not appear on the bus within {timeout:.0f}s (see {cfg.log_dir})")
 
 
-async def hold_startup(bus: Bus, name: str, cls: str = "STARTUP", timeout: float = UP_TIMEOUT) -> str:
+async def hold_startup(bus: Bus, name: str, cls: str = Conv.STARTUP, timeout: float = UP_TIMEOUT) -> str:
     """Hold a STARTUP (or ME_START) conversation with one module; return how it ended."""
-    conv, batch = await bus.request(cls, message("Startup_Request", module=name), to=name, timeout=timeout)
+    conv, batch = await bus.request(cls, message(Msg.STARTUP_REQUEST, module=name), to=name, timeout=timeout)
     try:
         ack = batch.first
         if ack.ack_code == AckCode.NOTNOW:
@@ -194,7 +195,7 @@ async def hold_startup(bus: Bus, name: str, cls: str = "STARTUP", timeout: float
             raise ModuleError(f"{name} refused startup: {ack.ack_code} {ack.note or ''}".strip())
         while True:
             done = (await conv.next_message(timeout)).first
-            if done.name in ("Startup_Complete", "ME_Ready"):
+            if done.name in (Msg.STARTUP_COMPLETE, Msg.ME_READY):
                 if done.ack_code != AckCode.ACK_OK:
                     raise ModuleError(f"{name} startup failed: {done.ack_code} {done.note or ''}".strip())
                 return "started"
@@ -202,13 +203,13 @@ async def hold_startup(bus: Bus, name: str, cls: str = "STARTUP", timeout: float
         conv.end()
 
 
-def startup(bus: BlockingBus, name: str, cls: str = "STARTUP", timeout: float = UP_TIMEOUT) -> str:
+def startup(bus: BlockingBus, name: str, cls: str = Conv.STARTUP, timeout: float = UP_TIMEOUT) -> str:
     """hold_startup() from a plain (non-asyncio) caller."""
     return bus.run(hold_startup(bus.bus, name, cls, timeout))
 
 
-def shutdown(bus: BlockingBus, name: str, cls: str = "SHUTDOWN", timeout: float = UP_TIMEOUT) -> str:
-    conv, batch = bus.request(cls, message("Shutdown_Request", module=name), to=name, timeout=timeout)
+def shutdown(bus: BlockingBus, name: str, cls: str = Conv.SHUTDOWN, timeout: float = UP_TIMEOUT) -> str:
+    conv, batch = bus.request(cls, message(Msg.SHUTDOWN_REQUEST, module=name), to=name, timeout=timeout)
     try:
         ack = batch.first
         if ack.ack_code == AckCode.NOTNOW:
@@ -217,7 +218,7 @@ def shutdown(bus: BlockingBus, name: str, cls: str = "SHUTDOWN", timeout: float 
             raise ModuleError(f"{name} refused shutdown: {ack.ack_code} {ack.note or ''}".strip())
         while True:
             done = conv.next_message(timeout).first
-            if done.name in ("Shutdown_Complete", "ME_Stopped"):
+            if done.name in (Msg.SHUTDOWN_COMPLETE, Msg.ME_STOPPED):
                 return "shut down" if done.ack_code == AckCode.ACK_OK else f"shut down with {done.ack_code}"
     finally:
         conv.end()

@@ -38,6 +38,7 @@ from gwc.ipc import catalogue
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.log import conversation, open_log
 from gwc.retry import Backoff, Deadline
 
@@ -125,8 +126,8 @@ class Module:
     """Base of every bus module. Subclasses set `role` (their database role) and override hooks."""
 
     role: str | None = None  # database role (gwc_<role>), None if the module does not use the database
-    start_class = "STARTUP"
-    stop_class = "SHUTDOWN"
+    start_class = Conv.STARTUP
+    stop_class = Conv.SHUTDOWN
     always: tuple[str, ...] = ()  # classes listened to even when not started
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
@@ -169,10 +170,10 @@ class Module:
         return self.started or cls in self.always
 
     def startup_complete(self, code: str) -> catalogue.Message:
-        return message("Startup_Complete", ack_code=code)
+        return message(Msg.STARTUP_COMPLETE, ack_code=code)
 
     def shutdown_complete(self, note: str | None) -> catalogue.Message:
-        return message("Shutdown_Complete", ack_code=AckCode.ACK_OK, note=note)
+        return message(Msg.SHUTDOWN_COMPLETE, ack_code=AckCode.ACK_OK, note=note)
 
     async def ask(
         self,
@@ -434,9 +435,9 @@ class Module:
             self.log.info("ignored Startup_Request for %s", req.module)
             return
         if self.started:
-            await conv.send(message("Startup_Ack", ack_code=AckCode.NOTNOW, note=f"{self.name} is already started"))
+            await conv.send(message(Msg.STARTUP_ACK, ack_code=AckCode.NOTNOW, note=f"{self.name} is already started"))
             return
-        await conv.send(message("Startup_Ack", ack_code=AckCode.ACK_OK))
+        await conv.send(message(Msg.STARTUP_ACK, ack_code=AckCode.ACK_OK))
         try:
             code = await self._start()
         except Exception as e:
@@ -460,9 +461,9 @@ class Module:
             self.log.info("ignored Shutdown_Request for %s", req.module)
             return
         if not self.started:
-            await conv.send(message("Shutdown_Ack", ack_code=AckCode.NOTNOW, note=f"{self.name} is not started"))
+            await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.NOTNOW, note=f"{self.name} is not started"))
             return
-        await conv.send(message("Shutdown_Ack", ack_code=AckCode.ACK_OK))
+        await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.ACK_OK))
         note = await self._shutdown_work()
         await conv.send(self.shutdown_complete(note))
 

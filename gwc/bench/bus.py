@@ -45,6 +45,7 @@ from gwc.ipc import auth, keys, wire
 from gwc.ipc.auth import Guard
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import message
+from gwc.ipc.names import Conv, Msg
 from gwc.ipc.transport import open_socket
 
 SERVER = "bench.srv"
@@ -74,7 +75,7 @@ def mac_cost(n: int = 20_000) -> dict[str, float]:
     )
     body = wire.encode(
         wire.Envelope(
-            kind="msg", src="bench.a", inc=7, seq=1, conv="bench.a.7.1", cls="PING", msg="Ping", fields={"n": 1}
+            kind="msg", src="bench.a", inc=7, seq=1, conv="bench.a.7.1", cls=Conv.PING, msg=Msg.PING, fields={"n": 1}
         )
     )
     batch = 500
@@ -101,7 +102,7 @@ def mac_cost(n: int = 20_000) -> dict[str, float]:
 
 
 async def _serve_bus(cfg: BusConfig) -> None:
-    bus = Bus(SERVER, cfg, logging.getLogger("gwc.bench"), ["PING"])
+    bus = Bus(SERVER, cfg, logging.getLogger("gwc.bench"), [Conv.PING])
     await bus.sign_on(settle=0)
     while True:
         conv = await bus.first_message()
@@ -113,7 +114,7 @@ async def _serve_bus(cfg: BusConfig) -> None:
             conv.end()
             await bus.close()
             return
-        await conv.send(message("Pong", n=first.n))
+        await conv.send(message(Msg.PONG, n=first.n))
         conv.end()
 
 
@@ -291,7 +292,7 @@ class _BusClient:
             await asyncio.sleep(0.01)
 
     async def ping(self, i: int) -> None:
-        conv, batch = await self.bus.request("PING", message("Ping", n=i), to=SERVER)
+        conv, batch = await self.bus.request(Conv.PING, message(Msg.PING, n=i), to=SERVER)
         conv.end()
         if batch.first.n != i:
             raise GwcError(f"bench: answer {batch.first.n} to request {i}")
@@ -300,7 +301,7 @@ class _BusClient:
         return await _windowed(self.ping, n, window)
 
     async def stop(self) -> None:
-        await self.bus.start("PING", message("Ping", n=0, payload="stop"), to=SERVER)
+        await self.bus.start(Conv.PING, message(Msg.PING, n=0, payload="stop"), to=SERVER)
 
     async def close(self) -> None:
         await self.bus.close()

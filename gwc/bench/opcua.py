@@ -36,6 +36,7 @@ from gwc.client.session import context
 from gwc.config import load_config, write_config
 from gwc.errors import GwcError
 from gwc.ipc.bus import BlockingBus
+from gwc.ipc.names import Conv
 from gwc.log import log_file_name
 from gwc.module import module_name
 
@@ -172,7 +173,7 @@ def run(log: logging.Logger, where: Path, machines: int, lots: int, items: int, 
         bus = BlockingBus(f"bench.opcua.{os.getpid()}", cell.bus, log)
         wcs = [module_name("wc", m) for m in ids]
         _wait(
-            lambda: all("SETUP_RUN" in (p.interest if (p := bus.peers().get(w)) else ()) for w in wcs),
+            lambda: all(Conv.SETUP_RUN in (p.interest if (p := bus.peers().get(w)) else ()) for w in wcs),
             UP,
             "the bench cell's machines",
             bench,

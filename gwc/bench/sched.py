@@ -43,6 +43,7 @@ from gwc.errors import GwcError
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.log import open_log
 
 OP = "dummy_op"
@@ -156,9 +157,11 @@ class Bench:
     async def request(self, entity: int, machines: list[str], priority: int) -> Conversation:
         async with self.sem:
             conv, batch = await self.bus.request(
-                "MACH_REQ",
-                message("Machine_Request", entity_id=entity, op_type=OP, num_machines=len(machines), priority=priority),
-                *[message("Machine_Entry", machine_id=m) for m in machines],
+                Conv.MACH_REQ,
+                message(
+                    Msg.MACHINE_REQUEST, entity_id=entity, op_type=OP, num_machines=len(machines), priority=priority
+                ),
+                *[message(Msg.MACHINE_ENTRY, machine_id=m) for m in machines],
                 to="msched",
                 timeout=T,
             )
@@ -172,7 +175,7 @@ class Bench:
         now = time.monotonic()
         head = batch.first
         self.last_comp = now
-        await conv.send(message("Request_Comp_Ack", entity_id=entity, ack_code=AckCode.ACK_OK))
+        await conv.send(message(Msg.REQUEST_COMP_ACK, entity_id=entity, ack_code=AckCode.ACK_OK))
         conv.end()
         if head.ack_code != AckCode.ACK_OK:
             return []
@@ -191,7 +194,7 @@ class Bench:
         convs = [await self.request(entity, a, priority) for a in alts]
         got = [m for ms in await asyncio.gather(*(self.comp(entity, c) for c in convs)) for m in ms]
         if self.looping:
-            await self.ask("UNRESERVE", message("Unreserve_Me", entity_id=entity))
+            await self.ask(Conv.UNRESERVE, message(Msg.UNRESERVE_ME, entity_id=entity))
         else:
             self.held[entity] = got
 
@@ -206,7 +209,7 @@ async def _run(
     tasks: list[asyncio.Task[None]] = []
     try:
         deadline = time.monotonic() + T
-        while "SHUTDOWN" not in getattr(bus.peers().get("msched"), "interest", ()):
+        while Conv.SHUTDOWN not in getattr(bus.peers().get("msched"), "interest", ()):
             if time.monotonic() > deadline:
                 raise GwcError("bench: msched did not start (see the bench's var/log)")
             await asyncio.sleep(0.05)
@@ -244,7 +247,7 @@ async def _run(
         start = time.monotonic()
         for e in holders:
             del bench.held[e]
-            tasks.append(asyncio.create_task(bench.ask("UNRESERVE", message("Unreserve_Me", entity_id=e))))
+            tasks.append(asyncio.create_task(bench.ask(Conv.UNRESERVE, message(Msg.UNRESERVE_ME, entity_id=e))))
         await asyncio.wait_for(bench.enough.wait(), 600)
         took = bench.decisions[decisions - 1] - start
         cpu = cpu_s(msched) - cpu0
@@ -280,7 +283,7 @@ async def _sample(bus: Bus, bench: Bench, e: int) -> list[float]:
     fut: asyncio.Future[float] = asyncio.get_running_loop().create_future()
     bench.watchers = [(freed, fut)]
     t0 = time.monotonic()
-    conv = await bus.start("UNRESERVE", message("Unreserve_Me", entity_id=e), to="msched")
+    conv = await bus.start(Conv.UNRESERVE, message(Msg.UNRESERVE_ME, entity_id=e), to="msched")
     try:
         t1 = await asyncio.wait_for(fut, T)
     finally:

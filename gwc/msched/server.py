@@ -26,6 +26,7 @@ from gwc.errors import DatabaseUnavailable, GwcError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
+from gwc.ipc.names import Conv, Msg
 from gwc.log import TRACE
 from gwc.module import Module
 from gwc.msched import store
@@ -75,11 +76,11 @@ class Msched(Module):
 
     def handlers(self) -> dict[str, Any]:
         return {
-            "MACH_REQ": self.machine_request,
-            "CANCEL_RE": self.cancel_request,
-            "UPD_ME_ST": self.update_me_status,
-            "ACC_TYP_C": self.accept_type_change,
-            "UNRESERVE": self.unreserve,
+            Conv.MACH_REQ: self.machine_request,
+            Conv.CANCEL_RE: self.cancel_request,
+            Conv.UPD_ME_ST: self.update_me_status,
+            Conv.ACC_TYP_C: self.accept_type_change,
+            Conv.UNRESERVE: self.unreserve,
         }
 
     # ------------------------------------------------------------------ lifecycle
@@ -165,7 +166,7 @@ class Msched(Module):
         problem = _malformed_request(head, entries)
         if problem:
             self.log.warning("Machine_Request from %s refused: %s", conv.peer, problem)
-            await conv.send(message("Machine_Req_Ack", ack_code=AckCode.BAD_MESSAGE, note=problem))
+            await conv.send(message(Msg.MACHINE_REQ_ACK, ack_code=AckCode.BAD_MESSAGE, note=problem))
             return
         machines = [e.machine_id for e in entries]
         waiter: asyncio.Future[Outcome] = asyncio.get_running_loop().create_future()
@@ -190,7 +191,7 @@ class Msched(Module):
                 queued.ack_code,
                 queued.note,
             )
-            await conv.send(message("Machine_Req_Ack", ack_code=queued.ack_code, note=queued.note))
+            await conv.send(message(Msg.MACHINE_REQ_ACK, ack_code=queued.ack_code, note=queued.note))
             return
         self.log.info(
             "request %d of entity %s for %s (%s)%s queued",
@@ -200,7 +201,7 @@ class Msched(Module):
             " AND ".join(machines),
             _group(head),
         )
-        await conv.send(message("Machine_Req_Ack", ack_code=AckCode.ACK_OK, request_key=queued.request_key))
+        await conv.send(message(Msg.MACHINE_REQ_ACK, ack_code=AckCode.ACK_OK, request_key=queued.request_key))
         await self._tell(conv, await waiter)
 
     async def cancel_request(self, conv: Conversation) -> None:
@@ -210,7 +211,7 @@ class Msched(Module):
         if m.request_key is None and m.entity_id is None:
             await conv.send(
                 message(
-                    "Cancel_Req_Ack",
+                    Msg.CANCEL_REQ_ACK,
                     ack_code=AckCode.BAD_MESSAGE,
                     note="Cancel_Request needs a request_key or an entity_id",
                 )
@@ -221,7 +222,7 @@ class Msched(Module):
         self.log.info("cancel %s by %s: %d cancelled", what, m.by or conv.peer, n)
         await conv.send(
             message(
-                "Cancel_Req_Ack",
+                Msg.CANCEL_REQ_ACK,
                 ack_code=AckCode.ACK_OK if n else AckCode.REQ_KEY_U,
                 cancelled=n,
                 note=None if n else f"nothing waiting to cancel for {what}",
@@ -235,11 +236,11 @@ class Msched(Module):
         freed = await self._free(m.entity_id, m.machine_id)
         if freed:
             self.log.info("entity %s freed %s (by %s)", m.entity_id, ", ".join(freed), m.by or conv.peer)
-            await conv.send(message("Unreserve_Me_Ack", ack_code=AckCode.ACK_OK, freed=len(freed)))
+            await conv.send(message(Msg.UNRESERVE_ME_ACK, ack_code=AckCode.ACK_OK, freed=len(freed)))
         else:
             await conv.send(
                 message(
-                    "Unreserve_Me_Ack",
+                    Msg.UNRESERVE_ME_ACK,
                     ack_code=AckCode.NOT_RESERVED,
                     freed=0,
                     note=f"{m.machine_id or 'no machine'} is not reserved by entity {m.entity_id}",
@@ -262,14 +263,12 @@ class Msched(Module):
         m = conv.first.first
         if not all(isinstance(t, str) and t for t in m.op_types):
             await conv.send(
-                message(
-                    "Chg_Accept_Type_Ack", ack_code=AckCode.BAD_MESSAGE, note="op_types must be a list of op type names"
-                )
+                message(Msg.CHG_ACCEPT_TYPE_ACK, ack_code=AckCode.BAD_MESSAGE, note="op_types must be a list of names")
             )
             return
         code, note = await self._submit(lambda s: s.set_accept_types(m.machine_id, m.op_types))
         self.log.info("accept types of %s: %s %s", m.machine_id, code, note)
-        await conv.send(message("Chg_Accept_Type_Ack", ack_code=code, note=note))
+        await conv.send(message(Msg.CHG_ACCEPT_TYPE_ACK, ack_code=code, note=note))
 
     # ------------------------------------------------------------------ the step worker
 
@@ -381,7 +380,7 @@ class Msched(Module):
             if waiter is not None and not waiter.done():
                 waiter.set_result(o)  # its MACH_REQ task is still here: it tells
             elif o.reply_to and o.reply_conv:
-                conv = self.bus.resume(o.reply_conv, "MACH_REQ", o.reply_to)
+                conv = self.bus.resume(o.reply_conv, Conv.MACH_REQ, o.reply_to)
                 task = asyncio.get_running_loop().create_task(self._tell(conv, o))
                 self._tasks.add(task)
                 task.add_done_callback(self._tasks.discard)
@@ -396,7 +395,7 @@ class Msched(Module):
         ok = o.ack_code == AckCode.ACK_OK
         msgs: list[Message] = [
             message(
-                "Machine_Req_Comp",
+                Msg.MACHINE_REQ_COMP,
                 ack_code=o.ack_code,
                 entity_id=o.entity_id,
                 machine_run_id=o.machine_run_id,
@@ -406,11 +405,11 @@ class Msched(Module):
             )
         ]
         if ok:
-            msgs += [message("Reserved_Machine", machine_id=m) for m in o.machines]
+            msgs += [message(Msg.RESERVED_MACHINE, machine_id=m) for m in o.machines]
         try:
             await conv.send(*msgs)
             answer = (await conv.next_message(self.ack_timeout)).first
-            if answer.name != "Request_Comp_Ack":
+            if answer.name != Msg.REQUEST_COMP_ACK:
                 self.log.warning("request %d: expected Request_Comp_Ack, got %s", o.request_key, answer.name)
             elif answer.ack_code != AckCode.ACK_OK:
                 self.log.warning(
@@ -460,7 +459,7 @@ def _malformed_request(head: Message, entries: tuple[Message, ...]) -> str | Non
     """Why a Machine_Request batch does not make a request, or None."""
     if head.num_machines < 1:
         return "num_machines must be at least 1"
-    if any(e.name != "Machine_Entry" for e in entries):
+    if any(e.name != Msg.MACHINE_ENTRY for e in entries):
         return "only Machine_Entry messages may follow a Machine_Request"
     if len(entries) != head.num_machines:
         return f"num_machines is {head.num_machines} but {len(entries)} Machine_Entry followed"

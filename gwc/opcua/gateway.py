@@ -31,6 +31,7 @@ from gwc.errors import ConversationTimeout, GwcError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module, module_name
 from gwc.opcua import security
 from gwc.opcua.settings import load_settings
@@ -52,7 +53,7 @@ from gwc.opcua.space import (
 
 V = ua.VariantType
 S = ua.StatusCodes
-LISTENS = ("UPD_ME_ST", "RUN_COMPL", "ALARM_CLE", "CELL_EVENT", "LOT_MOVED")
+LISTENS = (Conv.UPD_ME_ST, Conv.RUN_COMPL, Conv.ALARM_CLE, Conv.CELL_EVENT, Conv.LOT_MOVED)
 # The cell's ack codes as OPC UA statuses (docs/opcua.md, Methods).
 STATUS_OF: dict[str, int] = {
     AckCode.ACK_OK: S.Good,
@@ -259,20 +260,20 @@ class Gateway(Module):
         msg = conv.first.first if conv.first else None
         if msg is None or self.space is None:
             return
-        if conv.cls == "UPD_ME_ST" and msg.machine_id in self._heard:
+        if conv.cls == Conv.UPD_ME_ST and msg.machine_id in self._heard:
             self._heard[msg.machine_id] += 1
             path = f"machines/{msg.machine_id}"
             await self.space.set(f"{path}/status", msg.status)
             await self.space.set(f"{path}/machine_run_id", msg.machine_run_id)
             await self._item_state(msg.machine_id)
             self._poke("machines", "status_line")
-        elif conv.cls == "ALARM_CLE":
+        elif conv.cls == Conv.ALARM_CLE:
             self._cleared += 1
             await self._alarm_cleared(int(msg.alarm_no), f"cleared by {msg.cleared_by}")
             self._poke("alarms", "status_line")
-        elif conv.cls == "RUN_COMPL":
+        elif conv.cls == Conv.RUN_COMPL:
             self._poke("machines", "status_line")
-        elif conv.cls == "LOT_MOVED":
+        elif conv.cls == Conv.LOT_MOVED:
             self._poke("lots", "status_line")
         else:  # CELL_EVENT: a new alarm, among others
             self._poke("alarms", "status_line")
@@ -443,7 +444,7 @@ class Gateway(Module):
             await sp.set("cell/text", "status line unavailable: the Status Line Server is not on the bus")
             return
         try:
-            conv, batch = await self.bus.request("STATUS_LN", message("Status_Line_Get"), to="sls", timeout=2.0)
+            conv, batch = await self.bus.request(Conv.STATUS_LN, message(Msg.STATUS_LINE_GET), to="sls", timeout=2.0)
             conv.end()
         except ConversationTimeout:
             return
@@ -509,14 +510,16 @@ class Gateway(Module):
     async def start_machine(self, parent: ua.NodeId) -> ua.CallMethodResult:
         return await self._converse(
             "Start",
-            lambda: self._machine_conversation(parent, "ME_START", "Startup_Request", ("Startup_Complete", "ME_Ready")),
+            lambda: self._machine_conversation(
+                parent, Conv.ME_START, Msg.STARTUP_REQUEST, (Msg.STARTUP_COMPLETE, Msg.ME_READY)
+            ),
         )
 
     async def stop_machine(self, parent: ua.NodeId) -> ua.CallMethodResult:
         return await self._converse(
             "Stop",
             lambda: self._machine_conversation(
-                parent, "ME_SHUT", "Shutdown_Request", ("Shutdown_Complete", "ME_Stopped")
+                parent, Conv.ME_SHUT, Msg.SHUTDOWN_REQUEST, (Msg.SHUTDOWN_COMPLETE, Msg.ME_STOPPED)
             ),
         )
 
@@ -527,8 +530,8 @@ class Gateway(Module):
         return await self._converse(
             f"ClearAlarm({alarm_no.Value})",
             lambda: self._ask(
-                "ALARM_CLR_REQ",
-                message("Alarm_Clear_Request", alarm_no=int(alarm_no.Value), cleared_by=self._by()),
+                Conv.ALARM_CLR_REQ,
+                message(Msg.ALARM_CLEAR_REQUEST, alarm_no=int(alarm_no.Value), cleared_by=self._by()),
                 "cas",
             ),
         )
@@ -542,8 +545,8 @@ class Gateway(Module):
         return await self.clear_alarm(condition, ua.Variant(int(m.group(1)), V.Int64))
 
     async def _decide(self, action: str, entity_id: ua.Variant) -> ua.CallMethodResult:
-        cls = "IMPORT_LOT" if action == "import" else "EXPORT_LOT"
-        first = message("Lot_Decision", entity_id=int(entity_id.Value), action=action, by=self._by())
+        cls = Conv.IMPORT_LOT if action == "import" else Conv.EXPORT_LOT
+        first = message(Msg.LOT_DECISION, entity_id=int(entity_id.Value), action=action, by=self._by())
         return await self._converse(f"{action} entity {entity_id.Value}", lambda: self._ask(cls, first, "ls"))
 
     async def import_lot(self, parent: ua.NodeId, entity_id: ua.Variant) -> ua.CallMethodResult:
@@ -553,9 +556,9 @@ class Gateway(Module):
         return await self._decide("export", entity_id)
 
     async def cancel_request(self, parent: ua.NodeId, request_key: ua.Variant) -> ua.CallMethodResult:
-        first = message("Cancel_Request", request_key=int(request_key.Value), by=self._by())
+        first = message(Msg.CANCEL_REQUEST, request_key=int(request_key.Value), by=self._by())
         return await self._converse(
-            f"CancelRequest({request_key.Value})", lambda: self._ask("CANCEL_RE", first, "msched")
+            f"CancelRequest({request_key.Value})", lambda: self._ask(Conv.CANCEL_RE, first, "msched")
         )
 
     async def enter_work_order(

@@ -24,6 +24,7 @@ from gwc.config import Config
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module
 from gwc.servers.common import Server
 
@@ -40,7 +41,7 @@ class AlarmServer(Server, Module):
         self._outage_told = False
 
     def handlers(self) -> dict[str, Handler]:
-        return {"ALARM_SEND": self.alarm_send, "ALARM_CLR_REQ": self.alarm_clear}
+        return {Conv.ALARM_SEND: self.alarm_send, Conv.ALARM_CLR_REQ: self.alarm_clear}
 
     async def on_startup(self) -> str:
         def pending(cur: Any) -> int:
@@ -54,10 +55,10 @@ class AlarmServer(Server, Module):
         """ALARM_SEND: record the alarm (known or not), answer its number, tell the status line."""
         req = self.request(conv)
         if not req.alarm_id.strip() or not req.raised_by.strip():
-            return await self.answer(conv, "Alarm_Ack", AckCode.BAD_MESSAGE, "alarm_id and raised_by must be given")
+            return await self.answer(conv, Msg.ALARM_ACK, AckCode.BAD_MESSAGE, "alarm_id and raised_by must be given")
 
         no, known = await self.record(req.alarm_id, req.alarm_text, req.machine_id, req.raised_by)
-        await self.answer(conv, "Alarm_Ack", AckCode.ACK_OK, alarm_no=no, known=known)
+        await self.answer(conv, Msg.ALARM_ACK, AckCode.ACK_OK, alarm_no=no, known=known)
 
     async def record(self, alarm_id: str, text: str | None, machine_id: str | None, raised_by: str) -> tuple[int, bool]:
         """Record an alarm (known or not) and tell the status line; its number, and whether it is known."""
@@ -106,7 +107,7 @@ class AlarmServer(Server, Module):
         """ALARM_CLR_REQ: the operator clears a pending alarm; ALARM_CLEAR tells whoever waits on it."""
         req = self.request(conv)
         if not req.cleared_by.strip():
-            return await self.answer(conv, "Alarm_Clear_Ack", AckCode.BAD_MESSAGE, "cleared_by must be given")
+            return await self.answer(conv, Msg.ALARM_CLEAR_ACK, AckCode.BAD_MESSAGE, "cleared_by must be given")
 
         def clear(cur: Any) -> tuple[Any, ...] | None:
             row = cur.execute(
@@ -123,21 +124,21 @@ class AlarmServer(Server, Module):
 
         row = self.transaction(clear)
         if row is None:
-            return await self.answer(conv, "Alarm_Clear_Ack", AckCode.UNKNOWN, f"no alarm number {req.alarm_no}")
+            return await self.answer(conv, Msg.ALARM_CLEAR_ACK, AckCode.UNKNOWN, f"no alarm number {req.alarm_no}")
         alarm_id, machine_id, by, at = row
         if at is not None:
             return await self.answer(
                 conv,
-                "Alarm_Clear_Ack",
+                Msg.ALARM_CLEAR_ACK,
                 AckCode.NOTNOW,
                 f"alarm {req.alarm_no} was already cleared by {by} at {at:%Y-%m-%d %H:%M:%S}",
             )
         self.log.info("alarm %d %s cleared by %s", req.alarm_no, alarm_id, req.cleared_by)
-        await self.answer(conv, "Alarm_Clear_Ack", AckCode.ACK_OK)
+        await self.answer(conv, Msg.ALARM_CLEAR_ACK, AckCode.ACK_OK)
         await self.broadcast(
-            "ALARM_CLE",
+            Conv.ALARM_CLE,
             message(
-                "Alarm_Clear",
+                Msg.ALARM_CLEAR,
                 alarm_no=req.alarm_no,
                 alarm_id=alarm_id,
                 machine_id=machine_id,

@@ -18,6 +18,7 @@ from gwc.errors import GwcError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.module import DATABASE_OUTAGE_S
 
 SERVER_TIMEOUT = 5.0  # longest one server waits for another's answer
@@ -54,7 +55,7 @@ class Server:
 
     async def event(self, text: str) -> None:
         """A cell event for the status line (7.4)."""
-        await self.broadcast("CELL_EVENT", message("Cell_Event", text=text[:500], source=self.name))
+        await self.broadcast(Conv.CELL_EVENT, message(Msg.CELL_EVENT, text=text[:500], source=self.name))
 
     def spawn(self, coro: Coroutine[Any, Any, object]) -> None:
         """Run work in the background, owned by the module (cancelled when it stops); its result is dropped."""
@@ -69,9 +70,9 @@ class Server:
         this in the background: `spawn`)."""
         try:
             ack = await self.ask(
-                "ALARM_SEND",
+                Conv.ALARM_SEND,
                 message(
-                    "Alarm_Send", alarm_id=alarm_id, alarm_text=text[:500], machine_id=machine_id, raised_by=self.name
+                    Msg.ALARM_SEND, alarm_id=alarm_id, alarm_text=text[:500], machine_id=machine_id, raised_by=self.name
                 ),
                 "cas",
                 SERVER_TIMEOUT,

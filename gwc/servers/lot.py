@@ -24,6 +24,7 @@ from gwc.errors import GwcError
 from gwc.ipc.bus import Conversation, Peer
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, LotState
+from gwc.ipc.names import Conv, Msg
 from gwc.module import DATABASE_OUTAGE_S, Handler, Module
 from gwc.servers.common import SERVER_TIMEOUT, Server
 
@@ -44,9 +45,9 @@ ACTIONS: dict[str, tuple[LotState | None, frozenset[LotState]]] = {
     "state": (None, frozenset(L)),
     "destroy": (None, frozenset({L.CREATED, L.EXPORTED, L.FAILED})),
 }
-DECISIONS = {
-    "IMPORT_LOT": ("import", L.WAITING_IMPORT, L.IMPORTED),
-    "EXPORT_LOT": ("export", L.WAITING_EXPORT, L.EXPORTED),
+DECISIONS: dict[str, tuple[str, L, L]] = {
+    Conv.IMPORT_LOT: ("import", L.WAITING_IMPORT, L.IMPORTED),
+    Conv.EXPORT_LOT: ("export", L.WAITING_EXPORT, L.EXPORTED),
 }
 
 
@@ -81,11 +82,11 @@ class LotServer(Server, Module):
 
     def handlers(self) -> dict[str, Handler]:
         return {
-            "CREATE_LOT": self.create_lot,
-            "ENTITY_REQ": self.entity_request,
-            "IMPORT_LOT": self.decision,
-            "EXPORT_LOT": self.decision,
-            "DIV_MERGE": self.divide_merge,
+            Conv.CREATE_LOT: self.create_lot,
+            Conv.ENTITY_REQ: self.entity_request,
+            Conv.IMPORT_LOT: self.decision,
+            Conv.EXPORT_LOT: self.decision,
+            Conv.DIV_MERGE: self.divide_merge,
         }
 
     # ----------------------------------------------------------------- lifecycle and the reaper
@@ -153,8 +154,8 @@ class LotServer(Server, Module):
         self.log.warning("entity %d failed: %s; asking msched to cancel and unreserve", entity_id, reason)
         await self.event(f"entity {entity_id} failed: {reason}")
         for cls, msg in (
-            ("CANCEL_RE", message("Cancel_Request", entity_id=entity_id, by=self.name)),
-            ("UNRESERVE", message("Unreserve_Me", entity_id=entity_id, by=self.name)),
+            (Conv.CANCEL_RE, message(Msg.CANCEL_REQUEST, entity_id=entity_id, by=self.name)),
+            (Conv.UNRESERVE, message(Msg.UNRESERVE_ME, entity_id=entity_id, by=self.name)),
         ):
             try:
                 answer = await self.ask(cls, msg, "msched", SERVER_TIMEOUT, within=DATABASE_OUTAGE_S)
@@ -167,7 +168,7 @@ class LotServer(Server, Module):
     async def create_lot(self, conv: Conversation) -> None:
         """CREATE_LOT (create_lot_entity): a lot (or more of an existing one), one entity per unit."""
         req = self.request(conv)
-        ack = "Create_Lot_Ack"
+        ack = Msg.CREATE_LOT_ACK
         if not 0 < req.quantity <= MAX_QUANTITY:
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
         params = [str(p) for p in req.result_params or []]
@@ -265,7 +266,7 @@ class LotServer(Server, Module):
         """ENTITY_REQ: an entity moves itself (import, export, waiting_machine, running, completed,
         failed), attaches its script, reads its state or is destroyed; Notnow if its state forbids it."""
         req = self.request(conv)
-        ack = "Entity_Ack"
+        ack = Msg.ENTITY_ACK
         if req.action not in ACTIONS:
             return await self.answer(
                 conv, ack, AckCode.BAD_MESSAGE, f"action {req.action!r} is not one of {', '.join(ACTIONS)}"
@@ -327,7 +328,7 @@ class LotServer(Server, Module):
     async def decision(self, conv: Conversation) -> None:
         """IMPORT_LOT / EXPORT_LOT: the operator lets a waiting entity in or out; LOT_MOVED tells it."""
         req = self.request(conv)
-        ack = "Lot_Decision_Ack"
+        ack = Msg.LOT_DECISION_ACK
         action, waiting, moved = DECISIONS[conv.cls]
         if req.action != action:
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"{conv.cls} decides {action}, not {req.action!r}")
@@ -355,14 +356,15 @@ class LotServer(Server, Module):
         if moved in FINISHED:
             self.watched.pop(req.entity_id, None)
         self.log.info("entity %d (lot %s) %sed by %s", req.entity_id, lot_id, action, req.by or conv.peer)
-        await self.broadcast("LOT_MOVED", message("Lot_Moved", entity_id=req.entity_id, action=action, lot_id=lot_id))
+        news = message(Msg.LOT_MOVED, entity_id=req.entity_id, action=action, lot_id=lot_id)
+        await self.broadcast(Conv.LOT_MOVED, news)
         await self.event(f"entity {req.entity_id} (lot {lot_id}) {action}ed by {req.by or conv.peer}")
 
     async def divide_merge(self, conv: Conversation) -> None:
         """DIV_MERGE: divide splits `quantity` new entities off one (same lot and state, parent set);
         merge folds other_entity_id into entity_id (the other is destroyed). Only before work starts."""
         req = self.request(conv)
-        ack = "Divide_Merge_Ack"
+        ack = Msg.DIVIDE_MERGE_ACK
         still = (L.CREATED, L.IMPORTED)
         if req.action not in ("divide", "merge"):
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"action {req.action!r} is not divide or merge")

@@ -30,6 +30,7 @@ from gwc.config import Config
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
+from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module
 from gwc.servers.common import Server
 
@@ -83,16 +84,16 @@ class MachineServer(Server, Module):
 
     def handlers(self) -> dict[str, Handler]:
         return {
-            "CHG_STATUS": self.change_status,
-            "GET_STATUS": self.get_status,
-            "RUN_COMPL": self.run_complete,
-            "MAINT_DONE": self.maintenance_done,
-            "MOD_DIED": self.module_died,
+            Conv.CHG_STATUS: self.change_status,
+            Conv.GET_STATUS: self.get_status,
+            Conv.RUN_COMPL: self.run_complete,
+            Conv.MAINT_DONE: self.maintenance_done,
+            Conv.MOD_DIED: self.module_died,
         }
 
     def refusal(self, cls: str, req: Message, code: str, note: str) -> Message | None:
-        if cls == "GET_STATUS":
-            return message("Status_Reply", machine_id=req.machine_id, ack_code=code, note=note[:500])
+        if cls == Conv.GET_STATUS:
+            return message(Msg.STATUS_REPLY, machine_id=req.machine_id, ack_code=code, note=note[:500])
         return None
 
     # ----------------------------------------------------------------- lifecycle
@@ -185,9 +186,9 @@ class MachineServer(Server, Module):
             return
         previous, run = changed
         await self.broadcast(
-            "UPD_ME_ST",
+            Conv.UPD_ME_ST,
             message(
-                "Update_ME_Status",
+                Msg.UPDATE_ME_STATUS,
                 machine_id=machine_id,
                 status=S.SHUTDOWN.value,
                 previous=previous,
@@ -206,7 +207,7 @@ class MachineServer(Server, Module):
     async def change_status(self, conv: Conversation) -> None:
         """CHG_STATUS: one checked change, broadcast; Notnow (with the status now) if it does not fit."""
         req = self.request(conv)
-        ack = "Change_Status_Ack"
+        ack = Msg.CHANGE_STATUS_ACK
         try:
             status = S(req.status)
             expect = None if req.expect is None else {S(s) for s in req.expect}
@@ -257,9 +258,9 @@ class MachineServer(Server, Module):
         await self.answer(conv, ack, AckCode.ACK_OK, status=status.value, previous=previous.value)
         if status != previous:
             await self.broadcast(
-                "UPD_ME_ST",
+                Conv.UPD_ME_ST,
                 message(
-                    "Update_ME_Status",
+                    Msg.UPDATE_ME_STATUS,
                     machine_id=req.machine_id,
                     status=status.value,
                     previous=previous.value,
@@ -287,11 +288,11 @@ class MachineServer(Server, Module):
         row = self.transaction(read)
         if row is None:
             return await self.answer(
-                conv, "Status_Reply", AckCode.UNKNOWN, f"no machine {req.machine_id!r}", machine_id=req.machine_id
+                conv, Msg.STATUS_REPLY, AckCode.UNKNOWN, f"no machine {req.machine_id!r}", machine_id=req.machine_id
             )
         await self.answer(
             conv,
-            "Status_Reply",
+            Msg.STATUS_REPLY,
             AckCode.ACK_OK,
             row[3],
             machine_id=req.machine_id,
@@ -346,6 +347,6 @@ class MachineServer(Server, Module):
 
         row = self.transaction(reset)
         if row is None:
-            return await self.answer(conv, "Maint_Done_Ack", AckCode.UNKNOWN, f"no machine {req.machine_id!r}")
+            return await self.answer(conv, Msg.MAINT_DONE_ACK, AckCode.UNKNOWN, f"no machine {req.machine_id!r}")
         self.log.info("%s maintained by %s after %d runs", req.machine_id, req.by or "?", row[0])
-        await self.answer(conv, "Maint_Done_Ack", AckCode.ACK_OK, runs=row[0])
+        await self.answer(conv, Msg.MAINT_DONE_ACK, AckCode.ACK_OK, runs=row[0])

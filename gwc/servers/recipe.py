@@ -27,6 +27,7 @@ from typing import Any
 from gwc.config import Config
 from gwc.ipc.bus import Conversation
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module
 from gwc.servers.common import Server
 
@@ -70,7 +71,7 @@ class RecipeServer(Server, Module):
         self.library = library_dir(cfg)
 
     def handlers(self) -> dict[str, Handler]:
-        return {"RECIPE_GET": self.fetch, "RECIPE_PUT": self.store, "RECIPE_APPR": self.approve}
+        return {Conv.RECIPE_GET: self.fetch, Conv.RECIPE_PUT: self.store, Conv.RECIPE_APPR: self.approve}
 
     async def on_startup(self) -> str:
         """Give every version its library file if it has none (first start, a new var/)."""
@@ -100,7 +101,7 @@ class RecipeServer(Server, Module):
     async def fetch(self, conv: Conversation) -> None:
         """RECIPE_GET: the approved version for a machine; Rec_Inval when there is none to give."""
         req = self.request(conv)
-        ack = "Recipe_Reply"
+        ack = Msg.RECIPE_REPLY
 
         def read(cur: Any) -> tuple[Any, ...]:
             known = cur.execute("select 1 from recipes where recipe_id = %s", (req.recipe_id,)).fetchone()
@@ -155,7 +156,7 @@ class RecipeServer(Server, Module):
     async def store(self, conv: Conversation) -> None:
         """RECIPE_PUT: new content becomes a new, unapproved version (content equal to the latest: that one)."""
         req = self.request(conv)
-        ack = "Recipe_Store_Ack"
+        ack = Msg.RECIPE_STORE_ACK
         if not RECIPE_ID.match(req.recipe_id):
             return await self.answer(
                 conv, ack, AckCode.BAD_MESSAGE, f"recipe id {req.recipe_id!r}: letters, digits, _ . - only (64 at most)"
@@ -207,7 +208,7 @@ class RecipeServer(Server, Module):
     async def approve(self, conv: Conversation) -> None:
         """RECIPE_APPR: approve a version; an edited library file is stored as a new version, approved."""
         req = self.request(conv)
-        ack = "Recipe_Store_Ack"
+        ack = Msg.RECIPE_STORE_ACK
         if not RECIPE_ID.match(req.recipe_id):
             return await self.answer(conv, ack, AckCode.UNKNOWN, f"no recipe {req.recipe_id!r}")
 

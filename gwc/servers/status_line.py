@@ -19,6 +19,7 @@ from gwc.errors import DatabaseUnavailable
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module
 from gwc.servers.common import Server
 
@@ -31,13 +32,13 @@ def _ids(ids: list[int]) -> str:
 
 def _describe(cls: str, msg: Message) -> str:
     """A bus event in the words of the status line."""
-    if cls == "UPD_ME_ST":
+    if cls == Conv.UPD_ME_ST:
         return f"{msg.machine_id} {msg.previous or '?'} -> {msg.status}" + (f" ({msg.note})" if msg.note else "")
-    if cls == "ALARM_CLE":
+    if cls == Conv.ALARM_CLE:
         return f"alarm {msg.alarm_no} {msg.alarm_id or ''} cleared by {msg.cleared_by}".replace("  ", " ")
-    if cls == "LOT_MOVED":
+    if cls == Conv.LOT_MOVED:
         return f"entity {msg.entity_id} (lot {msg.lot_id}) {msg.action}ed"
-    if cls == "RUN_COMPL":
+    if cls == Conv.RUN_COMPL:
         return f"{msg.machine_id} run {msg.machine_run_id} " + (
             "complete" if msg.ack_code == AckCode.ACK_OK else f"failed ({msg.ack_code})"
         )
@@ -52,12 +53,13 @@ class StatusLineServer(Server, Module):
         self.last_event = "status line server started"
 
     def handlers(self) -> dict[str, Handler]:
-        events = dict.fromkeys(("CELL_EVENT", "UPD_ME_ST", "ALARM_CLE", "LOT_MOVED", "RUN_COMPL"), self.heard)
-        return {"STATUS_LN": self.status_line, **events}
+        heard = (Conv.CELL_EVENT, Conv.UPD_ME_ST, Conv.ALARM_CLE, Conv.LOT_MOVED, Conv.RUN_COMPL)
+        events: dict[str, Handler] = dict.fromkeys(heard, self.heard)
+        return {Conv.STATUS_LN: self.status_line, **events}
 
     def refusal(self, cls: str, req: Message, code: str, note: str) -> Message | None:
-        if cls == "STATUS_LN":
-            return message("Status_Line", text=f"status line unavailable: {code} {note}"[:500])
+        if cls == Conv.STATUS_LN:
+            return message(Msg.STATUS_LINE, text=f"status line unavailable: {code} {note}"[:500])
         return None
 
     async def heard(self, conv: Conversation) -> None:
@@ -106,11 +108,11 @@ class StatusLineServer(Server, Module):
             assert self.database_down is not None
             away = time.monotonic() - self.database_down
             text = f"DATABASE DOWN for {away:.0f}s: imports, exports and alarms unknown | LAST {self.last_event}"
-            await conv.send(message("Status_Line", text=text[:500], last_event=self.last_event))
+            await conv.send(message(Msg.STATUS_LINE, text=text[:500], last_event=self.last_event))
             return
         await conv.send(
             message(
-                "Status_Line",
+                Msg.STATUS_LINE,
                 text=self.line(r),
                 imports=len(r["imports"]),
                 exports=len(r["exports"]),

@@ -11,6 +11,7 @@ from gwc.errors import ConversationTimeout, DatabaseError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, MachineStatus
+from gwc.ipc.names import Conv, Msg
 from gwc.module import DATABASE_OUTAGE_S, Module
 from gwc.wc.link import MeLink
 
@@ -66,9 +67,9 @@ class WCBase(Module):
         """Ask the Machine Server to change our status; keep our copy in step when it agrees."""
         try:
             answer = await self.ask(
-                "CHG_STATUS",
+                Conv.CHG_STATUS,
                 message(
-                    "Change_Status",
+                    Msg.CHANGE_STATUS,
                     machine_id=self.machine_id,
                     status=status,
                     expect=[str(s) for s in expect] if expect else None,
@@ -95,8 +96,8 @@ class WCBase(Module):
     async def set_accept_types(self, op_types: list[str]) -> bool:
         try:
             answer = await self.ask(
-                "ACC_TYP_C",
-                message("Chg_Accept_Type", machine_id=self.machine_id, op_types=op_types),
+                Conv.ACC_TYP_C,
+                message(Msg.CHG_ACCEPT_TYPE, machine_id=self.machine_id, op_types=op_types),
                 "msched",
                 SERVER_TIMEOUT,
                 within=SERVER_RESTART,
@@ -116,9 +117,9 @@ class WCBase(Module):
         while True:
             try:
                 answer = await self.ask(
-                    "ALARM_SEND",
+                    Conv.ALARM_SEND,
                     message(
-                        "Alarm_Send",
+                        Msg.ALARM_SEND,
                         alarm_id=alarm_id,
                         alarm_text=text,
                         machine_id=self.machine_id,

@@ -20,6 +20,7 @@ from gwc.errors import ConversationTimeout
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import MeMessage, MessageId
+from gwc.ipc.names import Conv, Msg
 from gwc.wc.base import ALL_OPERATIONS, SERVER_TIMEOUT, S
 from gwc.wc.runs import WCRuns
 
@@ -87,8 +88,8 @@ class WCDevice(WCRuns):
             return
         try:
             answer = await self.ask(
-                "ALARM_CLR_REQ",
-                message("Alarm_Clear_Request", alarm_no=no, cleared_by=self.name),
+                Conv.ALARM_CLR_REQ,
+                message(Msg.ALARM_CLEAR_REQUEST, alarm_no=no, cleared_by=self.name),
                 "cas",
                 SERVER_TIMEOUT,
             )

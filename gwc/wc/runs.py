@@ -13,6 +13,7 @@ from gwc.errors import DatabaseError, DatabaseUnavailable, QueueError
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import MeMessage, MessageId
+from gwc.ipc.names import Conv, Msg
 from gwc.me import answer_deadline
 from gwc.me.results import read_outcome, read_results
 from gwc.module import DATABASE_OUTAGE_S
@@ -239,7 +240,7 @@ class WCRuns(WCBase):
     async def _announce_run(self, run_id: int, code: str, note: str | None) -> None:
         self.log.info("run %d complete (%s)%s", run_id, code, f": {note}" if note else "")
         conv = await self.bus.start(
-            "RUN_COMPL",
-            message("Run_Complete", machine_id=self.machine_id, machine_run_id=run_id, ack_code=code, note=note),
+            Conv.RUN_COMPL,
+            message(Msg.RUN_COMPLETE, machine_id=self.machine_id, machine_run_id=run_id, ack_code=code, note=note),
         )
         conv.end()

@@ -13,6 +13,7 @@ from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.mq import MeMessage, MessageId
+from gwc.ipc.names import Conv, Msg
 from gwc.wc.base import ALL_OPERATIONS, SERVER_RESTART, SERVER_TIMEOUT, S
 from gwc.wc.device import WCDevice
 from gwc.wc.link import MeDied
@@ -96,12 +97,12 @@ class WCSteps(WCDevice):
         self.log.info("SETUP_RUN run %d recipe %s op %s", req.machine_run_id, req.recipe_id, req.op_type)
         refusal = await self._not_reserved(conv)
         if refusal is not None:
-            await self._refuse_now(conv, "Setup_Run_Ack", *refusal)
+            await self._refuse_now(conv, Msg.SETUP_RUN_ACK, *refusal)
             return
-        if not await self._serve_step(conv, "Setup_Run_Ack", (S.IDLE,), self._setup):
+        if not await self._serve_step(conv, Msg.SETUP_RUN_ACK, (S.IDLE,), self._setup):
             return
         self.log.info("set up run %d with recipe %s", req.machine_run_id, req.recipe_id)
-        await conv.send(message("Setup_Run_Ack", ack_code=AckCode.ACK_OK))
+        await conv.send(message(Msg.SETUP_RUN_ACK, ack_code=AckCode.ACK_OK))
 
     async def _setup(self, req: Message) -> tuple[str, str] | None:
         # The recipe is asked of the ERS first, so that the ERS looks it up while we read our table.
@@ -160,8 +161,8 @@ class WCSteps(WCDevice):
         """The approved version from the ERS, checksum verified, written where the ME can read it."""
         try:
             reply = await self.ask(
-                "RECIPE_GET",
-                message("Recipe_Fetch", recipe_id=recipe_id, machine_id=self.machine_id),
+                Conv.RECIPE_GET,
+                message(Msg.RECIPE_FETCH, recipe_id=recipe_id, machine_id=self.machine_id),
                 "ers",
                 SERVER_TIMEOUT,
                 within=SERVER_RESTART,
@@ -187,12 +188,12 @@ class WCSteps(WCDevice):
         self.log.info("START_RUN run %d", req.machine_run_id)
         refusal = await self._not_reserved(conv)
         if refusal is not None:
-            await self._refuse_now(conv, "Start_Run_Ack", *refusal)
+            await self._refuse_now(conv, Msg.START_RUN_ACK, *refusal)
             return
-        if not await self._serve_step(conv, "Start_Run_Ack", (S.SETUP, S.SETUP_SHUT), self._run_on_me):
+        if not await self._serve_step(conv, Msg.START_RUN_ACK, (S.SETUP, S.SETUP_SHUT), self._run_on_me):
             return
         self.log.info("run %d started", req.machine_run_id)
-        await conv.send(message("Start_Run_Ack", ack_code=AckCode.ACK_OK))
+        await conv.send(message(Msg.START_RUN_ACK, ack_code=AckCode.ACK_OK))
 
     async def _run_on_me(self, req: Message) -> tuple[str, str] | None:
         if req.machine_run_id != self.machine_run_id:
@@ -219,10 +220,10 @@ class WCSteps(WCDevice):
         """DNLD_ME (5.1.3): a recipe from the cell to the machine. Idle only."""
         assert conv.first is not None
         req = conv.first.first
-        if not await self._serve_step(conv, "Download_Ack", (S.IDLE,), self._download):
+        if not await self._serve_step(conv, Msg.DOWNLOAD_ACK, (S.IDLE,), self._download):
             return
         self.log.info("recipe %s downloaded to %s", req.recipe_id, self.machine_id)
-        await conv.send(message("Download_Ack", ack_code=AckCode.ACK_OK))
+        await conv.send(message(Msg.DOWNLOAD_ACK, ack_code=AckCode.ACK_OK))
 
     async def _download(self, req: Message) -> tuple[str, str] | None:
         path, why = await self.fetch_recipe(req.recipe_id)
@@ -245,18 +246,18 @@ class WCSteps(WCDevice):
             if refusal is None:
                 refusal, content = await self._upload(req)
         if refusal is not None:
-            return await self._refuse_now(conv, "Upload_Ack", *refusal)
+            return await self._refuse_now(conv, Msg.UPLOAD_ACK, *refusal)
         assert content is not None
         try:
             stored = await self.ask(
-                "RECIPE_PUT",
-                message("Recipe_Store", recipe_id=req.recipe_id, content=content, by=self.name),
+                Conv.RECIPE_PUT,
+                message(Msg.RECIPE_STORE, recipe_id=req.recipe_id, content=content, by=self.name),
                 "ers",
                 SERVER_TIMEOUT,
             )
         except ConversationTimeout:
             return await self._refuse_now(
-                conv, "Upload_Ack", AckCode.TIMEOUT, "the Equipment Recipe Server did not answer"
+                conv, Msg.UPLOAD_ACK, AckCode.TIMEOUT, "the Equipment Recipe Server did not answer"
             )
         self.log.info(
             "recipe %s uploaded from %s: ERS says %s, version %s",
@@ -265,7 +266,7 @@ class WCSteps(WCDevice):
             stored.ack_code,
             stored.version,
         )
-        await conv.send(message("Upload_Ack", ack_code=stored.ack_code, version=stored.version, note=stored.note))
+        await conv.send(message(Msg.UPLOAD_ACK, ack_code=stored.ack_code, version=stored.version, note=stored.note))
 
     async def _upload(self, req: Message) -> tuple[tuple[str, str] | None, str | None]:
         answer, refusal = await self._ask_me(MeMessage(MessageId.UPLD_ME, recipe_id=req.recipe_id))

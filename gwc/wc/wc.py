@@ -37,6 +37,7 @@ from gwc.errors import DatabaseError, DatabaseUnavailable, QueueError
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import Channel, MeMessage, MessageId
+from gwc.ipc.names import Conv, Msg
 from gwc.me.machine import MeState
 from gwc.module import Handler
 from gwc.wc.base import ABANDONED_S, ALL_OPERATIONS, ME_DEADLINE, ME_PING, SETUP_CHECK_S, S
@@ -49,9 +50,9 @@ class WC(WCSteps):
     conversations served); here its life: start, shutdown, resume after a restart, the idle watch."""
 
     role = "wc"
-    start_class = "ME_START"
-    stop_class = "ME_SHUT"
-    always = ("ALARM_CLE",)
+    start_class = Conv.ME_START
+    stop_class = Conv.ME_SHUT
+    always = (Conv.ALARM_CLE,)
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger, machine_id: str) -> None:
         # Before the base's __init__: it asks idle_interest(), which depends on the status.
@@ -76,26 +77,26 @@ class WC(WCSteps):
 
     def handlers(self) -> dict[str, Handler]:
         return {
-            "SETUP_RUN": self.setup_run,
-            "START_RUN": self.start_run,
-            "DNLD_ME": self.download,
-            "UPLD_ME": self.upload,
-            "ALARM_CLE": self.alarm_cleared,
+            Conv.SETUP_RUN: self.setup_run,
+            Conv.START_RUN: self.start_run,
+            Conv.DNLD_ME: self.download,
+            Conv.UPLD_ME: self.upload,
+            Conv.ALARM_CLE: self.alarm_cleared,
         }
 
     def serves(self, cls: str) -> bool:
         # A machine set up before a shutdown request may still start its run (Setup_Shut, 6.3.2.4).
-        return super().serves(cls) or (cls == "START_RUN" and self.status == S.SETUP_SHUT)
+        return super().serves(cls) or (cls == Conv.START_RUN and self.status == S.SETUP_SHUT)
 
     def idle_interest(self) -> set[str]:
-        extra = {"START_RUN"} if self.status == S.SETUP_SHUT else set()
+        extra = {Conv.START_RUN} if self.status == S.SETUP_SHUT else set()
         return super().idle_interest() | extra
 
     def startup_complete(self, code: str) -> Message:
-        return message("ME_Ready", machine_id=self.machine_id, ack_code=code, note=self._start_note)
+        return message(Msg.ME_READY, machine_id=self.machine_id, ack_code=code, note=self._start_note)
 
     def shutdown_complete(self, note: str | None) -> Message:
-        return message("ME_Stopped", machine_id=self.machine_id, ack_code=AckCode.ACK_OK, note=note)
+        return message(Msg.ME_STOPPED, machine_id=self.machine_id, ack_code=AckCode.ACK_OK, note=note)
 
     async def run(self, start: bool = False) -> int:
         try:
