@@ -359,7 +359,7 @@ class MachineSide:
     def _me_shut(self, msg: MeMessage) -> None:
         if self.state == MeState.RUNNING:
             self.log.warning("ME_SHUT during run %d: the run is abandoned", self.run_no)
-            self.abort("ME_SHUT")
+            self.abort("ME_SHUT received")
         self.state, self._start_req, self.lost = MeState.SHUTDOWN, None, None
         self.recipe_id, self.recipe_file = "", None
         self.log.info("machine shut down")

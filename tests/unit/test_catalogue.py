@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,7 @@ from gwc.errors import MessageError
 from gwc.hi.monitor import render_catalogue
 from gwc.ipc import catalogue
 from gwc.ipc.catalogue import check, message, render_names
+from gwc.ipc.names import Conv, Msg
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "conversations.md"
 
@@ -68,3 +70,26 @@ def test_names_py_is_generated_from_the_catalogue() -> None:
     assert names.read_text() == render_names(), (
         "gwc/ipc/names.py is stale: python -m gwc.ipc.catalogue > gwc/ipc/names.py"
     )
+
+
+def test_code_names_conversations_and_messages_by_conv_and_msg() -> None:
+    """No string literal in gwc/ spells a conversation class or message name (docstrings and f-strings
+    aside): code says Conv.X / Msg.X, so a misspelling fails in mypy rather than in a conversation."""
+    names = {c.value for c in Conv} | {m.value for m in Msg}
+    root = Path(__file__).resolve().parents[2] / "gwc"
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        if path.name in ("names.py", "catalogue.py"):  # where the names are defined
+            continue
+        tree = ast.parse(path.read_text())
+        skip = {id(n) for n in ast.walk(tree) if isinstance(n, ast.JoinedStr)}
+        skip |= {id(v) for n in ast.walk(tree) if isinstance(n, ast.JoinedStr) for v in n.values}
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+                body = node.body
+                if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+                    skip.add(id(body[0].value))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Constant) and node.value in names and id(node) not in skip:
+                found.append(f"{path.relative_to(root.parent)}:{node.lineno} {node.value!r}")
+    assert not found, "use gwc.ipc.names.Conv / Msg:\n" + "\n".join(found)
