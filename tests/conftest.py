@@ -26,7 +26,7 @@ from psycopg import sql
 
 from gwc import db
 from gwc.config import Config, write_config
-from tests.leaks import leak_check, unmarked
+from tests.leaks import kill_on_termination, leak_check, unmarked
 
 TEMPLATE_DB = "gwc_template"
 # Test clusters trade durability for speed: a crashed test cluster is thrown away anyway.
@@ -120,6 +120,11 @@ def db_conn(database_url: str) -> Iterator[psycopg.Connection[Any]]:
 
 
 # ----------------------------------------------------------------------------- what a test leaves behind
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if not hasattr(config, "workerinput"):  # the controller (or a run without xdist)
+        kill_on_termination()
 
 
 @pytest.fixture(autouse=True)

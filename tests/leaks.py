@@ -23,6 +23,7 @@ from gwc.errors import GwcError
 from gwc.ipc.mq import queue_exists, queue_names
 
 MARK = "GWC_TEST_ID"
+SESSION = "GWC_TEST_SESSION"  # the same idea for the whole pytest run, for kill_on_termination
 # The interpreter's own helpers, started once by the first test that uses multiprocessing: not a leak.
 HELPERS = ("multiprocessing.resource_tracker", "multiprocessing.forkserver")
 # Where a test's cells keep their configuration: tmp_path/etc, tmp_path/<cell>/etc, one more level.
@@ -33,9 +34,9 @@ class Leaked(AssertionError):
     """A test left something of the cell behind."""
 
 
-def marked_processes(mark: str) -> dict[int, str]:
-    """Live processes (not zombies) whose environment carries GWC_TEST_ID=mark: pid -> command line."""
-    needle = f"{MARK}={mark}".encode()
+def marked_processes(mark: str, var: str = MARK) -> dict[int, str]:
+    """Live processes (not zombies) whose environment carries var=mark (GWC_TEST_ID=mark): pid -> command line."""
+    needle = f"{var}={mark}".encode()
     found = {}
     for d in Path("/proc").iterdir():
         if not d.name.isdigit() or int(d.name) == os.getpid():
@@ -95,6 +96,21 @@ def _kill(pids: dict[int, str]) -> None:
             os.kill(pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
+
+
+def kill_on_termination() -> None:
+    """Mark every process this pytest run starts, and kill them all if the run is terminated (SIGTERM,
+    SIGHUP: a CI timeout, a closed terminal), when no fixture's teardown runs. Call in the controller
+    only: a pytest-xdist worker would kill its siblings."""
+    os.environ.setdefault(SESSION, uuid.uuid4().hex)
+
+    def terminated(signum: int, frame: object) -> None:
+        _kill(marked_processes(os.environ[SESSION], SESSION))
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, terminated)
 
 
 @contextmanager
