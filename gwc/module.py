@@ -159,6 +159,11 @@ class Module:
         """Shutdown work: finish or refuse what is pending. May return a note for Shutdown_Complete."""
         return None
 
+    async def still_up(self) -> bool:
+        """Asked on a start request while started: whether the cell still counts this module up (a start
+        is then refused as already done). False lets the start run again."""
+        return True
+
     async def on_bus(self) -> None:
         """Called once signed on to the bus, before the first conversation is served."""
 
@@ -434,7 +439,7 @@ class Module:
         if req.module != self.name:
             self.log.info("ignored Startup_Request for %s", req.module)
             return
-        if self.started:
+        if self.started and await self.still_up():
             await conv.send(message(Msg.STARTUP_ACK, ack_code=AckCode.NOTNOW, note=f"{self.name} is already started"))
             return
         await conv.send(message(Msg.STARTUP_ACK, ack_code=AckCode.ACK_OK))

@@ -12,16 +12,17 @@ import psycopg
 from gwc import cell
 from gwc.client.session import on_bus
 from gwc.config import Config
-from gwc.errors import ModuleError
+from gwc.errors import ConfigError, ModuleError
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.names import Conv
 from gwc.module import module_name
 
 SEE_WC = 2.0  # how long to look for a WC on the bus before deciding its processes must be started
+HEAR_REMOTE_WC = 30.0  # s: a WC on another host is waited for this long (its host may be just back on the network)
 START_TIMEOUT = 600.0  # a homing alarm waits for the operator
 STOP_TIMEOUT = 60.0
 
-__all__ = ["heard_peers", "machine_rows", "start_machine", "stop_machine"]
+__all__ = ["heard_peers", "machine_rows", "machines_on", "start_machine", "stop_machine"]
 
 
 def start_machine(
@@ -43,6 +44,8 @@ def start_machine(
         if on_bus(bus, wc, SEE_WC):  # a WC on the bus runs, whoever started it (its pid file may be elsewhere)
             procs = [p for p in procs if p.kind != "wc"]
         cell.start_procs(cfg, procs, bus, say)
+    elif not on_bus(bus, wc, HEAR_REMOTE_WC):
+        raise ModuleError(f"{wc} is not on the bus: its host {spec.host} runs it (`gwc start` there)")
     say(
         f"{wc}: ME_START (a machine that must be homed raises its alarm now: "
         "`gwc alarm list`, then `gwc alarm clear N` once it is done)"
@@ -50,6 +53,13 @@ def start_machine(
     done = cell.startup(bus, wc, Conv.ME_START, timeout=timeout)
     say(f"{wc}: {done}")
     return done
+
+
+def machines_on(cfg: Config, host: str) -> list[str]:
+    """The machines placed on [[host]] `host`, in cell.toml order; ConfigError for an unknown host."""
+    if host not in {h.name for h in cfg.hosts}:
+        raise ConfigError(f"no host {host!r} in the cell (hosts: {', '.join(h.name for h in cfg.hosts) or 'none'})")
+    return [m.id for m in cfg.machines if m.host == host]
 
 
 def stop_machine(cfg: Config, bus: BlockingBus, machine_id: str, timeout: float = STOP_TIMEOUT) -> str:

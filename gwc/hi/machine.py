@@ -11,8 +11,17 @@ from __future__ import annotations
 
 import click
 
-from gwc.client.machines import START_TIMEOUT, STOP_TIMEOUT, heard_peers, machine_rows, start_machine, stop_machine
+from gwc.client.machines import (
+    START_TIMEOUT,
+    STOP_TIMEOUT,
+    heard_peers,
+    machine_rows,
+    machines_on,
+    start_machine,
+    stop_machine,
+)
 from gwc.client.session import hi_bus, hi_conn
+from gwc.errors import GwcError, ModuleError
 from gwc.hi import context, json_option, table
 from gwc.module import module_name
 
@@ -36,18 +45,35 @@ def machine_group() -> None:
 
 
 @machine_group.command("start")
-@click.argument("machine_id")
+@click.argument("machine_ids", nargs=-1)
+@click.option("--on", "host", help="Every machine placed on this [[host]] too (a host back on the network).")
 @click.option(
     "--timeout",
     default=START_TIMEOUT,
     show_default=True,
-    help="Seconds to wait for the machine (a homing alarm waits for the operator).",
+    help="Seconds to wait for each machine (a homing alarm waits for the operator).",
 )
-def machine_start(machine_id: str, timeout: float) -> None:
-    """Start machine MACHINE_ID: its processes if they are down, then ME_START (Shutdown -> Idle)."""
+def machine_start(machine_ids: tuple[str, ...], host: str | None, timeout: float) -> None:
+    """Start each machine MACHINE_ID (and those on --on HOST) in turn: its processes if they are down,
+    then ME_START (Shutdown -> Idle). One that fails is reported and the others are still started."""
     cfg, log = context()
+    ids = list(dict.fromkeys([*machine_ids, *(machines_on(cfg, host) if host else [])]))
+    if not ids:
+        raise click.UsageError("name a machine, or --on HOST")
+    for machine_id in ids:
+        cfg.machine(machine_id)  # every name checked before any machine is started
+    failed = []
     with hi_bus(cfg, log) as bus:
-        start_machine(cfg, bus, machine_id, click.echo, timeout)
+        for machine_id in ids:
+            try:
+                start_machine(cfg, bus, machine_id, click.echo, timeout)
+            except GwcError as e:
+                if len(ids) == 1:
+                    raise  # its own line and exit code
+                click.echo(f"{machine_id}: {e}", err=True)
+                failed.append(machine_id)
+    if failed:
+        raise ModuleError(f"not started: {', '.join(failed)}")
 
 
 @machine_group.command("stop")

@@ -33,7 +33,7 @@ import logging
 import time
 
 from gwc.config import Config
-from gwc.errors import DatabaseError, DatabaseUnavailable, QueueError
+from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, QueueError
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import Channel, MeMessage, MessageId
@@ -189,6 +189,22 @@ class WC(WCSteps):
         if code != AckCode.ACK_OK:
             self.log.error("machine %s not started: %s (%s)", self.machine_id, code, self._start_note)
         return code
+
+    async def still_up(self) -> bool:
+        """A WC the Machine Server shut down while it could not hear it (a cut cable, a long freeze) still
+        counts itself Idle: on ME_START it asks, learns the machine is Shutdown, and starts it again."""
+        if self.status != S.IDLE:
+            return True  # in a run: its end's status change is refused and brings the Shutdown home
+        try:
+            reply = await self.ask(Conv.GET_STATUS, message(Msg.GET_STATUS, machine_id=self.machine_id), "ms")
+        except ConversationTimeout:
+            return True
+        if reply.status != S.SHUTDOWN:
+            return True
+        self.log.warning("the Machine Server has %s Shutdown (%s): starting it again", self.machine_id, reply.note)
+        self.status, self.started = S.SHUTDOWN, False
+        self.bus.set_interest(self.idle_interest())
+        return False
 
     async def _startup_machine(self) -> tuple[str, str | None]:
         if self.status != S.SHUTDOWN:

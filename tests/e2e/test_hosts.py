@@ -195,11 +195,13 @@ def test_a_cell_over_three_hosts_makes_the_chess_order_and_rides_out_a_cut_cable
     wait_for(lambda: lots_done(cell, entities) or cell.query(good_on_wc1)[0][0] > before, 25, "a milling run on h2")
 
     # The cable back within the run's doubt bound: h3's WC stores the run it finished meanwhile, its lot
-    # takes that outcome, and one operator command per machine brings each back into service (asked
-    # until its WC is heard again).
+    # takes that outcome, and one operator command brings the host's machines back into service (it waits
+    # for their WCs to be heard again; a WC that still counts itself Idle learns it was shut down and starts
+    # again; the one whose run ends after the cable is back goes Idle at that run's end).
     cell.hosts.mend("h3")
-    for m in ("wc2", "wc3"):
-        wait_for(lambda m=m: cell.run("h1", "machine", "start", m).returncode == 0, 30, f"{m} started again")
+    cell.gwc("h1", "machine", "start", "--on", "h3")
+    down = "select count(*) from machine_status where machine_id in ('wc2', 'wc3') and status = 'Shutdown'"
+    wait_for(lambda: cell.query(down)[0][0] == 0, 60, "h3's machines in service again")
     wait_for(lambda: lots_done(cell, entities), 120, "every lot of the first order exported")
     more = json.loads(cell.gwc("h1", "order", "new", "--customer", "NJIT", "milled_pawn=3", "--json"))
     entities2 = [e for lot in more["lots"] for e in lot["entities"]]

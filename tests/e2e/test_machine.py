@@ -8,7 +8,9 @@ clears alarms the operator's way (ALARM_CLR_REQ to the Cell Alarm Server).
 from __future__ import annotations
 
 import json
+import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -415,6 +417,30 @@ def test_kill_9_of_the_me_during_a_run_is_reported_and_the_pair_rejoins_with_gwc
     assert start_run(cell, "wc5", 32).ack_code == OK
     assert ear.wait("Run_Complete of run 32", lambda m: m.machine_run_id == 32).ack_code == OK
     assert results(cell, "wc5", 32)["RESULT"] == "PASS"
+
+
+def test_an_idle_wc_shut_down_while_it_could_not_be_heard_starts_again_on_one_machine_start(
+    machine_cell: Any,
+) -> None:
+    # Frozen past its liveness (as a WC behind a cut cable is), wc3 still counts itself Idle and started;
+    # the Machine Server has it Shutdown. `gwc machine start` must start it again, not answer "already
+    # started" and leave it Shutdown.
+    cell, _ = machine_cell(
+        {"id": "wc3", "kind": "dummy", "run_time": 0.2},
+        prepare="update me_config set liveness_s = 1 where machine_id = 'wc3'",
+    )
+    start_machine(cell, "wc3", homing=False)
+    wc = cell.pid("wc", "wc3")
+    assert wc is not None
+    os.kill(wc, signal.SIGSTOP)
+    try:
+        wait_for(lambda: status(cell, "wc3")[0] == "Shutdown", T, "the Machine Server to shut the silent wc3 down")
+    finally:
+        os.kill(wc, signal.SIGCONT)
+    started = gwc(cell, "machine", "start", "wc3")
+    assert started.returncode == 0 and "wc:wc3: started" in started.stdout, started.stderr + started.stdout
+    assert status(cell, "wc3")[0] == "Idle" and accepts(cell, "wc3") != []
+    assert cell.log_has("wc:wc3", "starting it again")
 
 
 @pytest.mark.parametrize(
