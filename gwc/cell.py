@@ -61,6 +61,11 @@ class Proc:
         return args + (["--machine", self.machine] if self.machine else [])
 
 
+def lot_proc(entity_id: int) -> Proc:
+    """The process of one operation entity: its lot script (gwc/lot/run.py)."""
+    return Proc("lot", str(entity_id), command=(sys.executable, "-m", "gwc.lot.run", "--entity", str(entity_id)))
+
+
 def machine_procs(cfg: Config, machine_id: str) -> list[Proc]:
     """The processes of one machine in start order: simulator (if any), ME, then WC."""
     spec = cfg.machine(machine_id)
@@ -353,7 +358,9 @@ def clean_machine_state(cfg: Config, machine_ids: list[str]) -> list[str]:
 
 def stop_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = print, database: bool = True) -> None:
     # Lot scripts first, while the servers they clean up through (ls, msched) still run; all told at
-    # once, so they clean up side by side.
+    # once, so they clean up side by side. The agent's own first, so that it does not restart them.
+    if agent_control.running(cfg):
+        agent_control.call(cfg, "stop_lots", say=say)
     lots = [p.stem.replace("-", ":", 1) for p in sorted(cfg.run_dir.glob("lot-*.pid"))] if cfg.run_dir.exists() else []
     for name in lots:
         st = read_pid(cfg, name)

@@ -37,8 +37,8 @@ from typing import Any
 
 from gwc.agent.child import Child
 from gwc.agent.control import READY_FD, address
-from gwc.agent.states import ProcessState
-from gwc.cell import cell_procs, hold_startup, pid_file, read_pid, spawn_process, write_pid_file
+from gwc.agent.states import LIVE, ProcessState
+from gwc.cell import cell_procs, hold_startup, lot_proc, pid_file, read_pid, spawn_process, write_pid_file
 from gwc.config import Config
 from gwc.errors import ConfigError, GwcError, ModuleError
 from gwc.ipc.bus import Bus
@@ -165,7 +165,12 @@ class Agent(Server):
         return 0
 
     def _adopt(self) -> None:
-        """Modules an earlier agent started and left running are watched again, not started twice."""
+        """Modules (and lot scripts) an earlier agent started and left running are watched again, not
+        started twice."""
+        for path in sorted(self.cfg.run_dir.glob("lot-*.pid")):
+            entity = path.stem.partition("-")[2]
+            if entity.isdigit():
+                self.children.setdefault(f"lot:{entity}", Child(lot_proc(int(entity)), self.log))
         for child in self.children.values():
             st = read_pid(self.cfg, child.name)
             if not st.alive or st.pid is None:
@@ -228,7 +233,7 @@ class Agent(Server):
                             break
                         await asyncio.sleep(0.02)
                     how = "on the bus"
-                    if kind != "wc":
+                    if kind not in ("wc", "lot"):
                         how = await hold_startup(self.bus, child.name, timeout=self.policy.start_timeout)
         except TimeoutError:
             why = f"not ready within {self.policy.start_timeout:g}s"
@@ -260,6 +265,24 @@ class Agent(Server):
             raise ModuleError(f"{child.name} is FATAL: {child.last_exit} (see {self.cfg.log_dir})")
         say(f"{child.name}: {child.state} (pid {child.pid})")
 
+    def spawn_lots(self, entities: list[int]) -> dict[str, int | None]:
+        """Start lot scripts (`gwc order new`, through gwc.lot.run.spawn_lot_script): watched and restarted
+        as modules are while they run, forgotten once they end of themselves. A script running already
+        is left as it is. Returns entity -> pid."""
+        pids: dict[str, int | None] = {}
+        for entity in entities:
+            proc = lot_proc(entity)
+            child = self.children.setdefault(proc.name, Child(proc, self.log))
+            if child.state not in LIVE:
+                child.fails = 0
+                try:
+                    self._spawn(child, "started")
+                except OSError as e:
+                    self.children.pop(proc.name, None)
+                    raise ModuleError(f"could not start the lot script of entity {entity}: {e}") from e
+            pids[str(entity)] = child.pid
+        return pids
+
     async def start_some(self, names: list[str], say: Callable[[str], None]) -> None:
         """Bring modules up in cell.toml's order, each RUNNING before the next; every failure is reported."""
         failed = []
@@ -281,11 +304,15 @@ class Agent(Server):
         if child.ready is not None:
             child.ready.cancel()
             child.ready = None
+        named = False  # whether its pid file still names it: a lot script removes its own when it ends
         with contextlib.suppress(OSError, ValueError, KeyError):
-            if json.loads(pid_file(self.cfg, child.name).read_text())["pid"] == pid:
+            if named := json.loads(pid_file(self.cfg, child.name).read_text())["pid"] == pid:
                 pid_file(self.cfg, child.name).unlink()
-        if child.state == S.STOPPING:
-            child.change_state(S.STOPPED, how)
+        lot = child.proc.kind == "lot"
+        if child.state == S.STOPPING or (lot and not named):
+            child.change_state(S.STOPPED, how if child.state == S.STOPPING else f"{how}: its work is done")
+            if lot:
+                self.children.pop(child.name, None)
             return
         if child.state == S.RUNNING and time.monotonic() - child.running_at >= self.policy.start_secs:
             child.fails = 0
@@ -360,10 +387,17 @@ class Agent(Server):
     async def stop_all(self, exit_after: bool, say: Callable[[str], None] | None = None) -> None:
         """Every module in reverse order; then, if asked, the agent itself."""
         self._stopping = exit_after or self._stopping
+        await self.stop_lots(say or self.log.info)
         for child in reversed(list(self.children.values())):
             await self.stop_child(child, say or self.log.info)
         if exit_after:
             self._stop.set()
+
+    async def stop_lots(self, say: Callable[[str], None]) -> None:
+        """Every lot script, side by side (each fails its entity cleanly on SIGTERM), before the servers
+        they clean up through stop."""
+        lots = [c for c in self.children.values() if c.proc.kind == "lot"]
+        await asyncio.gather(*(self.stop_child(c, say) for c in lots))
 
     async def _wait(self, child: Child, states: Iterable[ProcessState], timeout: float) -> bool:
         deadline = time.monotonic() + timeout
@@ -408,6 +442,13 @@ class Agent(Server):
             elif cmd == "status":
                 answer["agent"] = {"name": self.name, "pid": os.getpid()}
                 answer["modules"] = [c.row() for c in self.children.values()]
+            elif cmd == "lots":
+                entities = req.get("entities")
+                if not (isinstance(entities, list) and all(type(e) is int and e > 0 for e in entities)):
+                    raise ValueError("entities must be a list of entity ids")
+                answer["pids"] = self.spawn_lots(entities)
+            elif cmd == "stop_lots":
+                await self.stop_lots(say)
             elif cmd == "start":
                 await self.start_some([c.name for c in self._pick(names)], say)
             elif cmd == "stop":
@@ -424,7 +465,9 @@ class Agent(Server):
                     await self.stop_child(child, say)
                 await self.start_some([c.name for c in picked], say)
             else:
-                raise ModuleError(f"unknown agent command {cmd!r} (ping, status, start, stop, restart)")
+                raise ModuleError(
+                    f"unknown agent command {cmd!r} (ping, status, start, stop, restart, lots, stop_lots)"
+                )
             answer.update(done=True, ok=True)
         except (ValueError, UnicodeDecodeError) as e:
             self.log.warning("control: bad request: %s", e)

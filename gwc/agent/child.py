@@ -33,6 +33,7 @@ class Child:
         self.started_at = 0.0  # monotonic: when the current process was spawned (or adopted)
         self.since = ""  # wall clock of the same, for people
         self.running_at = 0.0  # monotonic: when it was last found ready
+        self.died_at: float | None = None  # monotonic: when its last process was seen to end
         self.restarts = 0  # restarts the agent made after a death (not operator starts)
         self.fails = 0  # deaths in a row before the module ran `start_secs`
         self.last_exit = ""  # how the last process ended
@@ -95,6 +96,7 @@ class Child:
             code = self.popen.wait()  # already dead: does not block
             how = f"killed by {signal.Signals(-code).name}" if code < 0 else f"exited {code}"
         self.popen = None
+        self.died_at = time.monotonic()
         self.last_exit = how
         return how
 
@@ -120,4 +122,7 @@ class Child:
             "since": self.since if self.state in LIVE else None,
             "restarts": self.restarts,
             "last_exit": self.last_exit or None,
+            # CLOCK_MONOTONIC, the same in every process of the host: a kill's time can be set beside them.
+            "died_at": self.died_at,
+            "running_at": self.running_at or None,
         }

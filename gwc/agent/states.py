@@ -4,6 +4,7 @@ STOPPED --start--> STARTING --ready--> RUNNING
 STARTING --died/not ready--> BACKOFF --delay--> STARTING      (or FATAL after too many tries)
 RUNNING --died--> STARTING (at once, if it had run `start_secs`) or BACKOFF (a crash loop)
 any live state --stop--> STOPPING --died--> STOPPED
+STARTING, RUNNING --ended of itself, its work done (a lot script)--> STOPPED
 FATAL --start (operator)--> STARTING
 """
 
@@ -27,8 +28,8 @@ class ProcessState(enum.Enum):
 S = ProcessState
 MOVES: dict[ProcessState, frozenset[ProcessState]] = {
     S.STOPPED: frozenset({S.STARTING}),
-    S.STARTING: frozenset({S.RUNNING, S.BACKOFF, S.STOPPING, S.FATAL}),
-    S.RUNNING: frozenset({S.STARTING, S.BACKOFF, S.STOPPING, S.FATAL}),
+    S.STARTING: frozenset({S.RUNNING, S.BACKOFF, S.STOPPING, S.FATAL, S.STOPPED}),
+    S.RUNNING: frozenset({S.STARTING, S.BACKOFF, S.STOPPING, S.FATAL, S.STOPPED}),
     S.BACKOFF: frozenset({S.STARTING, S.STOPPED, S.FATAL}),
     S.STOPPING: frozenset({S.STOPPED}),
     S.FATAL: frozenset({S.STARTING, S.STOPPED}),

@@ -68,15 +68,16 @@ from gwc.lot.model import (
     traveller_path,
     verdict,
 )
-from gwc.lot.runs import EntityRuns
+from gwc.lot.resume import EntityResume
 from gwc.module import ask
 
 
-class OperationEntity(EntityRuns):
+class OperationEntity(EntityResume):
     """One operation entity: a lot script's handle on the cell (see the module docstring).
 
     Its parts, by concern: EntityCore (state, reads, waits), EntityTalk (the bus, the Lot Server),
-    EntityReserve (MSCHED), EntityRuns (the machines' WCs); here its life and Listing 1's steps.
+    EntityReserve (MSCHED), EntityRuns (the machines' WCs), EntityResume (a restarted script taking its
+    entity up again); here its life and Listing 1's steps.
     """
 
     # ----------------------------------------------------------------- life
@@ -130,6 +131,7 @@ class OperationEntity(EntityRuns):
             ack.state,
             os.getpid(),
         )
+        self._resume_after_restart()
         self.traveller.update(
             lot_id=self.lot_id, product_id=self.product_id, pid=os.getpid(), started=now_text(), state=self.state
         )
@@ -198,6 +200,9 @@ class OperationEntity(EntityRuns):
         First every request of the entity still queued in MSCHED is cancelled: nothing may wait for
         machines on behalf of a finished entity.
         """
+        if self.read_state() in (S.COMPLETED, S.WAITING_EXPORT):  # a restarted script: done before
+            self.log.info("entity %d completed already (%s)", self.entity_id, self.result)
+            return
         self._cancel_leftovers("before completing")
         self.entity_request("completed", reason=result)
         self.result = result
@@ -232,15 +237,24 @@ class OperationEntity(EntityRuns):
         after a pause (Timeouts.pause, doubling) and once a machine that can serve it is up; then
         MachineLost. A machine whose ME's death its agent announced (MachineDied) is known to be out of
         service already (its machine is Shutdown), so the next try goes without the pause.
+
+        In a lot script restarted after its process was killed, an operation done before is not done
+        again and one whose run was under way is taken up where it is (gwc/lot/resume.py).
         """
+        step, entry, resumed = self._resume_point(op_type)
+        if isinstance(resumed, Operation):
+            return resumed
         lost: MachineLost | None = None
-        for attempt in range(1, self.max_tries + 1):
+        for attempt in range(int(entry["tries"]) if entry else 1, self.max_tries + 1):
             if lost is not None and not isinstance(lost, MachineDied):
                 self._pause(attempt - 1, f"trying {op_type} again")
                 self._wait_machine_up(op_type, alternatives, time.monotonic() + self.timeouts.machines)
-            res = self.reserve(op_type, alternatives, priority)
+            res, taken_up, resumed = resumed or self.reserve(op_type, alternatives, priority), resumed, None
+            if taken_up is None:
+                self._record_step(step, res, recipes, attempt, None)
             try:
-                chosen, codes = self._run(res, recipes)
+                todo = None if taken_up is None else {m: self._take_up(m, res.machine_run_id) for m in res.machines}
+                chosen, codes = self._run(res, recipes, todo)
             except MachineLost as e:
                 lost = e
                 self.log.warning("%s (try %d of %d): unreserving and asking again", e, attempt, self.max_tries)
@@ -248,6 +262,7 @@ class OperationEntity(EntityRuns):
                 self.unreserve()
                 continue
             self.unreserve()
+            self._record_step(step, res, chosen, attempt, codes)
             runs = self._results(res, chosen, codes)
             op = Operation(op_type, res.machine_run_id, runs, attempt)
             self._record(op_type, res, runs, verdict(op.results)[1] if op.ok else "run failed")

@@ -22,7 +22,8 @@ from pathlib import Path
 from types import FrameType, ModuleType
 
 from gwc import db
-from gwc.cell import Proc, pid_file, spawn
+from gwc.agent import control as agent_control
+from gwc.cell import lot_proc, pid_file, spawn
 from gwc.config import PROJECT_ROOT, Config, load_config
 from gwc.errors import GwcError
 from gwc.log import open_log
@@ -75,9 +76,13 @@ def load_script(path: Path) -> ModuleType:
 
 
 def spawn_lot_script(cfg: Config, entity_id: int) -> int:
-    """Start the entity's lot script process, detached, with a pid file (so `gwc stop` stops it too)."""
-    argv = (sys.executable, "-m", "gwc.lot.run", "--entity", str(entity_id))
-    return spawn(cfg, Proc("lot", str(entity_id), command=argv))
+    """Start the entity's lot script process with a pid file (so `gwc stop` stops it too): by this host's
+    agent when one runs, which restarts it if it is killed (docs/reliability.md); else detached."""
+    try:
+        answer = agent_control.call(cfg, "lots", entities=[entity_id], timeout=30.0)
+    except agent_control.NoAgent:
+        return spawn(cfg, lot_proc(entity_id))
+    return int(answer["pids"][str(entity_id)])
 
 
 def _stop(signum: int, frame: FrameType | None) -> None:

@@ -282,16 +282,24 @@ class EntityRuns(EntityReserve):
         return self._results(reservation, *self._run(reservation, recipes))
 
     def _run(
-        self, reservation: Reservation, recipes: str | dict[str, str] | None
+        self,
+        reservation: Reservation,
+        recipes: str | dict[str, str] | None,
+        todo: dict[str, str] | None = None,
     ) -> tuple[dict[str, str], dict[str, str]]:
-        """run_on without reading the results: the recipe and the ack code of each machine's run."""
+        """run_on without reading the results: the recipe and the ack code of each machine's run. A run
+        a restarted script takes up is set up, started or only waited for on each machine as `todo`
+        says ("setup", "start", "wait": as far as it went there, resume.py)."""
         run_id, op_type = reservation.machine_run_id, reservation.op_type
         chosen = {}
         for m in reservation.machines:
             recipe = recipes.get(m) if isinstance(recipes, dict) else recipes
             chosen[m] = recipe or self.recipe_for(m, op_type)
-            self.setup_run(m, chosen[m], op_type, run_id)
-            self.start_run(m, run_id)
+            step = (todo or {}).get(m, "setup")
+            if step == "setup":
+                self.setup_run(m, chosen[m], op_type, run_id)
+            if step != "wait":
+                self.start_run(m, run_id)
         return chosen, self.wait_run_complete(run_id, reservation.machines)
 
     def _results(self, reservation: Reservation, chosen: dict[str, str], codes: dict[str, str]) -> list[Run]:

@@ -9,7 +9,9 @@ entity that was exported and asks to come back is a new lot (6.1.1): it gets a n
 It also reaps: a lot script announces itself (action attach) and is watched as bus peer
 lot:<entity>; when that peer leaves (killed, crashed) while its entity is still at work, the
 entity is marked failed and MSCHED is asked to cancel its requests and free its machines, so a
-dead script leaves nothing reserved behind.
+dead script leaves nothing reserved behind. A script whose host's agent announced (MOD_DIED) that it
+restarts it is not reaped: its new process attaches and resumes the entity (docs/reliability.md);
+only if none attaches within RESTART_GRACE, or the agent gave it up (FATAL), is it reaped.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from gwc.servers.common import SERVER_TIMEOUT, Server
 
 L = LotState
 MAX_QUANTITY = 1000
+RESTART_GRACE = 30.0  # s: a lot script its agent restarts attaches again within this (its start_timeout)
 IN_CELL = frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING, L.COMPLETED})
 # An entity in one of these needs no script any more: its death is no failure (CONTRACTS.md).
 FINISHED = frozenset({L.EXPORTED, L.FAILED, L.COMPLETED, L.WAITING_EXPORT})
@@ -78,6 +81,7 @@ class LotServer(Server, Module):
     def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
         super().__init__(cfg, name, log)
         self.watched: dict[int, float] = {}  # entity -> when its script was last seen on the bus
+        self.restarting: dict[int, float] = {}  # entity -> until when its script's restart is waited for
         self.grace = max(3.0, 2 * cfg.bus.peer_timeout)
 
     def handlers(self) -> dict[str, Handler]:
@@ -87,6 +91,7 @@ class LotServer(Server, Module):
             Conv.IMPORT_LOT: self.decision,
             Conv.EXPORT_LOT: self.decision,
             Conv.DIV_MERGE: self.divide_merge,
+            Conv.MOD_DIED: self.module_died,
         }
 
     # ----------------------------------------------------------------- lifecycle and the reaper
@@ -113,11 +118,35 @@ class LotServer(Server, Module):
         return AckCode.ACK_OK
 
     def _peer_changed(self, name: str, peer: Peer | None) -> None:
-        """A watched script's peer left the bus (silence or bye): reap at once."""
+        """A watched script's peer left the bus (silence or bye): reap at once, unless it is restarting."""
         kind, _, ent = name.partition(":")
-        if peer is None and kind == "lot" and ent.isdigit() and int(ent) in self.watched and self.started:
-            self.watched.pop(int(ent), None)
-            self.spawn(self.reap(int(ent), f"bus peer {name} left"))
+        if peer is not None or kind != "lot" or not ent.isdigit() or not self.started:
+            return
+        entity = int(ent)
+        if entity in self.watched and not self._restarting(entity, time.monotonic()):
+            self.watched.pop(entity, None)
+            self.spawn(self.reap(entity, f"bus peer {name} left"))
+
+    def _restarting(self, entity: int, now: float) -> bool:
+        until = self.restarting.get(entity)
+        if until is not None and now > until:
+            self.restarting.pop(entity, None)
+        return until is not None and now <= until
+
+    async def module_died(self, conv: Conversation) -> None:
+        """MOD_DIED (a host's agent): a lot script it restarts is waited for; one it gave up is reaped now."""
+        died = self.request(conv)
+        kind, _, ent = str(died.module).partition(":")
+        if kind != "lot" or not ent.isdigit():
+            return
+        entity = int(ent)
+        if died.restart_in is None:
+            self.restarting.pop(entity, None)
+            self.watched.pop(entity, None)
+            self.spawn(self.reap(entity, f"{died.module} {died.how}, given up by {died.host} ({died.state})"))
+            return
+        self.restarting[entity] = time.monotonic() + float(died.restart_in) + RESTART_GRACE
+        self.log.info("%s died (%s); %s restarts it: its entity waits for it", died.module, died.how, died.host)
 
     async def on_idle(self) -> None:
         if not self.started:
@@ -127,7 +156,7 @@ class LotServer(Server, Module):
         for ent, seen in list(self.watched.items()):
             if f"lot:{ent}" in peers:
                 self.watched[ent] = now
-            elif now - seen > self.grace:
+            elif now - seen > self.grace and not self._restarting(ent, now):
                 self.watched.pop(ent, None)
                 self.spawn(self.reap(ent, f"bus peer lot:{ent} not seen for {now - seen:.1f}s"))
 
@@ -321,9 +350,11 @@ class LotServer(Server, Module):
         """Keep the reaper's watch in step with the entity."""
         if action == "attach" and state not in FINISHED:
             self.watched[entity_id] = time.monotonic()
+            self.restarting.pop(entity_id, None)
             self.log.info("entity %d: lot script attached (bus peer %s)", entity_id, conv.peer)
         elif state in FINISHED or action == "destroy":
             self.watched.pop(entity_id, None)
+            self.restarting.pop(entity_id, None)
 
     async def decision(self, conv: Conversation) -> None:
         """IMPORT_LOT / EXPORT_LOT: the operator lets a waiting entity in or out; LOT_MOVED tells it."""

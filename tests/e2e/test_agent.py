@@ -23,15 +23,10 @@ from tests.harness import wait_for, write_cell_config
 
 pytestmark = pytest.mark.e2e
 
-BACK_WITHIN = 3.0  # the issue's bar: RUNNING again this soon after a kill -9, without an operator
-
-
-def back_within() -> float:
-    """BACK_WITHIN on a machine with a core per runnable process. Most of a restart is a new Python
-    process importing the cell (0.3-0.5 s of CPU); with the shared test machine's load at 7-10 runnable
-    processes per core that takes seconds of wall time, whatever the agent does (it respawns within
-    milliseconds: asserted apart)."""
-    return BACK_WITHIN * max(1.0, os.getloadavg()[0] / (os.cpu_count() or 1))
+# The issue's bar: RUNNING again this soon after a kill -9, without an operator. Measured from the
+# test's kill to the moment the agent recorded the new process RUNNING (its `running_at`, on the
+# host's one monotonic clock), so neither this test's polling nor a slow `gwc status` counts.
+BACK_WITHIN = 3.0
 
 
 def status(env: dict[str, str]) -> dict[str, dict[str, Any]]:
@@ -72,7 +67,7 @@ def test_kill_9_of_each_module_kind_is_announced_and_running_again_within_3s(age
     with BlockingBus("test.deaths", cfg.bus, log, interest=("MOD_DIED",)) as bus:
         for name in ("msched", "ms", "ls", "cas", "ers", "sls", "wc:wc1", "me:wc1"):
             old = status(env)[name]
-            t0 = time.monotonic()
+            killed_at = time.monotonic()
             os.kill(old["pid"], signal.SIGKILL)
             conv = bus.first_message(timeout=5)
             assert conv is not None and conv.first is not None, f"no Module_Died for {name}"
@@ -86,10 +81,9 @@ def test_kill_9_of_each_module_kind_is_announced_and_running_again_within_3s(age
                 f"{name} RUNNING again",
                 interval=0.05,
             )
-            took = time.monotonic() - t0
-            respawned = took - now["uptime"]  # the agent's own part: notice, announce, spawn
-            assert respawned < 0.5, f"{name} respawned {respawned:.2f}s after its death"
-            assert took < back_within(), f"{name} took {took:.1f}s to be RUNNING again"
+            noticed, back = now["died_at"] - killed_at, now["running_at"] - killed_at
+            assert noticed < 0.5, f"the agent noticed {name}'s death {noticed:.2f}s after the kill"
+            assert back < BACK_WITHIN, f"{name} RUNNING again {back:.2f}s after its kill"
             assert now["restarts"] == old["restarts"] + 1 and now["last_exit"] == "killed by SIGKILL"
 
     # The agent killed: its modules run on; a new agent adopts them rather than start them twice.
@@ -116,6 +110,93 @@ def test_kill_9_of_each_module_kind_is_announced_and_running_again_within_3s(age
     stopped = gwc(env, "stop")
     assert stopped.returncode == 0, stopped.stderr
     assert not list(cfg.run_dir.glob("*.pid"))
+
+
+TWO_MILLINGS = '''"""Mill a pawn twice: two operation steps, so that a restart can fall in either."""
+
+from gwc.lot import OperationEntity
+
+
+def main(entity: OperationEntity) -> None:
+    entity.wait_for_import()
+    runs = [entity.operate("mill_chess").machine_run_id for _ in range(2)]
+    entity.lot_completed(f"PASS: runs {runs[0]} {runs[1]}")
+    entity.wait_for_export()
+'''
+
+
+def test_a_lot_script_killed_9_mid_run_is_running_again_within_3s_and_its_lot_is_done_once(
+    agent_cell, tmp_path: Path, database_url: str
+) -> None:
+    """Two lots of two millings each; one script killed -9 in its first run, the other in its second.
+    The agent restarts each (RUNNING again within 3 s of the kill, by the agent's own clock), the new
+    process takes its run up where it is, and every lot is exported having milled twice: 4 runs in all."""
+    cfg, env = agent_cell([{"id": m, "kind": "dummy", "run_time": 1.0} for m in ("wc1", "wc2")])
+    assert gwc(env, "start").returncode == 0
+    for m in ("wc1", "wc2"):
+        assert gwc(env, "machine", "start", m).returncode == 0
+    script = tmp_path / "two_millings.py"
+    script.write_text(TWO_MILLINGS)
+    assert gwc(env, "script", "register", "two_millings", str(script), "--product", "pawn2").returncode == 0
+    made = gwc(env, "order", "new", "--customer", "NJIT", "pawn2=2", "--json")
+    assert made.returncode == 0, made.stderr
+    entities = [e for lot in json.loads(made.stdout)["lots"] for e in lot["entities"]]
+
+    def query(sql: str, *params: Any) -> list[tuple[Any, ...]]:
+        with psycopg.connect(database_url) as conn:
+            return conn.execute(sql, params).fetchall()
+
+    def states() -> dict[int, str]:
+        return dict(query("SELECT entity_id, state FROM lot_status WHERE entity_id = ANY(%s)", entities))
+
+    wait_for(lambda: set(states().values()) == {"waiting_import"}, 30, "the lots to ask to be imported")
+    assert gwc(env, "import", "--all").returncode == 0
+
+    def kill_in_run(entity: int, operation: int) -> None:
+        def running() -> bool:
+            ops = (json.loads((cfg.var / "lots" / f"entity-{entity}.json").read_text()).get("operations")) or []
+            rows = query(
+                "SELECT s.status FROM reserved_machines r JOIN machine_status s USING (machine_id, machine_run_id) "
+                "WHERE r.entity_id = %s",
+                entity,
+            )
+            return len(ops) == operation and rows == [("Running",)]
+
+        wait_for(running, 30, f"entity {entity}'s run {operation} to be Running", interval=0.05)
+        old = agent_rows(cfg)[f"lot:{entity}"]
+        killed_at = time.monotonic()
+        os.kill(old["pid"], signal.SIGKILL)
+        new = wait_for(
+            lambda: (r := agent_rows(cfg)[f"lot:{entity}"])["pid"] != old["pid"] and r["state"] == "RUNNING" and r,
+            20,
+            f"lot:{entity} RUNNING again",
+        )
+        back = new["running_at"] - killed_at  # the agent's own record (one clock for the host), not this loop's
+        assert back < BACK_WITHIN, f"lot:{entity} RUNNING again {back:.2f}s after its kill"
+        assert new["restarts"] == 1 and new["last_exit"] == "killed by SIGKILL", new
+
+    kill_in_run(entities[0], 1)
+    kill_in_run(entities[1], 2)
+
+    def all_out() -> bool:
+        now = states()
+        assert "failed" not in now.values(), query("SELECT entity_id, reason FROM lot_status")
+        if "waiting_export" in now.values():
+            gwc(env, "export", "--all")
+        return set(now.values()) == {"exported"}
+
+    wait_for(all_out, 60, "both lots exported", interval=0.2)
+    runs = query("SELECT machine_run_id, ack_code FROM machine_run_outcome")
+    assert len(runs) == 4 and {c for _, c in runs} == {"ACK_OK"}, runs  # two millings per lot, none twice
+    for e in entities:
+        traveller = json.loads((cfg.var / "lots" / f"entity-{e}.json").read_text())
+        assert traveller["restarts"] == 1, traveller
+        codes = [list(op["codes"].values()) for op in traveller["operations"]]
+        assert codes == [["ACK_OK"], ["ACK_OK"]], traveller
+        text = (cfg.log_dir / f"lot-{e}.log").read_text()
+        assert "is taken up where it is" in text, text[-3000:]
+    checked = gwc(env, "check")
+    assert checked.returncode == 0, checked.stdout + checked.stderr
 
 
 def test_a_module_failing_at_every_start_ends_fatal_with_an_alarm(agent_cell) -> None:
@@ -151,7 +232,11 @@ def test_both_cores_saturated_for_60s_no_machine_is_shut_down(agent_cell, databa
 
         def sixty_seconds_all_up() -> bool:
             with psycopg.connect(database_url) as conn:
-                rows = conn.execute("SELECT machine_id, status, note FROM machine_status").fetchall()
+                rows = conn.execute(  # the cell's machines: the seeded database knows others, all Shutdown
+                    "SELECT machine_id, status, note FROM machine_status WHERE machine_id = ANY(%s)",
+                    ([m["id"] for m in machines],),
+                ).fetchall()
+            assert len(rows) == len(machines), rows
             down = [r for r in rows if r[1] != "Idle"]
             assert not down, f"after {time.monotonic() - t0:.0f}s of saturation: {down}"
             return time.monotonic() - t0 >= 60

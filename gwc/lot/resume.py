@@ -1,0 +1,170 @@
+"""A lot script restarted after its process was killed resumes its entity from what is stored.
+
+Its host's agent restarts a lot script that dies of a signal (kill -9, a crash of the interpreter):
+the new process runs the script's `main(entity)` from the start, and the entity makes the repeat
+harmless. Every `operate()` is an operation step, numbered in the order the script asks for them;
+the step's record in the traveller (var/lots/entity-E.json, `operations`) is written when its machines
+are bound (the machine_run_id, before any SETUP_RUN) and again when it is done (each machine's ack
+code). What happened to the run is the database's: MACHINE_RUN_OUTCOME (the WC stores it before its
+Run_Complete), RESERVED_MACHINES and MACHINE_STATUS. So, for step n of the restarted script:
+
+* done before the restart, or its run's outcome stored by every machine since: not run again; the
+  Operation is rebuilt from the stored outcome and MACHINE_RUN_RESULT;
+* bound and still reserved: the run is taken up where it is: waited for while Running (or in doubt,
+  its machine Shutdown unheard: the ordinary rules for a run in doubt), started if set up, set up and
+  started if not begun;
+* anything else (its machines given back after a lost run, or never bound): asked for anew.
+
+A script is deterministic given what its operations returned, so it asks for the same operations in
+the same order; one that asks for another op type than its record has at that step gets no more
+replays (logged). At the new process's start, requests the dead one left queued are cancelled and
+machines it was bound that no step's record names (bound after its last record was written, so never
+set up) are given back. Only `operate()` resumes: a script made of the lower-level calls starts over.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any
+
+from gwc.errors import GwcError
+from gwc.ipc.codes import MachineStatus
+from gwc.lot.model import FINISHED, Operation, Reservation, Run, S, read_traveller
+from gwc.lot.runs import EntityRuns
+
+M = MachineStatus
+RUNNING = (M.RUNNING.value, M.RUN_SHUT.value)
+SET_UP = (M.SETUP.value, M.SETUP_SHUT.value)
+
+
+class EntityResume(EntityRuns):
+    """The operation steps' record, and taking a killed script's entity up again from it."""
+
+    _step = 0  # the next operation step of this process
+    _replay: list[dict[str, Any]] | None = None  # the steps a dead process of this entity recorded
+
+    def _resume_after_restart(self) -> None:
+        """(at open, attached) A traveller of another process of this entity: take its record over, and
+        clean up what the dead process left in MSCHED that no record names."""
+        old = read_traveller(self.cfg, self.entity_id)
+        if not old or old.get("pid") in (None, os.getpid()) or self.state in FINISHED or self.state is None:
+            return
+        self._replay = list(old.get("operations") or [])
+        self.traveller.update(old)
+        self.traveller["restarts"] = int(old.get("restarts") or 0) + 1
+        self.result = old.get("result")
+        self.log.warning(
+            "entity %d resumes after its lot script (pid %s) ended: %d operation(s) recorded",
+            self.entity_id,
+            old.get("pid"),
+            len(self._replay),
+        )
+        if self.state not in (S.WAITING_MACHINE, S.RUNNING):
+            return
+        self._cancel_leftovers("by the dead script")
+        open_runs = {int(op["machine_run_id"]) for op in self._replay if op.get("codes") is None}
+        for machine_id, run in self._query(
+            "SELECT machine_id, machine_run_id FROM reserved_machines WHERE entity_id = %s", self.entity_id
+        ):
+            if int(run) not in open_runs:
+                self.log.warning(
+                    "%s was bound (run %s) after the dead script's last record: giving it back", machine_id, run
+                )
+                try:
+                    self.unreserve(machine_id, within=self.timeouts.cleanup)
+                except GwcError as e:
+                    self.log.error("could not give %s back: %s", machine_id, e)
+
+    def _resume_point(self, op_type: str) -> tuple[int, dict[str, Any] | None, Operation | Reservation | None]:
+        """This operation's step, its record from a dead process (if any), and what is left of it: the
+        Operation if it was done, the Reservation if its run is to be taken up, else None."""
+        step, self._step = self._step, self._step + 1
+        if self._replay is None or step >= len(self._replay):
+            return step, None, None
+        entry = self._replay[step]
+        if entry.get("op_type") != op_type:
+            self.log.error(
+                "the script asks for %s at operation %d, where its record has %s: no more replays",
+                op_type,
+                step + 1,
+                entry.get("op_type"),
+            )
+            self._replay = None
+            return step, None, None
+        run, machines = int(entry["machine_run_id"]), list(entry["machines"])
+        codes = entry.get("codes")
+        if codes is None:
+            codes = self._run_outcomes(run, machines)
+            if len(codes) == len(machines):  # it completed while no script ran: the run counts
+                self.log.warning("run %d of %s completed while the lot script was down: %s", run, op_type, codes)
+                self.unreserve(within=self.timeouts.cleanup)
+                entry["codes"] = codes
+                self._save()
+            else:
+                codes = None
+        if codes is not None:
+            runs = [Run(m, self._recipe(entry, m), run, str(codes[m]), self.run_results(m, run)) for m in machines]
+            self.log.info(
+                "operation %d (%s) was done before the restart: run %d on %s, not run again",
+                step + 1,
+                op_type,
+                run,
+                ", ".join(machines),
+            )
+            return step, entry, Operation(op_type, run, runs, int(entry.get("tries") or 1))
+        held = {
+            r[0]
+            for r in self._query(
+                "SELECT machine_id FROM reserved_machines WHERE entity_id = %s AND machine_run_id = %s",
+                self.entity_id,
+                run,
+            )
+        }
+        if held == set(machines):
+            self.log.warning(
+                "operation %d (%s): run %d on %s is taken up where it is", step + 1, op_type, run, ", ".join(machines)
+            )
+            return step, entry, Reservation(op_type, run, entry.get("request_key"), machines)
+        if held:
+            self.unreserve(within=self.timeouts.cleanup)
+        self.log.warning(
+            "operation %d (%s): run %d was given up before the restart: asking again", step + 1, op_type, run
+        )
+        return step, entry, None
+
+    def _recipe(self, entry: dict[str, Any], machine_id: str) -> str:
+        recipes = entry.get("recipes")
+        recipe = recipes.get(machine_id) if isinstance(recipes, dict) else recipes
+        return str(recipe or self.recipe_for(machine_id, entry["op_type"]))
+
+    def _record_step(self, step: int, res: Reservation, recipes: Any, tries: int, codes: dict[str, str] | None) -> None:
+        """The step's record: bound (codes None: written before its first SETUP_RUN), or done."""
+        ops: list[dict[str, Any]] = self.traveller.setdefault("operations", [])
+        entry = {
+            "op_type": res.op_type,
+            "machine_run_id": res.machine_run_id,
+            "request_key": res.request_key,
+            "machines": res.machines,
+            "recipes": recipes,
+            "tries": tries,
+            "codes": codes,
+        }
+        ops[step:] = [entry]
+        if self._replay is not None:
+            self._replay[step : step + 1] = [entry]
+        self._save()
+
+    def _take_up(self, machine_id: str, machine_run_id: int) -> str:
+        """(a resumed run) What is left to do on the machine: "wait" (Running, or Shutdown with the run:
+        in doubt), "start" (set up for it) or "setup" (not begun there)."""
+        row = self._query_one("SELECT status, machine_run_id FROM machine_status WHERE machine_id = %s", machine_id)
+        status, run = (row[0], row[1]) if row else (None, None)
+        if run is None or int(run) != machine_run_id or status not in (*RUNNING, *SET_UP, M.SHUTDOWN.value):
+            return "setup"
+        with self._cond:
+            self._began[(machine_id, machine_run_id)] = (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
+            if status == M.SHUTDOWN.value:
+                self._note(machine_id, status, machine_run_id)
+        self.log.info("run %d is %s on %s", machine_run_id, status, machine_id)
+        return "start" if status in SET_UP else "wait"
