@@ -79,13 +79,15 @@ class Reservation:
 
 @dataclass
 class Run:
-    """One run of one machine and its MACHINE_RUN_RESULT rows."""
+    """One run of one machine and its MACHINE_RUN_RESULT rows; a failed run's `note` says why it failed
+    (MACHINE_RUN_OUTCOME's note: "no verdict from the CMM within 120s: run given up", ...)."""
 
     machine_id: str
     recipe_id: str
     machine_run_id: int
     ack_code: str
     results: dict[str, str]
+    note: str = ""
 
     @property
     def ok(self) -> bool:

@@ -304,4 +304,19 @@ class EntityRuns(EntityReserve):
 
     def _results(self, reservation: Reservation, chosen: dict[str, str], codes: dict[str, str]) -> list[Run]:
         run_id = reservation.machine_run_id
-        return [Run(m, chosen[m], run_id, codes[m], self.run_results(m, run_id)) for m in reservation.machines]
+        failed = [m for m in reservation.machines if codes[m] != AckCode.ACK_OK]
+        notes = self._run_notes(run_id, failed) if failed else {}
+        runs = []
+        for m in reservation.machines:
+            results = self.run_results(m, run_id)
+            runs.append(Run(m, chosen[m], run_id, codes[m], results, notes.get(m) or results.get("NOTE", "")))
+        return runs
+
+    def _run_notes(self, machine_run_id: int, machines: Sequence[str]) -> dict[str, str]:
+        """machine -> why its run failed, as its WC stored it (MACHINE_RUN_OUTCOME's note)."""
+        rows = self._query(
+            "SELECT machine_id, note FROM machine_run_outcome WHERE machine_run_id = %s AND machine_id = ANY(%s)",
+            machine_run_id,
+            list(machines),
+        )
+        return {str(m): str(note) for m, note in rows if note}

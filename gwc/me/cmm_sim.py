@@ -46,6 +46,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import serial
+from serial.rfc2217 import PortManager
+
 from gwc.agent.control import notify_ready
 from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError, LineError
@@ -110,13 +113,16 @@ class PtyEnd:
 
 
 class TcpEnd:
-    """A serial device server's end: one ME connection at a time on a listening socket."""
+    """A serial device server's end: one ME connection at a time on a listening socket; raw bytes
+    (the ME's `socket://`) or, with `rfc2217`, Telnet with RFC 2217's port settings (`rfc2217://`)."""
 
-    def __init__(self, listen: str) -> None:
+    def __init__(self, listen: str, rfc2217: bool = False) -> None:
         host, _, port = listen.rpartition(":")
         self.address = (host or "127.0.0.1", int(port))
+        self.rfc2217 = rfc2217
         self._server: socket.socket | None = None
         self._conn: socket.socket | None = None
+        self._telnet: PortManager | None = None  # RFC 2217's Telnet state of the connection
 
     def _listen(self) -> socket.socket:
         if self._server is None:
@@ -138,6 +144,10 @@ class TcpEnd:
             if not ready:
                 return b""
             self._conn, _ = server.accept()
+            if self.rfc2217:
+                # pyserial's server side of RFC 2217; the port settings the ME sets land on a loop://
+                # port (a simulator has no UART to set) and are acknowledged as a device server does.
+                self._telnet = PortManager(serial.serial_for_url("loop://"), _Sender(self._conn))
             return b""
         ready, _, _ = select.select([self._conn], [], [], max(0.0, timeout))
         if not ready:
@@ -146,19 +156,32 @@ class TcpEnd:
             data = self._conn.recv(4096)
         except OSError:
             data = b""
-        if not data:  # the ME hung up: wait for its next connection
-            self._conn.close()
-            self._conn = None
+        if data and self._telnet is not None:
+            try:
+                data = b"".join(self._telnet.filter(data))  # negotiation answered, IAC unescaped
+            except OSError:  # answering the negotiation failed: the connection broke
+                self._drop()
+                return b""
+            return data
+        if not data:
+            self._drop()
         return data
+
+    def _drop(self) -> None:
+        """The ME hung up: wait for its next connection."""
+        if self._conn is not None:
+            self._conn.close()
+        self._conn, self._telnet = None, None
 
     def write(self, data: bytes) -> None:
         if self._conn is None:
             raise LineLost("no ME connected")
+        if self._telnet is not None:
+            data = b"".join(self._telnet.escape(data))  # a data byte 0xFF doubled, as Telnet wants
         try:
             self._conn.sendall(data)
         except OSError as e:
-            self._conn.close()
-            self._conn = None
+            self._drop()
             raise LineLost(f"the ME's connection broke: {e}") from e
 
     def close(self) -> None:
@@ -167,6 +190,14 @@ class TcpEnd:
                 with contextlib.suppress(OSError):
                     s.close()
         self._conn = self._server = None
+        self._telnet = None
+
+
+class _Sender:
+    """The connection as RFC 2217's PortManager writes to it (its negotiation answers)."""
+
+    def __init__(self, conn: socket.socket) -> None:
+        self.write = conn.sendall
 
 
 class CmmSimulator:
@@ -186,6 +217,9 @@ class CmmSimulator:
             raise ConfigError(f"machine {spec.id}: sim needs measure_time >= 0 and a pattern of P and F, got {sim!r}")
         self.port = sim.get("port")
         self.listen = sim.get("listen")
+        serial_port = spec.options.get("serial", {})
+        # A device server speaks what the ME's URL says: raw bytes (socket://) or RFC 2217 (rfc2217://).
+        self.rfc2217 = isinstance(serial_port, dict) and str(serial_port.get("port", "")).startswith("rfc2217://")
         self.bang = bool(sim.get("bang", True))
         self.kermit = spec.options.get("transfer", "line") == "kermit"
         self.store = cfg.var / "cmmsim" / spec.id  # the CMM's /usr/avail/part (Kermit files land here)
@@ -203,7 +237,7 @@ class CmmSimulator:
 
     def _open(self) -> tuple[RecordStream, Callable[[], None]]:
         if self.listen:
-            end = TcpEnd(str(self.listen))
+            end = TcpEnd(str(self.listen), rfc2217=self.rfc2217)
             end._listen()  # bound now, so an ME that connects early is queued, not refused
             self.log.info("CMM simulator of %s listening on %s:%d", self.spec.id, *end.address)
             return RecordStream(end.read_some, end.write, f"tcp {self.listen}"), end.close

@@ -86,10 +86,11 @@ def serial_settings(raw: object, where: str) -> dict[str, Any]:
 def open_serial(settings: dict[str, Any], port: str) -> serial.SerialBase:
     """Open a port with the machine's settings, as any URL pyserial accepts; LineLost if it cannot."""
     kwargs = {k: v for k, v in settings.items() if k not in ("port", "timeout", "open_timeout", "write_timeout")}
+    # pyserial's RFC 2217 client refuses any write timeout (NotImplementedError at open): its writes go
+    # to a socket, bounded by the network and the device server's buffer, not by flow control.
+    write_timeout = None if port.startswith("rfc2217://") else float(settings.get("write_timeout", 5.0))
     try:
-        return serial.serial_for_url(
-            port, timeout=READ_SLICE, write_timeout=float(settings.get("write_timeout", 5.0)), **kwargs
-        )
+        return serial.serial_for_url(port, timeout=READ_SLICE, write_timeout=write_timeout, **kwargs)
     except (serial.SerialException, OSError, ValueError) as e:
         raise LineLost(f"cannot open serial port {port}: {e}") from e
 

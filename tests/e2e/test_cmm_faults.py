@@ -1,15 +1,16 @@
 """A CMM that misbehaves (issue 16), end to end: real WC, ME, simulator, servers, bus and database.
 
 The simulator plays a CMM on a shop floor's ordinary days (gwc/me/cmm_sim.py: silent, garbage,
-hang-up, power cycle, late or slow verdict), on a pty or behind a TCP socket (the ME's port is then
-`socket://`). For each fault: the run in progress ends with the right ack code and reason, the
-machine is Shutdown with MACH_LOST pending while the CMM is gone, and back (Idle, alarm cleared) by
-itself within 5 s of the CMM answering again; the next run measures its own part; no traceback in
-any log; no run twice.
+hang-up, power cycle, late or slow verdict), on a pty or as a serial device server on TCP (the ME's
+port is then `socket://`, raw bytes, or `rfc2217://`, Telnet with RFC 2217). For each fault: the
+run in progress ends with the right ack code and reason, the machine is Shutdown with MACH_LOST
+pending while the CMM is gone, and back (Idle, alarm cleared) by itself within 5 s of the CMM
+answering again; the next run measures its own part; no traceback in any log; no run twice.
 """
 
 from __future__ import annotations
 
+import re
 import shutil
 import socket
 import subprocess
@@ -43,7 +44,7 @@ pytestmark = pytest.mark.e2e
 OK = AckCode.ACK_OK
 BACK_S = 5.0  # the machine is back this soon after the CMM answers again
 RUN_TIMEOUT = 1.5  # the CMM's verdict is given up after this (cell.toml run_timeout; 120 s on a real cell)
-TRANSPORTS = ["pty", "socket"]
+TRANSPORTS = ["pty", "socket", "rfc2217"]
 
 
 def free_port() -> int:
@@ -52,19 +53,20 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def cmm(transport: str, **sim: Any) -> dict[str, Any]:
-    """The CMM, its timeouts small for a test, its simulator on a pty or a TCP device server."""
+def cmm(transport: str, run_timeout: float = RUN_TIMEOUT, **sim: Any) -> dict[str, Any]:
+    """The CMM, its timeouts small for a test, its simulator on a pty or a TCP device server (socket://
+    or rfc2217://)."""
     spec: dict[str, Any] = {
         "id": "cmm_wc",
         "kind": "cmm",
         "serial": {"port": "sim", "baudrate": 9600, "timeout": 0.5},
         "sim": {"measure_time": 0.3, "pattern": "P", **sim},
-        "run_timeout": RUN_TIMEOUT,
+        "run_timeout": run_timeout,
         "reprobe_max": 0.5,
     }
-    if transport == "socket":
+    if transport != "pty":
         port = free_port()
-        spec["serial"]["port"] = f"socket://127.0.0.1:{port}"
+        spec["serial"]["port"] = f"{transport}://127.0.0.1:{port}"
         spec["sim"]["listen"] = f"127.0.0.1:{port}"
     return spec
 
@@ -72,9 +74,10 @@ def cmm(transport: str, **sim: Any) -> dict[str, Any]:
 class Cmm:
     """The CMM machine of one test: runs through its WC as a lot does, faults through its simulator."""
 
-    def __init__(self, cell: CellHarness, ear: Ear) -> None:
+    def __init__(self, cell: CellHarness, ear: Ear, run_timeout: float = RUN_TIMEOUT) -> None:
         self.cell, self.ear = cell, ear
         self.run_id = 100
+        self.run_timeout = run_timeout
         self.operations = accepts(cell, "cmm_wc")  # what the started machine accepts
 
     def fault(self, fault: str, **params: Any) -> None:
@@ -87,8 +90,10 @@ class Cmm:
         assert start_run(self.cell, "cmm_wc", self.run_id).ack_code == OK
         return self.run_id
 
-    def ended(self, run_id: int, timeout: float = 20) -> tuple[str, str]:
-        done = self.ear.wait(f"Run_Complete of run {run_id}", lambda m: m.machine_run_id == run_id, timeout)
+    def ended(self, run_id: int) -> tuple[str, str]:
+        done = self.ear.wait(
+            f"Run_Complete of run {run_id}", lambda m: m.machine_run_id == run_id, self.run_timeout + 20
+        )
         note = self.cell.query(
             "select note from machine_run_outcome where machine_id = 'cmm_wc' and machine_run_id = %s", run_id
         )
@@ -112,11 +117,38 @@ class Cmm:
         assert self.cell.query("select cleared_by from alarms where alarm_no = %s", alarm)[0][0] == "wc:cmm_wc"
         assert accepts(self.cell, "cmm_wc") == self.operations
 
+    def measured_once_each(self) -> None:
+        """Nothing run twice: one result set per run, RUN_NO unique, and the CMM asked to measure once per
+        START_RUN; no traceback in any log."""
+        runs = self.cell.query("select value from machine_run_result where machine_id = 'cmm_wc' and param = 'RUN_NO'")
+        assert len(runs) == len({r[0] for r in runs}) == self.run_id - 100
+        wait_for(
+            lambda: len(re.findall(r"measuring part \S+ \(\d+\)", self.cell.log_text("cmmsim:cmm_wc"))) == len(runs),
+            5,
+            "the simulator's log to show one measurement per run",
+        )
+        for name in ("me:cmm_wc", "wc:cmm_wc", "cmmsim:cmm_wc", "cas", "ms", "msched"):
+            assert "Traceback" not in self.cell.log_text(name), name
 
-def fault_walk(machine_cell: Any, transport: str, hangup_s: float) -> None:
-    cell, ear = machine_cell(cmm(transport, pattern="PPPPPPPF"))
+
+def told(cell: CellHarness, name: str, *steps: str) -> None:
+    """The log of `name` tells these steps in this order, once it has been written (within 5 s)."""
+
+    def said() -> bool:
+        try:
+            story(cell, name, *steps)
+        except AssertionError:
+            return False
+        return True
+
+    wait_for(said, 5, f"{name}'s log to tell {steps}")
+
+
+def fault_walk(machine_cell: Any, transport: str, hangup_s: float, run_timeout: float, slow_s: float) -> None:
+    """Every fault, one after the other, on one cell: each run ends as it must, the machine comes back."""
+    cell, ear = machine_cell(cmm(transport, run_timeout=run_timeout, pattern="PPPPPPPF"))
     start_machine(cell, "cmm_wc", homing=True)
-    m = Cmm(cell, ear)
+    m = Cmm(cell, ear, run_timeout)
 
     # Power cycle while Idle: the hang-up is seen between exchanges.
     m.fault("power_cycle", **{"for": 1.0})
@@ -135,10 +167,10 @@ def fault_walk(machine_cell: Any, transport: str, hangup_s: float) -> None:
     # Silent (hung) during a run: its verdict is given up at the run's deadline.
     m.fault("delay", **{"for": 2.0})
     run_id = m.start()
-    m.fault("silent", **{"for": RUN_TIMEOUT + 1.5})
-    silent_until = time.monotonic() + RUN_TIMEOUT + 1.5
+    m.fault("silent", **{"for": run_timeout + 1.5})
+    silent_until = time.monotonic() + run_timeout + 1.5
     code, note = m.ended(run_id)
-    assert code == AckCode.RUN_FAIL and f"no verdict from the CMM within {RUN_TIMEOUT:g}s" in note
+    assert code == AckCode.RUN_FAIL and f"no verdict from the CMM within {run_timeout:g}s" in note
     m.lost_then_back(silent_until)
     assert m.measures() == "PASS"
 
@@ -150,43 +182,66 @@ def fault_walk(machine_cell: Any, transport: str, hangup_s: float) -> None:
 
     # Late verdict (FAIL, the 8th of the pattern) after the run was given up: logged and dropped, never
     # taken for the next run's (PASS).
-    m.fault("delay", **{"for": RUN_TIMEOUT + 2.0})
-    late = time.monotonic() + RUN_TIMEOUT + 2.0
+    m.fault("delay", **{"for": run_timeout + 2.0})
+    late = time.monotonic() + run_timeout + 2.0
     late_run = m.start()
     code, note = m.ended(late_run)
     assert code == AckCode.RUN_FAIL and "run given up" in note
     m.lost_then_back(late)  # measuring, the CMM reads nothing: it answers once its verdict is out
-    assert m.measures() == "PASS"
-    story(cell, "me:cmm_wc", r"late verdict FAIL! for run \d+ \(given up\).*: dropped")
+    assert m.measures() == "PASS"  # not the late FAIL
+    told(cell, "me:cmm_wc", rf"late verdict FAIL! for run {late_run - 100} \(given up\).*: dropped")
 
-    # A slow verdict within the run's deadline is just a slow run.
-    m.fault("delay", **{"for": RUN_TIMEOUT - 0.7})
-    assert m.measures() == "PASS"
+    # A slow verdict within the run's deadline is just a slow run: Running all along (no alarm, no
+    # Shutdown, which would raise MACH_LOST or ME_DIED), measured once, its verdict taken.
+    alarms = cell.query("select count(*) from alarms")[0][0]
+    m.fault("delay", **{"for": slow_s})
+    run_id = m.start()
+    code, note = m.ended(run_id)
+    assert code == OK, note
+    assert results(cell, "cmm_wc", run_id)["RESULT"] == "PASS"
+    wait_for(lambda: status(cell, "cmm_wc")[0] == "Idle", 5, "Idle after the slow run")
+    began, ended = status(cell, "cmm_wc")[3:5]
+    assert (ended - began).total_seconds() >= slow_s - 0.1  # the Machine Server's own clock of the run
+    assert cell.query("select count(*) from alarms")[0][0] == alarms
 
     # Hang-up, then the line back after hangup_s.
     m.fault("hangup", **{"for": hangup_s})
     m.lost_then_back(time.monotonic() + hangup_s)
     assert m.measures() == "PASS"
-
-    runs = cell.query("select value from machine_run_result where machine_id = 'cmm_wc' and param = 'RUN_NO'")
-    assert len(runs) == len({r[0] for r in runs}) == m.run_id - 100  # one result set per run, RUN_NO unique
-    for name in ("me:cmm_wc", "wc:cmm_wc", "cmmsim:cmm_wc", "cas", "ms", "msched"):
-        assert "Traceback" not in cell.log_text(name), name
+    m.measured_once_each()
 
 
-@pytest.mark.parametrize(
-    "transport", [pytest.param("pty"), pytest.param("socket", marks=pytest.mark.soak)]
-)  # the socket walk is the same walk: the suite runs socket:// through the thesis-mode lot below
-def test_each_cmm_fault_fails_only_its_run_and_the_machine_comes_back_by_itself(
-    machine_cell: Any, transport: str
-) -> None:
-    fault_walk(machine_cell, transport, hangup_s=1.5)
+def test_each_cmm_fault_fails_only_its_run_and_the_machine_comes_back_by_itself(machine_cell: Any) -> None:
+    """The walk scaled down for the suite (on a pty): run deadline 1.5 s, slow verdict 0.8 s, hang-up 1.5 s."""
+    fault_walk(machine_cell, "pty", hangup_s=1.5, run_timeout=RUN_TIMEOUT, slow_s=RUN_TIMEOUT - 0.7)
 
 
 @pytest.mark.soak
 @pytest.mark.parametrize("transport", TRANSPORTS)
-def test_cmm_hung_up_for_30_s_comes_back_by_itself(machine_cell: Any, transport: str) -> None:
-    fault_walk(machine_cell, transport, hangup_s=30.0)
+def test_each_cmm_fault_at_full_length_hang_up_30_s_slow_verdict_12_s(machine_cell: Any, transport: str) -> None:
+    """The issue's numbers: a 30 s hang-up, and a 12 s verdict within a 15 s run deadline (so the silent
+    and late cases wait 15 s as well), on a pty, socket:// and rfc2217://."""
+    fault_walk(machine_cell, transport, hangup_s=30.0, run_timeout=15.0, slow_s=12.0)
+
+
+@pytest.mark.parametrize("transport", [pytest.param("socket", marks=pytest.mark.soak), "rfc2217"])
+def test_cmm_behind_a_device_server_power_cycled_mid_run_fails_that_run_and_comes_back(
+    machine_cell: Any, transport: str
+) -> None:
+    """A CMM behind a serial device server (the suite's rfc2217://; socket:// runs in the thesis-mode lot
+    below): its power cycle mid-run closes the connection, the run fails, the machine is Shutdown with
+    MACH_LOST, back by itself, and the next run measures."""
+    cell, ear = machine_cell(cmm(transport))
+    start_machine(cell, "cmm_wc", homing=True)
+    m = Cmm(cell, ear)
+    m.fault("delay", **{"for": 2.0})
+    run_id = m.start()
+    m.fault("power_cycle", **{"for": 1.0})
+    code, note = m.ended(run_id)
+    assert code == AckCode.RUN_FAIL and "line lost during the run" in note
+    m.lost_then_back(time.monotonic() + 1.0)
+    assert m.measures() == "PASS"
+    m.measured_once_each()
 
 
 @pytest.mark.skipif(shutil.which("gkermit") is None, reason="gkermit is not installed (bin/setup installs it as root)")
@@ -210,9 +265,11 @@ def test_thesis_mode_cmm_runs_the_chess_lot_to_pass_and_its_failed_run_is_measur
     assert st == "exported" and reason.startswith("PASS"), (st, reason)  # measured the second time
     outcomes = cell.query("select ack_code from machine_run_outcome where machine_id = 'cmm_wc' order by 1")
     assert sorted(r[0] for r in outcomes) == ["ACK_OK", "Run_Fail"]  # one run failed, one measured
+    # the failed run's reason, shown to the operator in the lot's log
+    assert "(Run_Fail: line lost during the run" in lot_log(cell, entity)
     assert "the set was not measured (try 1 of 3)" in lot_log(cell, entity)
-    story(cell, "cmmsim:cmm_wc", "Kermit transfer", "part program alum_chess_set received by Kermit", "measured: PASS")
-    story(cell, "me:cmm_wc", "line lost during the run", "the machine answers again", "the CMM answered PASS!")
+    told(cell, "cmmsim:cmm_wc", "Kermit transfer", "part program alum_chess_set received by Kermit", "measured: PASS")
+    told(cell, "me:cmm_wc", "line lost during the run", "the machine answers again", "the CMM answered PASS!")
 
 
 def test_me_killed_while_idle_one_gwc_machine_start_brings_the_machine_back_with_one_homing_alarm(

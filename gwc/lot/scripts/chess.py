@@ -31,13 +31,14 @@ def main(entity: OperationEntity) -> None:
             "run %d on %s failed (%s): the set was not measured (try %d of %d)",
             op.machine_run_id,
             op.machines[0],
-            ", ".join(r.ack_code for r in op.runs),
+            ", ".join(f"{r.ack_code}: {r.note}" if r.note else r.ack_code for r in op.runs),
             attempt,
             MEASURE_TRIES,
         )
     where = f"run {op.machine_run_id} on {op.machines[0]}"
     if not op.ok:
-        entity.lot_completed(f"NOT MEASURED: {MEASURE_TRIES} runs failed ({where})")
+        why = "; ".join(r.note for r in op.runs if r.note)
+        entity.lot_completed(f"NOT MEASURED: {MEASURE_TRIES} runs failed ({where}{': ' + why if why else ''})")
     else:
         ok, why = verdict(op.results)
         entity.log.info("chess set measured on %s: %s", where, why)

@@ -23,14 +23,23 @@ def main(entity: OperationEntity) -> None:
     for attempt in range(1, MAX_MILLS + 1):
         mill = entity.operate(MILL)
         if not mill.ok:
-            entity.log.warning("milling run %d on %s failed: milling again", mill.machine_run_id, mill.machines[0])
+            entity.log.warning(
+                "milling run %d on %s failed (%s): milling again",
+                mill.machine_run_id,
+                mill.machines[0],
+                "; ".join(r.note for r in mill.runs if r.note) or "no reason recorded",
+            )
             result = f"milling failed on {mill.machines[0]}"
             continue
         for _ in range(MAX_MILLS):  # a measuring run that failed measured nothing: measure again, not mill
             measure = entity.operate(MEASURE)
             if measure.ok:
                 break
-            entity.log.warning("measuring run %d failed: the part was not measured", measure.machine_run_id)
+            entity.log.warning(
+                "measuring run %d failed (%s): the part was not measured",
+                measure.machine_run_id,
+                "; ".join(r.note for r in measure.runs if r.note) or "no reason recorded",
+            )
         ok, why = verdict(measure.results) if measure.ok else (False, "measuring runs failed")
         entity.log.info(
             "mill %d on %s (run %d), measured on %s (run %d): %s",
