@@ -141,6 +141,11 @@ create table if not exists lot_status (
     foreign key (entity_id, lot_id) references lot_entities (entity_id, lot_id)
 );
 create index if not exists lot_status_lot on lot_status (lot_id);
+-- 'held': a run in doubt past its bound, the entity held for the operator's release (issue 22).
+alter table lot_status drop constraint if exists lot_status_state_check;
+alter table lot_status add constraint lot_status_state_check check (state in (
+    'created', 'waiting_import', 'imported', 'waiting_machine', 'running', 'held', 'completed', 'waiting_export',
+    'exported', 'failed'));
 
 -- The entities that may still use a machine: not destroyed, with a lot status that is not finished.
 -- MSCHED never binds a request of any other, and its sweep ends their queued requests.

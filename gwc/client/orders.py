@@ -121,9 +121,10 @@ def enter_order(
 
 
 def decide(bus: BlockingBus, entity_id: int, action: str, by: str) -> int | None:
-    """IMPORT_LOT / EXPORT_LOT to the Lot Server: the operator lets an entity in or out (the Lot Server
-    then tells the entity with LOT_MOVED). Returns its lot; Refused if the Lot Server says no."""
-    cls = Conv.IMPORT_LOT if action == "import" else Conv.EXPORT_LOT
+    """IMPORT_LOT / EXPORT_LOT to the Lot Server: the operator lets an entity in or out; RELEASE_LOT
+    (action retry, reroute or fail): a held entity goes on or fails (the Lot Server then tells the
+    entity with LOT_MOVED). Returns its lot; Refused if the Lot Server says no."""
+    cls = {"import": Conv.IMPORT_LOT, "export": Conv.EXPORT_LOT}.get(action, Conv.RELEASE_LOT)
     ack = ask(bus, cls, message(Msg.LOT_DECISION, entity_id=entity_id, action=action, by=by), "ls", None)
     if ack.ack_code == AckCode.UNKNOWN:
         raise GwcError(f"unknown lot entity {entity_id} (see `gwc lots`)")

@@ -34,6 +34,7 @@ from gwc.client.session import hi_bus, need_server, operator
 from gwc.errors import GwcError
 from gwc.hi import context, json_option, table
 from gwc.ipc.codes import LotState
+from gwc.lot.model import RELEASES
 
 # ----------------------------------------------------------------------------- work orders (WOEN, WOSU)
 
@@ -182,6 +183,26 @@ def export_lot(entities: tuple[int, ...], all_waiting: bool) -> None:
     _decide_command("export", entities, all_waiting)
 
 
+@click.command("release")
+@click.argument("entities", type=int, nargs=-1, required=True)
+@click.option(
+    "--decision",
+    type=click.Choice(RELEASES),
+    required=True,
+    help="retry or reroute: the entity asks for its operation again (its script's alternatives); "
+    "fail: the entity fails, its machines freed.",
+)
+def release_lot(entities: tuple[int, ...], decision: str) -> None:
+    """Release held lot entities (state held: a run in doubt past its bound; `gwc lots --state held`,
+    `gwc lots E` for why): retry, reroute or fail. Look at the part on the machine first."""
+    cfg, log = context()
+    with hi_bus(cfg, log) as bus:
+        need_server(bus, "ls", "Lot Server")
+        for e in entities:
+            lot_id = decide(bus, e, decision, operator())
+            click.echo(f"entity {e} (lot {lot_id}) released: {decision}")
+
+
 # ----------------------------------------------------------------------------- customers, products, scripts
 
 
@@ -248,4 +269,4 @@ def script_list(as_json: bool) -> None:
     table(list_scripts(cfg, log), ["script", "path", "products", "description"], as_json)
 
 
-commands = [order, lots, import_lot, export_lot, customer, product, script]
+commands = [order, lots, import_lot, export_lot, release_lot, customer, product, script]

@@ -72,3 +72,4 @@ class LotState(StrEnum):
     WAITING_EXPORT = "waiting_export"
     EXPORTED = "exported"
     FAILED = "failed"
+    HELD = "held"  # a run in doubt past its bound, held for the operator's release (retry, reroute, fail)

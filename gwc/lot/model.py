@@ -36,6 +36,9 @@ ENDED = (MachineStatus.SHUTDOWN.value, MachineStatus.IDLE.value)  # a machine in
 # ENTITY_REQ actions whose repeat (its first answer was lost) may find the operator already moved the
 # entity on: the Lot Server then answers Notnow with the state the first request led to.
 ALREADY = {"import": (S.IMPORTED,), "export": (S.EXPORTED,)}
+# What the operator may do with a held entity (RELEASE_LOT, `gwc release`): ask for the operation again
+# (retry and reroute alike: the script's alternatives, whichever machine is up), or fail it.
+RELEASES = ("retry", "reroute", "fail")
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,7 @@ class Timeouts:
     # A run whose machine went Shutdown unheard (WC silent) is in doubt until its expected time
     # (the machine's `run_time` in cell.toml) plus this from its start; then the lot script decides.
     in_doubt: float = 30.0
+    held: float = 3600.0  # the operator releases an entity held with a run in doubt
     cleanup: float = 5.0  # each cleanup conversation of a failing entity
     retry: float = 60.0  # asking a server (ls, msched) again while it is away, restarting or not started
     backoff: float = 0.2  # the first pause between those asks, doubling ...

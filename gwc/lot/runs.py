@@ -11,7 +11,7 @@ from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import MachineDied, MachineLost, RunFailed, RunInDoubt
-from gwc.lot.model import ENDED, SHUT, Reservation, Run, now_text
+from gwc.lot.model import ENDED, RELEASES, SHUT, Reservation, Run, S, now_text
 from gwc.lot.reserve import EntityReserve
 
 
@@ -141,8 +141,8 @@ class EntityRuns(EntityReserve):
                 with self._cond:
                     doubt = any(self._doubt_since(m, machine_run_id, started) is not None for m in lost)
                     died = all(self._run_death(m, machine_run_id, started) for m in lost)
-                if doubt:
-                    self._decide_in_doubt(lost[0], machine_run_id, why)
+                if doubt and self._decide_in_doubt(lost[0], machine_run_id, why):
+                    continue  # held, and the run completed meanwhile: it counts
                 self.log.error("%s, and no RUN_COMPL followed nor is its outcome stored", why)
                 raise (MachineDied if died else MachineLost)(f"{why}: the run cannot complete")
 
@@ -225,14 +225,29 @@ class EntityRuns(EntityReserve):
                 self._runs[(m, machine_run_id)] = code
             self._cond.notify_all()
 
-    def _decide_in_doubt(self, machine_id: str, machine_run_id: int, why: str) -> None:
+    def _decide_in_doubt(self, machine_id: str, machine_run_id: int, why: str) -> bool:
         """The run's doubt outlived its bound: the lot script's decision (`in_doubt`), logged and kept in
-        the traveller. reroute (or retry): MachineLost, so the operation is asked for again; hold:
-        RunInDoubt, the entity stops and fails with the reason, for the operator to see to the part."""
+        the traveller. reroute (or retry): MachineLost, so the operation is asked for again; hold (the
+        default): the entity is held (LOT_STATUS held, shown to the operator) until the operator
+        releases it (retry, reroute: MachineLost; fail: RunInDoubt) or the run completes after all
+        (True: it counts)."""
         decision = self.in_doubt
         self.log.error(
             "run %d on %s is in doubt (%s): the lot script decides: %s", machine_run_id, machine_id, why, decision
         )
+        self._decided(machine_run_id, machine_id, why, decision)
+        if decision == "hold":
+            decision = self._hold(machine_id, machine_run_id, why)
+            if decision == "completed":
+                return True
+        if decision in ("reroute", "retry"):
+            raise MachineLost(f"{why}: in doubt, {decision} by the lot script's or the operator's decision")
+        raise RunInDoubt(
+            f"{why}: in doubt, released as failed by the operator (if the run completes on {machine_id} it is "
+            "recorded, not run again)"
+        )
+
+    def _decided(self, machine_run_id: int, machine_id: str, why: str, decision: str) -> None:
         self.traveller.setdefault("decisions", []).append(
             {
                 "machine_run_id": machine_run_id,
@@ -243,12 +258,43 @@ class EntityRuns(EntityReserve):
             }
         )
         self._save()
-        if decision in ("reroute", "retry"):
-            raise MachineLost(f"{why}: in doubt, {decision} by the lot script's decision")
-        raise RunInDoubt(
-            f"{why}: in doubt, held for the operator (if the run completes on {machine_id} it is recorded, "
-            "not run again)"
+
+    def _hold(self, machine_id: str, machine_run_id: int, why: str) -> str:
+        """Held for the operator (LOT_STATUS held, `gwc release`): the machines stay reserved, the run is
+        still listened for. Returns the operator's decision (RELEASES), or "completed" if the run's
+        RUN_COMPL or stored outcome came first."""
+        with self._cond:
+            seen = len(self._moved)  # a release is a LOT_MOVED from now on
+        self.entity_request("held", reason=f"{why}: in doubt, held for the operator"[:500])
+        self._set_state(S.HELD)
+        self._save()
+        self.log.error(
+            "entity %d held for the operator: `gwc release %d --decision retry|reroute|fail`",
+            self.entity_id,
+            self.entity_id,
         )
+
+        def released() -> str | None:
+            if (machine_id, machine_run_id) in self._runs:
+                return "completed"
+            return next((act for act, _ in self._moved[seen:] if act in RELEASES), None)
+
+        def poll() -> None:
+            self._poll_run(machine_run_id, [machine_id], time.monotonic())
+            state = self.read_state()
+            with self._cond:
+                if state == S.FAILED:
+                    self._moved.append(("fail", None))
+                elif state not in (S.HELD, None):
+                    self._moved.append(("retry", None))
+                self._cond.notify_all()
+
+        decision = self._wait(released, self.timeouts.held, "the operator to release the held entity", poll=poll)
+        self.log.warning("held entity %d: %s", self.entity_id, decision)
+        self._decided(machine_run_id, machine_id, why, f"released: {decision}")
+        if decision != "fail":
+            self.report(S.RUNNING)
+        return decision
 
     def _run_death(self, machine_id: str, machine_run_id: int, started: float) -> tuple[float, str] | None:
         """(under the lock) The ME death an agent announced since the run began on the machine."""

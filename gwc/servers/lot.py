@@ -40,17 +40,25 @@ FINISHED = frozenset({L.EXPORTED, L.FAILED, L.COMPLETED, L.WAITING_EXPORT})
 ACTIONS: dict[str, tuple[LotState | None, frozenset[LotState]]] = {
     "import": (L.WAITING_IMPORT, frozenset({L.CREATED, L.EXPORTED, L.WAITING_IMPORT})),
     "export": (L.WAITING_EXPORT, IN_CELL | {L.WAITING_EXPORT}),
-    "waiting_machine": (L.WAITING_MACHINE, frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING})),
-    "running": (L.RUNNING, frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING})),
+    "waiting_machine": (L.WAITING_MACHINE, frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING, L.HELD})),
+    "running": (L.RUNNING, frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING, L.HELD})),
+    # A run in doubt past its bound, the script's decision "hold": the operator releases it (RELEASE_LOT).
+    "held": (L.HELD, frozenset({L.WAITING_MACHINE, L.RUNNING, L.HELD})),
     "completed": (L.COMPLETED, IN_CELL),
     "failed": (L.FAILED, frozenset(L) - {L.EXPORTED}),
     "attach": (None, frozenset(L) - {L.EXPORTED, L.FAILED}),
     "state": (None, frozenset(L)),
     "destroy": (None, frozenset({L.CREATED, L.EXPORTED, L.FAILED})),
 }
-DECISIONS: dict[str, tuple[str, L, L]] = {
-    Conv.IMPORT_LOT: ("import", L.WAITING_IMPORT, L.IMPORTED),
-    Conv.EXPORT_LOT: ("export", L.WAITING_EXPORT, L.EXPORTED),
+# The operator's decisions: conversation -> action -> (the state it needs, the state it leaves, in words).
+DECISIONS: dict[str, dict[str, tuple[L, L, str]]] = {
+    Conv.IMPORT_LOT: {"import": (L.WAITING_IMPORT, L.IMPORTED, "imported")},
+    Conv.EXPORT_LOT: {"export": (L.WAITING_EXPORT, L.EXPORTED, "exported")},
+    Conv.RELEASE_LOT: {
+        "retry": (L.HELD, L.RUNNING, "released to retry"),
+        "reroute": (L.HELD, L.RUNNING, "released to reroute"),
+        "fail": (L.HELD, L.FAILED, "released as failed"),
+    },
 }
 
 
@@ -90,6 +98,7 @@ class LotServer(Server, Module):
             Conv.ENTITY_REQ: self.entity_request,
             Conv.IMPORT_LOT: self.decision,
             Conv.EXPORT_LOT: self.decision,
+            Conv.RELEASE_LOT: self.decision,
             Conv.DIV_MERGE: self.divide_merge,
             Conv.MOD_DIED: self.module_died,
         }
@@ -357,12 +366,17 @@ class LotServer(Server, Module):
             self.restarting.pop(entity_id, None)
 
     async def decision(self, conv: Conversation) -> None:
-        """IMPORT_LOT / EXPORT_LOT: the operator lets a waiting entity in or out; LOT_MOVED tells it."""
+        """IMPORT_LOT / EXPORT_LOT: the operator lets a waiting entity in or out; RELEASE_LOT: a held one
+        goes on (retry, reroute) or fails; LOT_MOVED tells the entity."""
         req = self.request(conv)
         ack = Msg.LOT_DECISION_ACK
-        action, waiting, moved = DECISIONS[conv.cls]
-        if req.action != action:
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"{conv.cls} decides {action}, not {req.action!r}")
+        if req.action not in DECISIONS[conv.cls]:
+            known = ", ".join(DECISIONS[conv.cls])
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"{conv.cls} decides {known}, not {req.action!r}")
+        action = req.action
+        waiting, moved, done = DECISIONS[conv.cls][action]
+        by = req.by or conv.peer
+        reason = f"held run {done} by {by}" if waiting == L.HELD else None
 
         def step(cur: Any) -> tuple[str, int | None, str | None]:
             row = cur.execute(
@@ -375,8 +389,9 @@ class LotServer(Server, Module):
             if row[1] != waiting:
                 return AckCode.NOTNOW, row[0], f"entity {req.entity_id} is {row[1]}, not {waiting}"
             cur.execute(
-                "update lot_status set state = %s, updated_at = now() where entity_id = %s",
-                (moved.value, req.entity_id),
+                "update lot_status set state = %s, reason = coalesce(%s, reason), updated_at = now() "
+                "where entity_id = %s",
+                (moved.value, reason, req.entity_id),
             )
             return AckCode.ACK_OK, row[0], None
 
@@ -386,10 +401,10 @@ class LotServer(Server, Module):
             return
         if moved in FINISHED:
             self.watched.pop(req.entity_id, None)
-        self.log.info("entity %d (lot %s) %sed by %s", req.entity_id, lot_id, action, req.by or conv.peer)
+        self.log.info("entity %d (lot %s) %s by %s", req.entity_id, lot_id, done, by)
         news = message(Msg.LOT_MOVED, entity_id=req.entity_id, action=action, lot_id=lot_id)
         await self.broadcast(Conv.LOT_MOVED, news)
-        await self.event(f"entity {req.entity_id} (lot {lot_id}) {action}ed by {req.by or conv.peer}")
+        await self.event(f"entity {req.entity_id} (lot {lot_id}) {done} by {by}")
 
     async def divide_merge(self, conv: Conversation) -> None:
         """DIV_MERGE: divide splits `quantity` new entities off one (same lot and state, parent set);

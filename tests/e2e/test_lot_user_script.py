@@ -3,6 +3,7 @@ before announcing it, and it carries on."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -108,12 +109,19 @@ def test_a_wc_frozen_past_its_liveness_mid_run_the_run_completes_once_and_counts
 def test_a_wc_frozen_past_the_runs_bound_the_scripts_decision_is_taken_logged_and_the_late_run_recorded(
     lot_cell: Any, tmp_path: Path
 ) -> None:
-    cell, pawn = milling_on_the_mazak(lot_cell, tmp_path, run_time=3.0, in_doubt=("reroute", 2.0))
+    # The script's decision is the safe default, hold: the entity is held, the operator sees it in the
+    # dispatch list and releases it to reroute.
+    cell, pawn = milling_on_the_mazak(lot_cell, tmp_path, run_time=3.0, in_doubt=("hold", 2.0))
     run = mazak_run(cell)
     wc = cell.pid("wc", "mazak")
     os.kill(wc, signal.SIGSTOP)  # past 3 s (the run) + 2 s (in_doubt) after the run began: the script decides
     try:
-        wait_for(lambda: "the lot script decides: reroute" in lot_log(cell, pawn), 30, "the script's decision")
+        wait_for(lambda: state(cell, pawn)[0] == "held", 30, "the entity to be held")
+        assert "the lot script decides: hold" in lot_log(cell, pawn)
+        held = json.loads(ok(gwc(cell, "lots", "--state", "held", "--json")))
+        assert [r["entity"] for r in held] == [pawn] and "in doubt, held for the operator" in held[0]["result"], held
+        assert "released: reroute" in ok(gwc(cell, "release", str(pawn), "--decision", "reroute"))
+        wait_for(lambda: f"held entity {pawn}: reroute" in lot_log(cell, pawn), 10, "the release to reach the lot")
     finally:
         os.kill(wc, signal.SIGCONT)
     import_export_all(cell, [pawn], timeout=60)

@@ -154,6 +154,7 @@ class FakeCell:
             "running": "running",
             "completed": "completed",
             "failed": "failed",
+            "held": "held",
         }
         state = moves.get(m.action)
         if state:
@@ -764,10 +765,21 @@ def test_a_run_in_doubt_past_its_bound_is_the_lot_scripts_decision(
         entity.in_doubt = decision
     _shut_unheard(cell, outcome_after=None)  # never heard of again
     if decision == "hold":
-        with pytest.raises(RunInDoubt, match="held for the operator"), entity:
+
+        async def entity_req(conv: Conversation, m: Message) -> None:
+            await FakeCell.entity_req(cell, conv, m)
+            if m.action == "held":  # the operator sees it held, looks at the part, and fails it (RELEASE_LOT)
+                cell.sql("UPDATE lot_status SET state = 'failed' WHERE entity_id = %s", m.entity_id)
+                await cell.broadcast(
+                    "ls", "LOT_MOVED", message("Lot_Moved", entity_id=m.entity_id, action="fail", lot_id=1)
+                )
+
+        cell.handlers["ENTITY_REQ"] = entity_req
+        with pytest.raises(RunInDoubt, match="released as failed by the operator"), entity:
             entity.wait_for_import()
             entity.operate("dummy_op", [["m1"], ["m2"]])
         assert [cls for cls, _ in cell.seen].count("START_RUN") == 1
+        assert "held" in cell.actions()
     else:
         with entity:
             entity.wait_for_import()
@@ -775,4 +787,20 @@ def test_a_run_in_doubt_past_its_bound_is_the_lot_scripts_decision(
             entity.lot_completed("PASS")
         assert op.tries == 2 and op.ok
     decisions = read_traveller(entity.cfg, 7)["decisions"]  # type: ignore[index]
-    assert [(d["machine_run_id"], d["decision"]) for d in decisions] == [(101, decision)]
+    released = [(101, "released: fail")] if decision == "hold" else []
+    assert [(d["machine_run_id"], d["decision"]) for d in decisions] == [(101, decision), *released]
+
+
+def test_a_held_entity_whose_run_completes_after_all_counts_the_run(fake: tuple[FakeCell, OperationEntity]) -> None:
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=3, machines=5, setup=3, run=60, lost_grace=0.2, in_doubt=1.0, pause=0.1)
+    _shut_unheard(cell, outcome_after=2.5)  # past the bound (held), then its frozen WC wakes and stores it
+    with entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", [["m1"], ["m2"]])
+        entity.lot_completed("PASS")
+    assert op.tries == 1 and op.ok and op.machine_run_id == 101, op
+    assert [cls for cls, _ in cell.seen].count("START_RUN") == 1, "run once, never twice"
+    assert cell.actions().count("held") == 1 and "running" in cell.actions()[cell.actions().index("held") :]
+    decisions = read_traveller(entity.cfg, 7)["decisions"]  # type: ignore[index]
+    assert [d["decision"] for d in decisions] == ["hold", "released: completed"]
