@@ -35,6 +35,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import TypeVar
 
@@ -103,6 +104,9 @@ class CmmMachine(MachineSide):
         self.reprobe_max = self.options.get("reprobe_max", float, 2.0)
         self._ser: serial.SerialBase | None = None
         self._line: RecordStream | None = None
+        # A probe opens the port in the background (see _probe_line); one open at a time.
+        self._opener = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"open-{spec.id}")
+        self._opening: tuple[str, Future[serial.SerialBase]] | None = None
         self._run_deadline = 0.0
         self._given_up = 0  # the last run given up without a verdict: its verdict may still come
         self._suspect: str | None = None  # an exchange failed: probe the CMM next
@@ -126,18 +130,46 @@ class CmmMachine(MachineSide):
             time.sleep(0.05)
         return os.path.realpath(link)
 
-    def line(self, wait: bool = True) -> RecordStream:
-        """The open line to the CMM, opened now if it is not (`wait`: for the simulator's pty to appear)."""
+    def line(self) -> RecordStream:
+        """The open line to the CMM, opened now if it is not (waiting for the simulator's pty to appear)."""
         if self._line is None:
-            port = self._port(wait)
-            self._ser = open_serial(self.settings, port)
-            self._line = serial_stream(self._ser, f"CMM line {port}")
-            self.log.info(
-                "serial line to the CMM open: %s (%s)",
-                port,
-                ", ".join(f"{k}={v}" for k, v in self.settings.items() if k != "port"),
-            )
+            if self._opening is not None:  # a probe's open under way: its outcome first
+                port, opening = self._opening
+                self._opening = None
+                self._adopt(port, opening.result())
+            else:
+                port = self._port(wait=True)
+                self._adopt(port, open_serial(self.settings, port))
+        assert self._line is not None
         return self._line
+
+    def _probe_line(self) -> RecordStream | None:
+        """The line for a probe, opened without holding the ME's loop: None while the open is under way.
+
+        Opening a device server's port can take seconds: pyserial's TCP connect waits up to 5 s for a
+        host that is off (its SYN unanswered), and rfc2217:// negotiates Telnet options for up to 3 s
+        with a server that accepted but does not speak. The WC's pings (1.5 s) must be answered
+        meanwhile, or the ME is taken for dead. LineLost if the open failed."""
+        if self._line is not None:
+            return self._line
+        if self._opening is None:
+            port = self._port(wait=False)
+            self._opening = (port, self._opener.submit(open_serial, self.settings, port))
+        port, opening = self._opening
+        if not opening.done():
+            return None
+        self._opening = None
+        self._adopt(port, opening.result())
+        return self._line
+
+    def _adopt(self, port: str, ser: serial.SerialBase) -> None:
+        self._ser = ser
+        self._line = serial_stream(ser, f"CMM line {port}")
+        self.log.info(
+            "serial line to the CMM open: %s (%s)",
+            port,
+            ", ".join(f"{k}={v}" for k, v in self.settings.items() if k != "port"),
+        )
 
     def drop_line(self, why: str) -> None:
         if self._ser is not None:
@@ -333,7 +365,9 @@ class CmmMachine(MachineSide):
             if now < self._next_probe:
                 return
             try:
-                line = self.line(wait=False)
+                line = self._probe_line()
+                if line is None:
+                    return  # still opening: looked at again next turn
                 if self.probe:
                     self._ready = self._ask_status(line)
                     self._probe_deadline = now + self.answer_timeout
@@ -393,3 +427,4 @@ class CmmMachine(MachineSide):
     def close(self) -> None:
         if self._ser is not None:
             self.drop_line("the ME is stopping")
+        self._opener.shutdown(wait=False, cancel_futures=True)

@@ -273,7 +273,10 @@ class CmmSimulator:
                     self.log.warning("line down (%s) for %.1fs", fault, self._down_until - time.monotonic())
                     while not stop.is_set() and time.monotonic() < self._down_until:
                         stop.wait(min(IDLE_WAIT, max(0.0, self._down_until - time.monotonic())))
-                    line, closer = self._open()
+                    reopened = self._reopen(stop)
+                    if reopened is None:
+                        break
+                    line, closer = reopened
                     self.log.warning("line up again after %s", fault)
                     continue
                 self._step(line)
@@ -282,6 +285,17 @@ class CmmSimulator:
                 self._unpublish()
             closer()
         return 0
+
+    def _reopen(self, stop: threading.Event) -> tuple[RecordStream, Callable[[], None]] | None:
+        """The line back after a hang-up; a port still taken (its TCP address held a moment) is tried
+        again until it opens, or None once the simulator is stopping."""
+        while not stop.is_set():
+            try:
+                return self._open()
+            except (OSError, LineError) as e:
+                self.log.warning("cannot open the line again (%s): retrying", e)
+                stop.wait(IDLE_WAIT)
+        return None
 
     def _step(self, line: RecordStream) -> None:
         now = time.monotonic()

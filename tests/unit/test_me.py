@@ -268,12 +268,12 @@ def free_port() -> int:
 
 
 def cmm_on(transport: str, **options: Any) -> dict[str, Any]:
-    """A CMM machine whose simulator is on a pty, or behind a TCP socket (a serial device server)."""
+    """A CMM machine whose simulator is on a pty, or a serial device server on TCP (socket:// or rfc2217://)."""
     serial = {"port": "sim", "timeout": 0.5}
     sim = {"measure_time": 0.05, **options.pop("sim", {})}
-    if transport == "socket":
+    if transport != "pty":
         port = free_port()
-        serial["port"] = f"socket://127.0.0.1:{port}"
+        serial["port"] = f"{transport}://127.0.0.1:{port}"
         sim["listen"] = f"127.0.0.1:{port}"
     return {**CMM, "serial": serial, "sim": sim, "run_timeout": 1.5, "reprobe_max": 0.3, **options}
 
@@ -292,7 +292,7 @@ def setup_and_start(m: Running, tmp_path: Path, n: int) -> Path:
     return out
 
 
-TRANSPORTS = ["pty", "socket"]
+TRANSPORTS = ["pty", "socket", "rfc2217"]
 
 
 @pytest.mark.parametrize("transport", TRANSPORTS)
@@ -357,8 +357,9 @@ def test_cmm_silent_at_a_setup_refuses_it_notnow_is_lost_then_back(machine, tmp_
 
 
 @pytest.mark.skipif(shutil.which("gkermit") is None, reason="gkermit is not installed (bin/setup installs it as root)")
-def test_cmm_in_thesis_mode_kermit_transfer_and_a_verdict_without_bang(machine, tmp_path: Path) -> None:
-    m = machine(**cmm_on("socket", transfer="kermit", sim={"bang": False, "pattern": "PF"}))
+@pytest.mark.parametrize("transport", ["socket", "rfc2217"])  # RFC 2217 doubles Kermit's 0xFF bytes (Telnet's IAC)
+def test_cmm_in_thesis_mode_kermit_transfer_and_a_verdict_without_bang(machine, tmp_path: Path, transport: str) -> None:
+    m = machine(**cmm_on(transport, transfer="kermit", sim={"bang": False, "pattern": "PF"}))
     assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
     verdicts = []
     for n in (1, 2):
@@ -371,6 +372,43 @@ def test_cmm_in_thesis_mode_kermit_transfer_and_a_verdict_without_bang(machine, 
     assert m.ask(MessageId.DNLD_ME, file_name=recipe(tmp_path, text), recipe_id="king").ack_code == AckCode.ACK_OK
     up = m.ask(MessageId.UPLD_ME, recipe_id="king")
     assert up.ack_code == AckCode.ACK_OK and Path(up.file_name).read_text() == text
+
+
+def test_cmm_probing_a_device_server_that_holds_the_open_still_answers_the_wcs_pings(machine, tmp_path: Path) -> None:
+    """While the CMM is lost, a server on its port accepts and says nothing: pyserial's rfc2217 open
+    waits 3 s for the Telnet negotiation (a switched-off host's TCP connect, up to 5 s). The ME opens in
+    the background: its pings are answered at once meanwhile (the WC takes an ME silent 1.5 s for dead)."""
+    m = machine(**cmm_on("rfc2217"))
+    assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
+    inject_fault(m.cfg, m.machine, "hangup", **{"for": 6.0})  # the simulator's listener closed for 6 s
+    assert next_from_me(m).message_id == MessageId.ME_LOST
+    port = int(m.cfg.machine(m.machine).options["sim"]["listen"].rpartition(":")[2])
+    pings = 0
+    with socket.socket() as mute:
+        mute.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        mute.bind(("127.0.0.1", port))
+        mute.listen(1)
+        mute.settimeout(5)
+        conn, _ = mute.accept()  # the ME's probe: accepted, never answered
+        with conn:
+            conn.settimeout(0.1)
+            deadline = time.monotonic() + 5
+            while time.monotonic() < deadline:  # until the ME gives the open up and hangs up
+                began = time.monotonic()
+                assert m.ask(MessageId.NO_MESSAGE, timeout=1.0).ack_code == AckCode.ACK_OK
+                assert time.monotonic() - began < 0.5
+                pings += 1
+                try:
+                    if conn.recv(100) == b"":
+                        break
+                except TimeoutError:
+                    pass
+            else:
+                raise AssertionError("the ME never gave up the open of a mute server")
+    assert pings >= 10  # answered all along the ~3 s the open was held
+    assert next_from_me(m, timeout=15).message_id == MessageId.ME_BACK  # the simulator's listener is back
+    out = setup_and_start(m, tmp_path, 1)
+    assert next_from_me(m).ack_code == AckCode.ACK_OK and read_results(out)["RESULT"] == "PASS"
 
 
 def test_run_numbers_go_on_across_me_restarts(machine, tmp_path: Path) -> None:
