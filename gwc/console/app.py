@@ -227,11 +227,12 @@ class ConsoleApp(App[None]):
         )
 
     def set_line(self, name: str, text: str, style: str = "") -> None:
-        """Change one of the bottom lines, only if it changed: every update redraws (milliseconds each)."""
+        """Change one of the bottom lines, only if it changed. Without a layout: a line is one row high
+        whatever it says, and a layout redraws the whole screen (6 ms of CPU against 0.7 ms, headless)."""
         line = self._lines[name]
         if getattr(line, "_gwc_text", None) != (text, style):
             line._gwc_text = (text, style)  # type: ignore[attr-defined]
-            line.update(Text(text, style=style))
+            line.update(Text(text, style=style), layout=False)
 
     def reload_status_line(self) -> None:
         if self._status_busy:

@@ -1,4 +1,5 @@
-"""`gwc bench ...`: the benchmarks. Each lives in gwc/bench/<name>.py and exposes `command`.
+"""`gwc bench ...`: the benchmarks. Each lives in gwc/bench/<name>.py (the console's in gwc/console/cost.py)
+and exposes `command`.
 
 Benchmarks report medians and p99 and, where there is one, the bare floor measured in the same run
 (these machines are shared and noisy, so only side-by-side figures compare).
@@ -10,7 +11,14 @@ import importlib
 
 import click
 
-BENCH_MODULES = ["gwc.bench.bus", "gwc.bench.mq", "gwc.bench.sched", "gwc.bench.cell", "gwc.bench.opcua"]
+BENCH_MODULES = [
+    "gwc.bench.bus",
+    "gwc.bench.mq",
+    "gwc.bench.sched",
+    "gwc.bench.cell",
+    "gwc.bench.opcua",
+    "gwc.console.cost",
+]
 
 
 @click.group("bench")

@@ -7,12 +7,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import shlex
-import shutil
 import signal
-import subprocess
-import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -21,6 +16,7 @@ import pytest
 from textual.widgets import DataTable, Input, Select
 
 from gwc.console.app import ConsoleApp
+from gwc.console.terminal import Terminal, have_tmux
 from gwc.ipc.catalogue import message
 from gwc.log import open_log
 from tests.e2e.lotkit import gwc, ok
@@ -148,47 +144,7 @@ def test_machine_stopped_and_alarm_cleared_from_the_console_change_the_cell(cell
     assert cell.query("SELECT cleared_by FROM alarms WHERE alarm_no = %s", alarm_no)[0][0].startswith("console:")
 
 
-TERMINAL_OWN = ("TERM", "COLUMNS", "LINES", "TMUX", "TMUX_PANE", "TERM_PROGRAM", "TERM_PROGRAM_VERSION")
-
-
-class Terminal:
-    """A real terminal: a tmux server of its own running `python -m gwc ARGS` with `env`, read as text."""
-
-    def __init__(self, name: str, env: dict[str, str], *args: str) -> None:
-        self.tmux = ["tmux", "-L", name]
-        self.exit_file = Path(tempfile.mkdtemp(prefix="gwc-term-")) / "exit"
-        # Exactly `env` (env -i): the tmux server's own environment is this process's, and a GWC_DATABASE_URL
-        # or GWC_CONFIG of the operator running the tests must not reach the cell under test.
-        keep = {k: v for k, v in env.items() if k not in TERMINAL_OWN}
-        pairs = " ".join(shlex.quote(f"{k}={v}") for k, v in sorted(keep.items()))
-        gwc_cmd = shlex.join([sys.executable, "-m", "gwc", *args])
-        script = self.exit_file.parent / "run.sh"  # a file: tmux limits a command line to some 16 kB
-        script.write_text(f"env -i {pairs} TERM=xterm-256color {gwc_cmd}\necho $? > {self.exit_file}\n")
-        cmd = shlex.join(["sh", str(script)])
-        subprocess.run([*self.tmux, "new-session", "-d", "-s", name, "-x", "160", "-y", "45", cmd], check=True)
-
-    def screen(self) -> str:
-        return subprocess.run([*self.tmux, "capture-pane", "-p"], capture_output=True, text=True).stdout
-
-    def wait(self, what: str, *texts: str, timeout: float = 30) -> None:
-        try:
-            wait_for(lambda: all(t in self.screen() for t in texts), timeout, what)
-        except AssertionError as e:
-            raise AssertionError(f"{e}; the terminal shows:\n{self.screen()}") from None
-
-    def keys(self, *keys: str) -> None:
-        subprocess.run([*self.tmux, "send-keys", *keys], check=True)
-
-    def exit_code(self) -> int:
-        wait_for(self.exit_file.exists, 10, "the command to end")
-        return int(self.exit_file.read_text())
-
-    def close(self) -> None:
-        subprocess.run([*self.tmux, "kill-server"], capture_output=True)
-        shutil.rmtree(self.exit_file.parent, ignore_errors=True)
-
-
-needs_tmux = pytest.mark.skipif(shutil.which("tmux") is None, reason="no tmux (bin/setup installs it when run as root)")
+needs_tmux = pytest.mark.skipif(not have_tmux(), reason="no tmux (bin/setup installs it when run as root)")
 
 
 @needs_tmux
