@@ -42,7 +42,6 @@ from gwc.console.views import (
     later,
 )
 from gwc.errors import GwcError
-from gwc.log import log_file_name
 
 TICK = 0.1  # how often the console takes what it heard on the bus
 PEERS_EVERY = 0.5  # how often the bus's membership is looked at (in memory, no traffic)
@@ -322,7 +321,7 @@ def run_beside(cfg: Config, job: Callable[[Callable[[str], None]], bool], echo: 
             say(f"failed: {e}")
         except Exception as e:  # a traceback would tear the console's screen: said and logged instead
             app.log_.exception("console: the job beside it failed")
-            say(f"failed: {type(e).__name__}: {e} (the traceback is in {cfg.log_dir / log_file_name('console')})")
+            say(f"failed: {type(e).__name__}: {e} (the traceback is in {app.link.log_path()})")
         say("finished" + ("" if outcome.get("ok") else " (not every lot did)") + ": q quits the console")
 
     thread = threading.Thread(target=work, name="console-beside", daemon=True)

@@ -20,6 +20,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeVar
 
 import psycopg
@@ -36,7 +37,7 @@ from gwc.hi.monitor import watch
 from gwc.ipc.bus import BlockingBus, Peer
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv
-from gwc.log import open_log
+from gwc.log import log_file_name, open_log
 from gwc.module import module_name
 
 T = TypeVar("T")
@@ -187,7 +188,7 @@ class CellLink:
                     return None
             try:
                 result = fn(self._conn)
-            except psycopg.OperationalError as e:
+            except (psycopg.OperationalError, psycopg.InterfaceError) as e:  # the server went, or the connection
                 self.log.warning("console: database read failed: %s", e)
                 self.db_error = "unreachable (the connection was lost; trying again)"
                 self._conn.close()
@@ -207,8 +208,14 @@ class CellLink:
             answer = Answer(False, f"{what}: refused, {in_words(e.ack_code)}" + _detail(e))
         except GwcError as e:
             answer = Answer(False, f"{what}: {e}")
+        except Exception as e:  # not the cell's answer but a fault here: said, logged whole, the console goes on
+            self.log.exception("console: %s failed", what)
+            answer = Answer(False, f"{what}: failed, {type(e).__name__}: {e} (see {self.log_path()})")
         self.log.info("%s", answer.text)
         return answer
+
+    def log_path(self) -> Path:
+        return self.cfg.log_dir / log_file_name("console")
 
     def decide(self, entity_id: int, action: str) -> Answer:
         """IMPORT_LOT or EXPORT_LOT, as `gwc import` / `gwc export`."""
@@ -347,6 +354,9 @@ class CellLink:
             return read_status_line(self.bus).text
         except GwcError as e:
             return f"status line: {e}"
+        except Exception as e:  # a fault here, not the cell's: the line says so and the console goes on
+            self.log.exception("console: reading the status line failed")
+            return f"status line: could not be read, {type(e).__name__}: {e} (see {self.log_path()})"
 
 
 def _detail(e: Refused) -> str:

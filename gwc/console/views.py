@@ -34,6 +34,7 @@ from gwc.console.link import WAITING, Answer, CellLink
 from gwc.hi.monitor import line_of, matches
 from gwc.ipc.codes import MachineStatus
 from gwc.ipc.names import Conv
+from gwc.module import module_name
 
 if TYPE_CHECKING:
     from gwc.console.app import ConsoleApp
@@ -44,6 +45,7 @@ RELOAD_EVERY = 0.4
 MONITOR_LINES = 2000
 FULL_EVERY = 60.0  # the dispatch list reads every entity this often; only the changed ones between
 CHANGE_MARGIN = timedelta(seconds=5)
+UNKNOWN = "unknown to the database (not registered by the Machine Server yet)"
 IN_A_RUN = {MachineStatus.SETUP, MachineStatus.RUNNING, MachineStatus.SETUP_SHUT, MachineStatus.RUN_SHUT}
 
 
@@ -258,7 +260,23 @@ class MachinesView(View):
 
     def fetch(self, link: CellLink) -> list[dict[str, Any]] | None:
         peers = set(link.peers())
-        return link.read(lambda conn: machine_rows(conn, link.cfg, peers))
+        rows = link.read(lambda conn: machine_rows(conn, link.cfg, peers))
+        if rows is None:
+            return None
+        # A machine of cell.toml that MACHINE_STATUS does not hold yet (the Machine Server registers it
+        # at its start): listed as such rather than left out.
+        known = {r["machine_id"] for r in rows}
+        unknown = [
+            {
+                "machine_id": m.id,
+                "kind": m.kind,
+                "status": UNKNOWN,
+                "wc": "on bus" if module_name("wc", m.id) in peers else "-",
+            }
+            for m in link.cfg.machines
+            if m.id not in known
+        ]
+        return sorted(rows + unknown, key=lambda r: str(r["machine_id"]))
 
     def action_start(self) -> None:
         row = self.selected()
@@ -498,7 +516,13 @@ class EntryView(Vertical):
                 rows_of(conn, "SELECT product_id, description FROM products WHERE script_id IS NOT NULL ORDER BY 1"),
             )
 
-        got = app.link.read(read)
+        try:
+            got = app.link.read(read)
+        except Exception as e:  # a bad row must not end the console: shown, logged, read again when shown
+            app.log_.exception("console: reading the order form's choices failed")
+            self.stale = True
+            app.call_from_thread(app.say, Answer(False, f"reading the customers and products failed: {e}"))
+            return
         if got is not None:
             app.call_from_thread(self._options, *got)
 

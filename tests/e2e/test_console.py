@@ -135,6 +135,21 @@ def test_machine_stopped_and_alarm_cleared_from_the_console_change_the_cell(cell
             await until(pilot.pause, lambda: any("clear alarm" in a.text for a in app.answers), 15, "the answer")
             assert any(a.text == f"clear alarm {alarm_no}: ACK_OK (done)" for a in app.answers), app.answers
             await until(pilot.pause, lambda: str(alarm_no) not in table_keys(app, "alarms"), 2, "the alarm to go")
+
+            # A bus peer dies (kill -9: no bye): the console says so, and an action that needs it answers why not.
+            await asyncio.to_thread(cell.kill, "cas")
+            await until(pilot.pause, lambda: "cas" not in app.modules_seen, 10, "the console to see cas gone")
+            app.act(lambda link: link.clear_alarm(alarm_no + 1))
+            asked = f"clear alarm {alarm_no + 1}: "
+            answer = await until(pilot.pause, lambda: [a for a in app.answers if a.text.startswith(asked)], 10, "it")
+            assert answer[0].text == f"{asked}cas is not on the bus: is the cell running?", answer[0].text
+            await pilot.press("7")
+            await until(
+                pilot.pause,
+                lambda: [r for r in app._views["modules"].rows if r["module"] == "cas" and r["bus"] == "-"],
+                10,
+                "STRT to show cas off the bus",
+            )
             await pilot.press("q")
 
     asyncio.run(drive())

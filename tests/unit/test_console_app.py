@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import asyncio
 from pathlib import Path
+from typing import Any
 
 from textual.widgets import DataTable
 
 from gwc.config import Config, private_bus
+from gwc.console import views
 from gwc.console.app import ConsoleApp
-from gwc.console.views import Confirm, LiveTable, fill_table
+from gwc.console.views import Confirm, LiveTable, MachinesView, fill_table
 from gwc.log import open_log
 from tests.conftest import make_config
 from tests.harness import until
@@ -101,6 +103,83 @@ def test_a_changed_row_is_drawn_with_its_new_value_and_the_others_as_they_were(t
             view.fill(view.rows)
             await pilot.pause()
             assert "a state wider than any before" in table.render_line(9).text
+            await pilot.press("q")
+
+    asyncio.run(drive())
+
+
+def _show(app: ConsoleApp, view_name: str, rows: list[dict[str, object]]) -> None:
+    view = app.views()[view_name]
+    view.rows = rows
+    view.fill(rows)
+    view.focus_main()
+
+
+def test_a_cell_not_running_and_its_database_down_are_said_and_every_action_answers_why_not(tmp_path: Path) -> None:
+    async def drive() -> None:
+        app = _app(tmp_path)
+        async with app.run_test(size=(140, 40)) as pilot:
+            line = lambda name: str(app._lines[name].render())
+            await until(pilot.pause, lambda: "database: unreachable" in line("cellstate"), 10, "the database said down")
+            assert "cell DOWN" in line("cellstate")
+            await until(pilot.pause, lambda: "not on the bus" in line("statusline"), 10, "the status line's absence")
+            await pilot.press("2")
+            _show(app, "lots", [{"entity": 4, "lot": 1, "state": "waiting_import"}])
+            await pilot.press("i")
+            await pilot.press("6")
+            _show(app, "alarms", [{"alarm_no": 5, "alarm_id": "HOME_CMM"}])
+            await pilot.press("c")
+            await pilot.press("5")
+            _show(app, "requests", [{"request_key": 17, "entity_id": 4, "op_type": "mill", "machines": "wc1"}])
+            await pilot.press("c")
+            await until(pilot.pause, lambda: isinstance(app.screen, Confirm), 5, "the question")
+            await pilot.press("y")
+            said = lambda: [a.text for a in app.answers if a.text != "asking the cell ..."]
+            await until(pilot.pause, lambda: len(said()) == 3, 10, "three answers")
+            assert sorted(said()) == [
+                "cancel request 17: msched is not on the bus: is the cell running?",
+                "clear alarm 5: cas is not on the bus: is the cell running?",
+                "import entity 4: ls is not on the bus: is the cell running?",
+            ]
+            assert not any(a.ok for a in app.answers if a.text in said())
+            await pilot.press("q")
+
+    asyncio.run(drive())
+
+
+def test_a_fault_in_the_console_itself_is_said_and_it_goes_on(tmp_path: Path, monkeypatch: Any) -> None:
+    def broken(*_: object) -> None:
+        raise KeyError("machine_id")
+
+    monkeypatch.setattr(MachinesView, "fetch", broken)
+
+    async def drive() -> None:
+        app = _app(tmp_path)
+        async with app.run_test(size=(140, 40)) as pilot:
+            app.act(lambda link: link.act("stop machine wc1", lambda: str(1 / 0)))
+            await until(pilot.pause, lambda: any("division" in a.text for a in app.answers), 5, "the fault said")
+            await until(pilot.pause, lambda: any("reading machines" in a.text for a in app.answers), 5, "the read")
+            texts = [a.text for a in app.answers]
+            assert any(
+                t.startswith("stop machine wc1: failed, ZeroDivisionError") and "console.log" in t for t in texts
+            )
+            assert "reading machines failed: 'machine_id'" in texts
+            assert app.is_running
+            await pilot.press("q")
+
+    asyncio.run(drive())
+
+
+def test_a_configured_machine_the_database_does_not_know_is_listed_as_unknown(tmp_path: Path, monkeypatch: Any) -> None:
+    monkeypatch.setattr(views, "machine_rows", lambda conn, cfg, peers: [])
+
+    async def drive() -> None:
+        app = _app(tmp_path)
+        monkeypatch.setattr(app.link, "read", lambda fn: fn(None))
+        async with app.run_test(size=(140, 40)) as pilot:
+            view = app.views()["machines"]
+            await until(pilot.pause, lambda: view.rows, 5, "MSTT read")
+            assert view.rows == [{"machine_id": "wc1", "kind": "dummy", "status": views.UNKNOWN, "wc": "-"}]
             await pilot.press("q")
 
     asyncio.run(drive())
