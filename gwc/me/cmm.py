@@ -33,9 +33,10 @@ from __future__ import annotations
 import logging
 import os
 import shutil
+import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from pathlib import Path
 from typing import TypeVar
 
@@ -104,9 +105,7 @@ class CmmMachine(MachineSide):
         self.reprobe_max = self.options.get("reprobe_max", float, 2.0)
         self._ser: serial.SerialBase | None = None
         self._line: RecordStream | None = None
-        # A probe opens the port in the background (see _probe_line); one open at a time.
-        self._opener = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"open-{spec.id}")
-        self._opening: tuple[str, Future[serial.SerialBase]] | None = None
+        self._opening: tuple[str, Future[serial.SerialBase]] | None = None  # a probe's open (_probe_line)
         self._run_deadline = 0.0
         self._given_up = 0  # the last run given up without a verdict: its verdict may still come
         self._suspect: str | None = None  # an exchange failed: probe the CMM next
@@ -154,13 +153,26 @@ class CmmMachine(MachineSide):
             return self._line
         if self._opening is None:
             port = self._port(wait=False)
-            self._opening = (port, self._opener.submit(open_serial, self.settings, port))
+            self._opening = (port, self._open_in_background(port))
         port, opening = self._opening
         if not opening.done():
             return None
         self._opening = None
         self._adopt(port, opening.result())
         return self._line
+
+    def _open_in_background(self, port: str) -> Future[serial.SerialBase]:
+        """open_serial in a daemon thread (one at a time: _opening), so a stopping ME never waits for it."""
+        opening: Future[serial.SerialBase] = Future()
+
+        def run() -> None:
+            try:
+                opening.set_result(open_serial(self.settings, port))
+            except Exception as e:  # handed to the ME's loop, which takes the outcome
+                opening.set_exception(e)
+
+        threading.Thread(target=run, name=f"open-{self.spec.id}", daemon=True).start()
+        return opening
 
     def _adopt(self, port: str, ser: serial.SerialBase) -> None:
         self._ser = ser
@@ -427,4 +439,3 @@ class CmmMachine(MachineSide):
     def close(self) -> None:
         if self._ser is not None:
             self.drop_line("the ME is stopping")
-        self._opener.shutdown(wait=False, cancel_futures=True)

@@ -198,10 +198,9 @@ def fault_walk(machine_cell: Any, transport: str, hangup_s: float, run_timeout: 
     run_id = m.start()
     code, note = m.ended(run_id)
     assert code == OK, note
-    assert results(cell, "cmm_wc", run_id)["RESULT"] == "PASS"
+    slow = results(cell, "cmm_wc", run_id)
+    assert slow["RESULT"] == "PASS" and float(slow["RUN_TIME"]) >= slow_s  # the ME's clock, START_RUN to verdict
     wait_for(lambda: status(cell, "cmm_wc")[0] == "Idle", 5, "Idle after the slow run")
-    began, ended = status(cell, "cmm_wc")[3:5]
-    assert (ended - began).total_seconds() >= slow_s - 0.1  # the Machine Server's own clock of the run
     assert cell.query("select count(*) from alarms")[0][0] == alarms
 
     # Hang-up, then the line back after hangup_s.
