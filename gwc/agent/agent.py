@@ -62,6 +62,10 @@ class Policy:
     backoff_max: float = 8.0  # ... up to this
     start_timeout: float = 30.0  # a module not ready within this is killed (a failed start)
     grace: float = 5.0  # between SIGTERM and SIGKILL when stopping
+    # The niceness the agent runs at, and so every process it starts: the cell's beats, restarts and
+    # steps come before the host's batch work. Lowering it needs privilege (root, CAP_SYS_NICE); without
+    # it the agent says so once and runs as it is. 0: as started.
+    nice: int = -5
 
     @classmethod
     def of(cls, cfg: Config) -> Policy:
@@ -71,7 +75,9 @@ class Policy:
         if unknown:
             raise ConfigError(f"{cfg.path}: [agent] has unknown key(s) {', '.join(sorted(unknown))}")
         for key, value in raw.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+            if key == "nice" and not (type(value) is int and -20 <= value <= 19):
+                raise ConfigError(f"{cfg.path}: [agent] nice = {value!r} is not a whole number from -20 to 19")
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or (value < 0 and key != "nice"):
                 raise ConfigError(f"{cfg.path}: [agent] {key} = {value!r} is not a number >= 0")
             if known[key] == "int" and not isinstance(value, int):
                 raise ConfigError(f"{cfg.path}: [agent] {key} = {value!r} is not a whole number")
@@ -143,6 +149,7 @@ class Agent(Server):
             except BlockingIOError:
                 raise ModuleError(f"an agent already runs for {self.cfg.var} on this host") from None
             write_pid_file(self.cfg, "agent", os.getpid(), ["gwc", "agent"])
+            self._prioritise()
             await self.bus.sign_on()
             server = await asyncio.start_unix_server(self._serve, path=address(self.cfg))
             loop = asyncio.get_running_loop()
@@ -163,6 +170,17 @@ class Agent(Server):
                         pid_file(self.cfg, "agent").unlink()
                 self.log.info("agent stopped")
         return 0
+
+    def _prioritise(self) -> None:
+        """Run at the policy's niceness; the processes the agent starts inherit it."""
+        want = self.policy.nice
+        try:
+            now = os.getpriority(os.PRIO_PROCESS, 0)
+            if want != 0 and now != want:
+                os.setpriority(os.PRIO_PROCESS, 0, want)
+                self.log.info("running at niceness %d (was %d), and so the modules it starts", want, now)
+        except OSError as e:  # not privileged: the cell runs as it is
+            self.log.warning("cannot run at niceness %d (%s): the modules run at the host's default", want, e)
 
     def _adopt(self) -> None:
         """Modules (and lot scripts) an earlier agent started and left running are watched again, not
@@ -309,7 +327,7 @@ class Agent(Server):
             if named := json.loads(pid_file(self.cfg, child.name).read_text())["pid"] == pid:
                 pid_file(self.cfg, child.name).unlink()
         lot = child.proc.kind == "lot"
-        if child.state == S.STOPPING or (lot and not named):
+        if child.state == S.STOPPING or (lot and not _killed(child.last_code, named)):
             child.change_state(S.STOPPED, how if child.state == S.STOPPING else f"{how}: its work is done")
             if lot:
                 self.children.pop(child.name, None)
@@ -497,6 +515,15 @@ async def _read_ready(fd: int) -> None:
             raise ModuleError("ended before it was ready")
     finally:
         loop.remove_reader(fd)
+
+
+def _killed(code: int | None, named: bool) -> bool:
+    """Whether a lot script died rather than ended: killed by a signal other than a request to stop
+    (SIGTERM, SIGINT: it fails its entity cleanly, or was stopped before it could); when its exit status is
+    unknown (adopted), whether its pid file still names it (a script removes its own when it ends)."""
+    if code is None:
+        return named
+    return code < 0 and -code not in (signal.SIGTERM, signal.SIGINT)
 
 
 def _names(cfg: Config, child: Child, pid: int) -> bool:

@@ -37,6 +37,7 @@ class Child:
         self.restarts = 0  # restarts the agent made after a death (not operator starts)
         self.fails = 0  # deaths in a row before the module ran `start_secs`
         self.last_exit = ""  # how the last process ended
+        self.last_code: int | None = None  # its exit status (negative: the signal); None if unknown (adopted)
         self.ready: asyncio.Task[None] | None = None  # the readiness probe of the current process
         self.retry: asyncio.TimerHandle | None = None  # the BACKOFF timer
         self.changed = asyncio.Event()  # set at every state change (waiters clear it themselves)
@@ -91,10 +92,11 @@ class Child:
             asyncio.get_running_loop().remove_reader(self._pidfd)
             os.close(self._pidfd)
             self._pidfd = None
-        how = "exited (adopted: status unknown)"
+        how, code = "exited (adopted: status unknown)", None
         if self.popen is not None:
             code = self.popen.wait()  # already dead: does not block
             how = f"killed by {signal.Signals(-code).name}" if code < 0 else f"exited {code}"
+        self.last_code = code
         self.popen = None
         self.died_at = time.monotonic()
         self.last_exit = how

@@ -30,7 +30,7 @@ from typing import Any
 
 from gwc.errors import GwcError
 from gwc.ipc.codes import MachineStatus
-from gwc.lot.model import FINISHED, Operation, Reservation, Run, S, read_traveller
+from gwc.lot.model import Operation, Reservation, Run, S, read_traveller
 from gwc.lot.runs import EntityRuns
 
 M = MachineStatus
@@ -48,7 +48,8 @@ class EntityResume(EntityRuns):
         """(at open, attached) A traveller of another process of this entity: take its record over, and
         clean up what the dead process left in MSCHED that no record names."""
         old = read_traveller(self.cfg, self.entity_id)
-        if not old or old.get("pid") in (None, os.getpid()) or self.state in FINISHED or self.state is None:
+        # Completed and waiting to be exported too: its operations are replayed, not asked for again.
+        if not old or old.get("pid") in (None, os.getpid()) or self.state is None:
             return
         self._replay = list(old.get("operations") or [])
         self.traveller.update(old)
@@ -60,8 +61,8 @@ class EntityResume(EntityRuns):
             old.get("pid"),
             len(self._replay),
         )
-        if self.state not in (S.WAITING_MACHINE, S.RUNNING):
-            return
+        if self.state in (S.CREATED, S.WAITING_IMPORT):
+            return  # it had asked MSCHED for nothing yet
         self._cancel_leftovers("by the dead script")
         open_runs = {int(op["machine_run_id"]) for op in self._replay if op.get("codes") is None}
         for machine_id, run in self._query(

@@ -489,7 +489,11 @@ class Soak:
                 if action.kind == "machine_stop":
                     detail = self.cell.machine_start(action.target)
                 elif action.kind == "kill_lot":
-                    detail = "nothing to restart: the Lot Server reaps the entity"
+                    detail = (
+                        "nothing to restart: the agent restarted it, its entity resumes"
+                        if self.cell.agent
+                        else "nothing to restart: the Lot Server reaps the entity"
+                    )
                 elif action.kind == "faults":
                     self.cell.kill(action.target)
                     detail = f"healed: restarted pid {self.cell.restart(action.target)} without faults"

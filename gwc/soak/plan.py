@@ -23,7 +23,7 @@ ACTION_WEIGHTS = {
     "kill_server": 5,  # kill -9 MSCHED or a server, restart it (STARTUP)
     "machine_stop": 3,  # `gwc machine stop`, later `gwc machine start`
     "faults": 2,  # kill -9 a WC or server and restart it with the bus fault injector on, then heal it
-    "kill_lot": 1,  # kill -9 a running lot script (the Lot Server's reaper must clean up)
+    "kill_lot": 1,  # kill -9 a running lot script (the agent restarts it; without one the Lot Server reaps it)
 }
 FAULTS = {"drop": 0.05, "duplicate": 0.05, "reorder": 0.05}
 

@@ -163,9 +163,13 @@ def test_a_lot_script_killed_9_mid_run_is_running_again_within_3s_and_its_lot_is
             return len(ops) == operation and rows == [("Running",)]
 
         wait_for(running, 30, f"entity {entity}'s run {operation} to be Running", interval=0.05)
+        kill_lot(entity, restarts=1)
+
+    def kill_lot(entity: int, restarts: int) -> None:
         old = agent_rows(cfg)[f"lot:{entity}"]
         killed_at = time.monotonic()
         os.kill(old["pid"], signal.SIGKILL)
+        (cfg.run_dir / f"lot-{entity}.pid").unlink(missing_ok=True)  # as `gwc soak` does: the agent needs it not
         new = wait_for(
             lambda: (r := agent_rows(cfg)[f"lot:{entity}"])["pid"] != old["pid"] and r["state"] == "RUNNING" and r,
             20,
@@ -173,10 +177,16 @@ def test_a_lot_script_killed_9_mid_run_is_running_again_within_3s_and_its_lot_is
         )
         back = new["running_at"] - killed_at  # the agent's own record (one clock for the host), not this loop's
         assert back < BACK_WITHIN, f"lot:{entity} RUNNING again {back:.2f}s after its kill"
-        assert new["restarts"] == 1 and new["last_exit"] == "killed by SIGKILL", new
+        assert new["restarts"] == restarts and new["last_exit"] == "killed by SIGKILL", new
 
     kill_in_run(entities[0], 1)
     kill_in_run(entities[1], 2)
+    # Killed again once its lot is done and waits to be exported: the new process replays both
+    # operations and goes on waiting for the export.
+    wait_for(lambda: states()[entities[0]] == "waiting_export", 30, "the first lot to wait for its export")
+    kill_lot(entities[0], restarts=2)
+    log_0 = cfg.log_dir / f"lot-{entities[0]}.log"
+    wait_for(lambda: "waiting to be exported" in log_0.read_text().split("resumes after")[-1], 20, "the replay")
 
     def all_out() -> bool:
         now = states()
@@ -190,11 +200,13 @@ def test_a_lot_script_killed_9_mid_run_is_running_again_within_3s_and_its_lot_is
     assert len(runs) == 4 and {c for _, c in runs} == {"ACK_OK"}, runs  # two millings per lot, none twice
     for e in entities:
         traveller = json.loads((cfg.var / "lots" / f"entity-{e}.json").read_text())
-        assert traveller["restarts"] == 1, traveller
+        assert traveller["restarts"] == (2 if e == entities[0] else 1), traveller
         codes = [list(op["codes"].values()) for op in traveller["operations"]]
         assert codes == [["ACK_OK"], ["ACK_OK"]], traveller
         text = (cfg.log_dir / f"lot-{e}.log").read_text()
-        assert "is taken up where it is" in text, text[-3000:]
+        # Taken up mid-run; on a loaded machine the kill can land just after the run completed instead.
+        resumed = ("is taken up where it is", "completed while the lot script was down", "was done before the restart")
+        assert any(r in text.split("resumes after")[1] for r in resumed), text[-3000:]
     checked = gwc(env, "check")
     assert checked.returncode == 0, checked.stdout + checked.stderr
 
