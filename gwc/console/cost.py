@@ -92,6 +92,14 @@ class ConsoleBench(CellBench):
         self.view = view
         self.rounds: list[dict[str, Any]] = []
 
+    def _commits(self) -> int:
+        """Transactions, not commits alone: the console's reads end in a rollback (they write nothing)."""
+        assert self.conn is not None
+        row = self.conn.execute(
+            "SELECT xact_commit + xact_rollback FROM pg_stat_database WHERE datname = current_database()"
+        ).fetchone()
+        return int(row[0]) if row else 0
+
     def _lots(self) -> dict[str, Any]:
         """CellBench's loaded lots, 2 x pairs times (its run() does the rest: start, check, stop)."""
         counter = BusCounter(self.cell.cfg.bus)

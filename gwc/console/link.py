@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import psycopg
+from psycopg.pq import TransactionStatus
 
 from gwc import cell, db
 from gwc.agent import control as agent_control
@@ -174,20 +175,24 @@ class CellLink:
     # ----------------------------------------------------------------- the database
 
     def read(self, fn: Callable[[psycopg.Connection[Any]], T]) -> T | None:
-        """fn(conn) on the console's connection; None while the database cannot be reached (db_error says why)."""
+        """fn(conn) on the console's connection, in one transaction; None while the database cannot be
+        reached (db_error says why)."""
         with self._conn_lock:
             if self._conn is None or self._conn.closed:
                 if time.monotonic() < self._next_connect:
                     return None
                 try:
                     self._conn = db.connect(self.cfg, role="hi", log=self.log, attempts=1)
-                    self._conn.autocommit = True
                 except GwcError as e:
                     self._next_connect = time.monotonic() + DB_RETRY
                     self.db_error = f"unreachable ({str(e).split(' (')[0]})"
                     return None
             try:
-                result = fn(self._conn)
+                try:
+                    result = fn(self._conn)
+                finally:  # one read, one transaction (not one per statement): ended, whatever fn did
+                    if not self._conn.closed and self._conn.info.transaction_status != TransactionStatus.IDLE:
+                        self._conn.rollback()
             except (psycopg.OperationalError, psycopg.InterfaceError) as e:  # the server went, or the connection
                 self.log.warning("console: database read failed: %s", e)
                 self.db_error = "unreachable (the connection was lost; trying again)"

@@ -34,8 +34,8 @@ class Terminal:
         if not have_tmux():
             raise GwcError("no tmux: install it (bin/setup does, as root) to run the console in a terminal")
         self.name = name
-        self.tmux = ["tmux", "-L", name]
         self.folder = Path(tempfile.mkdtemp(prefix="gwc-term-"))
+        self.tmux = ["tmux", "-S", str(self.folder / "tmux")]  # its socket goes with the folder at close()
         self.exit_file = self.folder / "exit"
         keep = {k: v for k, v in env.items() if k not in TERMINAL_OWN}
         pairs = " ".join(shlex.quote(f"{k}={v}") for k, v in sorted(keep.items()))

@@ -324,7 +324,7 @@ class LotsView(View):
         since = None if full or self._since is None else self._since - CHANGE_MARGIN
 
         def read(conn: psycopg.Connection[Any]) -> tuple[datetime, list[dict[str, Any]]]:
-            row = conn.execute("SELECT now()").fetchone()
+            row = conn.execute("SELECT now()").fetchone()  # the read's transaction's start (CellLink.read)
             assert row is not None  # SELECT now() always has its row
             now: datetime = row[0]
             return now, list_lots(link.cfg, link.log, conn=conn, changed_since=since)
