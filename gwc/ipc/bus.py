@@ -119,6 +119,8 @@ class Bus:
         self._conv_prefix = f"{name}.{self.inc:x}."  # ... in this incarnation
         self._flushed: asyncio.Future[None] | None = None  # close() waiting for the last acks
         self.peer_listeners: list[Callable[[str, Peer | None], None]] = []  # told of every join and leave
+        # Told after every heartbeat: a module's periodic work rides on the beat's wake-up, not a timer of its own.
+        self.beat_listeners: list[Callable[[], None]] = []
         self.closed = False
 
     # ----------------------------------------------------------------- lifecycle
@@ -495,6 +497,8 @@ class Bus:
                 self._send_beat()
                 self._expire()
                 self._guard.refresh()
+                for listener in self.beat_listeners:
+                    listener()
             except Exception:  # a bug here must not stop the heartbeat
                 self.log.exception("bus housekeeping failed")
 

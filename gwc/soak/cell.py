@@ -86,7 +86,7 @@ class PrivateCell:
         self.log = log
         self.machines = [m["id"] for m in machines]
         # Not the soak's seed: two soaks of one seed may run side by side.
-        self._bus_cfg = private_bus(**{"heartbeat": 0.25, "peer_timeout": 1.5, **(bus or {})})
+        self._bus_cfg = private_bus(**{"heartbeat": 0.5, "peer_timeout": 1.5, **(bus or {})})
         self._text_args: dict[str, Any] = dict(
             var=self.var, database_url=database_url, machines=machines, policy=policy, db_settings=db_settings
         )

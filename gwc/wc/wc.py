@@ -30,8 +30,11 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
+import os
 import time
 
+from gwc.cell import read_pid
 from gwc.config import Config
 from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, QueueError
 from gwc.ipc.catalogue import Message, message
@@ -39,7 +42,7 @@ from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import Channel, MeMessage, MessageId
 from gwc.ipc.names import Conv, Msg
 from gwc.me.machine import MeState
-from gwc.module import Handler
+from gwc.module import Handler, module_name
 from gwc.wc.base import ABANDONED_S, ALL_OPERATIONS, ME_DEADLINE, ME_PING, SETUP_CHECK_S, S
 from gwc.wc.link import MeDied, MeLink
 from gwc.wc.steps import WCSteps
@@ -72,6 +75,7 @@ class WC(WCSteps):
         self._resuming = False  # a restarted WC checking its ME and its run: nothing served meanwhile
         self._setup_checked = 0.0  # when the run set up was last found reserved (or not) ...
         self._unreserved_since: float | None = None  # ... and since when it is not
+        self._me_pidfd: int | None = None  # the ME's process, watched for its exit
 
     # ----------------------------------------------------------------- module hooks
 
@@ -102,13 +106,46 @@ class WC(WCSteps):
         try:
             return await super().run(start)
         finally:
+            self._unwatch_me_process()
             self.me.stop()
+
+    def _watch_me_process(self) -> None:
+        """Watch the ME's process by its pid file (written by whoever started it): the kernel tells its
+        exit at once (a pidfd), and the next heartbeat pings the ME to confirm, so the idle pings
+        (ME_PING) are left to find an ME that hangs. No pid file: the pings alone, as before."""
+        self._unwatch_me_process()
+        name = module_name("me", self.machine_id)
+        st = read_pid(self.cfg, name)
+        if not st.alive or st.pid is None:
+            return
+        try:
+            fd = os.pidfd_open(st.pid)
+        except OSError:
+            return
+        if read_pid(self.cfg, name).pid != st.pid:  # the pid file changed meanwhile: not that process
+            os.close(fd)
+            return
+        self._me_pidfd = fd
+        self._loop.add_reader(fd, self._me_process_exited, st.pid)
+
+    def _unwatch_me_process(self) -> None:
+        fd, self._me_pidfd = self._me_pidfd, None
+        if fd is not None:
+            if not self._loop.is_closed():
+                self._loop.remove_reader(fd)
+            os.close(fd)
+
+    def _me_process_exited(self, pid: int) -> None:
+        self._unwatch_me_process()
+        self.log.warning("the ME's process (pid %d) exited: pinging it at the next heartbeat", pid)
+        self.me.heard = -math.inf
 
     async def on_bus(self) -> None:
         self.status, self.machine_run_id, self.recipe_id = self._read_status()
         # What the ME sent while no WC listened is read now (a RUN_COMPL is completed by its own task,
         # which takes the state lock before _resume looks at the run).
         self.me.start(self._loop)
+        self._watch_me_process()
         if self.status != S.SHUTDOWN:
             self.log.warning(
                 "machine %s is %s (run %s): resuming it", self.machine_id, self.status, self.machine_run_id
@@ -225,6 +262,7 @@ class WC(WCSteps):
             await self.change_status(S.SHUTDOWN, note="MSCHED did not take the accept types")
             return AckCode.START_FAIL, "MSCHED did not take the accept types"
         self.me.heard = time.monotonic()
+        self._watch_me_process()  # a restarted ME has another process
         self.log.info("machine %s is Idle and accepts all its operations", self.machine_id)
         return AckCode.ACK_OK, None
 

@@ -394,6 +394,8 @@ def test_kill_9_of_the_me_during_a_run_is_reported_and_the_pair_rejoins_with_gwc
     cell.kill("me", "wc5")
     wait_for(lambda: status(cell, "wc5")[0] == "Shutdown", 10, "the machine to be Shutdown")
     assert time.monotonic() - killed < 5.0, f"seen after {time.monotonic() - killed:.1f}s"
+    # Told by the kernel (the WC watches its ME's process), confirmed by a ping that goes unanswered.
+    wait_for(lambda: cell.log_has("wc:wc5", "the ME's process"), T, "the WC to see the ME's process exit")
     pending_alarm(cell, "ME_DIED", "wc5")
     assert ear.wait("Run_Complete(Run_Fail) of run 31", lambda m: m.machine_run_id == 31).ack_code == AckCode.RUN_FAIL
     assert accepts(cell, "wc5") == []
