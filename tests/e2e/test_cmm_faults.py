@@ -112,10 +112,14 @@ class Cmm:
         alarm = pending_alarm(self.cell, "MACH_LOST", "cmm_wc")
         wait_for(lambda: status(self.cell, "cmm_wc")[0] == "Shutdown", 5, "Shutdown while the CMM is gone")
         assert accepts(self.cell, "cmm_wc") == []
-        wait_for(lambda: status(self.cell, "cmm_wc")[0] == "Idle", answers_again - time.monotonic() + BACK_S, "back")
+        # Back: Idle, then its operations accepted again (the WC tells MSCHED after the Machine Server).
+        wait_for(
+            lambda: status(self.cell, "cmm_wc")[0] == "Idle" and accepts(self.cell, "cmm_wc") == self.operations,
+            answers_again - time.monotonic() + BACK_S,
+            "back: Idle and accepting its operations",
+        )
         assert time.monotonic() - answers_again < BACK_S
         assert self.cell.query("select cleared_by from alarms where alarm_no = %s", alarm)[0][0] == "wc:cmm_wc"
-        assert accepts(self.cell, "cmm_wc") == self.operations
 
     def measured_once_each(self) -> None:
         """Nothing run twice: one result set per run, RUN_NO unique, and the CMM asked to measure once per
