@@ -429,9 +429,9 @@ class CellBench:
 
 def _role(cmd: str) -> str:
     """A process's role from its command line: the module of `gwc run X`, else what runs it."""
-    m = re.search(r"gwc run (\S+)", cmd)
+    m = re.search(r"gwc (?:run (\S+)|(agent))", cmd)
     if m:
-        return m.group(1)
+        return m.group(1) or m.group(2)
     return cmd.split(" ", 1)[0].rsplit("/", 1)[-1]
 
 
