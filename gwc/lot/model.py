@@ -219,6 +219,7 @@ class MachineRequest:
         self.alternatives = alternatives
         self.alt_group = alt_group  # sent with each alternative: MSCHED binds at most one of them
         self.winner: Alternative | None = None  # the alternative the entity took
+        self.found: Reservation | None = None  # bound in a conversation the entity had given up (reserve.py)
         for a in alternatives:
             a.group = self
 

@@ -73,7 +73,9 @@ class EntityReserve(EntityTalk):
 
         surplus: list[str] = []
 
-        def outcome() -> Alternative | bool:
+        def outcome() -> Alternative | Reservation | bool:
+            if request.found is not None:
+                return request.found
             bound = [a for a in alts if a.comp is not None and a.comp.ack_code == AckCode.ACK_OK]
             if bound:
                 request.winner = bound[0]
@@ -86,13 +88,21 @@ class EntityReserve(EntityTalk):
                 got = self._cond.wait_for(outcome, BOUND_AT_ONCE)
             if not got and self.state != S.WAITING_MACHINE:  # not bound at once: it waits, say so
                 self.report(S.WAITING_MACHINE)
-            got = got or self._wait(outcome, timeout, f"machines for {request.op_type} ({request.describe()})")
+            got = got or self._wait(  # type: ignore[assignment]  # T is the union outcome() returns
+                outcome,
+                timeout,
+                f"machines for {request.op_type} ({request.describe()})",
+                poll=lambda: self._bound_unheard(request),
+            )
         finally:
             if request in self._requests:
                 self._requests.remove(request)
         for m in surplus:  # MSCHED bound two alternatives: keep the first, give the other back
             self.log.warning("%s was bound too by another alternative: giving it back", m)
             self.unreserve(m)
+        if isinstance(got, Reservation):
+            self.report(S.RUNNING)
+            return got
         if isinstance(got, Alternative):
             if any(not a.done for a in alts if a is not got):  # a sibling may still be queued: end it
                 self._cancel_leftovers("after taking an alternative", request)
@@ -117,6 +127,27 @@ class EntityReserve(EntityTalk):
             raise LotError(f"machine request for {request.op_type} failed: {'; '.join(errors)}")
         codes = sorted({answer.ack_code for a in alts if (answer := a.comp or a.ack) is not None})
         raise RequestRefused(f"no machine for {request.op_type} ({request.describe()}): {', '.join(codes)}")
+
+    def _bound_unheard(self, request: MachineRequest) -> None:
+        """(the wait's fallback read) Every alternative was refused because one of its group is bound, yet
+        no binding was heard: MSCHED bound it in a conversation the entity had given up (asked again after
+        a restarting MSCHED's Notnow). The binding is in SATISFIED_ALT_GROUPS and RESERVED_MACHINES."""
+        if request.alt_group is None or not all(a.sibling_cancelled for a in request.alternatives):
+            return
+        rows = self._query(
+            "SELECT r.machine_id, r.machine_run_id, r.request_key FROM satisfied_alt_groups g "
+            "JOIN reserved_machines r ON r.entity_id = g.entity_id AND r.request_key = g.request_key "
+            "WHERE g.entity_id = %s AND g.alt_group = %s ORDER BY r.machine_id",
+            self.entity_id,
+            request.alt_group,
+            within=0,
+        )
+        if rows:
+            found = Reservation(request.op_type, int(rows[0][1]), int(rows[0][2]), [str(r[0]) for r in rows])
+            self.log.warning("request %s was bound unheard (its conversation given up): %s", found.request_key, found)
+            with self._cond:
+                request.found = found
+                self._cond.notify_all()
 
     def reserve(
         self,

@@ -804,3 +804,34 @@ def test_a_held_entity_whose_run_completes_after_all_counts_the_run(fake: tuple[
     assert cell.actions().count("held") == 1 and "running" in cell.actions()[cell.actions().index("held") :]
     decisions = read_traveller(entity.cfg, 7)["decisions"]  # type: ignore[index]
     assert [d["decision"] for d in decisions] == ["hold", "released: completed"]
+
+
+def test_a_request_bound_in_a_conversation_given_up_is_found_in_the_tables(
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
+    # A restarting MSCHED answered the first asks Notnow, so the entity asked again in new conversations;
+    # meanwhile it bound the first one's request, answered in the conversation the entity had ended, and
+    # refused the new asks: their alt_group was satisfied. The entity finds its binding in the tables.
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=3, machines=10, setup=3, run=60, pause=0.1)
+
+    async def mach_req(conv: Conversation, m: Message) -> None:
+        cell.sql(
+            "INSERT INTO satisfied_alt_groups (entity_id, alt_group, request_key) VALUES (%s, %s, 77) "
+            "ON CONFLICT DO NOTHING",
+            m.entity_id,
+            m.alt_group,
+        )
+        cell.sql(
+            "INSERT INTO reserved_machines (machine_id, entity_id, machine_run_id, request_key) "
+            "VALUES ('m1', %s, 101, 77) ON CONFLICT DO NOTHING",
+            m.entity_id,
+        )
+        await conv.send(message("Machine_Req_Ack", ack_code=AckCode.REQ_CANCEL, note="its group is satisfied"))
+
+    cell.handlers["MACH_REQ"] = mach_req
+    with entity:
+        entity.wait_for_import()
+        res = entity.reserve("dummy_op", [["m1"], ["m2"]])
+        entity.fail("test over")
+    assert (res.machine_run_id, res.request_key, res.machines) == (101, 77, ["m1"])
