@@ -196,7 +196,8 @@ def demo_in_console(demo_env: tuple[Path, dict[str, str]], *order: str, timeout:
     try:
         term.wait("the demonstration's machines in MSTT", "cell UP", "cmm_wc", "mazak", "wc2", timeout=90)
         term.keys("9")
-        term.wait("the narration in the Demo tab", "operator: start machine")
+        # The cell's start comes first (12 s quiet, over 30 s seen at load 15), then the operator's part.
+        term.wait("the narration in the Demo tab", "operator: start machine", timeout=timeout)
         term.wait("the demonstration to finish", "finished: q quits the console", timeout=timeout)
         screen = term.screen()
         assert "demonstration succeeded" in screen and "not every lot did" not in screen, screen
