@@ -213,7 +213,7 @@ def test_gwc_demo_console_shows_a_one_pawn_demonstration_live_and_it_succeeds(
     demo_env: tuple[Path, dict[str, str]],
 ) -> None:
     # One pawn (milled, measured) and the mills swapped while it runs: about 15 s, most of it the cell starting.
-    demo_in_console(demo_env, "--chess", "0", "--pawns", "1", timeout=120)
+    demo_in_console(demo_env, "--chess", "0", "--pawns", "1", timeout=200)
 
 
 @pytest.mark.soak  # the whole demonstration a newcomer runs (5 lots, about 30 s): more than the suite can spare
