@@ -202,7 +202,9 @@ def fill_table(table: DataTable[Any], rows: list[dict[str, Any]], columns: tuple
     """Show `rows`, touching only what changed and can be seen: a changed row is redrawn (a LiveTable
     redraws it alone; a DataTable every visible cell, some 30 ms of CPU), which a busy cell's machine
     should not pay for rows nobody sees (a row off screen is brought up to date when it scrolls into
-    view: fill again then). A table whose rows were removed or reordered is filled again, keeping the
+    view: fill again then). New rows are added only down to a screen below the one shown (an added row
+    draws every visible cell again, DataTable's caches being keyed on its row count too); the others
+    come as the table scrolls near them. A table whose rows were removed or reordered is filled again, keeping the
     cursor on the same row (by key)."""
     shown: dict[str, tuple[str, ...]] = table.__dict__.setdefault("_gwc_shown", {})
     new = {str(r[key]): tuple("" if r.get(c) is None else str(r.get(c)) for c in columns) for r in rows}
@@ -216,11 +218,14 @@ def fill_table(table: DataTable[Any], rows: list[dict[str, Any]], columns: tuple
         if current in shown:
             table.move_cursor(row=table.get_row_index(current))
         return
-    top, height = int(table.scroll_y), table.size.height
+    # The screen's height bounds what can be seen of the table (its own grows with its rows, up to its pane).
+    top, height = int(table.scroll_y), table.app.size.height
     changes: dict[str, dict[str, Text]] = {}
     for index, (k, cells) in enumerate(new.items()):
         before = shown.get(k)
         if before is None:
+            if height and index > top + 2 * height:
+                break  # a screen below the last one seen: added as they scroll near (and all after it: new too)
             table.add_row(*map(Text, cells), key=k)
         elif cells != before:
             if height and not top - 1 <= index <= top + height:

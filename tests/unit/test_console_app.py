@@ -183,3 +183,27 @@ def test_a_configured_machine_the_database_does_not_know_is_listed_as_unknown(tm
             await pilot.press("q")
 
     asyncio.run(drive())
+
+
+def test_new_rows_far_below_the_screen_are_added_as_the_table_scrolls_near_them(tmp_path: Path) -> None:
+    async def drive() -> None:
+        app = _app(tmp_path)
+        async with app.run_test(size=(140, 40)) as pilot:
+            await pilot.press("2")
+            view = app.views()["lots"]
+            table = view.query_one(LiveTable)
+            _show(app, "lots", [{"entity": e, "state": "running"} for e in range(1, 501)])
+            await pilot.pause()
+            assert 40 < table.row_count < 200, table.row_count  # the screen and one more, not all 500
+            _show(app, "lots", [{"entity": e, "state": "exported" if e == 5 else "running"} for e in range(1, 501)])
+            await pilot.pause()
+            assert table.get_row("5")[4].plain == "exported"
+            for _ in range(20):  # the operator pages down to the end
+                await pilot.press("pagedown")
+                await pilot.pause()
+            await pilot.press("end")
+            await until(pilot.pause, lambda: table.row_count == 500, 10, "every row once scrolled near")
+            await until(pilot.pause, lambda: view.selected() == view.rows[-1], 10, "the cursor on the last row")
+            await pilot.press("q")
+
+    asyncio.run(drive())
