@@ -104,6 +104,8 @@ class MachineSide:
 
     kind = "machine"
     default_homing_alarm: str | None = None
+    # How long the loop waits for a request when nothing runs: what watch() needs (a real machine's line).
+    idle_poll = IDLE_POLL
 
     def __init__(self, cfg: Config, spec: MachineSpec, log: logging.Logger) -> None:
         self.cfg = cfg
@@ -227,7 +229,7 @@ class MachineSide:
             while not stop.is_set():
                 self._flush()
                 try:
-                    msg = self.channel.receive(RUN_POLL if self.state == MeState.RUNNING else IDLE_POLL)
+                    msg = self.channel.receive(RUN_POLL if self.state == MeState.RUNNING else self.idle_poll)
                 except QueueTimeout:
                     msg = None
                 except QueueError as e:

@@ -18,7 +18,7 @@ from gwc.wc.link import MeLink
 # Ping the ME after this long without hearing from it: each ping wakes both halves (docs/performance.md,
 # A resting cell). An ME whose process exits is pinged at the next heartbeat (the WC watches its process),
 # so this bounds only finding one that hangs: ME_PING + a heartbeat + ME_DEADLINE.
-ME_PING = 3.0
+ME_PING = 5.0
 ME_DEADLINE = 1.5  # an ME silent this long after a ping is dead
 SERVER_TIMEOUT = 5.0  # longest a server may take to answer the WC
 # How long the WC asks a restarting server (or one whose database is away) again: status, accept types.
