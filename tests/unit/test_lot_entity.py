@@ -130,6 +130,20 @@ class FakeCell:
         timer.daemon = True
         timer.start()
 
+    def store_pass(self, machine: str, run: int) -> None:
+        """What a WC stores for a run that passed: its result and its outcome."""
+        self.sql(
+            "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) "
+            "VALUES (%s, %s, 'RESULT', 'PASS')",
+            run,
+            machine,
+        )
+        self.sql(
+            "INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code) VALUES (%s, %s, 'ACK_OK')",
+            run,
+            machine,
+        )
+
     def status(self, machine: str, status: str, run: int | None = None) -> None:
         """The Machine Server's table: machine's status (and run) now."""
         self.sql(
@@ -468,17 +482,7 @@ def test_a_run_whose_run_compl_never_came_counts_from_the_outcome_its_wc_stored(
     cell.lose_run = [("Idle", 101)]  # the machine went Idle on our run; its RUN_COMPL never came
 
     async def start(conv: Conversation, m: Message) -> None:  # what the WC stored before it went Idle
-        cell.sql(
-            "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) VALUES (%s, %s, "
-            "'RESULT', 'PASS')",
-            m.machine_run_id,
-            m.machine_id,
-        )
-        cell.sql(
-            "INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code) VALUES (%s, %s, 'ACK_OK')",
-            m.machine_run_id,
-            m.machine_id,
-        )
+        cell.store_pass(m.machine_id, m.machine_run_id)
         await FakeCell.start(cell, conv, m)
 
     cell.handlers["START_RUN"] = start
@@ -726,17 +730,7 @@ def _shut_unheard(cell: FakeCell, outcome_after: float | None) -> None:
         cell.status(m.machine_id, "Shutdown")
         if outcome_after is not None:
             await asyncio.sleep(outcome_after)
-            cell.sql(
-                "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) VALUES (%s, %s, "
-                "'RESULT', 'PASS')",
-                m.machine_run_id,
-                m.machine_id,
-            )
-            cell.sql(
-                "INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code) VALUES (%s, %s, 'ACK_OK')",
-                m.machine_run_id,
-                m.machine_id,
-            )
+            cell.store_pass(m.machine_id, m.machine_run_id)
 
     cell.handlers["START_RUN"] = start
 
