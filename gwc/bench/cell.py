@@ -97,6 +97,8 @@ def phases(path: Path) -> dict[str, float]:
 class CellBench:
     """One run of the benchmark on its own private cell (see the module docstring)."""
 
+    counted = "xact_commit"  # which of pg_stat_database's transaction counters _commits() adds up
+
     def __init__(
         self,
         var: Path,
@@ -279,9 +281,10 @@ class CellBench:
         return out
 
     def _commits(self) -> int:
+        """The database's transactions so far, as `counted` counts them (commits alone by default)."""
         assert self.conn is not None
         row = self.conn.execute(
-            "SELECT xact_commit FROM pg_stat_database WHERE datname = current_database()"
+            f"SELECT {self.counted} FROM pg_stat_database WHERE datname = current_database()"
         ).fetchone()
         return int(row[0]) if row else 0
 

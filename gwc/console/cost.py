@@ -77,6 +77,9 @@ class BusCounter:
 class ConsoleBench(CellBench):
     """CellBench whose lots run in rounds, alternately without and with a console open on the cell."""
 
+    # Transactions, not commits alone: the console's reads end in a rollback (they write nothing).
+    counted = "xact_commit + xact_rollback"
+
     def __init__(
         self,
         var: Path,
@@ -91,14 +94,6 @@ class ConsoleBench(CellBench):
         self.pairs = pairs
         self.view = view
         self.rounds: list[dict[str, Any]] = []
-
-    def _commits(self) -> int:
-        """Transactions, not commits alone: the console's reads end in a rollback (they write nothing)."""
-        assert self.conn is not None
-        row = self.conn.execute(
-            "SELECT xact_commit + xact_rollback FROM pg_stat_database WHERE datname = current_database()"
-        ).fetchone()
-        return int(row[0]) if row else 0
 
     def _lots(self) -> dict[str, Any]:
         """CellBench's loaded lots, 2 x pairs times (its run() does the rest: start, check, stop)."""
