@@ -123,6 +123,19 @@ def read_pid(cfg: Config, name: str) -> ProcStatus:
     return ProcStatus(name, pid, alive, info.get("since"))
 
 
+def out_file(cfg: Config, name: str) -> Path:
+    """Where a process's output goes before its log opens (tracebacks of a failed start)."""
+    return cfg.log_dir / (log_file_name(name)[: -len(".log")] + ".out")
+
+
+def process_env(cfg: Config) -> dict[str, str]:
+    """What a process of the cell finds in its environment: this cell's configuration, state and database."""
+    env = {"GWC_CONFIG": str(cfg.path.resolve()), "GWC_VAR": str(cfg.var.resolve()), "PYTHONUNBUFFERED": "1"}
+    if cfg.database_url:
+        env["GWC_DATABASE_URL"] = cfg.database_url
+    return env
+
+
 def spawn_process(
     cfg: Config, proc: Proc, extra_env: dict[str, str] | None = None, pass_fds: tuple[int, ...] = ()
 ) -> subprocess.Popen[bytes]:
@@ -131,11 +144,8 @@ def spawn_process(
     The caller is its parent: the agent keeps the Popen to reap it; a command that exits leaves it to init."""
     cfg.run_dir.mkdir(parents=True, exist_ok=True)
     cfg.log_dir.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, GWC_CONFIG=str(cfg.path.resolve()), GWC_VAR=str(cfg.var.resolve()), PYTHONUNBUFFERED="1")
-    if cfg.database_url:
-        env["GWC_DATABASE_URL"] = cfg.database_url
-    env.update(extra_env or {})
-    with open(cfg.log_dir / (log_file_name(proc.name)[:-4] + ".out"), "ab") as out:
+    env = dict(os.environ, **process_env(cfg), **(extra_env or {}))
+    with open(out_file(cfg, proc.name), "ab") as out:
         child = subprocess.Popen(
             proc.argv,
             env=env,
@@ -170,7 +180,7 @@ def write_pid_file(cfg: Config, name: str, pid: int, argv: list[str]) -> None:
 
 def _out_tail(cfg: Config, name: str, lines: int = 5) -> str:
     try:
-        text = (cfg.log_dir / (log_file_name(name)[:-4] + ".out")).read_text(errors="replace")
+        text = out_file(cfg, name).read_text(errors="replace")
     except OSError:
         return ""
     return " | ".join(text.strip().splitlines()[-lines:])

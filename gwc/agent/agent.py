@@ -35,7 +35,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, fields
 from typing import Any
 
-from gwc.agent.child import Child
+from gwc.agent.child import Child, Process
 from gwc.agent.control import READY_FD, address
 from gwc.agent.states import LIVE, ProcessState
 from gwc.cell import cell_procs, hold_startup, lot_proc, pid_file, read_pid, spawn_process, write_pid_file
@@ -45,6 +45,7 @@ from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.names import Conv, Msg
 from gwc.log import TRACE
+from gwc.lot.run import Forked, fork_lot_script
 from gwc.module import ask, module_name
 from gwc.servers.common import Server
 
@@ -233,7 +234,11 @@ class Agent(Server):
         try:
             env = {READY_FD: str(ready_w)} if ready_w is not None else None
             fds = (ready_w,) if ready_w is not None else ()
-            popen = spawn_process(self.cfg, child.proc, env, pass_fds=fds)
+            popen: Process
+            if child.proc.kind == "lot":  # a fork of the agent, which imported what a lot script needs
+                popen = fork_lot_script(self.cfg, int(child.proc.machine or 0))
+            else:
+                popen = spawn_process(self.cfg, child.proc, env, pass_fds=fds)
         except OSError:
             if ready_r is not None:
                 os.close(ready_r)
@@ -336,6 +341,7 @@ class Agent(Server):
     def _exited(self, child: Child) -> None:
         """pidfd callback: the process is gone. Announce it, then restart, back off, or give up."""
         pid = child.pid
+        process = child.popen
         how = child.reap()
         if child.ready is not None:
             child.ready.cancel()
@@ -346,6 +352,8 @@ class Agent(Server):
                 pid_file(self.cfg, child.name).unlink()
         lot = child.proc.kind == "lot"
         if child.state == S.STOPPING or (lot and not _killed(child.last_code, named)):
+            if isinstance(process, Forked) and process.cpu_s is not None:
+                how += f", {process.cpu_s * 1000:.0f} ms of CPU"
             child.change_state(S.STOPPED, how if child.state == S.STOPPING else f"{how}: its work is done")
             if lot:
                 self.children.pop(child.name, None)

@@ -12,13 +12,21 @@ import asyncio
 import logging
 import os
 import signal
-import subprocess
 import time
 from collections.abc import Callable
 from datetime import datetime
+from typing import Protocol
 
 from gwc.agent.states import LIVE, MOVES, BadMove, ProcessState
 from gwc.cell import Proc
+
+
+class Process(Protocol):
+    """A process the agent started and reaps: a Popen (exec'd), or a forked lot script (gwc.lot.run.Forked)."""
+
+    pid: int
+
+    def wait(self) -> int: ...
 
 
 class Child:
@@ -28,7 +36,7 @@ class Child:
         self.proc = proc
         self.log = log
         self.state = ProcessState.STOPPED
-        self.popen: subprocess.Popen[bytes] | None = None  # None for an adopted process
+        self.popen: Process | None = None  # None for an adopted process
         self.pid: int | None = None
         self.started_at = 0.0  # monotonic: when the current process was spawned (or adopted)
         self.since = ""  # wall clock of the same, for people
@@ -65,7 +73,7 @@ class Child:
     def attach(
         self,
         pid: int,
-        popen: subprocess.Popen[bytes] | None,
+        popen: Process | None,
         on_exit: Callable[[Child], None],
         still_ours: Callable[[], bool] = lambda: True,
     ) -> bool:

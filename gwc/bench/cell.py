@@ -270,7 +270,8 @@ class CellBench:
     def _cpu_by_role(self) -> dict[str, float]:
         """CPU seconds so far of the cell's running processes, summed by role (all WCs together ...)."""
         # Lot scripts come and go (their operation's CPU is in their timing files): not counted here.
-        roles = {pid: _role(cmd) for pid, cmd in self.cell.pids().items() if "gwc.lot.run" not in cmd}
+        # The agent forks them: their command line is the agent's, their name (comm) lot:E.
+        roles = {pid: _role(cmd) for pid, cmd in self.cell.pids().items() if not _lot_script(pid, cmd)}
         roles.update({pid: "database" for pid in self._database_pids()})
         out: dict[str, float] = {}
         for pid, role in roles.items():
@@ -436,6 +437,14 @@ def _role(cmd: str) -> str:
     if m:
         return m.group(1) or m.group(2)
     return cmd.split(" ", 1)[0].rsplit("/", 1)[-1]
+
+
+def _lot_script(pid: int, cmd: str) -> bool:
+    """Whether process `pid` is a lot script: exec'd (`python -m gwc.lot.run`) or forked by the agent."""
+    try:
+        return "gwc.lot.run" in cmd or Path(f"/proc/{pid}/comm").read_text().startswith("lot:")
+    except OSError:
+        return False
 
 
 def _ms(s: dict[str, float]) -> str:

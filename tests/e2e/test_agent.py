@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -167,6 +168,7 @@ def test_a_lot_script_killed_9_mid_run_is_running_again_within_3s_and_its_lot_is
 
     def kill_lot(entity: int, restarts: int) -> None:
         old = agent_rows(cfg)[f"lot:{entity}"]
+        forked_by_the_agent(cfg, old["pid"], entity)
         killed_at = time.monotonic()
         os.kill(old["pid"], signal.SIGKILL)
         (cfg.run_dir / f"lot-{entity}.pid").unlink(missing_ok=True)  # as `gwc soak` does: the agent needs it not
@@ -209,6 +211,24 @@ def test_a_lot_script_killed_9_mid_run_is_running_again_within_3s_and_its_lot_is
         assert any(r in text.split("resumes after")[1] for r in resumed), text[-3000:]
     checked = gwc(env, "check")
     assert checked.returncode == 0, checked.stdout + checked.stderr
+    # The agent reaped each script it forked, and logged what its whole process cost.
+    text = next(cfg.log_dir.glob("agent-*.log")).read_text()
+    for e in entities:
+        assert re.search(rf"lot:{e}: RUNNING -> STOPPED .*exited 0, \d+ ms of CPU: its work is done", text), e
+
+
+def forked_by_the_agent(cfg: Any, pid: int, entity: int) -> None:
+    """A lot script is a fork of the agent (gwc.lot.run.fork_lot_script): its child, in a session of its own,
+    named lot:E, holding nothing of the agent's (its lock, its sockets): a new agent can take over."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    assert (int(fields[1]), int(fields[3])) == (agent_pid(cfg), pid), fields[:4]
+    assert Path(f"/proc/{pid}/comm").read_text().strip() == f"lot:{entity}"
+
+    def fds(of: int) -> set[str]:  # files by path, sockets by inode (an epoll or pidfd has no identity here)
+        return {t for f in Path(f"/proc/{of}/fd").iterdir() if not (t := os.readlink(f)).startswith("anon_inode:")}
+
+    held = fds(pid) & fds(agent_pid(cfg))
+    assert held <= {"/dev/null", str(cfg.log_dir / f"lot-{entity}.out")}, held
 
 
 def test_a_module_failing_at_every_start_ends_fatal_with_an_alarm(agent_cell) -> None:
