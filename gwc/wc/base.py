@@ -43,6 +43,7 @@ class WCBase(Module):
     _alarm_waits: dict[int, asyncio.Future[None]]
     _cleared: set[int]  # alarm numbers seen cleared (a clear may beat our wait for it)
     _alarm_pending: int  # alarms of ours waiting for the operator: ME answers may take that long
+    _set_up_for: tuple[str, int] | None  # (asker, machine_run_id) of the last setup, its reservation checked
 
     @property
     def _loop(self) -> asyncio.AbstractEventLoop:
@@ -60,7 +61,7 @@ class WCBase(Module):
         """One row read; DatabaseError if the database refuses it, DatabaseUnavailable if it is away."""
         return self.transaction(lambda cur: cur.execute(sql, params).fetchone())
 
-    async def _read_when_up(self, sql: str, params: tuple[Any, ...]) -> tuple[Any, ...] | None:
+    async def _read_when_up(self, sql: str, params: tuple[Any, ...] | dict[str, Any]) -> tuple[Any, ...] | None:
         """One row read for a step a lot waits on: a database outage is waited out (DATABASE_OUTAGE_S)."""
         return await self.transaction_when_up(lambda cur: cur.execute(sql, params).fetchone(), DATABASE_OUTAGE_S)
 

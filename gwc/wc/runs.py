@@ -231,11 +231,15 @@ class WCRuns(WCBase):
         self.machine_run_id = self.recipe_id = None
         if shutdown is not None:
             await self._go_shutdown(shutdown, tell_me=tell_me)
-        else:
-            await self.change_status(S.IDLE, note=None if code == AckCode.ACK_OK else f"run {run_id}: {code}")
+            await self._announce_run(run_id, code, note)
+            return
+        # 6.3.2.7's order: Run_Complete, then Idle and all operations, those two asked together (the
+        # machine is bound again only once MSCHED has both: docs/machine-interface.md).
         await self._announce_run(run_id, code, note)
-        if shutdown is None:
-            await self.set_accept_types(ALL_OPERATIONS)
+        await asyncio.gather(
+            self.change_status(S.IDLE, note=None if code == AckCode.ACK_OK else f"run {run_id}: {code}"),
+            self.set_accept_types(ALL_OPERATIONS),
+        )
 
     async def _announce_run(self, run_id: int, code: str, note: str | None) -> None:
         self.log.info("run %d complete (%s)%s", run_id, code, f": {note}" if note else "")

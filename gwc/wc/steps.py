@@ -26,27 +26,41 @@ class WCSteps(WCDevice):
         self.log.info("refused %s: %s (%s)", conv.cls, code, note)
         await conv.send(message(ack, ack_code=code, note=note[:500]))
 
-    async def _not_reserved(self, conv: Conversation) -> tuple[str, str] | None:
+    def _asking_entity(self, conv: Conversation) -> tuple[int | None, tuple[str, str] | None]:
         """Defence in depth (docs/security.md): a lot entity (lot:E) sets up and starts only a run that
-        RESERVED_MACHINES gives to E on this machine. Other askers hold the module key and are trusted
-        (the operator's tools, tests driving a machine by hand)."""
+        RESERVED_MACHINES gives to E on this machine. The entity to check (None: the asker holds the module
+        key and is trusted: the operator's tools, tests driving a machine by hand), or why it may not ask."""
         assert conv.first is not None
         req = conv.first.first
         asker = conv.initiator
         if not asker.startswith("lot:"):
-            return None
+            return None, None
         entity, named = asker[4:], req.fields.get("entity_id")  # Setup_Run names its entity; Start_Run does not
         if not entity.isdigit() or (named is not None and str(named) != entity):
-            return AckCode.NOT_RESERVED, f"{asker} asks for entity {named}"
+            return None, (AckCode.NOT_RESERVED, f"{asker} asks for entity {named}")
+        return int(entity), None
+
+    async def _not_reserved(self, conv: Conversation) -> tuple[str, str] | None:
+        """START_RUN's check (see _asking_entity). The run this WC set up for the same asker was found
+        reserved to it by that SETUP_RUN's read: not read again."""
+        assert conv.first is not None
+        req = conv.first.first
+        entity, refusal = self._asking_entity(conv)
+        set_up = req.machine_run_id == self.machine_run_id and (conv.initiator, req.machine_run_id) == self._set_up_for
+        if entity is None or set_up:
+            return refusal
         try:
             row = await self._read_when_up(
                 "SELECT 1 FROM reserved_machines WHERE machine_id = %s AND machine_run_id = %s AND entity_id = %s",
-                (self.machine_id, req.machine_run_id, int(entity)),
+                (self.machine_id, req.machine_run_id, entity),
             )
         except DatabaseError as e:
             return AckCode.DB_BADREA, str(e)
         if row is None:
-            return AckCode.NOT_RESERVED, f"run {req.machine_run_id} on {self.machine_id} is not reserved to {asker}"
+            return (
+                AckCode.NOT_RESERVED,
+                f"run {req.machine_run_id} on {self.machine_id} is not reserved to lot:{entity}",
+            )
         return None
 
     def _check(self, req: Message, allowed: tuple[MachineStatus, ...]) -> tuple[str, str] | None:
@@ -91,52 +105,69 @@ class WCSteps(WCDevice):
     # ----------------------------------------------------------------- SETUP_RUN, START_RUN
 
     async def setup_run(self, conv: Conversation) -> None:
-        """6.3.2.3: Idle only; recipe and op type checked; the approved recipe to the ME; status Setup."""
+        """6.3.2.3: Idle only; reservation, recipe and op type checked; the approved recipe to the ME;
+        status Setup (asked beside the ME's setup: docs/machine-interface.md, *The order of a run's steps*)."""
         assert conv.first is not None
         req = conv.first.first
         self.log.info("SETUP_RUN run %d recipe %s op %s", req.machine_run_id, req.recipe_id, req.op_type)
-        refusal = await self._not_reserved(conv)
+        entity, refusal = self._asking_entity(conv)
         if refusal is not None:
             await self._refuse_now(conv, Msg.SETUP_RUN_ACK, *refusal)
             return
-        if not await self._serve_step(conv, Msg.SETUP_RUN_ACK, (S.IDLE,), self._setup):
-            return
-        self.log.info("set up run %d with recipe %s", req.machine_run_id, req.recipe_id)
-        await conv.send(message(Msg.SETUP_RUN_ACK, ack_code=AckCode.ACK_OK))
-
-    async def _setup(self, req: Message) -> tuple[str, str] | None:
-        # The recipe is asked of the ERS first, so that the ERS looks it up while we read our table.
+        # The recipe is asked of the ERS first, so that the ERS looks it up while we wait our turn and read
+        # our tables.
         fetch = asyncio.ensure_future(self.fetch_recipe(req.recipe_id))
         await asyncio.sleep(0)  # let it send before the (blocking) read
         try:
-            ok = await self._read_when_up(
-                "SELECT 1 FROM op_machine_recipe WHERE machine_id = %s AND recipe_id = %s AND op_type = %s",
-                (self.machine_id, req.recipe_id, req.op_type),
-            )
+            if not await self._serve_step(conv, Msg.SETUP_RUN_ACK, (S.IDLE,), lambda r: self._setup(r, entity, fetch)):
+                return
+        finally:
+            fetch.cancel()  # a refusal before the ME's turn: not needed (done by then otherwise)
+        self._set_up_for = (conv.initiator, req.machine_run_id)
+        self.log.info("set up run %d with recipe %s", req.machine_run_id, req.recipe_id)
+        await conv.send(message(Msg.SETUP_RUN_ACK, ack_code=AckCode.ACK_OK))
+
+    async def _setup(
+        self, req: Message, entity: int | None, fetch: Awaitable[tuple[Path | None, str]]
+    ) -> tuple[str, str] | None:
+        try:  # the reservation (a lot's) and OP_MACHINE_RECIPE, one read
+            reserved, valid = await self._read_when_up(
+                "SELECT %(e)s::bigint IS NULL OR EXISTS (SELECT 1 FROM reserved_machines WHERE machine_id = %(m)s "
+                "AND machine_run_id = %(run)s AND entity_id = %(e)s), EXISTS (SELECT 1 FROM op_machine_recipe "
+                "WHERE machine_id = %(m)s AND recipe_id = %(r)s AND op_type = %(op)s)",
+                {"e": entity, "m": self.machine_id, "run": req.machine_run_id, "r": req.recipe_id, "op": req.op_type},
+            ) or (False, False)
         except DatabaseUnavailable:
-            fetch.cancel()
             raise  # the module answers DB_Badrea: the lot may ask again once the database is back
         except DatabaseError as e:
-            fetch.cancel()
             return AckCode.DB_BADREA, str(e)
-        if not ok:
-            fetch.cancel()
+        if not reserved:
+            return (
+                AckCode.NOT_RESERVED,
+                f"run {req.machine_run_id} on {self.machine_id} is not reserved to lot:{entity}",
+            )
+        if not valid:
             return AckCode.REC_INVAL, f"recipe {req.recipe_id} is not for op type {req.op_type} on {self.machine_id}"
-        # Listing 3: a machine set up for a run accepts no other operation until the run is over. Asked
-        # now, beside the recipe's download, which does not depend on it: only the status change waits.
+        # Listing 3: a machine set up for a run accepts no other operation until the run is over. That and
+        # the status Setup are asked now, beside the recipe's download, which depends on neither.
         accept = asyncio.ensure_future(self.set_accept_types([]))
+        status = asyncio.ensure_future(
+            self.change_status(S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id, machine_run_id=req.machine_run_id)
+        )
         try:
             refusal = await self._set_up_on_me(req, fetch)
         finally:
-            accepted = await accept
+            accepted, set_up = await accept, await status
         if refusal is None and not accepted:
             refusal = AckCode.DB_BADUPD, "MSCHED did not take the accept types"
-        if refusal is None and not await self.change_status(
-            S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id, machine_run_id=req.machine_run_id
-        ):
+        if refusal is None and not set_up:
             refusal = AckCode.DB_BADUPD, "the Machine Server refused the change to Setup"
         if refusal is not None:
-            if accepted:
+            note = f"setup of run {req.machine_run_id} failed"
+            if set_up and not await self.change_status(S.IDLE, expect=[S.SETUP], note=note) and self.status == S.SETUP:
+                # Left in Setup: given up by the abandoned-setup watch once the lot has unreserved the run.
+                self.machine_run_id, self.recipe_id = req.machine_run_id, req.recipe_id
+            if accepted and self.status == S.IDLE:  # (not on a machine that went down meanwhile)
                 await self.set_accept_types(ALL_OPERATIONS)
             return refusal
         self.machine_run_id, self.recipe_id = req.machine_run_id, req.recipe_id

@@ -71,6 +71,7 @@ class WC(WCSteps):
         self._alarm_waits = {}
         self._cleared = set()  # alarm numbers seen cleared (a clear may beat our wait for it)
         self._alarm_pending = 0  # alarms of ours waiting for the operator: ME answers may take that long
+        self._set_up_for = None
         self._start_note: str | None = None  # why the last ME_START failed, for ME_Ready's note
         self._resuming = False  # a restarted WC checking its ME and its run: nothing served meanwhile
         self._setup_checked = 0.0  # when the run set up was last found reserved (or not) ...
