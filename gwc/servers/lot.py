@@ -83,6 +83,23 @@ def _new_lot_for(cur: Any, entity_id: int, old_lot: int) -> int:
     return lot_id
 
 
+def _move(
+    cur: Any, entity_id: int, to: LotState, came_from: frozenset[LotState], reason: str | None, keep: bool
+) -> Any:
+    """An entity (not destroyed) in one of `came_from` moves to `to`, in one statement: its lot_id, or None
+    if it was not in one of them (the caller reads why). `reason` replaces the old one, or only fills it
+    when `keep`."""
+    row = cur.execute(
+        "update lot_status s set state = %(to)s, updated_at = now(), "
+        + ("reason = coalesce(%(reason)s, s.reason) " if keep else "reason = %(reason)s ")
+        + "from (select s2.state from lot_status s2 join lot_entities e using (entity_id) "
+        "where s2.entity_id = %(e)s and e.destroyed_at is null for update of s2) old "
+        "where s.entity_id = %(e)s and old.state = any(%(from)s) returning s.lot_id",
+        {"to": to.value, "reason": reason, "e": entity_id, "from": [str(x) for x in came_from]},
+    ).fetchone()
+    return None if row is None else row[0]
+
+
 class LotServer(Server, Module):
     role = "ls"
 
@@ -315,7 +332,14 @@ class LotServer(Server, Module):
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "attach needs the script's pid")
         target, allowed = ACTIONS[req.action]
 
+        # A move to another state (the usual ENTITY_REQ) is one statement; the rest reads first.
+        movable = None if target is None or req.action == "destroy" else allowed - {target, L.EXPORTED}
+
         def step(cur: Any) -> tuple[str, int | None, LotState | None, str | None]:
+            if movable and target is not None:
+                lot_id = _move(cur, req.entity_id, target, movable, req.reason, keep=False)
+                if lot_id is not None:
+                    return AckCode.ACK_OK, lot_id, target, None
             row = cur.execute(
                 "select s.lot_id, s.state, e.destroyed_at from lot_status s "
                 "join lot_entities e using (entity_id) where s.entity_id = %s for update of s",
@@ -379,21 +403,17 @@ class LotServer(Server, Module):
         reason = f"held run {done} by {by}" if waiting == L.HELD else None
 
         def step(cur: Any) -> tuple[str, int | None, str | None]:
+            lot_id = _move(cur, req.entity_id, moved, frozenset({waiting}), reason, keep=True)
+            if lot_id is not None:
+                return AckCode.ACK_OK, lot_id, None
             row = cur.execute(
                 "select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
-                "where s.entity_id = %s and e.destroyed_at is null for update of s",
+                "where s.entity_id = %s and e.destroyed_at is null",
                 (req.entity_id,),
             ).fetchone()
             if row is None:
                 return AckCode.UNKNOWN, None, f"no entity {req.entity_id}"
-            if row[1] != waiting:
-                return AckCode.NOTNOW, row[0], f"entity {req.entity_id} is {row[1]}, not {waiting}"
-            cur.execute(
-                "update lot_status set state = %s, reason = coalesce(%s, reason), updated_at = now() "
-                "where entity_id = %s",
-                (moved.value, reason, req.entity_id),
-            )
-            return AckCode.ACK_OK, row[0], None
+            return AckCode.NOTNOW, row[0], f"entity {req.entity_id} is {row[1]}, not {waiting}"
 
         code, lot_id, note = self.transaction(step)
         await self.answer(conv, ack, code, note, lot_id=lot_id)

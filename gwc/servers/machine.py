@@ -46,24 +46,42 @@ TRANSITIONS: dict[MachineStatus, frozenset[MachineStatus]] = {
 }
 RUNNING = (S.RUNNING, S.RUN_SHUT)
 
+# One checked change, one statement: the row is locked and changed only if its status is one of %(from)s;
+# no row back: the status forbids it (or there is no such machine), which a second read tells.
 _UPDATE = """
-update machine_status set
+update machine_status s set
     status = %(status)s,
-    recipe_id = coalesce(%(recipe_id)s, recipe_id),
-    machine_run_id = coalesce(%(run)s, machine_run_id),
-    start_time = case when %(status)s in ('Running', 'Run_Shut') and status not in ('Running', 'Run_Shut')
+    recipe_id = coalesce(%(recipe_id)s, s.recipe_id),
+    machine_run_id = coalesce(%(run)s, s.machine_run_id),
+    start_time = case when %(status)s in ('Running', 'Run_Shut') and s.status not in ('Running', 'Run_Shut')
                           then now()
-                      when %(status)s = 'Setup' and status <> 'Setup' then null
-                      else start_time end,
-    end_time = case when %(status)s in ('Idle', 'Shutdown') and status in ('Running', 'Run_Shut') then now()
-                    when %(status)s in ('Setup', 'Running', 'Run_Shut') and status not in ('Running', 'Run_Shut')
+                      when %(status)s = 'Setup' and s.status <> 'Setup' then null
+                      else s.start_time end,
+    end_time = case when %(status)s in ('Idle', 'Shutdown') and s.status in ('Running', 'Run_Shut') then now()
+                    when %(status)s in ('Setup', 'Running', 'Run_Shut') and s.status not in ('Running', 'Run_Shut')
                         then null
-                    else end_time end,
+                    else s.end_time end,
     note = %(note)s,
     updated_at = now()
-where machine_id = %(machine_id)s
-returning machine_run_id
+from (select status from machine_status where machine_id = %(machine_id)s for update) old
+where s.machine_id = %(machine_id)s and old.status = any(%(from)s)
+returning old.status, s.machine_run_id
 """
+
+
+def _change(cur: Any, machine_id: str, status: MachineStatus, allowed: set[MachineStatus], **fields: Any) -> Any:
+    """(previous status, machine_run_id) if the machine was in an `allowed` status and is now `status`;
+    else (its status, None) or None (no such machine)."""
+    row = cur.execute(
+        _UPDATE,
+        {"recipe_id": None, "run": None, "note": None}
+        | fields
+        | {"status": status.value, "machine_id": machine_id, "from": [s.value for s in allowed]},
+    ).fetchone()
+    if row is not None:
+        return S(row[0]), row[1]
+    now = cur.execute("select status from machine_status where machine_id = %s", (machine_id,)).fetchone()
+    return None if now is None else (S(now[0]), None)
 
 
 @dataclass
@@ -169,16 +187,8 @@ class MachineServer(Server, Module):
         self.log.error("%s", note)
 
         def shut(cur: Any) -> tuple[str, int | None] | None:
-            row = cur.execute(
-                "select status from machine_status where machine_id = %s for update", (machine_id,)
-            ).fetchone()
-            if row is None or row[0] == S.SHUTDOWN:
-                return None
-            run = cur.execute(
-                _UPDATE,
-                {"status": S.SHUTDOWN.value, "recipe_id": None, "run": None, "note": note, "machine_id": machine_id},
-            ).fetchone()
-            return row[0], run[0]
+            row = _change(cur, machine_id, S.SHUTDOWN, set(S) - {S.SHUTDOWN}, note=note)
+            return None if row is None or row[0] == S.SHUTDOWN else row
 
         changed = self.transaction(shut)
         w.status = S.SHUTDOWN
@@ -219,28 +229,19 @@ class MachineServer(Server, Module):
                 f"status {req.status!r} or expect {req.expect!r} is not a machine status ({', '.join(S)})",
             )
 
+        reachable = {c for c in S if status in TRANSITIONS[c]}
+
         def step(cur: Any) -> tuple[MachineStatus, str | None, int | None] | None:
-            row = cur.execute(
-                "select status from machine_status where machine_id = %s for update", (req.machine_id,)
-            ).fetchone()
+            fields = {"recipe_id": req.recipe_id, "run": req.machine_run_id, "note": req.note}
+            row = _change(cur, req.machine_id, status, reachable & expect if expect else reachable, **fields)
             if row is None:
                 return None
-            current = S(row[0])
+            current, run = row
             if expect and current not in expect:
                 return current, f"machine {req.machine_id} is {current}, not {' or '.join(sorted(expect))}", None
             if status not in TRANSITIONS[current]:
                 return current, f"machine {req.machine_id} cannot go from {current} to {status}", None
-            run = cur.execute(
-                _UPDATE,
-                {
-                    "status": status.value,
-                    "recipe_id": req.recipe_id,
-                    "run": req.machine_run_id,
-                    "note": req.note,
-                    "machine_id": req.machine_id,
-                },
-            ).fetchone()
-            return current, None, run[0]
+            return current, None, run
 
         result = self.transaction(step)
         if result is None:

@@ -104,30 +104,25 @@ class RecipeServer(Server, Module):
         ack = Msg.RECIPE_REPLY
 
         def read(cur: Any) -> tuple[Any, ...]:
-            known = cur.execute("select 1 from recipes where recipe_id = %s", (req.recipe_id,)).fetchone()
-            row = cur.execute(
-                "select version, checksum, content from recipe_versions where recipe_id = %s and approved",
-                (req.recipe_id,),
+            # One statement (one round trip, not three): is the recipe known, its approved version, is it
+            # for this machine.
+            return cur.execute(
+                "select exists (select 1 from recipes where recipe_id = %(r)s), v.version, v.checksum, v.content, "
+                "%(m)s::text is null or exists (select 1 from op_machine_recipe where recipe_id = %(r)s "
+                "and machine_id = %(m)s) "
+                "from (select) one left join recipe_versions v on v.recipe_id = %(r)s and v.approved",
+                {"r": req.recipe_id, "m": req.machine_id},
             ).fetchone()
-            bound = (
-                req.machine_id is None
-                or cur.execute(
-                    "select 1 from op_machine_recipe where recipe_id = %s and machine_id = %s",
-                    (req.recipe_id, req.machine_id),
-                ).fetchone()
-            )
-            return bool(known), row, bool(bound)
 
-        known, row, bound = self.transaction(read)
+        known, version, checksum, original, bound = self.transaction(read)
         if not known:
             return await self.answer(conv, ack, AckCode.REC_INVAL, f"no recipe {req.recipe_id!r}")
-        if row is None:
+        if version is None:
             return await self.answer(conv, ack, AckCode.REC_INVAL, f"recipe {req.recipe_id} has no approved version")
         if not bound:
             return await self.answer(
                 conv, ack, AckCode.REC_INVAL, f"recipe {req.recipe_id} is not for machine {req.machine_id}"
             )
-        version, checksum, original = row
         data = self._file(req.recipe_id, version, bytes(original))
         if len(data) > MAX_RECIPE:
             return await self.answer(
