@@ -58,6 +58,8 @@ class EntityCore:
         self.product_id: str | None = None
         self.priority: int | None = None
         self.work_order_id: int | None = None
+        self.script_id: str | None = None  # LOT_SCRIPTS' row for the lot (read with it at open)
+        self.script_path: str | None = None
         self.result: str | None = None
         self._bus: BlockingBus | None = None
         self._conn: psycopg.Connection[Any] | None = None
@@ -71,6 +73,7 @@ class EntityCore:
         self._peer_left: dict[str, float] = {}  # bus peers that left -> when
         self._began: dict[tuple[str, int], tuple[float, int | None]] = {}  # (machine, run) -> when, its WC's inc
         self._requests: list[MachineRequest] = []  # asked for and not yet waited for
+        self._asked: list[MachineRequest] = []  # every request this process made
         self._groups = 0
         self._recipes: dict[tuple[str, str], str] = {}  # (machine, op type) -> recipe, read ahead (_read_recipes)
         self._moved: list[tuple[str, int | None]] = []
@@ -86,6 +89,9 @@ class EntityCore:
     def _db(self) -> psycopg.Connection[Any]:
         if self._conn is None or self._conn.closed:
             self._conn = db.connect(self.cfg, role="lot", log=self.log, attempts=1)  # _query asks again
+            # The entity only reads, one statement at a time: each its own transaction, one round trip
+            # (not BEGIN, the statement, COMMIT).
+            self._conn.autocommit = True
         return self._conn
 
     def _query(self, sql: str, *params: Any, within: float | None = None) -> list[tuple[Any, ...]]:
@@ -107,15 +113,18 @@ class EntityCore:
         return rows[0] if rows else None
 
     def _read_lot(self) -> None:
+        """The entity's lot, and its lot script (the lot's own, else its product's; None if neither names one)."""
         row = self._query_one(
-            "SELECT s.state, s.lot_id, l.product_id, l.priority, l.work_order_id FROM lot_status s "
-            "JOIN lots l USING (lot_id) WHERE s.entity_id = %s",
+            "SELECT s.state, s.lot_id, l.product_id, l.priority, l.work_order_id, ls.script_id, ls.path "
+            "FROM lot_status s JOIN lots l USING (lot_id) LEFT JOIN products p ON p.product_id = l.product_id "
+            "LEFT JOIN lot_scripts ls ON ls.script_id = coalesce(l.script_id, p.script_id) WHERE s.entity_id = %s",
             self.entity_id,
         )
         if row is None:
             raise LotError(f"unknown lot entity {self.entity_id}: the Lot Server has no LOT_STATUS row for it")
         self._set_state(row[0])
         self.lot_id, self.product_id, self.priority, self.work_order_id = row[1], row[2], row[3], row[4]
+        self.script_id, self.script_path = row[5], row[6]
 
     def read_state(self) -> str | None:
         """The entity's state in LOT_STATUS (None if the Lot Server has no row for it)."""
@@ -265,16 +274,22 @@ class EntityCore:
                 self._cond.wait(max(0.0, min(left, 0.5, next_poll - time.monotonic() if poll else 0.5)))
 
     def _wait_moved(self, action: str, states: Sequence[str], timeout: float) -> None:
-        """Wait for LOT_MOVED(action) for this entity, reading LOT_STATUS as a fallback."""
+        """Wait for LOT_MOVED(action) for this entity, reading LOT_STATUS as a fallback every POLL seconds
+        (not at every wake-up: every machine's news wakes a lot in the cell)."""
         deadline = time.monotonic() + timeout
         while True:
+            next_poll = time.monotonic() + POLL
             with self._cond:
-                for act, lot_id in self._moved:
-                    if act == action:
-                        if lot_id is not None:
-                            self.lot_id = lot_id
-                        return
-                self._cond.wait(min(POLL, max(0.0, deadline - time.monotonic())))
+                while True:
+                    for act, lot_id in self._moved:
+                        if act == action:
+                            if lot_id is not None:
+                                self.lot_id = lot_id
+                            return
+                    left = min(next_poll, deadline) - time.monotonic()
+                    if left <= 0:
+                        break
+                    self._cond.wait(left)
             state = self.read_state()
             if state in states:
                 return

@@ -182,7 +182,7 @@ class OperationEntity(EntityResume):
 
     def wait_for_import(self, timeout: float | None = None) -> None:
         """Ask to be imported and wait for the operator's IMPORT_LOT (Listing 1's wait_for_import)."""
-        state = self.read_state()
+        state = self.state  # read at open, and changed since only by our requests and the operator's moves
         if state in IMPORTED:
             self.log.info("entity %d already imported (%s)", self.entity_id, state)
         else:
@@ -197,13 +197,15 @@ class OperationEntity(EntityResume):
     def lot_completed(self, result: str | None = None) -> None:
         """Tell the Lot Server the lot's work here is done, with its result (Listing 1's lot_completed).
 
-        First every request of the entity still queued in MSCHED is cancelled: nothing may wait for
-        machines on behalf of a finished entity.
+        First every request of the entity that may still be queued in MSCHED is cancelled: nothing may
+        wait for machines on behalf of a finished entity. (A request MSCHED has ended, bound or refused,
+        needs no CANCEL_RE; a dead process's were cancelled when this one took the entity up.)
         """
-        if self.read_state() in (S.COMPLETED, S.WAITING_EXPORT):  # a restarted script: done before
+        if self.state in (S.COMPLETED, S.WAITING_EXPORT):  # a restarted script: done before
             self.log.info("entity %d completed already (%s)", self.entity_id, self.result)
             return
-        self._cancel_leftovers("before completing")
+        if self._may_be_queued():
+            self._cancel_leftovers("before completing")
         self.entity_request("completed", reason=result)
         self.result = result
         self.traveller.update(result=result or "completed")
@@ -212,7 +214,7 @@ class OperationEntity(EntityResume):
 
     def wait_for_export(self, timeout: float | None = None) -> None:
         """Ask to be exported and wait for the operator's EXPORT_LOT (Listing 1's wait_for_export)."""
-        state = self.read_state()
+        state = self.state
         if state != S.EXPORTED:
             if state != S.WAITING_EXPORT:
                 self.entity_request("export", reason=self.result)  # the Lot Server keeps it as the reason

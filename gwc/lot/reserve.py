@@ -44,6 +44,7 @@ class EntityReserve(EntityTalk):
         self._groups += 1  # unique per call (and per process: a restarted script's groups are new ones)
         request = MachineRequest(op_type, alts, f"{self.entity_id}.{os.getpid()}.{self._groups}")
         self._requests.append(request)
+        self._asked.append(request)
         for alt in alts:
             self._spawn(self._request(alt, priority if priority is not None else self.priority))
         self._read_recipes(op_type, {m for a in alts for m in a.machines})
@@ -217,6 +218,11 @@ class EntityReserve(EntityTalk):
             )
         self.log.info("unreserved %s (%s freed)", machine_id or "all machines", ack.freed)
         return int(ack.freed or 0)
+
+    def _may_be_queued(self) -> bool:
+        """Whether a request this process made may still wait in MSCHED's queue: an alternative whose end
+        MSCHED has not told (no Machine_Req_Comp, no refusal yet, or its conversation lost to an error)."""
+        return any(not a.done or a.error is not None for r in self._asked for a in r.alternatives)
 
     def _cancel_leftovers(self, when: str, request: MachineRequest | None = None) -> None:
         """Cancel the entity's requests still queued in MSCHED (all of them, or only `request`'s when

@@ -26,7 +26,6 @@ from pathlib import Path
 from types import FrameType, ModuleType
 from typing import NoReturn
 
-from gwc import db
 from gwc.agent import control as agent_control
 from gwc.cell import lot_proc, out_file, pid_file, process_env, spawn, write_pid_file
 from gwc.config import PROJECT_ROOT, Config, load_config
@@ -39,23 +38,14 @@ SWITCH_INTERVAL = 0.0005  # seconds
 PR_SET_NAME = 15  # prctl(2): the process's name in /proc/PID/comm, ps -e and top
 
 
-def script_of(cfg: Config, entity_id: int) -> tuple[str, Path]:
-    """The entity's lot script: (script_id, path), the lot's own script or else its product's."""
-    with db.connect(cfg, role="lot") as conn:
-        row = conn.execute(
-            "SELECT coalesce(l.script_id, p.script_id), ls.path FROM lot_status s JOIN lots l USING (lot_id) "
-            "LEFT JOIN products p ON p.product_id = l.product_id "
-            "LEFT JOIN lot_scripts ls ON ls.script_id = coalesce(l.script_id, p.script_id) "
-            "WHERE s.entity_id = %s",
-            (entity_id,),
-        ).fetchone()
-    if row is None:
-        raise LotError(f"unknown lot entity {entity_id}")
-    if row[0] is None or row[1] is None:
+def script_of(entity: OperationEntity) -> tuple[str, Path]:
+    """The entity's lot script: (script_id, path), the lot's own script or else its product's (read at open)."""
+    if entity.script_id is None or entity.script_path is None:
         raise LotError(
-            f"entity {entity_id}: its lot and product name no lot script (register one with `gwc script register`)"
+            f"entity {entity.entity_id}: its lot and product name no lot script "
+            "(register one with `gwc script register`)"
         )
-    return str(row[0]), resolve_path(str(row[1]))
+    return entity.script_id, resolve_path(entity.script_path)
 
 
 def resolve_path(path: str) -> Path:
@@ -171,7 +161,7 @@ def run_entity(cfg: Config, entity_id: int) -> int:
     sys.setswitchinterval(SWITCH_INTERVAL)
     try:
         with OperationEntity(cfg, entity_id, log) as entity:
-            script_id, path = script_of(cfg, entity_id)
+            script_id, path = script_of(entity)
             log.info("running lot script %s (%s)", script_id, path)
             entity.traveller.update(script_id=script_id)
             script = load_script(path)

@@ -683,8 +683,22 @@ def test_no_request_is_left_queued_for_a_finished_entity(fake: tuple[FakeCell, O
     cancels = [f for cls, f in cell.seen if cls == "CANCEL_RE"]
     assert cancels and cancels[0]["entity_id"] == 7
     assert cell.when("CANCEL_RE")[0] < cell.when("SETUP_RUN")[0]  # cancelled once the winner was taken
+    # MSCHED ended m1's request (REQ_CANCEL): nothing of the entity's can be queued, no second CANCEL_RE.
+    assert len(cancels) == 1 and cell.seen[-1][0] == "ENTITY_REQ" and cell.seen[-1][1]["action"] == "completed"
+
+
+def test_a_request_msched_may_still_hold_is_cancelled_before_the_lot_completes(
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
+    cell, entity = fake
+    cell.comp = {"m1": ("wait", None)}  # queued, never bound
+    with entity:
+        entity.wait_for_import()
+        entity.request_machines("dummy_op", [["m1"]])  # and the script completes without waiting for it
+        entity.lot_completed("PASS")
+    assert not cell.queued
     told = [(cls, f.get("action")) for cls, f in cell.seen if cls in ("CANCEL_RE", "ENTITY_REQ")]
-    assert told[-2:] == [("CANCEL_RE", None), ("ENTITY_REQ", "completed")]  # and once more before completing
+    assert told[-2:] == [("CANCEL_RE", None), ("ENTITY_REQ", "completed")]
 
 
 def test_progress_reports_do_not_hold_the_operation_up_and_a_refused_one_fails_the_next_step(
