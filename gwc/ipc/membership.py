@@ -4,17 +4,27 @@ port at sign-on and on a change, on the beat port every heartbeat) and lost by b
 from __future__ import annotations
 
 import collections
+import logging
 import time
 from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 from gwc.ipc.conversation import Peer
 from gwc.ipc.wire import Envelope
+from gwc.log import TRACE
 
 if TYPE_CHECKING:
     from gwc.ipc.bus import Bus
 
 MAX_GONE = 1024  # incarnations that said bye, remembered so that their late beats are ignored
+LOT = "lot:"  # lot scripts' bus names
+
+
+def _level(bus: Bus, name: str) -> int:
+    """How a peer's coming and going is logged: a note, but trace where a lot script is either end. Lot
+    scripts come and go with every lot: two lines per lot in every module's log, and a lot's own log
+    began with one per module on the bus (a fifth of a forked lot script's log lines and their CPU)."""
+    return TRACE if name.startswith(LOT) or bus.name.startswith(LOT) else logging.INFO
 
 
 class Membership:
@@ -68,9 +78,9 @@ class Membership:
             if peer is not None:
                 # The old process is gone. Listeners get the new Peer (its inc differs from the one they
                 # knew); msgs still waiting for the old one are acked by the new one and dropped as late.
-                bus.log.info("%s restarted (incarnation %x -> %x)", env.src, peer.inc, env.inc)
+                bus.log.log(_level(bus, env.src), "%s restarted (incarnation %x -> %x)", env.src, peer.inc, env.inc)
             else:
-                bus.log.info("%s joined the bus", env.src)
+                bus.log.log(_level(bus, env.src), "%s joined the bus", env.src)
             peer = Peer(env.src, env.inc, interest, now)
             self.peers[env.src] = peer
             for cb in self.bus.peer_listeners:
@@ -88,7 +98,7 @@ class Membership:
         peer = self.peers.pop(name, None)
         if peer is None:
             return
-        self.bus.log.info("%s left the bus (%s)", name, why)
+        self.bus.log.log(_level(self.bus, name), "%s left the bus (%s)", name, why)
         self.beats = {d: k for d, k in self.beats.items() if k[0] != name}
         if clean:
             self.gone[(name, peer.inc)] = None
