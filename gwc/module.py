@@ -35,7 +35,7 @@ import psycopg
 from gwc import db
 from gwc.config import Config, load_config
 from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, GwcError
-from gwc.ipc import catalogue
+from gwc.ipc import catalogue, eventloop
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
@@ -561,7 +561,7 @@ def run_module(
         return await module.run(start=start)
 
     try:
-        return asyncio.run(main())
+        return eventloop.run(main())
     except GwcError as e:
         log.error("fatal: %s", e)
         print(f"gwc: {name}: {e}", file=sys.stderr)

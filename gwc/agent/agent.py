@@ -41,6 +41,7 @@ from gwc.agent.states import LIVE, ProcessState
 from gwc.cell import cell_procs, hold_startup, lot_proc, pid_file, read_pid, spawn_process, write_pid_file
 from gwc.config import Config
 from gwc.errors import ConfigError, GwcError, ModuleError
+from gwc.ipc import eventloop
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.names import Conv, Msg
@@ -559,7 +560,7 @@ def _names(cfg: Config, child: Child, pid: int) -> bool:
 
 def run_agent(cfg: Config, log: logging.Logger, host: str | None = None) -> int:
     """`gwc agent`: supervise this host's modules until SIGTERM (which stops them) or `gwc stop`."""
-    return asyncio.run(Agent(cfg, log, host).run())
+    return eventloop.run(Agent(cfg, log, host).run())
 
 
 __all__ = ["Agent", "Policy", "agent_name", "run_agent", "systemd_unit"]

@@ -41,7 +41,7 @@ from gwc import netns
 from gwc.bench import cpu_s, summary
 from gwc.config import BusConfig
 from gwc.errors import GwcError
-from gwc.ipc import auth, keys, wire
+from gwc.ipc import auth, eventloop, keys, wire
 from gwc.ipc.auth import Guard
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import message
@@ -428,7 +428,7 @@ def run(
     if pin:
         _pin(0)
     try:
-        raw = asyncio.run(_measure(cfgs, {mode: p.pid for mode, p in servers.items()}, n, window))
+        raw = eventloop.run(_measure(cfgs, {mode: p.pid for mode, p in servers.items()}, n, window))
         for server in servers.values():
             server.wait(10)
     finally:
@@ -531,9 +531,9 @@ def _main() -> None:
     if args.pin:
         _pin(1)
     if args.serve == "bus":
-        asyncio.run(_serve_bus(cfg))
+        eventloop.run(_serve_bus(cfg))
     elif args.serve == "asyncio":
-        asyncio.run(_serve_asyncio(cfg))
+        eventloop.run(_serve_asyncio(cfg))
     else:
         _serve_bare(cfg)
 

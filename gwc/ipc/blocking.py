@@ -11,6 +11,7 @@ from collections.abc import Callable, Coroutine, Iterable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from gwc.config import BusConfig
+from gwc.ipc import eventloop
 from gwc.ipc.catalogue import Message
 from gwc.ipc.conversation import DEFAULT, Batch, Conversation, Peer
 from gwc.ipc.transport import Transport
@@ -35,7 +36,7 @@ class BlockingBus:
         interest: Iterable[str] = (),
         transport: Transport | None = None,
     ) -> None:
-        self._loop = asyncio.new_event_loop()
+        self._loop = eventloop.new_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name=f"bus-{name}", daemon=True)
         self._thread.start()
         self.bus: Bus = self.run(self._make(name, cfg, log, interest, transport))

@@ -83,9 +83,10 @@ class Outgoing:
         return self.unsettled[0][0] if self.unsettled else self.next_idx
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Batch:
-    """Messages delivered together: a first message and the `more` that followed it."""
+    """Messages delivered together: a first message and the `more` that followed it (a value: not
+    frozen only because a frozen dataclass's __init__ costs several times a plain one's)."""
 
     sender: str
     messages: tuple[Message, ...]
