@@ -201,9 +201,10 @@ class Bus:
 
     async def start(self, cls: str, *messages: Message, to: str | None = None) -> Conversation:
         """Open a conversation and send its first batch (broadcast to listeners of cls, or to one module)."""
-        if cls not in catalogue.CONVERSATION_CLASSES:
+        spec = catalogue.CONVERSATION_CLASSES.get(cls)
+        if spec is None:
             raise MessageError(f"unknown conversation class {cls!r}")
-        conv = Conversation(self, self._new_conv_id(), cls, self.name)
+        conv = Conversation(self, self._new_conv_id(), spec.name, self.name)  # a str, not a Conv member
         conv.peer = to
         self._convs[conv.id] = conv
         try:
@@ -341,7 +342,7 @@ class Bus:
         if waiting:
             batch = [start, n]
             if out.unsettled is None:
-                out.unsettled = collections.deque((batch,))
+                out.unsettled = [batch]
             else:
                 out.unsettled.append(batch)
             now = time.monotonic()
@@ -454,7 +455,7 @@ class Bus:
             if out is not None and out.unsettled:
                 unsettled = out.unsettled
                 while unsettled and not unsettled[0][1]:
-                    unsettled.popleft()
+                    del unsettled[0]
                 if not unsettled:
                     out.unsettled = None
         if not self._pending and self._flushed is not None and not self._flushed.done():

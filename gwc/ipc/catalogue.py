@@ -438,7 +438,7 @@ def message(name: str, **fields: Any) -> Message:
         raise MessageError(f"unknown message class {name!r}")
     values = {k: v for k, v in fields.items() if v is not None}
     mc.check(values)
-    return Message(name, values)
+    return Message(mc.name, values)  # the catalogue's own str, not a Msg member: hashed on every send
 
 
 # (conversation class, message class) -> the message class: one lookup for every message received.

@@ -108,6 +108,18 @@ def _tagged(data: bytes, o: int, n: int, expected: int) -> str | None:
     return name
 
 
+_U64S: dict[int, struct.Struct] = {}  # "!nQ" per count n of acks met: up to the 1000 a sender puts in one
+
+
+def _u64s(n: int) -> struct.Struct:
+    s = _U64S.get(n)
+    if s is None:
+        s = struct.Struct(f"!{n}Q")
+        if n <= 1000:
+            _U64S[n] = s
+    return s
+
+
 def _encoded(name: str) -> tuple[bytes, int]:
     got = _ENCODED.get(name)
     if got is None:
@@ -233,7 +245,7 @@ def encode_parts(
         if acks:
             if 0 in acks:
                 raise MessageError("acks must be positive integers")
-            parts.append(struct.pack(f"!{len(acks)}Q", *acks))
+            parts.append(_u64s(len(acks)).pack(*acks))
         if interest:
             for cl in interest:
                 name = cl.encode()
@@ -318,7 +330,7 @@ def decode(data: bytes) -> Envelope:
         msg = (names.get(b) or _decoded(b))[0]
         acks: tuple[int, ...] = ()
         if na:
-            acks = struct.unpack_from(f"!{na}Q", data, e)
+            acks = _u64s(na).unpack_from(data, e)
             e += 8 * na
             if 0 in acks:
                 raise MessageError("acks must be positive integers")
