@@ -103,6 +103,8 @@ CLOSED: Any = object()  # put in inboxes when the bus closes, so every waiter fa
 class Conversation:
     """One conversation as seen by one module: send into it, wait for the other side's messages."""
 
+    __slots__ = ("_idx", "_inbox", "_waiter", "bus", "cls", "ended", "first", "id", "initiator", "peer")
+
     def __init__(self, bus: Bus, conv_id: str, cls: str, initiator: str, first: Batch | None = None) -> None:
         self.bus = bus
         self.id = conv_id

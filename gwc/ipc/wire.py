@@ -81,7 +81,8 @@ def tag(name: str | bytes) -> int:
 # The few names a module meets (modules, classes) recur on every datagram: their encodings and tags are
 # remembered, not recomputed. Bounded, since names come from the network: emptied when full.
 _MAX_CACHED = 4096
-_DECODED: dict[bytes, tuple[str, int]] = {}  # UTF-8 -> (name, tag)
+_NONE = {b"": ("", 0)}  # no name: tag 0
+_DECODED: dict[bytes, tuple[str, int]] = dict(_NONE)  # UTF-8 -> (name, tag)
 _ENCODED: dict[str, tuple[bytes, int]] = {}  # name -> (UTF-8, tag)
 
 
@@ -91,21 +92,9 @@ def _decoded(b: bytes) -> tuple[str, int]:
         got = (b.decode(), zlib.crc32(b) | 1)
         if len(_DECODED) >= _MAX_CACHED:
             _DECODED.clear()
+            _DECODED.update(_NONE)
         _DECODED[b] = got
     return got
-
-
-def _tagged(data: bytes, o: int, n: int, expected: int) -> str | None:
-    """The name of n bytes at o whose filter tag must be `expected` (0 and no name: None)."""
-    if not n:
-        if expected:
-            raise MessageError("a filter tag does not match its name")
-        return None
-    b = data[o : o + n]
-    name, t = _DECODED.get(b) or _decoded(b)
-    if t != expected:
-        raise MessageError("a filter tag does not match its name")
-    return name
 
 
 _U64S: dict[int, struct.Struct] = {}  # "!nQ" per count n of acks met: up to the 1000 a sender puts in one
@@ -319,13 +308,19 @@ def decode(data: bytes) -> Envelope:
             raise MessageError("truncated datagram")
         if b"\0" in data[_BODY:e]:
             raise MessageError("a name holds a NUL byte")
-        src = _tagged(data, _BODY, ls, src_tag) or ""
+        # Names through the cache (the empty name is in it, with tag 0); each tag must match its name.
+        b = data[_BODY:o]
+        src, t1 = names.get(b) or _decoded(b)
         conv = data[o : o + lc].decode()
         o += lc
-        cls = _tagged(data, o, lk, cls_tag) or ""
+        b = data[o : o + lk]
+        cls, t2 = names.get(b) or _decoded(b)
         o += lk
-        to = _tagged(data, o, lt, to_tag)
+        b = data[o : o + lt]
+        to, t3 = names.get(b) or _decoded(b)
         o += lt
+        if t1 != src_tag or t2 != cls_tag or t3 != to_tag:
+            raise MessageError("a filter tag does not match its name")
         b = data[o:e]
         msg = (names.get(b) or _decoded(b))[0]
         acks: tuple[int, ...] = ()
@@ -380,7 +375,7 @@ def decode(data: bytes) -> Envelope:
         more,
         part,
         base,
-        to,
+        to or None,
         msg,
         fields,
         acks,
