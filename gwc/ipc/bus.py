@@ -201,6 +201,10 @@ class Bus:
 
     async def start(self, cls: str, *messages: Message, to: str | None = None) -> Conversation:
         """Open a conversation and send its first batch (broadcast to listeners of cls, or to one module)."""
+        return self._start(cls, messages, to)
+
+    def _start(self, cls: str, messages: tuple[Message, ...], to: str | None) -> Conversation:
+        """start() without its coroutine (request() calls it on every round trip)."""
         spec = catalogue.CONVERSATION_CLASSES.get(cls)
         if spec is None:
             raise MessageError(f"unknown conversation class {cls!r}")
@@ -218,7 +222,7 @@ class Bus:
         self, cls: str, *messages: Message, to: str | None = None, timeout: float | None = None
     ) -> tuple[Conversation, Batch]:
         """Open a conversation and wait for the first answer."""
-        conv = await self.start(cls, *messages, to=to)
+        conv = self._start(cls, messages, to)
         try:
             return conv, await conv.next_message(timeout)
         except BaseException:
