@@ -60,6 +60,24 @@ class Outcome:
         return cls(int(key), int(entity), code, tuple(machines), run_id, note, reply_to, reply_conv)
 
 
+# Chg_Accept_Type in one statement (it was four or five round trips, twice a lot): the machine known, the
+# op types wanted (all of the machine's recipes', or those named, each known), and only then the
+# accept types made so; what was added triggers a scheduling pass.
+_ACCEPT = """
+with machine as (select 1 from me_config where machine_id = %(m)s),
+wanted as (select r.op_type from op_machine_recipe r where %(all)s and r.machine_id = %(m)s
+           union select t.op_type from op_types t where not %(all)s and t.op_type = any(%(types)s)),
+unknown as (select u from unnest(%(types)s::text[]) u where u not in (select op_type from wanted)),
+ok as (select 1 from machine where not exists (select 1 from unknown)),
+gone as (delete from accept_types a where a.machine_id = %(m)s and exists (select 1 from ok)
+         and a.op_type not in (select op_type from wanted)),
+added as (insert into accept_types (machine_id, op_type) select %(m)s, op_type from wanted
+          where exists (select 1 from ok) on conflict do nothing returning 1)
+select exists (select 1 from machine), array(select distinct u from unknown order by u),
+       array(select op_type from wanted order by op_type), (select count(*) from added)
+"""
+
+
 @dataclass(frozen=True)
 class Queued:
     """The answer to a Machine_Request: ACK_OK with its request_key, or why not."""
@@ -203,34 +221,16 @@ class Step:
 
     def set_accept_types(self, machine_id: str, op_types: Sequence[str]) -> tuple[str, str]:
         """Chg_Accept_Type: what the machine accepts from now on (['*'] = all it has recipes for)."""
-        cur = self.cur
-        if cur.execute("select 1 from me_config where machine_id = %s", (machine_id,)).fetchone() is None:
+        every = list(op_types) == ["*"]
+        row = self.cur.execute(_ACCEPT, {"m": machine_id, "all": every, "types": [] if every else list(op_types)})
+        known, unknown, wanted, added = row.fetchone() or (False, [], [], 0)
+        if not known:
             return AckCode.UNKNOWN, f"machine {machine_id} does not exist (ME_CONFIG)"
-        if list(op_types) == ["*"]:
-            wanted = {
-                r[0]
-                for r in cur.execute(
-                    "select distinct op_type from op_machine_recipe where machine_id = %s", (machine_id,)
-                )
-            }
-        else:
-            wanted = set(op_types)
-            known = {r[0] for r in cur.execute("select op_type from op_types where op_type = any(%s)", (list(wanted),))}
-            if wanted - known:
-                return AckCode.UNKNOWN, f"op type(s) {', '.join(sorted(wanted - known))} not known"
-        old = {r[0] for r in cur.execute("select op_type from accept_types where machine_id = %s", (machine_id,))}
-        if old - wanted:
-            cur.execute(
-                "delete from accept_types where machine_id = %s and op_type = any(%s)",
-                (machine_id, sorted(old - wanted)),
-            )
-        if wanted - old:
-            cur.execute(
-                "insert into accept_types (machine_id, op_type) select %s, unnest(%s::text[])",
-                (machine_id, sorted(wanted - old)),
-            )
+        if unknown:
+            return AckCode.UNKNOWN, f"op type(s) {', '.join(unknown)} not known"
+        if added:
             self.triggers.add(machine_id)
-        return AckCode.ACK_OK, f"{machine_id} accepts {', '.join(sorted(wanted)) or 'nothing'}"
+        return AckCode.ACK_OK, f"{machine_id} accepts {', '.join(wanted) or 'nothing'}"
 
     def machine_up(self, machine_id: str) -> None:
         """Update_ME_Status to an up status: the machine may serve someone now."""

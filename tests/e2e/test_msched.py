@@ -293,6 +293,8 @@ def test_accept_type_change(make_cell: Any) -> None:
     assert accept(cell, "wc1", ["nosuch_op"]).ack_code == AckCode.UNKNOWN
     assert accept(cell, "wc1", [7]).ack_code == AckCode.BAD_MESSAGE  # type: ignore[list-item]
     assert accept(cell, "wc1", ["measure"]).ack_code == AckCode.ACK_OK
+    assert accept(cell, "wc1", ["dummy_op", "nosuch_op"]).ack_code == AckCode.UNKNOWN  # and changes nothing
+    assert cell.query("select op_type from accept_types where machine_id = 'wc1'") == [("measure",)]
     r = request(cell, 1, "wc1", op_type="dummy_op")
     wait_queued(cell, 1)  # wc1 accepts only measure
     assert accept(cell, "wc1", []).ack_code == AckCode.ACK_OK
