@@ -254,7 +254,10 @@ class Msched(Module):
         if m.status == MachineStatus.SHUTDOWN:
             n = await self._submit(lambda s: s.machines_down())
             self.log.info("machine %s shut down: %d request(s) left the queue", m.machine_id, n)
-        elif m.status in store.UP:
+        elif m.status in store.UP and m.previous not in store.UP:
+            # Only a machine coming up may serve someone now: Idle, Setup and Running are all up, and a
+            # move between them (three a run) changes nothing the pass looks at. What does change in a
+            # run, its accept types and its reservation, comes as its own conversation and pass.
             await self._submit(lambda s: s.machine_up(m.machine_id))
 
     async def accept_type_change(self, conv: Conversation) -> None:
