@@ -59,7 +59,14 @@ def config_doc(
         database["settings"] = db_settings
     return {
         "cell": {"name": "private", "var": str(var), "policy": policy},
-        "bus": {**bus, **({"faults": faults} if faults else {})},
+        # The keys named, not left to var: a process given another GWC_VAR (a console a bench opens on
+        # this cell) still signs with this cell's key.
+        "bus": {
+            "key_file": str(var / "secrets" / "cell.key"),
+            "lot_key_file": str(var / "secrets" / "lot.key"),
+            **bus,
+            **({"faults": faults} if faults else {}),
+        },
         "database": database,
         "log": {"level": "note"},
         "module": [{"name": m} for m in SERVER_MODULES],

@@ -56,3 +56,25 @@ def test_bench_cell_runs_lots_and_a_death_trial_and_reports_them(tmp_path: Path,
     assert 0 <= result["idle_cpu_percent"] < 100
     assert result["check_held"] is True, result["check_breaches"]
     assert not list((tmp_path / "bench" / "run").glob("*.pid"))  # the bench stopped its cell
+
+
+@pytest.mark.timeout(300)
+def test_bench_console_compares_the_cell_with_and_without_a_console(tmp_path: Path, database_url: str) -> None:
+    """`gwc bench console`: ABBA rounds on a real cell, the console in tmux; each side's figures reported."""
+    env = dict(os.environ, GWC_DATABASE_URL=database_url, GWC_VAR=str(tmp_path / "var"))
+    r = subprocess.run(
+        [sys.executable, "-m", "gwc", "bench", "console", "--machines", "2", "--lots", "5", "--pairs", "1"]
+        + ["--dir", str(tmp_path / "bench"), "--json"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=280,
+    )
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    result = json.loads(r.stdout)
+    assert [r["console"] for r in result["rounds"]] == [False, True]  # one pair: without, then with
+    without, with_console = result["median_without_console"], result["median_with_console"]
+    assert without["lots_per_s"] > 0 and with_console["lots_per_s"] > 0
+    assert without["console_cpu_ms_per_lot"] == 0 < with_console["console_cpu_ms_per_lot"]  # it found the console
+    assert with_console["cell_cpu_ms_per_lot"] > 0
+    assert result["check_held"] is True, result["check_breaches"]
