@@ -105,17 +105,37 @@ def fork_lot_script(cfg: Config, entity_id: int) -> Forked:
     out = os.open(out_file(cfg, proc.name), os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
     for stream in (sys.stdout, sys.stderr):  # nothing of ours written twice, once by the child
         stream.flush()
+    inherited = open_files()
     try:
         pid = os.fork()
         if pid == 0:
-            _forked(cfg, entity_id, out)
+            _forked(cfg, entity_id, out, inherited)
     finally:
         os.close(out)
     write_pid_file(cfg, proc.name, pid, proc.argv)
     return Forked(pid)
 
 
-def _forked(cfg: Config, entity_id: int, out: int) -> NoReturn:
+def open_files() -> dict[int, str]:
+    """This process's file descriptors and what each is open on (/proc/self/fd: a path, socket:[inode] ...)."""
+    files = {}
+    for fd in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(OSError):  # the listing's own descriptor, gone already
+            files[int(fd)] = os.readlink(f"/proc/self/fd/{fd}")
+    return files
+
+
+def shed(inherited: dict[int, str]) -> None:
+    """Close every descriptor above stderr that is still what the parent had open (`inherited`): its
+    sockets, pidfds, lock and loop. Not a blanket close: a fork handler may have opened descriptors
+    of the child's own, and libuv's does (the agent's loop is uvloop's: its signal lock pipe is made
+    anew in the child, at the same numbers); closed, libuv would read and write whatever reused them."""
+    for fd, what in open_files().items():
+        if fd > 2 and inherited.get(fd) == what:
+            os.close(fd)
+
+
+def _forked(cfg: Config, entity_id: int, out: int, inherited: dict[int, str]) -> NoReturn:
     """The forked child: shed what it inherited, run the entity, exit without returning into the parent's code."""
     code = 1
     try:
@@ -133,7 +153,8 @@ def _forked(cfg: Config, entity_id: int, out: int) -> NoReturn:
         os.dup2(null, 0)
         os.dup2(out, 1)
         os.dup2(out, 2)
-        os.closerange(3, os.sysconf("SC_OPEN_MAX"))  # the parent's sockets, pidfds, lock and loop
+        os.close(null)
+        shed(inherited)  # `out` with the rest
         os.environ.update(process_env(cfg))
         os.chdir(cfg.var)
         code = run_entity(cfg, entity_id)

@@ -222,6 +222,8 @@ def forked_by_the_agent(cfg: Any, pid: int, entity: int) -> None:
     named lot:E, holding nothing of the agent's (its lock, its sockets): a new agent can take over."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     assert (int(fields[1]), int(fields[3])) == (agent_pid(cfg), pid), fields[:4]
+    # A fork copies only the thread that forks: the agent must run none besides (fork_lot_script).
+    assert len(list(Path(f"/proc/{agent_pid(cfg)}/task").iterdir())) == 1, "the agent runs a thread"
     assert Path(f"/proc/{pid}/comm").read_text().strip() == f"lot:{entity}"
 
     def fds(of: int) -> set[str]:  # files by path, sockets by inode (an epoll or pidfd has no identity here)
