@@ -4,7 +4,9 @@ against the machine's status and done under the state lock (see gwc/wc/wc.py).""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
+import secrets
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 
@@ -205,11 +207,17 @@ class WCSteps(WCDevice):
         digest = hashlib.sha256(reply.content.encode()).hexdigest()
         if digest != reply.checksum:
             return None, f"recipe {recipe_id} v{reply.version} checksum mismatch: the recipe was modified"
-        self.recipe_dir.mkdir(parents=True, exist_ok=True)
         path = self.recipe_dir / f"{recipe_id}.v{reply.version}"
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(reply.content)
-        tmp.replace(path)
+        # A name of its own: the fetch runs before the state lock, so two setups' fetches may overlap.
+        tmp = path.with_name(f"{path.name}.{secrets.token_hex(4)}.tmp")
+        try:
+            self.recipe_dir.mkdir(parents=True, exist_ok=True)
+            tmp.write_text(reply.content)
+            tmp.replace(path)
+        except OSError as e:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            return None, f"recipe {recipe_id} v{reply.version} not written to {path}: {e}"
         return path, ""
 
     async def start_run(self, conv: Conversation) -> None:
