@@ -281,9 +281,10 @@ class Bus:
     def _end(self, conv: Conversation) -> None:
         if self._convs.get(conv.id) is conv:
             del self._convs[conv.id]
-        self._ended[conv.id] = None
-        while len(self._ended) > MAX_REMEMBERED:
-            self._ended.popitem(last=False)
+        if conv.initiator != self.name:  # ours are known ended by their id (_is_ended): not remembered
+            self._ended[conv.id] = None
+            while len(self._ended) > MAX_REMEMBERED:
+                self._ended.popitem(last=False)
 
     def _is_ended(self, conv_id: str) -> bool:
         """A conversation we took part in and ended, or one opened by us (now or in an earlier incarnation)."""
