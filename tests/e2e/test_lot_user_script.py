@@ -139,27 +139,34 @@ def test_a_wc_frozen_past_the_runs_bound_the_scripts_decision_is_taken_logged_an
 def test_a_run_whose_wc_died_before_announcing_it_counts_from_its_stored_outcome(lot_cell: Any, tmp_path: Path) -> None:
     # The Mazak's WC stores the run's results and outcome, then dies before its Run_Complete goes
     # out: no RUN_COMPL ever comes, but MACHINE_RUN_OUTCOME holds the outcome, so the pawn is not
-    # milled a second time on the other mill.
+    # milled a second time on the other mill. The WC announces the run as soon as its commit returns,
+    # so the test holds that commit: a deferred trigger sleeps in it, the WC is killed meanwhile, and
+    # the server finishes the commit of a client that is gone.
     cell, pawn = milling_on_the_mazak(lot_cell, tmp_path, run_time=4.0)
-    ms = cell.pid("ms")
-    assert ms is not None
-    os.kill(ms, signal.SIGSTOP)  # the Machine Server holds the WC's change to Idle until it is dead
+    run = mazak_run(cell)
+    with cell.db() as conn:
+        conn.execute(
+            "CREATE FUNCTION hold_commit() RETURNS trigger LANGUAGE plpgsql AS $$ BEGIN "
+            "PERFORM pg_sleep(3); RETURN NULL; END $$"
+        )
+        conn.execute(
+            "CREATE CONSTRAINT TRIGGER hold_commit AFTER INSERT ON machine_run_outcome DEFERRABLE INITIALLY "
+            "DEFERRED FOR EACH ROW WHEN (NEW.machine_id = 'mazak') EXECUTE FUNCTION hold_commit()"
+        )
     try:
-        ((status, run),) = cell.query("SELECT status, machine_run_id FROM machine_status WHERE machine_id = 'mazak'")
-        assert status == "Running", "the run ended before the Machine Server was stopped: the test proves nothing"
         wait_for(
-            lambda: (
-                cell.query(
-                    "SELECT ack_code FROM machine_run_outcome WHERE machine_id = 'mazak' AND machine_run_id = %s", run
-                )
-                == [("ACK_OK",)]
-            ),
+            lambda: cell.query(
+                "SELECT count(*) FROM pg_stat_activity WHERE datname = current_database() AND wait_event = 'PgSleep'"
+            )[0][0],
             20,
-            "the run's stored outcome",
+            "the WC's commit of the outcome, held",
         )
         cell.kill("wc", "mazak")
+        wait_for(lambda: outcome(cell, "mazak", run) == [("ACK_OK",)], 20, "the outcome, committed after the WC died")
     finally:
-        os.kill(ms, signal.SIGCONT)
+        with cell.db() as conn:
+            conn.execute("DROP TRIGGER hold_commit ON machine_run_outcome")
+            conn.execute("DROP FUNCTION hold_commit()")
     import_export_all(cell, [pawn], timeout=40)
 
     st, reason = state(cell, pawn)
