@@ -30,6 +30,7 @@ from gwc.ipc import wire
 RCVBUF = 4 * 1024 * 1024
 IP_MULTICAST_ALL = 49  # Linux's value, for Pythons whose socket module does not name it
 SO_ATTACH_FILTER = getattr(socket, "SO_ATTACH_FILTER", 26)  # Linux's value
+READ_BURST = 64  # datagrams read per wake-up before timers and tasks get their turn
 
 Handler = Callable[[bytes], None]
 
@@ -168,22 +169,23 @@ class UdpTransport(Transport):
                 yield data
 
     def _readable(self) -> None:
-        """The socket has a datagram: take one, unless it is our own. One a wake-up: the loop polls the
-        socket again anyway, and a read to find the socket empty (an exception) cost more than that poll."""
-        sock, handle = self._sock, self._handler
+        """The socket has datagrams: take up to READ_BURST (then let timers and tasks run), skip our own.
+        Not one a wake-up: a module that takes what came in one turn at once (MSCHED: one scheduling
+        pass for every request that came) would do that once a datagram (2,300 -> 1,070 decisions/s)."""
+        sock, buf, view, own, handle = self._sock, self._buf, self._view, self._own, self._handler
         if sock is None or handle is None:
             return
-        try:
-            n, self.source = sock.recvfrom_into(self._buf)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError as e:
-            self.log.warning("bus socket error: %s", e)
-            return
-        own = self._own
-        if n >= len(own) and self._buf.startswith(own):
-            return  # our own datagram, looped back by the group
-        handle(bytes(self._view[:n]))
+        for _ in range(READ_BURST):
+            try:
+                n, self.source = sock.recvfrom_into(buf)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as e:
+                self.log.warning("bus socket error: %s", e)
+                return
+            if n >= len(own) and buf.startswith(own):
+                continue  # our own datagram, looped back by the group
+            handle(bytes(view[:n]))
 
     def close(self) -> None:
         if self._sock is not None:
