@@ -144,7 +144,7 @@ def spawn_process(
     The caller is its parent: the agent keeps the Popen to reap it; a command that exits leaves it to init."""
     cfg.run_dir.mkdir(parents=True, exist_ok=True)
     cfg.log_dir.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, **process_env(cfg), **(extra_env or {}))
+    env = {**os.environ, **process_env(cfg), **(extra_env or {})}  # extra_env may name GWC_CONFIG again: it wins
     with open(out_file(cfg, proc.name), "ab") as out:
         child = subprocess.Popen(
             proc.argv,
