@@ -8,41 +8,44 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 
-@pytest.mark.timeout(600)
-def test_bench_cell_runs_lots_and_a_death_trial_and_reports_them(tmp_path: Path, database_url: str) -> None:
+def bench(tmp_path: Path, database_url: str, *args: str, timeout: float) -> dict[str, Any]:
+    """`gwc bench ARGS --dir ... --json` on the session's database; its JSON once it exited 0."""
     env = dict(os.environ, GWC_DATABASE_URL=database_url, GWC_VAR=str(tmp_path / "var"))
     r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "gwc",
-            "bench",
-            "cell",
-            "--machines",
-            "2",
-            "--lots",
-            "6",
-            "--solo",
-            "3",
-            "--deaths",
-            "1",
-            "--idle",
-            "2",
-            "--dir",
-            str(tmp_path / "bench"),
-            "--json",
-        ],
+        [sys.executable, "-m", "gwc", "bench", *args, "--dir", str(tmp_path / "bench"), "--json"],
         env=env,
         capture_output=True,
         text=True,
-        timeout=540,
+        timeout=timeout,
     )
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    result = json.loads(r.stdout)
+    result: dict[str, Any] = json.loads(r.stdout)
+    return result
+
+
+@pytest.mark.timeout(600)
+def test_bench_cell_runs_lots_and_a_death_trial_and_reports_them(tmp_path: Path, database_url: str) -> None:
+    result = bench(
+        tmp_path,
+        database_url,
+        "cell",
+        "--machines",
+        "2",
+        "--lots",
+        "6",
+        "--solo",
+        "3",
+        "--deaths",
+        "1",
+        "--idle",
+        "2",
+        timeout=540,
+    )
     assert result["lots"] == 6 and result["failed"] == 0
     assert result["lots_per_s"] > 0
     assert result["loaded_overhead_ms"]["n"] == 6
@@ -61,17 +64,7 @@ def test_bench_cell_runs_lots_and_a_death_trial_and_reports_them(tmp_path: Path,
 @pytest.mark.timeout(300)
 def test_bench_console_compares_the_cell_with_and_without_a_console(tmp_path: Path, database_url: str) -> None:
     """`gwc bench console`: ABBA rounds on a real cell, the console in tmux; each side's figures reported."""
-    env = dict(os.environ, GWC_DATABASE_URL=database_url, GWC_VAR=str(tmp_path / "var"))
-    r = subprocess.run(
-        [sys.executable, "-m", "gwc", "bench", "console", "--machines", "2", "--lots", "5", "--pairs", "1"]
-        + ["--dir", str(tmp_path / "bench"), "--json"],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=280,
-    )
-    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    result = json.loads(r.stdout)
+    result = bench(tmp_path, database_url, "console", "--machines", "2", "--lots", "5", "--pairs", "1", timeout=280)
     assert [r["console"] for r in result["rounds"]] == [False, True]  # one pair: without, then with
     without, with_console = result["median_without_console"], result["median_with_console"]
     assert without["lots_per_s"] > 0 and with_console["lots_per_s"] > 0
