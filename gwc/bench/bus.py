@@ -130,20 +130,21 @@ def _serve_bare(cfg: BusConfig) -> None:
             return
 
 
-def _reader(sock: socket.socket, on_datagram: Any) -> Any:
-    """A loop.add_reader callback handing each datagram to on_datagram: the way the bus reads its socket
-    (asyncio's datagram transport allocates 256 KiB per datagram, which the bus does not pay either)."""
-    buf = bytearray(2048)
+class _Reader(asyncio.DatagramProtocol):
+    """Hands each datagram the loop reads to on_datagram: the way the bus reads its socket
+    (gwc/ipc/transport.py), so that this mode shows what the loop costs and nothing else."""
 
-    def readable() -> None:
-        while True:
-            try:
-                n = sock.recv_into(buf)
-            except (BlockingIOError, InterruptedError):
-                return
-            on_datagram(bytes(buf[:n]))
+    def __init__(self, on_datagram: Any) -> None:
+        self.on_datagram = on_datagram
 
-    return readable
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        self.on_datagram(data)
+
+
+async def _endpoint(sock: socket.socket, on_datagram: Any) -> asyncio.DatagramTransport:
+    """The loop reading `sock` (which it owns from here: closing the endpoint closes it)."""
+    endpoint, _ = await asyncio.get_running_loop().create_datagram_endpoint(lambda: _Reader(on_datagram), sock=sock)
+    return endpoint
 
 
 async def _serve_asyncio(cfg: BusConfig) -> None:
@@ -159,12 +160,11 @@ async def _serve_asyncio(cfg: BusConfig) -> None:
         elif data[:1] == b"X" and not done.done():
             done.set_result(None)
 
-    loop.add_reader(sock.fileno(), _reader(sock, on_datagram))
+    endpoint = await _endpoint(sock, on_datagram)
     try:
         await done
     finally:
-        loop.remove_reader(sock.fileno())
-        sock.close()
+        endpoint.close()
 
 
 # ----------------------------------------------------------------------------- clients
@@ -235,6 +235,7 @@ class _AsyncioClient:
         self.dest = (cfg.group, cfg.port)
         self.waiting: dict[int, asyncio.Future[None]] = {}
         self.sock: socket.socket | None = None
+        self.endpoint: asyncio.DatagramTransport | None = None
 
     def _on_datagram(self, data: bytes) -> None:
         if data[:1] == b"R":
@@ -244,7 +245,7 @@ class _AsyncioClient:
 
     async def ready(self) -> None:
         self.sock = open_socket(self.cfg)
-        asyncio.get_running_loop().add_reader(self.sock.fileno(), _reader(self.sock, self._on_datagram))
+        self.endpoint = await _endpoint(self.sock, self._on_datagram)
         deadline = time.monotonic() + 20
         while True:
             try:
@@ -274,9 +275,8 @@ class _AsyncioClient:
             self.sock.sendto(b"X", self.dest)
 
     async def close(self) -> None:
-        if self.sock is not None:
-            asyncio.get_running_loop().remove_reader(self.sock.fileno())
-            self.sock.close()
+        if self.endpoint is not None:
+            self.endpoint.close()
 
 
 class _BusClient:

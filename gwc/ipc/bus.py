@@ -128,8 +128,12 @@ class Bus:
     async def sign_on(self, settle: float = 0.05) -> None:
         """Join the group, announce ourselves, and give present modules `settle` s to answer."""
         loop = self._loop = self._deadlines.loop = asyncio.get_running_loop()
-        self._transport.open(loop, self._origin.prefix, self._faults.wrap(loop, self._handle))
-        self._open = True
+        self._open = True  # the transport may hand over datagrams before open() returns: we can answer
+        try:
+            await self._transport.open(loop, self._origin.prefix, self._faults.wrap(loop, self._handle))
+        except BaseException:
+            self._open = False
+            raise
         self._transport.set_filter(self.name, self.inc, self._interest)
         self._hello(query=True)
         self._heartbeat = loop.create_task(self._beat())

@@ -33,7 +33,7 @@ class MemoryTransport(Transport):
         self._own = b""
         self._beats: collections.deque[bytes] = collections.deque(maxlen=MAX_BEATS)
 
-    def open(self, loop: asyncio.AbstractEventLoop, own: bytes, on_datagram: Handler) -> None:
+    async def open(self, loop: asyncio.AbstractEventLoop, own: bytes, on_datagram: Handler) -> None:
         self._loop, self._own, self._handler = loop, own, on_datagram
         with _LOCK:
             _HUBS.setdefault(self._key, []).append(self)
