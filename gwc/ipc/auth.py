@@ -111,6 +111,7 @@ class Guard:
     def _use(self, keyset: keys.KeySet, now: float | None = None) -> None:
         now = time.time() if now is None else now
         self.keyset = keyset
+        self._next_change = keyset.next_change(now)  # refresh() has nothing to do before then
         self.cell_id = keyset.cell_id
         self._macs = {(k.role == "lot", k.id): mac_of(k.secret) for k in keyset.keys if k.accepted(now)}
         lot = self.role == "lot"
@@ -130,21 +131,21 @@ class Guard:
     def refresh(self) -> None:
         """At each heartbeat: re-read the key file if it changed, take up keys whose time has come."""
         mtime = self._stat()
+        now = time.time()
         try:
             if mtime != self._mtime:
                 self._mtime = mtime
                 _, keyset = keys.load(self.cfg, self.role)
                 self.log.info("key file %s changed: keys reloaded", self._path)
-            else:
-                keyset = self.keyset
-            self._use(keyset)
+                self._use(keyset, now)
+            elif now >= self._next_change:  # a rotated key's time came: senders take it up, or it is refused
+                self._use(self.keyset, now)
         except BusError as e:  # keep the keys we have: a half-copied file must not stop the cell
             if str(e) != self._complaint:  # said once, not every heartbeat
                 self._complaint = str(e)
                 self.log.error("%s", e)
         else:
             self._complaint = ""
-        now = time.time()
         horizon = now - 2 * self.cfg.replay_window
         for k, w in list(self._windows.items()):
             if w[2] < horizon:

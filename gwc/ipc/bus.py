@@ -84,6 +84,7 @@ class Bus:
         self.log = log
         self.inc = random.SystemRandom().randrange(1, 2**31)
         self._interest: set[str] = set()
+        self._beat_body: bytes | None = None  # our beat's body, encoded (_send_beat)
         self.stats = collections.Counter[str]()
         self._transport = UdpTransport(cfg, log) if transport is None else transport
         self._open = False  # the transport is open (signed on, not yet closed)
@@ -180,6 +181,7 @@ class Bus:
         if unknown:
             raise MessageError(f"unknown conversation class(es): {', '.join(sorted(unknown))}")
         self._interest = new
+        self._beat_body = None
         if self._open:
             self._transport.set_filter(self.name, self.inc, new)
             if announce:
@@ -530,10 +532,12 @@ class Bus:
         """Our hello, to the beat port: a change of interest or a query goes to the bus port instead."""
         if not self._open:
             return
-        try:
-            beat = wire.encode(
+        beat = self._beat_body
+        if beat is None:  # the same body every heartbeat until our interest changes: encoded once
+            beat = self._beat_body = wire.encode(
                 Envelope(kind="hello", src=self.name, inc=self.inc, interest=tuple(sorted(self._interest)))
             )
+        try:
             self._transport.send_beat(self._guard.seal(beat, beat=True))
         except OSError as e:  # lost like a dropped datagram: the next beat makes up for it
             self.stats["send_lost"] += 1

@@ -62,6 +62,11 @@ class KeySet:
         usable = [k for k in self.keys if k.role == role and k.send_from <= now and k.accepted(now)]
         return max(usable, key=lambda k: k.id, default=None)
 
+    def next_change(self, now: float) -> float:
+        """When, after `now`, a key is taken up by senders or refused by receivers (inf: never)."""
+        times = (t for k in self.keys for t in (k.send_from, k.until) if t is not None and t > now)
+        return min(times, default=float("inf"))
+
     def find(self, role: str, key_id: int, now: float) -> Key | None:
         """The key a receiver checks a datagram signed with (role, key_id) against; None if not accepted."""
         for k in self.keys:
