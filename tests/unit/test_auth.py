@@ -116,6 +116,24 @@ def test_rotation_keeps_old_and_new_accepted_through_the_overlap(tmp_path: Path)
     assert receiver.stats["dropped_unknown_key"] == 1
 
 
+def test_a_rotated_key_is_taken_up_at_its_time_without_the_file_changing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The heartbeat's refresh rebuilds the keyed MACs only when something changed: the file, or a
+    key's send_from/until passing (then without any change to the file)."""
+    cfg = cfg_in(tmp_path)
+    now = time.time()
+    keys.rotate(cfg, overlap=60, take_up=3, now=now)
+    sender = guard(cfg, "ms")
+    assert sender.key_ids == (1, 1)  # the new keys are not used before their take-up
+    macs = sender._macs
+    sender.refresh()
+    assert sender._macs is macs and sender.key_ids == (1, 1)  # nothing changed: nothing rebuilt
+    monkeypatch.setattr(auth.time, "time", lambda: now + 4)
+    sender.refresh()
+    assert sender.key_ids == (2, 2)
+
+
 def test_drops_are_summarised_per_source_not_logged_each(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     b = guard(cfg_in(tmp_path), "msched")
     with caplog.at_level(logging.WARNING):
