@@ -30,6 +30,7 @@ from typing import Any
 from gwc.config import BusConfig
 from gwc.errors import BusError
 from gwc.ipc import keys, wire
+from gwc.ipc.keys import ROLES
 from gwc.ipc.transport import Transport
 
 TRAILER = struct.Struct("!8sBHHQQ")
@@ -90,6 +91,7 @@ class Guard:
     def __init__(self, cfg: BusConfig, name: str, log: logging.Logger, stats: collections.Counter[str]) -> None:
         self.cfg = cfg
         self.role = keys.role_of(name)
+        self._module = self.role == "module"  # checks module MACs (a lot script checks lot MACs)
         self.log = log
         self.stats = stats
         self.drops = DropLog(log, stats)
@@ -97,7 +99,8 @@ class Guard:
         self._mtime = self._stat()
         self._use(keyset)
         self._counters = [0, 0]  # per channel: bus, beat
-        self._windows: dict[bytes, list[Any]] = {}  # inc + src tag + channel/role -> [highest, bits, seen]
+        # Per flags (channel, key role): inc + src tag -> [highest counter, bits, last seen]
+        self._windows: tuple[dict[bytes, list[Any]], ...] = ({}, {}, {}, {})
         self._started = time.time()
         self._complaint = ""  # the key file's trouble last logged
         self.beat_drops = 0  # beats refused since the last heartbeat (the flood detector reads it)
@@ -113,7 +116,10 @@ class Guard:
         self.keyset = keyset
         self._next_change = keyset.next_change(now)  # refresh() has nothing to do before then
         self.cell_id = keyset.cell_id
-        self._macs = {(k.role == "lot", k.id): mac_of(k.secret) for k in keyset.keys if k.accepted(now)}
+        # The keys accepted now, by id: module keys, lot keys (open() picks one dict by the datagram's flag).
+        self._macs = tuple(
+            {k.id: mac_of(k.secret) for k in keyset.keys if k.accepted(now) and k.role == r} for r in ROLES
+        )
         lot = self.role == "lot"
         lot_key = keyset.sending("lot", now)
         module_key = None if lot else keyset.sending("module", now)
@@ -147,9 +153,10 @@ class Guard:
         else:
             self._complaint = ""
         horizon = now - 2 * self.cfg.replay_window
-        for k, w in list(self._windows.items()):
-            if w[2] < horizon:
-                del self._windows[k]
+        for windows in self._windows:
+            for k, w in list(windows.items()):
+                if w[2] < horizon:
+                    del windows[k]
         self.drops.report(time.monotonic())
 
     # ----------------------------------------------------------------- sending
@@ -182,8 +189,12 @@ class Guard:
             return self._drop("other_cell", beat, source)
         lot = bool(flags & LOT)
         # A module checks the module MAC (the lot MAC of a lot script's datagram); a lot script the lot MAC.
-        end = n if not lot and self.role == "module" else n - MAC_BYTES
-        mac = self._macs.get((False, module_id) if end == n else (True, lot_id))
+        if lot or not self._module:
+            end = n - MAC_BYTES
+            mac = self._macs[1].get(lot_id)
+        else:
+            end = n
+            mac = self._macs[0].get(module_id)
         if mac is None:
             return self._drop("unknown_key", beat, source)
         h = mac.copy()
@@ -198,14 +209,15 @@ class Guard:
         window = self.cfg.replay_window
         if not now - window <= sealed <= now + window:
             return self._drop("stale", beat, source)
-        key = data[4:MIN_BODY] + bytes((flags,))
-        w = self._windows.get(key)
+        key = data[4:MIN_BODY]
+        windows = self._windows[flags]
+        w = windows.get(key)
         if w is None:
             # A sender not heard from in this module's life. What it sealed before this module started
             # cannot have been sent to it: only a replay brings that (docs/protocol.md, Replay).
             if sealed < self._started - self.cfg.max_skew:
                 return self._drop("replay", beat, source)
-            self._windows[key] = [counter, 1, now]
+            windows[key] = [counter, 1, now]
         else:
             high = w[0]
             if counter > high:

@@ -47,13 +47,13 @@ class Membership:
         new incarnation of a module we know (that comes by its sign-on hello on the bus port), nor back
         one that said bye: a dead incarnation's last beats, read after its successor's hello or its
         own bye, must not bring it back."""
-        bus = self.bus
+        bus, peers, now = self.bus, self.peers, time.monotonic()
         for data in datagrams:
-            known = self.beats.get(data)
+            known = self.beats.get(data)  # (not held in a local: a changed beat replaces the dict)
             if known is not None:  # the same beat as last time: nothing changed but the time
-                peer = self.peers.get(known[0])
+                peer = peers.get(known[0])
                 if peer is not None and peer.inc == known[1]:
-                    peer.last_seen = time.monotonic()
+                    peer.last_seen = now  # all read in one go, at one time
                     bus.stats["beat"] += 1
                     continue
             env = bus._decode(data, "beat")
