@@ -134,12 +134,13 @@ class Module:
     start_class = Conv.STARTUP
     stop_class = Conv.SHUTDOWN
     always: tuple[str, ...] = ()  # classes listened to even when not started
+    ignored_peers = ""  # a name prefix of modules this one never talks to (gwc.ipc.bus.Bus)
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
         self.cfg = cfg
         self.name = name
         self.log = log
-        self.bus = Bus(name, cfg.bus, log, interest=self.idle_interest())
+        self.bus = Bus(name, cfg.bus, log, interest=self.idle_interest(), ignored_peers=self.ignored_peers)
         self.started = False
         self.exit_code = 0
         self._stop = asyncio.Event()

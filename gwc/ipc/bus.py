@@ -76,6 +76,7 @@ class Bus:
         log: logging.Logger,
         interest: Iterable[str] = (),
         transport: Transport | None = None,
+        ignored_peers: str = "",
     ) -> None:
         if not name or len(name) > wire.MAX_NAME - 30:
             raise BusError(f"bad bus module name {name!r}")
@@ -92,6 +93,7 @@ class Bus:
         self._seq = 0
         self._conv_n = 0
         self._loop: asyncio.AbstractEventLoop | None = None
+        self.ignored_peers = ignored_peers  # names of modules not tracked (docs/protocol.md, Membership)
         self._members = Membership(self)
         self._peers = self._members.peers  # the same dict: read on the hot paths
         self._pending: dict[int, Pending] = {}
@@ -136,6 +138,7 @@ class Bus:
             self._open = False
             raise
         self._transport.set_filter(self.name, self.inc, self._interest)
+        self._transport.ignore_beats_from(self.ignored_peers)
         self._hello(query=True)
         self._heartbeat = loop.create_task(self._beat())
         self.log.info("signed on to bus %s as %s (incarnation %x)", self.cfg.name, self.name, self.inc)
@@ -494,11 +497,8 @@ class Bus:
                 )
 
     def _hello(self, query: bool = False, to: str | None = None) -> None:
-        self._raw_send(
-            Envelope(
-                kind="hello", src=self.name, inc=self.inc, interest=tuple(sorted(self._interest)), query=query, to=to
-            )
-        )
+        interest = tuple(sorted(self._interest))
+        self._raw_send(Envelope(kind="hello", src=self.name, inc=self.inc, interest=interest, query=query, to=to))
 
     async def _beat(self) -> None:
         """Every heartbeat: read the beats that came, send ours, then look for who went silent."""
@@ -534,9 +534,8 @@ class Bus:
             return
         beat = self._beat_body
         if beat is None:  # the same body every heartbeat until our interest changes: encoded once
-            beat = self._beat_body = wire.encode(
-                Envelope(kind="hello", src=self.name, inc=self.inc, interest=tuple(sorted(self._interest)))
-            )
+            interest = tuple(sorted(self._interest))
+            beat = self._beat_body = wire.encode(Envelope(kind="hello", src=self.name, inc=self.inc, interest=interest))
         try:
             self._transport.send_beat(self._guard.seal(beat, beat=True))
         except OSError as e:  # lost like a dropped datagram: the next beat makes up for it

@@ -63,6 +63,9 @@ class Membership:
                 bus.stats["malformed"] += 1
                 bus.log.warning("dropped a %s from %s on the beat port", env.kind, env.src)
                 continue
+            if bus.ignored_peers and env.src.startswith(bus.ignored_peers):
+                bus.stats["beat_ignored"] += 1  # (the kernel drops these where it can)
+                continue
             bus.stats["beat"] += 1
             peer = self.peers.get(env.src)
             if (peer is None and (env.src, env.inc) not in self.gone) or (peer is not None and peer.inc == env.inc):
@@ -72,6 +75,8 @@ class Membership:
 
     def on_hello(self, env: Envelope, peer: Peer | None) -> None:
         bus = self.bus
+        if bus.ignored_peers and env.src.startswith(bus.ignored_peers):
+            return  # not tracked, and it does not track us: no answer to its query either
         now = time.monotonic()
         interest = frozenset(env.interest)
         if peer is None or peer.inc != env.inc:

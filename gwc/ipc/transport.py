@@ -60,6 +60,10 @@ class Transport(ABC):
     def set_filter(self, src: str, inc: int, interest: Iterable[str]) -> None:  # noqa: B027  (optional)
         """Drop before the module wakes what module `src` would drop unread (a hint; none by default)."""
 
+    def ignore_beats_from(self, prefix: str) -> None:  # noqa: B027  (optional)
+        """Drop before the module reads them the beats of modules whose names begin with `prefix`
+        (none if it is empty; a hint: the bus ignores them itself)."""
+
     def follow_beats(self, on_beats: Callable[[], None] | None) -> None:  # noqa: B027  (optional)
         """Call on_beats whenever beats are waiting (None: stop); for a transport a flood can fill."""
 
@@ -133,16 +137,23 @@ class UdpTransport(Transport):
 
     def set_filter(self, src: str, inc: int, interest: Iterable[str]) -> None:
         """Have the kernel drop what this module would drop unread (wire.kernel_filter), where it can."""
-        if not self.kernel_filter or self._sock is None:
+        if self._sock is not None:
+            self._attach(self._sock, wire.kernel_filter(src, inc, interest))
+
+    def ignore_beats_from(self, prefix: str) -> None:
+        if self._beat_sock is not None and prefix:
+            self._attach(self._beat_sock, wire.beat_filter(prefix))
+
+    def _attach(self, sock: socket.socket, code: list[tuple[int, int, int, int]]) -> None:
+        if not self.kernel_filter:
             return
-        code = wire.kernel_filter(src, inc, interest)
         program = ctypes.create_string_buffer(b"".join(struct.pack("HBBI", *c) for c in code))
         try:  # struct sock_fprog {unsigned short len; struct sock_filter *filter;}: the kernel copies the program
-            self._sock.setsockopt(
+            sock.setsockopt(
                 socket.SOL_SOCKET, SO_ATTACH_FILTER, struct.pack("HP", len(code), ctypes.addressof(program))
             )
         except OSError as e:  # not Linux, or filters forbidden: the bus drops the same datagrams itself
-            self.log.warning("no kernel filter on the bus socket (%s): every datagram wakes this module", e)
+            self.log.warning("no kernel filter on the bus sockets (%s): every datagram wakes this module", e)
             self.kernel_filter = False
 
     def send(self, data: bytes) -> None:

@@ -438,6 +438,29 @@ def kernel_filter(src: str, inc: int, interest: Iterable[str]) -> list[tuple[int
         "keep",
         ((_RET, _WHOLE), None, None),
     ]
+    return _assemble(prog)
+
+
+def beat_filter(ignored: str) -> list[tuple[int, int, int, int]]:
+    """The beat socket's filter for a module that tracks no module whose name begins with `ignored`:
+    their beats are dropped before the module wakes to read them. Like kernel_filter, it keeps
+    anything too short to tell, and the bus checks what it reads again."""
+    prefix = ignored.encode()
+    u, at = UDP_HEADER, UDP_HEADER + _BODY  # where the sender's name begins
+    prog: list[tuple[tuple[int, int], str | None, str | None] | str] = [
+        ((_LD_LEN, 0), None, None),
+        ((_JGE, at + len(prefix)), None, "keep"),
+        ((_LD_B, u + SRC_LEN_OFFSET), None, None),
+        ((_JGE, len(prefix)), None, "keep"),
+    ]
+    for i, byte in enumerate(prefix):
+        prog += [((_LD_B, at + i), None, None), ((_JEQ, byte), None, "keep")]
+    prog += [((_RET, 0), None, None), "keep", ((_RET, _WHOLE), None, None)]
+    return _assemble(prog)
+
+
+def _assemble(prog: list[Any]) -> list[tuple[int, int, int, int]]:
+    """Classic BPF from (instruction, jump-if-true label, jump-if-false label) items and labels."""
     where: dict[str, int] = {}  # label -> index of the instruction after it
     n = 0
     for item in prog:

@@ -56,6 +56,9 @@ class WC(WCSteps):
     start_class = Conv.ME_START
     stop_class = Conv.ME_SHUT
     always = (Conv.ALARM_CLE,)
+    # The other WCs: a WC addresses none and starts no class one listens to (it starts RUN_COMPL and
+    # asks the servers), so it need not read their beats: with N machines, N-1 fewer a heartbeat.
+    ignored_peers = "wc:"
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger, machine_id: str) -> None:
         # Before the base's __init__: it asks idle_interest(), which depends on the status.

@@ -72,8 +72,10 @@ def run(test: Callable[[Make, BusConfig], Awaitable[None]], **cfg: Any) -> None:
     async def main() -> None:
         buses: list[Bus] = []
 
-        async def make(name: str, interest: tuple[str, ...] = ("PING",), c: BusConfig = config) -> Bus:
-            bus = Bus(name, c, logging.getLogger(f"gwc.test.{name}"), interest, transport_for(c))
+        async def make(
+            name: str, interest: tuple[str, ...] = ("PING",), c: BusConfig = config, ignored: str = ""
+        ) -> Bus:
+            bus = Bus(name, c, logging.getLogger(f"gwc.test.{name}"), interest, transport_for(c), ignored)
             await bus.sign_on()
             buses.append(bus)
             return bus
@@ -344,3 +346,26 @@ def test_faults_config_is_deterministic_per_module_with_a_seed() -> None:
     seq = [a1._faults.rng.random() for _ in range(5)]
     assert seq == [a2._faults.rng.random() for _ in range(5)]
     assert seq != [b._faults.rng.random() for _ in range(5)]
+
+
+def test_a_module_never_tracks_the_peers_it_ignores_and_the_others_track_it() -> None:
+    """WCs ignore each other (gwc.wc.wc.WC.ignored_peers): over UDP the kernel drops the other WCs'
+    beats unread; hellos on the bus port are ignored too. The Machine Server still tracks both and
+    hears what each broadcasts."""
+
+    async def t(make: Make, cfg: BusConfig) -> None:
+        a = await make("wc:a", ("PING",), ignored="wc:")
+        b = await make("wc:b", ("PING",), ignored="wc:")
+        ms = await make("ms", ("RUN_COMPL",))
+        await known(ms, a, b)
+        seen = ms.stats["beat"]
+        await until(lambda: ms.stats["beat"] >= seen + 10, "five heartbeats")
+        assert "wc:b" not in a.peers() and "wc:a" not in b.peers() and "ms" in a.peers()
+        if TRANSPORT == "udp":
+            assert a.stats["beat_ignored"] == 0 and a.stats["beat"] > 0  # dropped in the kernel
+        conv = await a.start("RUN_COMPL", message("Run_Complete", machine_id="a", machine_run_id=1, ack_code="ACK_OK"))
+        heard = await ms.first_message(5)
+        assert heard is not None and heard.first.first.machine_id == "a"
+        conv.end()
+
+    run(t)

@@ -285,3 +285,15 @@ def test_the_kernel_filter_keeps_exactly_what_the_module_would_read() -> None:
     assert kept(kind="hello", src="msched2", inc=5)
     for garbage in (b"", b"GWC", b"GWC\x02" + bytes(80), bytes(range(200))):  # the bus logs what is malformed
         assert run_filter(code, garbage)
+
+
+def test_the_beat_filter_drops_exactly_the_beats_of_the_ignored_modules() -> None:
+    code = wire.beat_filter("wc:")
+
+    def kept(src: str) -> bool:
+        return run_filter(code, wire.encode(Envelope(kind="hello", src=src, inc=3, interest=("SETUP_RUN",))))
+
+    assert not kept("wc:wc1") and not kept("wc:a")
+    assert kept("ms") and kept("msched") and kept("lot:12") and kept("wc") and kept("wcx:1") and kept("w")
+    for garbage in (b"", b"GWC", bytes(60)):  # too short to tell: the bus counts it
+        assert run_filter(code, garbage)
