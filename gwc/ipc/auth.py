@@ -30,7 +30,6 @@ from typing import Any
 from gwc.config import BusConfig
 from gwc.errors import BusError
 from gwc.ipc import keys, wire
-from gwc.ipc.keys import ROLES
 from gwc.ipc.transport import Transport
 
 TRAILER = struct.Struct("!8sBHHQQ")
@@ -116,10 +115,9 @@ class Guard:
         self.keyset = keyset
         self._next_change = keyset.next_change(now)  # refresh() has nothing to do before then
         self.cell_id = keyset.cell_id
-        # The keys accepted now, by id: module keys, lot keys (open() picks one dict by the datagram's flag).
-        self._macs = tuple(
-            {k.id: mac_of(k.secret) for k in keyset.keys if k.accepted(now) and k.role == r} for r in ROLES
-        )
+        # The keys accepted now, by id: (module keys, lot keys); open() picks one by the datagram's flag.
+        accepted = [k for k in keyset.keys if k.accepted(now)]
+        self._macs = tuple({k.id: mac_of(k.secret) for k in accepted if k.role == r} for r in ("module", "lot"))
         lot = self.role == "lot"
         lot_key = keyset.sending("lot", now)
         module_key = None if lot else keyset.sending("module", now)

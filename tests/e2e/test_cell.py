@@ -55,6 +55,14 @@ def test_start_status_kill_stop_leaves_nothing_behind(cell_env) -> None:
         assert lines, f"{p.name} wrote no log"
         assert all(FIGURE2.match(line) for line in lines), [ln for ln in lines if not FIGURE2.match(ln)][:3]
     assert "STARTUP" in (cfg.log_dir / "msched.log").read_text()
+    # WCs do not track each other (WC.ignored_peers): neither logs the other joining; the Machine Server both.
+    wait_for(
+        lambda: all(f"wc:{m} joined the bus" in (cfg.log_dir / "ms.log").read_text() for m in ("wc1", "wc2")),
+        10,
+        "the Machine Server to know both WCs",
+    )
+    for me, other in (("wc1", "wc2"), ("wc2", "wc1")):
+        assert f"wc:{other} joined" not in (cfg.log_dir / log_file_name(f"wc:{me}")).read_text()
 
     os.kill(pids["msched"], signal.SIGKILL)  # the agent restarts it; the others go on undisturbed
     wait_for(
