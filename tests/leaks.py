@@ -54,17 +54,21 @@ def marked_processes(mark: str, var: str = MARK) -> dict[int, str]:
     return found
 
 
-def sockets() -> set[str]:
-    """This process's open sockets (their inodes)."""
+def open_files(pid: int | str = "self") -> set[str]:
+    """What a process's descriptors point at: files by path, sockets as socket:[inode]. A descriptor closed
+    between the listing and the read is skipped: a running process's descriptors change under the reader."""
     out = set()
-    for fd in Path("/proc/self/fd").iterdir():
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
         try:
-            target = os.readlink(fd)
+            out.add(os.readlink(fd))
         except OSError:
             continue
-        if target.startswith("socket:"):
-            out.add(target)
     return out
+
+
+def sockets() -> set[str]:
+    """This process's open sockets (their inodes)."""
+    return {t for t in open_files() if t.startswith("socket:")}
 
 
 def cell_configs(root: Path) -> list[Config]:

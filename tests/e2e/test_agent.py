@@ -21,6 +21,7 @@ from gwc.agent import control as agent_control
 from gwc.ipc.bus import BlockingBus
 from tests.e2e.test_cell import gwc
 from tests.harness import wait_for, write_cell_config
+from tests.leaks import open_files
 
 pytestmark = pytest.mark.e2e
 
@@ -226,8 +227,8 @@ def forked_by_the_agent(cfg: Any, pid: int, entity: int) -> None:
     assert len(list(Path(f"/proc/{agent_pid(cfg)}/task").iterdir())) == 1, "the agent runs a thread"
     assert Path(f"/proc/{pid}/comm").read_text().strip() == f"lot:{entity}"
 
-    def fds(of: int) -> set[str]:  # files by path, sockets by inode (an epoll or pidfd has no identity here)
-        return {t for f in Path(f"/proc/{of}/fd").iterdir() if not (t := os.readlink(f)).startswith("anon_inode:")}
+    def fds(of: int) -> set[str]:  # an epoll or pidfd has no identity here
+        return {t for t in open_files(of) if not t.startswith("anon_inode:")}
 
     held = fds(pid) & fds(agent_pid(cfg))
     assert held <= {"/dev/null", str(cfg.log_dir / f"lot-{entity}.out")}, held
