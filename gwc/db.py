@@ -507,6 +507,37 @@ def probe(cfg: Config) -> str | None:
 ConnectionSource = psycopg.Connection[Any] | Callable[[], psycopg.Connection[Any]]
 
 
+class Statement:
+    """A database step that is one SQL statement: fetch "one" (a row or None), "all" (the rows) or None.
+
+    `transaction` runs it alone, in autocommit: PostgreSQL makes a single statement atomic by itself,
+    so the step needs no BEGIN and no COMMIT, each a round trip of its own (a one-row read takes about
+    a third of the time, a one-row update two thirds, and the client's CPU halves: docs/performance.md).
+    Made from one SQL text, it cannot grow a second statement that would then run outside a transaction.
+    """
+
+    __slots__ = ("fetch", "params", "sql")
+
+    def __init__(self, sql: str, params: Any = (), fetch: str | None = "one") -> None:
+        if fetch not in ("one", "all", None):
+            raise ValueError(f"fetch must be 'one', 'all' or None, not {fetch!r}")
+        self.sql, self.params, self.fetch = sql, params, fetch
+
+    def __call__(self, cur: psycopg.Cursor[Any]) -> Any:
+        cur.execute(self.sql, self.params)
+        if self.fetch == "one":
+            return cur.fetchone()
+        return cur.fetchall() if self.fetch == "all" else None
+
+
+def _autocommit(conn: psycopg.Connection[Any], on: bool) -> bool:
+    """Switch autocommit where psycopg allows it (an open connection outside a transaction); True if done."""
+    if conn.closed or conn.info.transaction_status != psycopg.pq.TransactionStatus.IDLE:
+        return False
+    conn.autocommit = on
+    return True
+
+
 def transaction(
     conn: ConnectionSource,
     fn: Callable[[psycopg.Cursor[Any]], T],
@@ -525,6 +556,8 @@ def transaction(
     (DatabaseUnavailable when the connection was lost, or could not be made again). An
     exception of fn's own that is not a database error rolls back and propagates unchanged.
 
+    A `Statement` runs alone, without BEGIN and COMMIT (see there).
+
     fn may run more than once: it must not have side effects outside the database. A commit
     lost with its connection may in fact have happened, so a step should be idempotent
     (ON CONFLICT, "where not exists") when it can be retried after a lost connection.
@@ -538,9 +571,15 @@ def transaction(
         try:
             if c.info.transaction_status != psycopg.pq.TransactionStatus.IDLE:
                 c.rollback()
-            with c.cursor() as cur:
-                result = fn(cur)
-            c.commit()
+            alone = isinstance(fn, Statement) and _autocommit(c, True)
+            try:
+                with c.cursor() as cur:
+                    result = fn(cur)
+            finally:
+                if alone:
+                    _autocommit(c, False)
+            if not alone:
+                c.commit()
             return result
         except psycopg.OperationalError as e:
             _safe_rollback(c)

@@ -320,7 +320,7 @@ class Module:
             return
         conn = self._conn
         if idle >= DATABASE_PROBE_S or conn is None or conn.closed or _readable(conn.fileno()):
-            self.transaction(lambda cur: cur.execute("select 1"))
+            self.transaction(db.Statement("select 1", fetch=None))
 
     # ----------------------------------------------------------------- running
 

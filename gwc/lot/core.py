@@ -100,7 +100,7 @@ class EntityCore:
         backoff = self.timeouts.asking(within)
         while True:
             try:
-                return db.transaction(self._db, lambda cur: cur.execute(sql, params).fetchall(), log=self.log)
+                return db.transaction(self._db, db.Statement(sql, params, "all"), log=self.log)
             except DatabaseUnavailable as e:
                 pause = backoff.next()
                 if pause is None:

@@ -83,21 +83,18 @@ def _new_lot_for(cur: Any, entity_id: int, old_lot: int) -> int:
     return lot_id
 
 
-def _move(
-    cur: Any, entity_id: int, to: LotState, came_from: frozenset[LotState], reason: str | None, keep: bool
-) -> Any:
-    """An entity (not destroyed) in one of `came_from` moves to `to`, in one statement: its lot_id, or None
-    if it was not in one of them (the caller reads why). `reason` replaces the old one, or only fills it
-    when `keep`."""
-    row = cur.execute(
+def _move(entity_id: int, to: LotState, came_from: frozenset[LotState], reason: str | None, keep: bool) -> db.Statement:
+    """An entity (not destroyed) in one of `came_from` moves to `to`, in one statement: the row of its
+    lot_id, or None if it was not in one of them (the caller reads why). `reason` replaces the old one,
+    or only fills it when `keep`."""
+    return db.Statement(
         "update lot_status s set state = %(to)s, updated_at = now(), "
         + ("reason = coalesce(%(reason)s, s.reason) " if keep else "reason = %(reason)s ")
         + "from (select s2.state from lot_status s2 join lot_entities e using (entity_id) "
         "where s2.entity_id = %(e)s and e.destroyed_at is null for update of s2) old "
         "where s.entity_id = %(e)s and old.state = any(%(from)s) returning s.lot_id",
         {"to": to.value, "reason": reason, "e": entity_id, "from": [str(x) for x in came_from]},
-    ).fetchone()
-    return None if row is None else row[0]
+    )
 
 
 class LotServer(Server, Module):
@@ -336,10 +333,6 @@ class LotServer(Server, Module):
         movable = None if target is None or req.action == "destroy" else allowed - {target, L.EXPORTED}
 
         def step(cur: Any) -> tuple[str, int | None, LotState | None, str | None]:
-            if movable and target is not None:
-                lot_id = _move(cur, req.entity_id, target, movable, req.reason, keep=False)
-                if lot_id is not None:
-                    return AckCode.ACK_OK, lot_id, target, None
             row = cur.execute(
                 "select s.lot_id, s.state, e.destroyed_at from lot_status s "
                 "join lot_entities e using (entity_id) where s.entity_id = %s for update of s",
@@ -370,7 +363,14 @@ class LotServer(Server, Module):
                 state = target
             return AckCode.ACK_OK, lot_id, state, note
 
-        code, lot_id, state, note = self.transaction(step)
+        moved = None
+        if movable and target is not None:  # the usual move: that statement alone
+            moved = self.transaction(_move(req.entity_id, target, movable, req.reason, keep=False))
+        code: str
+        if moved is not None:
+            code, lot_id, state, note = AckCode.ACK_OK, moved[0], target, None
+        else:
+            code, lot_id, state, note = self.transaction(step)
         if code == AckCode.ACK_OK:
             self._after(req.entity_id, req.action, state, conv)
             if req.action not in ("state", "attach"):
@@ -402,20 +402,23 @@ class LotServer(Server, Module):
         by = req.by or conv.peer
         reason = f"held run {done} by {by}" if waiting == L.HELD else None
 
-        def step(cur: Any) -> tuple[str, int | None, str | None]:
-            lot_id = _move(cur, req.entity_id, moved, frozenset({waiting}), reason, keep=True)
-            if lot_id is not None:
-                return AckCode.ACK_OK, lot_id, None
-            row = cur.execute(
-                "select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
-                "where s.entity_id = %s and e.destroyed_at is null",
-                (req.entity_id,),
-            ).fetchone()
+        # The move, or why not: each one statement, run alone (a refusal's read is a snapshot of its own,
+        # as it was in one read-committed step).
+        row = self.transaction(_move(req.entity_id, moved, frozenset({waiting}), reason, keep=True))
+        if row is not None:
+            code, lot_id, note = AckCode.ACK_OK, row[0], None
+        else:
+            row = self.transaction(
+                db.Statement(
+                    "select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
+                    "where s.entity_id = %s and e.destroyed_at is null",
+                    (req.entity_id,),
+                )
+            )
             if row is None:
-                return AckCode.UNKNOWN, None, f"no entity {req.entity_id}"
-            return AckCode.NOTNOW, row[0], f"entity {req.entity_id} is {row[1]}, not {waiting}"
-
-        code, lot_id, note = self.transaction(step)
+                code, lot_id, note = AckCode.UNKNOWN, None, f"no entity {req.entity_id}"
+            else:
+                code, lot_id, note = AckCode.NOTNOW, row[0], f"entity {req.entity_id} is {row[1]}, not {waiting}"
         await self.answer(conv, ack, code, note, lot_id=lot_id)
         if code != AckCode.ACK_OK:
             return

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from gwc.config import Config
+from gwc.db import Statement
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
@@ -67,21 +68,6 @@ from (select status from machine_status where machine_id = %(machine_id)s for up
 where s.machine_id = %(machine_id)s and old.status = any(%(from)s)
 returning old.status, s.machine_run_id
 """
-
-
-def _change(cur: Any, machine_id: str, status: MachineStatus, allowed: set[MachineStatus], **fields: Any) -> Any:
-    """(previous status, machine_run_id) if the machine was in an `allowed` status and is now `status`;
-    else (its status, None) or None (no such machine)."""
-    row = cur.execute(
-        _UPDATE,
-        {"recipe_id": None, "run": None, "note": None}
-        | fields
-        | {"status": status.value, "machine_id": machine_id, "from": [s.value for s in allowed]},
-    ).fetchone()
-    if row is not None:
-        return S(row[0]), row[1]
-    now = cur.execute("select status from machine_status where machine_id = %s", (machine_id,)).fetchone()
-    return None if now is None else (S(now[0]), None)
 
 
 @dataclass
@@ -186,15 +172,11 @@ class MachineServer(Server, Module):
         w = self.machines[machine_id]
         self.log.error("%s", note)
 
-        def shut(cur: Any) -> tuple[str, int | None] | None:
-            row = _change(cur, machine_id, S.SHUTDOWN, set(S) - {S.SHUTDOWN}, note=note)
-            return None if row is None or row[0] == S.SHUTDOWN else row
-
-        changed = self.transaction(shut)
+        changed = self._change(machine_id, S.SHUTDOWN, set(S) - {S.SHUTDOWN}, note=note)
         w.status = S.SHUTDOWN
-        if changed is None:
+        if changed is None or not changed[2]:  # no such machine, or Shutdown already
             return
-        previous, run = changed
+        previous, run, _ = changed
         await self.broadcast(
             Conv.UPD_ME_ST,
             message(
@@ -211,6 +193,26 @@ class MachineServer(Server, Module):
 
     async def _alarm(self, alarm_id: str, text: str, machine_id: str) -> None:
         await self.raise_alarm(alarm_id, text, machine_id)
+
+    def _change(
+        self, machine_id: str, status: MachineStatus, allowed: set[MachineStatus], **fields: Any
+    ) -> tuple[MachineStatus, int | None, bool] | None:
+        """(previous status, machine_run_id, True) if the machine was in an `allowed` status and is now
+        `status`; else (its status, None, False), or None (no such machine). Two single statements, each
+        run alone: the second, only after a refusal, reads a snapshot of its own, as it did in one
+        read-committed step."""
+        row = self.transaction(
+            Statement(
+                _UPDATE,
+                {"recipe_id": None, "run": None, "note": None}
+                | fields
+                | {"status": status.value, "machine_id": machine_id, "from": [s.value for s in allowed]},
+            )
+        )
+        if row is not None:
+            return S(row[0]), row[1], True
+        now = self.transaction(Statement("select status from machine_status where machine_id = %s", (machine_id,)))
+        return None if now is None else (S(now[0]), None, False)
 
     # ----------------------------------------------------------------- conversations
 
@@ -230,24 +232,16 @@ class MachineServer(Server, Module):
             )
 
         reachable = {c for c in S if status in TRANSITIONS[c]}
-
-        def step(cur: Any) -> tuple[MachineStatus, str | None, int | None] | None:
-            fields = {"recipe_id": req.recipe_id, "run": req.machine_run_id, "note": req.note}
-            row = _change(cur, req.machine_id, status, reachable & expect if expect else reachable, **fields)
-            if row is None:
-                return None
-            current, run = row
-            if expect and current not in expect:
-                return current, f"machine {req.machine_id} is {current}, not {' or '.join(sorted(expect))}", None
-            if status not in TRANSITIONS[current]:
-                return current, f"machine {req.machine_id} cannot go from {current} to {status}", None
-            return current, None, run
-
-        result = self.transaction(step)
+        fields = {"recipe_id": req.recipe_id, "run": req.machine_run_id, "note": req.note}
+        result = self._change(req.machine_id, status, reachable & expect if expect else reachable, **fields)
         if result is None:
             return await self.answer(conv, ack, AckCode.UNKNOWN, f"no machine {req.machine_id!r}")
-        previous, why, run = result
-        if why:
+        previous, run, changed = result
+        if not changed:
+            if expect and previous not in expect:
+                why = f"machine {req.machine_id} is {previous}, not {' or '.join(sorted(expect))}"
+            else:
+                why = f"machine {req.machine_id} cannot go from {previous} to {status}"
             return await self.answer(conv, ack, AckCode.NOTNOW, why, status=previous.value)
         w = self.machines.get(req.machine_id)
         if w is None:  # a machine registered after we started
@@ -271,22 +265,18 @@ class MachineServer(Server, Module):
             )
 
     def _liveness(self, machine_id: str) -> float:
-        def read(cur: Any) -> float:
-            row = cur.execute("select liveness_s from me_config where machine_id = %s", (machine_id,)).fetchone()
-            return float(row[0]) if row else 3.0
-
-        return self.transaction(read)
+        row = self.transaction(Statement("select liveness_s from me_config where machine_id = %s", (machine_id,)))
+        return float(row[0]) if row else 3.0
 
     async def get_status(self, conv: Conversation) -> None:
         req = self.request(conv)
 
-        def read(cur: Any) -> tuple[Any, ...] | None:
-            return cur.execute(
+        row = self.transaction(
+            Statement(
                 "select status, recipe_id, machine_run_id, note from machine_status where machine_id = %s",
                 (req.machine_id,),
-            ).fetchone()
-
-        row = self.transaction(read)
+            )
+        )
         if row is None:
             return await self.answer(
                 conv, Msg.STATUS_REPLY, AckCode.UNKNOWN, f"no machine {req.machine_id!r}", machine_id=req.machine_id
@@ -307,14 +297,12 @@ class MachineServer(Server, Module):
         done = self.request(conv)
         failed = done.ack_code != AckCode.ACK_OK
 
-        def count(cur: Any) -> tuple[int, int | None] | None:
-            return cur.execute(
-                "update machine_status set runs_since_maintenance = runs_since_maintenance + 1, "
-                "scrap_count = scrap_count + %s where machine_id = %s "
-                "returning runs_since_maintenance, maintenance_every",
-                (1 if failed else 0, done.machine_id),
-            ).fetchone()
-
+        count = Statement(
+            "update machine_status set runs_since_maintenance = runs_since_maintenance + 1, "
+            "scrap_count = scrap_count + %s where machine_id = %s "
+            "returning runs_since_maintenance, maintenance_every",
+            (1 if failed else 0, done.machine_id),
+        )
         row = await self.transaction_when_up(count)  # heard once: kept until the database is back
         if row is None:
             self.log.warning("Run_Complete for unknown machine %s ignored", done.machine_id)
@@ -338,15 +326,14 @@ class MachineServer(Server, Module):
         """MAINT_DONE: the operator maintained a machine; the run count starts again."""
         req = self.request(conv)
 
-        def reset(cur: Any) -> tuple[int] | None:
-            return cur.execute(
+        row = self.transaction(
+            Statement(
                 "update machine_status m set runs_since_maintenance = 0, updated_at = now() "
                 "from machine_status old where m.machine_id = %s and old.machine_id = m.machine_id "
                 "returning old.runs_since_maintenance",
                 (req.machine_id,),
-            ).fetchone()
-
-        row = self.transaction(reset)
+            )
+        )
         if row is None:
             return await self.answer(conv, Msg.MAINT_DONE_ACK, AckCode.UNKNOWN, f"no machine {req.machine_id!r}")
         self.log.info("%s maintained by %s after %d runs", req.machine_id, req.by or "?", row[0])

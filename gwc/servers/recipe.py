@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from gwc.config import Config
+from gwc.db import Statement
 from gwc.ipc.bus import Conversation
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
@@ -103,17 +104,14 @@ class RecipeServer(Server, Module):
         req = self.request(conv)
         ack = Msg.RECIPE_REPLY
 
-        def read(cur: Any) -> tuple[Any, ...]:
-            # One statement (one round trip, not three): is the recipe known, its approved version, is it
-            # for this machine.
-            return cur.execute(
-                "select exists (select 1 from recipes where recipe_id = %(r)s), v.version, v.checksum, v.content, "
-                "%(m)s::text is null or exists (select 1 from op_machine_recipe where recipe_id = %(r)s "
-                "and machine_id = %(m)s) "
-                "from (select) one left join recipe_versions v on v.recipe_id = %(r)s and v.approved",
-                {"r": req.recipe_id, "m": req.machine_id},
-            ).fetchone()
-
+        # One statement, run alone: is the recipe known, its approved version, is it for this machine.
+        read = Statement(
+            "select exists (select 1 from recipes where recipe_id = %(r)s), v.version, v.checksum, v.content, "
+            "%(m)s::text is null or exists (select 1 from op_machine_recipe where recipe_id = %(r)s "
+            "and machine_id = %(m)s) "
+            "from (select) one left join recipe_versions v on v.recipe_id = %(r)s and v.approved",
+            {"r": req.recipe_id, "m": req.machine_id},
+        )
         known, version, checksum, original, bound = self.transaction(read)
         if not known:
             return await self.answer(conv, ack, AckCode.REC_INVAL, f"no recipe {req.recipe_id!r}")

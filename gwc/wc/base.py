@@ -7,6 +7,7 @@ import asyncio
 from pathlib import Path
 from typing import Any
 
+from gwc.db import Statement
 from gwc.errors import ConversationTimeout, DatabaseError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import message
@@ -59,11 +60,11 @@ class WCBase(Module):
 
     def _read(self, sql: str, params: tuple[Any, ...]) -> tuple[Any, ...] | None:
         """One row read; DatabaseError if the database refuses it, DatabaseUnavailable if it is away."""
-        return self.transaction(lambda cur: cur.execute(sql, params).fetchone())
+        return self.transaction(Statement(sql, params))
 
     async def _read_when_up(self, sql: str, params: tuple[Any, ...] | dict[str, Any]) -> tuple[Any, ...] | None:
         """One row read for a step a lot waits on: a database outage is waited out (DATABASE_OUTAGE_S)."""
-        return await self.transaction_when_up(lambda cur: cur.execute(sql, params).fetchone(), DATABASE_OUTAGE_S)
+        return await self.transaction_when_up(Statement(sql, params), DATABASE_OUTAGE_S)
 
     async def change_status(
         self, status: MachineStatus, expect: list[MachineStatus] | None = None, **fields: Any

@@ -9,6 +9,7 @@ from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any
 
+from gwc.db import Statement
 from gwc.errors import DatabaseError, DatabaseUnavailable, QueueError
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
@@ -198,21 +199,26 @@ class WCRuns(WCBase):
                 self.log.error("results file %s unreadable: %s", path, e)
                 code = AckCode.RUN_FAIL
 
-        def store(cur: Any) -> None:
-            cur.executemany(  # pipelined: one round trip to the server, not one per result
-                "INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) "
-                "VALUES (%s, %s, %s, %s) "
-                "ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value",
-                [(run_id, self.machine_id, param, value) for param, value in results.items()],
-            )
-            # With the results, before Idle: a lot that misses our Run_Complete (we die before it goes
-            # out) finds the outcome here instead of running the operation again.
-            cur.execute(
-                "INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code, note) "
-                "VALUES (%s, %s, %s, %s) ON CONFLICT (machine_run_id, machine_id) DO UPDATE "
-                "SET ack_code = EXCLUDED.ack_code, note = EXCLUDED.note, ended_at = clock_timestamp()",
-                (run_id, self.machine_id, str(code), note),
-            )
+        # The results and, with them, before Idle, the outcome: a lot that misses our Run_Complete (we die
+        # before it goes out) finds the outcome here instead of running the operation again. One
+        # statement, so one round trip, without BEGIN and COMMIT (db.Statement).
+        store = Statement(
+            "WITH results AS (INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) "
+            "    SELECT %(run)s, %(m)s, p, v FROM unnest(%(params)s::text[], %(values)s::text[]) AS r (p, v) "
+            "    ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value) "
+            "INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code, note) "
+            "VALUES (%(run)s, %(m)s, %(code)s, %(note)s) ON CONFLICT (machine_run_id, machine_id) DO UPDATE "
+            "SET ack_code = EXCLUDED.ack_code, note = EXCLUDED.note, ended_at = clock_timestamp()",
+            {
+                "run": run_id,
+                "m": self.machine_id,
+                "params": list(results),
+                "values": list(results.values()),
+                "code": str(code),
+                "note": note,
+            },
+            fetch=None,
+        )
 
         try:
             # Results are kept (file and all) through a database outage rather than failing the run.
