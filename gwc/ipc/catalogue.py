@@ -378,7 +378,12 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
             "Lot_Decision",
             "Lot_Decision_Ack",
         ),
-        _conv("LOT_MOVED", "an entity was imported or exported (broadcast)", "any", "Lot_Moved"),
+        _conv(
+            "LOT_MOVED",
+            "an entity was imported or exported (broadcast; its own lot script told addressed)",
+            "any",
+            "Lot_Moved",
+        ),
         _conv("DIV_MERGE", "divide or merge entities", "ls", "Divide_Merge", "Divide_Merge_Ack"),
         _conv("RECIPE_GET", "fetch an approved recipe", "ers", "Recipe_Fetch", "Recipe_Reply"),
         _conv("RECIPE_PUT", "store a recipe version", "ers", "Recipe_Store", "Recipe_Store_Ack"),

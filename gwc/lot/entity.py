@@ -23,8 +23,9 @@ cannot clean up; the Lot Server's reaper does the same for it when `lot:E` leave
 
 The entity listens to RUN_COMPL (its runs finish), UPD_ME_ST (a reserved machine shut down mid-run:
 the step is retried, after a pause, on whatever machine is up, a bounded number of times) and
-LOT_MOVED (the operator's import and export); to the first two only once its lot is in the cell
-(imported), so that lots waiting to be imported are not woken by every run. It remembers every
+MOD_DIED, only once its lot is in the cell (imported), so that lots waiting to be imported are not
+woken by every run. The operator's import and export of it (LOT_MOVED) the Lot Server sends to it
+alone. It remembers every
 status change of the machines it works with, so a machine that went Shutdown and came up again
 while the entity waited is still known to have lost the run. Servers come and go too: a
 conversation with the Lot Server or MSCHED that finds it away, restarting or not yet started is

@@ -20,10 +20,11 @@ from gwc.retry import Backoff
 
 T = TypeVar("T")
 S = LotState
-LISTENS = (Conv.RUN_COMPL, Conv.UPD_ME_ST, Conv.MOD_DIED, Conv.LOT_MOVED)
-# Until its lot is imported an entity hears only its moves: the cell's machine traffic is no
-# business of a lot waiting at the door, and in a busy cell many wait there.
-WAITING_LISTENS = (Conv.LOT_MOVED,)
+LISTENS = (Conv.RUN_COMPL, Conv.UPD_ME_ST, Conv.MOD_DIED)
+# Until its lot is imported an entity listens to no broadcast: the cell's machine traffic is no
+# business of a lot waiting at the door, and in a busy cell many wait there. Its own moves
+# (LOT_MOVED) come addressed to it, not broadcast to every lot (gwc/servers/lot.py).
+WAITING_LISTENS: tuple[str, ...] = ()
 UP = (MachineStatus.IDLE.value, MachineStatus.SETUP.value, MachineStatus.RUNNING.value)
 FINISHED = (S.COMPLETED, S.WAITING_EXPORT, S.EXPORTED, S.FAILED)
 IMPORTED = (S.IMPORTED, S.WAITING_MACHINE, S.RUNNING, *FINISHED)

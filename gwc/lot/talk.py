@@ -218,7 +218,7 @@ class EntityTalk(EntityCore):
     # ----------------------------------------------------------------- broadcasts and peers
 
     async def _listen(self) -> None:
-        """Broadcasts this entity listens to: RUN_COMPL, UPD_ME_ST, MOD_DIED, LOT_MOVED."""
+        """Broadcasts this entity listens to (RUN_COMPL, UPD_ME_ST, MOD_DIED) and its own LOT_MOVED."""
         assert self._bus is not None
         bus = self._bus.bus
         while True:

@@ -426,7 +426,13 @@ class LotServer(Server, Module):
             self.watched.pop(req.entity_id, None)
         self.log.info("entity %d (lot %s) %s by %s", req.entity_id, lot_id, done, by)
         news = message(Msg.LOT_MOVED, entity_id=req.entity_id, action=action, lot_id=lot_id)
-        await self.broadcast(Conv.LOT_MOVED, news)
+        await self.broadcast(Conv.LOT_MOVED, news)  # the cell's watchers: status line, console, OPC UA
+        # The entity's own script hears it addressed to it: lot scripts do not listen to the broadcast,
+        # or every lot in the cell would be woken by (and acknowledge) every other lot's move. A script
+        # not on the bus now reads its state when it is (gwc/lot/core.py, _wait_moved).
+        script = f"lot:{req.entity_id}"
+        if script in self.bus.peers():
+            (await self.bus.start(Conv.LOT_MOVED, news, to=script)).end()
         await self.event(f"entity {req.entity_id} (lot {lot_id}) {done} by {by}")
 
     async def divide_merge(self, conv: Conversation) -> None:

@@ -312,6 +312,8 @@ def test_lot_server_moves_entities_through_their_life_with_the_operators_decisio
     made = create(product_id="alum_chess_set", quantity=2, priority=5, owner="op", result_params=["p1", "p2"])
     assert made.ack_code == OK and len(made.entity_ids) == 2
     e1, e2 = made.entity_ids
+    # Two lot scripts on the bus, as waiting for import: they listen to no broadcast (gwc/lot/model.py)
+    script, other = ears(cell, f"lot:{e1}"), ears(cell, f"lot:{e2}")
     assert q1(
         cell, "select quantity, priority, script_id, lot_type, result_params from lots where lot_id = %s", made.lot_id
     ) == (2, 5, "chess", "CMM_LOT", ["p1", "p2"])
@@ -349,6 +351,9 @@ def test_lot_server_moves_entities_through_their_life_with_the_operators_decisio
     assert decide(bus, 99999, "import").ack_code == AckCode.UNKNOWN
     assert decide(bus, e1, "import").ack_code == OK
     assert ear.wait("LOT_MOVED import", lambda c, m: m.entity_id == e1).action == "import"
+    # ... and the entity's own script is told, addressed to it; the other lot's script hears nothing
+    assert script.wait("LOT_MOVED to lot:e1", lambda c, m: c == "LOT_MOVED" and m.entity_id == e1).action == "import"
+    assert other.drain() == []
     assert decide(bus, e1, "import").ack_code == AckCode.NOTNOW  # not waiting any more
     for action in ("waiting_machine", "running", "completed"):
         assert entity(bus, e1, action).state == action

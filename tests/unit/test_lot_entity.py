@@ -154,8 +154,8 @@ class FakeCell:
             machine,
         )
 
-    async def broadcast(self, sender: str, cls: str, msg: Message) -> None:
-        conv = await self.buses[sender].start(cls, msg)
+    async def broadcast(self, sender: str, cls: str, msg: Message, to: str | None = None) -> None:
+        conv = await self.buses[sender].start(cls, msg, to=to)
         conv.end()
 
     # ----------------------------------------------------------------- the stand-ins
@@ -177,8 +177,11 @@ class FakeCell:
         if m.action in ("import", "export"):  # the operator decides at once
             done = "imported" if m.action == "import" else "exported"
             self.sql("UPDATE lot_status SET state = %s WHERE entity_id = %s", done, m.entity_id)
-            await self.broadcast(
-                "ls", "LOT_MOVED", message("Lot_Moved", entity_id=m.entity_id, action=m.action, lot_id=1)
+            await self.broadcast(  # to the entity's script, as the Lot Server tells it
+                "ls",
+                "LOT_MOVED",
+                message("Lot_Moved", entity_id=m.entity_id, action=m.action, lot_id=1),
+                to=f"lot:{m.entity_id}",
             )
 
     async def mach_req(self, conv: Conversation, m: Message) -> None:
@@ -779,7 +782,10 @@ def test_a_run_in_doubt_past_its_bound_is_the_lot_scripts_decision(
             if m.action == "held":  # the operator sees it held, looks at the part, and fails it (RELEASE_LOT)
                 cell.sql("UPDATE lot_status SET state = 'failed' WHERE entity_id = %s", m.entity_id)
                 await cell.broadcast(
-                    "ls", "LOT_MOVED", message("Lot_Moved", entity_id=m.entity_id, action="fail", lot_id=1)
+                    "ls",
+                    "LOT_MOVED",
+                    message("Lot_Moved", entity_id=m.entity_id, action="fail", lot_id=1),
+                    to=f"lot:{m.entity_id}",
                 )
 
         cell.handlers["ENTITY_REQ"] = entity_req
