@@ -514,6 +514,7 @@ class Statement:
     so the step needs no BEGIN and no COMMIT, each a round trip of its own (a one-row read takes about
     a third of the time, a one-row update two thirds, and the client's CPU halves: docs/performance.md).
     Made from one SQL text, it cannot grow a second statement that would then run outside a transaction.
+    The connection is left in the mode it was in.
     """
 
     __slots__ = ("fetch", "params", "sql")
@@ -571,12 +572,13 @@ def transaction(
         try:
             if c.info.transaction_status != psycopg.pq.TransactionStatus.IDLE:
                 c.rollback()
-            alone = isinstance(fn, Statement) and _autocommit(c, True)
+            was = c.autocommit  # a connection kept in autocommit (a lot script's) is left so
+            alone = isinstance(fn, Statement) and (was or _autocommit(c, True))
             try:
                 with c.cursor() as cur:
                     result = fn(cur)
             finally:
-                if alone:
+                if alone and not was:
                     _autocommit(c, False)
             if not alone:
                 c.commit()

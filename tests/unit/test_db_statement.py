@@ -45,3 +45,9 @@ def test_a_refused_statement_raises_and_leaves_the_connection_usable_as_before(
     assert db.transaction(db_conn, lambda cur: cur.execute("select 1").fetchone()) == (1,)
     db_conn.execute("select 1")  # a step left open before: rolled back first, then the statement runs alone
     assert db.transaction(db_conn, db.Statement(ALONE)) == (True,)
+
+
+def test_a_connection_kept_in_autocommit_stays_so(db_conn: psycopg.Connection[Any]) -> None:
+    db_conn.autocommit = True  # as a lot script keeps its own
+    assert db.transaction(db_conn, db.Statement(ALONE)) == (True,)
+    assert db_conn.autocommit is True
