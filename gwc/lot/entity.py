@@ -25,10 +25,9 @@ The entity listens to RUN_COMPL (its runs finish), UPD_ME_ST (a reserved machine
 the step is retried, after a pause, on whatever machine is up, a bounded number of times) and
 MOD_DIED, only once its lot is in the cell (imported), so that lots waiting to be imported are not
 woken by every run. The operator's import and export of it (LOT_MOVED) the Lot Server sends to it
-alone. It remembers every
-status change of the machines it works with, so a machine that went Shutdown and came up again
-while the entity waited is still known to have lost the run. Servers come and go too: a
-conversation with the Lot Server or MSCHED that finds it away, restarting or not yet started is
+alone. It remembers every status change of the machines it works with, so a machine that went
+Shutdown and came up again while the entity waited is still known to have lost the run. Servers
+come and go too: a conversation with the Lot Server or MSCHED that finds it away, restarting or not yet started is
 asked again with a backoff for a bounded time (Timeouts.retry); every request the entity repeats
 that way is safe to repeat.
 
