@@ -27,9 +27,9 @@ MOD_DIED, only once its lot is in the cell (imported), so that lots waiting to b
 woken by every run. The operator's import and export of it (LOT_MOVED) the Lot Server sends to it
 alone. It remembers every status change of the machines it works with, so a machine that went
 Shutdown and came up again while the entity waited is still known to have lost the run. Servers
-come and go too: a conversation with the Lot Server or MSCHED that finds it away, restarting or not yet started is
-asked again with a backoff for a bounded time (Timeouts.retry); every request the entity repeats
-that way is safe to repeat.
+come and go too: a conversation with the Lot Server or MSCHED that finds it away, restarting or not
+yet started is asked again with a backoff for a bounded time (Timeouts.retry); every request the
+entity repeats that way is safe to repeat.
 
 It reads the tables (as role gwc_lot) and writes none. Besides its log it keeps a traveller,
 var/lots/entity-E.json: what it ran where and what it decided, for the operator (`gwc lots show E`)
