@@ -52,8 +52,8 @@ class BusConfig:
     port: int = 47100
     interface: str = "127.0.0.1"
     ttl: int = 1  # multicast hops: 1 keeps the bus on its LAN segment; more only through multicast routers
-    heartbeat: float = 0.5  # peer_timeout / 3: each beat costs every module that reads it (docs/performance.md)
-    peer_timeout: float = 1.5
+    heartbeat: float = 0.75  # peer_timeout / 3: each beat costs every module that reads it (docs/performance.md)
+    peer_timeout: float = 2.25
     ack_timeout: float = 0.02
     retry_deadline: float = 5.0
     reply_timeout: float = 10.0

@@ -92,8 +92,9 @@ class PrivateCell:
         self.agent = agent
         self.log = log
         self.machines = [m["id"] for m in machines]
-        # Not the soak's seed: two soaks of one seed may run side by side.
-        self._bus_cfg = private_bus(**{"heartbeat": 0.5, "peer_timeout": 1.5, **(bus or {})})
+        # Not the soak's seed: two soaks of one seed may run side by side. The shipped timers (heartbeat,
+        # peer_timeout): soaks and `bench cell` measure the cell as it is run.
+        self._bus_cfg = private_bus(**(bus or {}))
         self._text_args: dict[str, Any] = dict(
             var=self.var, database_url=database_url, machines=machines, policy=policy, db_settings=db_settings
         )
