@@ -264,7 +264,7 @@ class OperationEntity(EntityResume):
                 self.unreserve()
                 continue
             self.unreserve()
-            self._record_step(step, res, chosen, attempt, codes)
+            self._record_step(step, res, chosen, attempt, codes, save=False)  # saved by _record
             runs = self._results(res, chosen, codes)
             op = Operation(op_type, res.machine_run_id, runs, attempt)
             self._record(op_type, res, runs, verdict(op.results)[1] if op.ok else "run failed")

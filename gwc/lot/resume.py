@@ -139,8 +139,11 @@ class EntityResume(EntityRuns):
         recipe = recipes.get(machine_id) if isinstance(recipes, dict) else recipes
         return str(recipe or self.recipe_for(machine_id, entry["op_type"]))
 
-    def _record_step(self, step: int, res: Reservation, recipes: Any, tries: int, codes: dict[str, str] | None) -> None:
-        """The step's record: bound (codes None: written before its first SETUP_RUN), or done."""
+    def _record_step(
+        self, step: int, res: Reservation, recipes: Any, tries: int, codes: dict[str, str] | None, save: bool = True
+    ) -> None:
+        """The step's record: bound (codes None: written before its first SETUP_RUN), or done (saved with
+        the operation's own record: a restart between the two finds the run's outcome stored anyway)."""
         ops: list[dict[str, Any]] = self.traveller.setdefault("operations", [])
         entry = {
             "op_type": res.op_type,
@@ -154,7 +157,8 @@ class EntityResume(EntityRuns):
         ops[step:] = [entry]
         if self._replay is not None:
             self._replay[step : step + 1] = [entry]
-        self._save()
+        if save:
+            self._save()
 
     def _take_up(self, machine_id: str, machine_run_id: int) -> str:
         """(a resumed run) What is left to do on the machine: "wait" (Running, or Shutdown with the run:

@@ -26,6 +26,8 @@ from pathlib import Path
 from types import FrameType, ModuleType
 from typing import NoReturn
 
+from psycopg import sql
+
 from gwc.agent import control as agent_control
 from gwc.cell import lot_proc, out_file, pid_file, process_env, spawn, write_pid_file
 from gwc.config import PROJECT_ROOT, Config, load_config
@@ -36,6 +38,10 @@ from gwc.lot.errors import LotError, ScriptStopped
 
 SWITCH_INTERVAL = 0.0005  # seconds
 PR_SET_NAME = 15  # prctl(2): the process's name in /proc/PID/comm, ps -e and top
+
+# psycopg compiles its list dumper's regular expression at the first list a process sends (a lot's
+# request reads its recipes with one): compiled here once, in the agent that forks the lot scripts.
+sql.Literal([""]).as_bytes(None)
 
 
 def script_of(entity: OperationEntity) -> tuple[str, Path]:

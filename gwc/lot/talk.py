@@ -281,6 +281,7 @@ class EntityTalk(EntityCore):
                     return
                 if not self._present("msched"):
                     why = "msched is not on the bus"
+                    self._sent(alt)
                 else:
                     conv = await bus.start(
                         Conv.MACH_REQ,
@@ -295,6 +296,7 @@ class EntityTalk(EntityCore):
                         *[message(Msg.MACHINE_ENTRY, machine_id=m) for m in alt.machines],
                         to="msched",
                     )
+                    self._sent(alt)
                     try:
                         batch = await conv.next_message(self.timeouts.answer)
                     except ConversationTimeout:
@@ -328,6 +330,12 @@ class EntityTalk(EntityCore):
         finally:
             if conv is not None:
                 conv.end()
+
+    def _sent(self, alt: Alternative) -> None:
+        if not alt.sent:
+            with self._cond:
+                alt.sent = True
+                self._cond.notify_all()
 
     async def _answered(self, alt: Alternative, conv: Conversation, batch: Batch) -> None:
         """MSCHED's Machine_Req_Ack or Machine_Req_Comp for one alternative."""

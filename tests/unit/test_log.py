@@ -1,0 +1,43 @@
+"""The Figure 2 log files: one entry a line, rotated at their size cap."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pytest
+
+from gwc import log as gwc_log
+
+
+def test_a_log_rotates_at_its_cap_keeps_its_backups_and_loses_no_entry(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(gwc_log, "MAX_LOG_BYTES", 4000)
+    logger = gwc_log.open_log("wc:capped", tmp_path)
+    try:
+        for i in range(200):
+            logger.info("entry %03d %s", i, "x" * 40)
+    finally:
+        for h in logger.handlers:
+            h.close()
+    files = sorted(tmp_path.glob("wc-capped.log*"))
+    assert [f.name for f in files] == [f"wc-capped.log{s}" for s in ("", ".1", ".2", ".3")]
+    # Each file passes the cap by one entry at most.
+    assert all(f.stat().st_size < 4000 + 300 for f in files)
+    lines = [line for f in reversed(files[1:]) for line in f.read_text().splitlines()]
+    lines += files[0].read_text().splitlines()
+    numbers = [int(line.split("Note: entry ")[1][:3]) for line in lines]
+    assert numbers == list(range(numbers[0], 200))  # the newest, in order, none lost between files
+    assert all("| Module wc:capped |" in line for line in lines)
+
+
+def test_a_log_that_is_not_a_regular_file_is_written_not_rotated(tmp_path: Path) -> None:
+    (tmp_path / "wc-fifo.log").symlink_to("/dev/null")
+    logger = gwc_log.open_log("wc:fifo", tmp_path)
+    try:
+        logging.getLogger("gwc.wc:fifo").info("x" * 100)
+    finally:
+        for h in logger.handlers:
+            h.close()
+    assert not list(tmp_path.glob("wc-fifo.log.*"))
