@@ -45,6 +45,8 @@ class WCBase(Module):
     _cleared: set[int]  # alarm numbers seen cleared (a clear may beat our wait for it)
     _alarm_pending: int  # alarms of ours waiting for the operator: ME answers may take that long
     _set_up_for: tuple[str, int] | None  # (asker, machine_run_id) of the last setup, its reservation checked
+    _accept_lock: asyncio.Lock
+    _accepting_none: asyncio.Future[bool] | None
 
     @property
     def _loop(self) -> asyncio.AbstractEventLoop:
@@ -99,6 +101,13 @@ class WCBase(Module):
         return True
 
     async def set_accept_types(self, op_types: list[str]) -> bool:
+        """ACC_TYP_C to MSCHED. One change at a time, in the order asked: a later change (all operations
+        after a run) never overtakes an earlier one still unanswered (a setup's none, asked in the
+        background), which would leave MSCHED with the earlier."""
+        async with self._accept_lock:
+            return await self._set_accept_types(op_types)
+
+    async def _set_accept_types(self, op_types: list[str]) -> bool:
         try:
             answer = await self.ask(
                 Conv.ACC_TYP_C,

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from gwc.db import Statement
-from gwc.errors import DatabaseError, DatabaseUnavailable, QueueError
+from gwc.errors import DatabaseError, DatabaseUnavailable, GwcError, QueueError
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import MeMessage, MessageId
@@ -235,6 +235,7 @@ class WCRuns(WCBase):
                 "RUN_FAIL", f"{self.machine_id}: run {run_id} failed ({code}{': ' + note if note else ''})", wait=False
             )
         self.machine_run_id = self.recipe_id = None
+        await self._accepted_none(run_id)  # before the lot can give the machine back
         if shutdown is not None:
             await self._go_shutdown(shutdown, tell_me=tell_me)
             await self._announce_run(run_id, code, note)
@@ -246,6 +247,19 @@ class WCRuns(WCBase):
             self.change_status(S.IDLE, note=None if code == AckCode.ACK_OK else f"run {run_id}: {code}"),
             self.set_accept_types(ALL_OPERATIONS),
         )
+
+    async def _accepted_none(self, run_id: int) -> None:
+        """The run's setup asked MSCHED for accepts-nothing without waiting: its answer, now."""
+        accepting, self._accepting_none = self._accepting_none, None
+        if accepting is None:
+            return
+        try:
+            accepted = await accepting
+        except GwcError as e:
+            accepted = False
+            self.log.error("run %d: accept types none: %s", run_id, e)
+        if not accepted:
+            self.log.error("run %d: MSCHED did not take its setup's accept types none", run_id)
 
     async def _announce_run(self, run_id: int, code: str, note: str | None) -> None:
         self.log.info("run %d complete (%s)%s", run_id, code, f": {note}" if note else "")

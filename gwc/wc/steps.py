@@ -151,7 +151,10 @@ class WCSteps(WCDevice):
         if not valid:
             return AckCode.REC_INVAL, f"recipe {req.recipe_id} is not for op type {req.op_type} on {self.machine_id}"
         # Listing 3: a machine set up for a run accepts no other operation until the run is over. That and
-        # the status Setup are asked now, beside the recipe's download, which depends on neither.
+        # the status Setup are asked now, beside the recipe's download, which depends on neither. The
+        # lot is not kept waiting for MSCHED's answer to the accept types: while the run is reserved
+        # MSCHED binds the machine to nobody else anyway, so what the accepts-nothing protects is the
+        # run's end, and the run's Run_Complete waits for it (docs/machine-interface.md 4.1).
         accept = asyncio.ensure_future(self.set_accept_types([]))
         status = asyncio.ensure_future(
             self.change_status(S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id, machine_run_id=req.machine_run_id)
@@ -159,9 +162,7 @@ class WCSteps(WCDevice):
         try:
             refusal = await self._set_up_on_me(req, fetch)
         finally:
-            accepted, set_up = await accept, await status
-        if refusal is None and not accepted:
-            refusal = AckCode.DB_BADUPD, "MSCHED did not take the accept types"
+            set_up = await status
         if refusal is None and not set_up:
             refusal = AckCode.DB_BADUPD, "the Machine Server refused the change to Setup"
         if refusal is not None:
@@ -169,10 +170,11 @@ class WCSteps(WCDevice):
             if set_up and not await self.change_status(S.IDLE, expect=[S.SETUP], note=note) and self.status == S.SETUP:
                 # Left in Setup: given up by the abandoned-setup watch once the lot has unreserved the run.
                 self.machine_run_id, self.recipe_id = req.machine_run_id, req.recipe_id
-            if accepted and self.status == S.IDLE:  # (not on a machine that went down meanwhile)
+            if await accept and self.status == S.IDLE:  # (not on a machine that went down meanwhile)
                 await self.set_accept_types(ALL_OPERATIONS)
             return refusal
         self.machine_run_id, self.recipe_id = req.machine_run_id, req.recipe_id
+        self._accepting_none = accept
         return None
 
     async def _set_up_on_me(self, req: Message, fetch: Awaitable[tuple[Path | None, str]]) -> tuple[str, str] | None:

@@ -71,6 +71,8 @@ class WC(WCSteps):
         self.recipe_dir = cfg.var / "recipes" / machine_id
         self.results_dir = cfg.results_dir / machine_id
         self._state_lock = asyncio.Lock()  # one status-changing step at a time
+        self._accept_lock = asyncio.Lock()  # accept-type changes reach MSCHED one at a time, in order
+        self._accepting_none: asyncio.Future[bool] | None = None  # a setup's accepts-nothing, unanswered yet
         self._alarm_waits = {}
         self._cleared = set()  # alarm numbers seen cleared (a clear may beat our wait for it)
         self._alarm_pending = 0  # alarms of ours waiting for the operator: ME answers may take that long
