@@ -69,6 +69,25 @@ class BlockingBus:
         conv, batch = self.run(self.bus.request(cls, *messages, to=to, timeout=timeout))
         return BlockingConversation(self, conv), batch
 
+    def request_soon(
+        self, cls: str, *messages: Message, to: str | None = None, timeout: float | None = None
+    ) -> Callable[[], tuple[BlockingConversation, Batch]]:
+        """request() in two halves: returns once the request is on the wire, with a function that
+        waits for the answer, so that the caller can work meanwhile (work begun before the send would
+        hold the GIL while this bus's thread sends). The caller ends the conversation as after request()."""
+        conv = self.run(self.bus.start(cls, *messages, to=to))
+        answer = asyncio.run_coroutine_threadsafe(conv.next_message(timeout), self._loop)
+
+        def answered() -> tuple[BlockingConversation, Batch]:
+            try:
+                batch = answer.result()
+            except BaseException:
+                self.call_soon(conv.end)
+                raise
+            return BlockingConversation(self, conv), batch
+
+        return answered
+
     def resume(self, conv_id: str, cls: str, peer: str) -> BlockingConversation:
         async def _resume() -> Conversation:
             return self.bus.resume(conv_id, cls, peer)

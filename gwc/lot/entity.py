@@ -263,9 +263,12 @@ class OperationEntity(EntityResume):
                 self._record(op_type, res, [], f"machine lost: {e}")
                 self.unreserve()
                 continue
-            self.unreserve()
+            freeing = self.unreserve_soon()
+            try:
+                runs = self._results(res, chosen, codes)  # read while MSCHED frees the machines
+            finally:
+                freeing()
             self._record_step(step, res, chosen, attempt, codes, save=False)  # saved by _record
-            runs = self._results(res, chosen, codes)
             op = Operation(op_type, res.machine_run_id, runs, attempt)
             self._record(op_type, res, runs, verdict(op.results)[1] if op.ok else "run failed")
             return op

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from gwc.errors import DatabaseError, GwcError
 from gwc.ipc.catalogue import message
@@ -205,22 +205,35 @@ class EntityReserve(EntityTalk):
         self, machine_id: str | None = None, timeout: float | None = None, within: float | None = None
     ) -> int:
         """UNRESERVE: free one reserved machine, or all of the entity's. Returns how many were freed."""
-        ack = self._ask(
+        return self.unreserve_soon(machine_id, timeout, within)()
+
+    def unreserve_soon(
+        self, machine_id: str | None = None, timeout: float | None = None, within: float | None = None
+    ) -> Callable[[], int]:
+        """unreserve() sent now; the function returned waits for MSCHED's answer (how many were freed),
+        so that the script can work while MSCHED frees the machines. Call it."""
+        asked = self._ask_soon(
             Conv.UNRESERVE,
             message(Msg.UNRESERVE_ME, entity_id=self.entity_id, machine_id=machine_id, by=self.name),
             "msched",
             timeout,
             within,
         )
-        if ack.ack_code == AckCode.NOT_RESERVED:
-            self.log.info("unreserve %s: nothing reserved", machine_id or "all")
-            return 0
-        if ack.ack_code != AckCode.ACK_OK:
-            raise LotError(
-                f"MSCHED refused to unreserve {machine_id or 'the machines'} of entity {self.entity_id}: {ack.ack_code}"
-            )
-        self.log.info("unreserved %s (%s freed)", machine_id or "all machines", ack.freed)
-        return int(ack.freed or 0)
+
+        def freed() -> int:
+            ack = asked()
+            if ack.ack_code == AckCode.NOT_RESERVED:
+                self.log.info("unreserve %s: nothing reserved", machine_id or "all")
+                return 0
+            if ack.ack_code != AckCode.ACK_OK:
+                raise LotError(
+                    f"MSCHED refused to unreserve {machine_id or 'the machines'} of entity {self.entity_id}: "
+                    f"{ack.ack_code}"
+                )
+            self.log.info("unreserved %s (%s freed)", machine_id or "all machines", ack.freed)
+            return int(ack.freed or 0)
+
+        return freed
 
     def _may_be_queued(self) -> bool:
         """Whether a request this process made may still wait in MSCHED's queue: an alternative whose end

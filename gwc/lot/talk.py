@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Coroutine
+from collections.abc import Callable, Coroutine
 from typing import Any
 
 from gwc.errors import ConversationTimeout, GwcError
-from gwc.ipc.bus import Batch, Bus, Conversation, Peer
+from gwc.ipc.bus import Batch, BlockingConversation, Bus, Conversation, Peer
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
@@ -115,16 +115,42 @@ class EntityTalk(EntityCore):
         then LotTimeout. So every request sent through here must be safe to repeat (ENTITY_REQ,
         CANCEL_RE, UNRESERVE are).
         """
+        return self._ask_soon(cls, first, to, timeout, within)()
+
+    def _ask_soon(
+        self, cls: str, first: Message, to: str, timeout: float | None = None, within: float | None = None
+    ) -> Callable[[], Message]:
+        """_ask's first try sent now; the function returned waits for its answer (asking again as _ask
+        does), so the script can work meanwhile. Call it: it also ends the conversation."""
         if self._bus is None:
             raise LotError(f"entity {self.entity_id} is not open")
+        sent = None
+        if self._present(to):
+            sent = self._bus.request_soon(cls, first, to=to, timeout=timeout or self.timeouts.answer)
+        return lambda: self._answer(cls, first, to, timeout, within, sent)
+
+    def _answer(
+        self,
+        cls: str,
+        first: Message,
+        to: str,
+        timeout: float | None,
+        within: float | None,
+        sent: Callable[[], tuple[BlockingConversation, Batch]] | None,
+    ) -> Message:
+        assert self._bus is not None
         backoff = self.timeouts.asking(within)
         while True:
             error: ConversationTimeout | None = None
-            if not self._present(to):
+            if sent is None and not self._present(to):
                 why = f"{to} is not on the bus"
             else:
                 try:
-                    conv, batch = self._bus.request(cls, first, to=to, timeout=timeout or self.timeouts.answer)
+                    if sent is not None:  # the first try, sent by _ask_soon
+                        answer, sent = sent, None
+                        conv, batch = answer()
+                    else:
+                        conv, batch = self._bus.request(cls, first, to=to, timeout=timeout or self.timeouts.answer)
                 except ConversationTimeout as e:
                     why, error = f"no answer within {timeout or self.timeouts.answer:.1f}s", e
                 else:
