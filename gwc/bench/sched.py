@@ -110,7 +110,13 @@ def _bench_config(tmp: Path, url: str, level: str, policy: str) -> Config:
         tmp / "etc" / "cell.toml",
         {
             "cell": {"name": "bench", "var": str(tmp / "var"), "policy": policy},
-            "bus": private_bus(heartbeat=0.25, peer_timeout=3.0),
+            # The keys named, not left to var: GWC_VAR in the environment would put them elsewhere.
+            "bus": private_bus(
+                heartbeat=0.25,
+                peer_timeout=3.0,
+                key_file=str(tmp / "var" / "secrets" / "cell.key"),
+                lot_key_file=str(tmp / "var" / "secrets" / "lot.key"),
+            ),
             "database": {"url": url},
             "log": {"level": level},
         },
@@ -295,9 +301,7 @@ async def _sample(bus: Bus, bench: Bench, e: int) -> list[float]:
 def run_size(
     cfg: Config, log: Any, queued: int, n_machines: int, decisions: int, samples: int, level: str, policy: str = "fifo"
 ) -> Result:
-    """One measurement on its own scratch database and MSCHED."""
-    if cfg.embedded:
-        db.cluster_start(cfg, log)
+    """One measurement on its own scratch database and MSCHED (the cell's server running)."""
     base_url = db.database_url(cfg)
     name = f"gwc_bench_{uuid.uuid4().hex[:10]}"
     url = _scratch_url(base_url, name)
@@ -356,11 +360,19 @@ def command(sizes: str, n_machines: int, decisions: int, samples: int, level: st
         qs = [int(s) for s in sizes.split(",") if s.strip()]
     except ValueError:
         raise click.BadParameter(f"--queued must be numbers, got {sizes!r}") from None
+    # The embedded cluster is left as it was found: stopped again if this command started it.
+    started = cfg.embedded and not db.cluster_running(cfg)
+    if cfg.embedded:
+        db.cluster_start(cfg, log)
     results = []
-    for q in qs:
-        if not as_json:
-            click.echo(f"queue {q}: filling and measuring ...")
-        results.append(run_size(cfg, log, q, n_machines, decisions, samples, level, policy).as_dict())
+    try:
+        for q in qs:
+            if not as_json:
+                click.echo(f"queue {q}: filling and measuring ...")
+            results.append(run_size(cfg, log, q, n_machines, decisions, samples, level, policy).as_dict())
+    finally:
+        if started:
+            db.cluster_stop(cfg, log)
     if as_json:
         click.echo(json.dumps(results, indent=1))
         return
