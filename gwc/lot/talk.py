@@ -115,7 +115,9 @@ class EntityTalk(EntityCore):
         then LotTimeout. So every request sent through here must be safe to repeat (ENTITY_REQ,
         CANCEL_RE, UNRESERVE are).
         """
-        return self._ask_soon(cls, first, to, timeout, within)()
+        if self._bus is None:
+            raise LotError(f"entity {self.entity_id} is not open")
+        return self._answer(cls, first, to, timeout, within, None)
 
     def _ask_soon(
         self, cls: str, first: Message, to: str, timeout: float | None = None, within: float | None = None

@@ -617,3 +617,25 @@ def test_a_setup_whose_run_is_not_reserved_is_given_up_and_the_machine_serves_ag
     story(cell, "wc:wc3", "set up run 31", "run 31 is set up but not reserved any more", "status Setup -> Idle")
     assert start_run(cell, "wc3", 31).ack_code == AckCode.NOTNOW
     assert setup_run(cell, "wc3", 32).ack_code == OK  # and it serves the cell again
+
+
+def test_a_setup_is_answered_without_mscheds_accept_types_and_the_run_end_waits_for_them(machine_cell: Any) -> None:
+    # docs/machine-interface.md 4.1: MSCHED frozen (SIGSTOP) answers nothing. The WC sets up and starts
+    # the run all the same; it stores the run's results, but tells Run_Complete only once MSCHED has
+    # taken the setup's accepts-nothing, so no lot can give the machine back before that.
+    cell, ear = machine_cell({"id": "wc3", "kind": "dummy", "run_time": 0.05})
+    start_machine(cell, "wc3", homing=False)
+    msched = cell.pid("msched")
+    assert msched is not None
+    os.kill(msched, signal.SIGSTOP)  # kept short: under peer_timeout (2.25 s), so nobody drops it
+    try:
+        assert setup_run(cell, "wc3", 41).ack_code == OK
+        assert start_run(cell, "wc3", 41).ack_code == OK
+        wait_for(lambda: results(cell, "wc3", 41), T, "the run's results stored")
+        with pytest.raises(AssertionError, match="timed out"):
+            ear.wait("no Run_Complete while MSCHED is frozen", lambda m: m.machine_run_id == 41, timeout=0.5)
+    finally:
+        os.kill(msched, signal.SIGCONT)
+    assert ear.wait("Run_Complete of run 41", lambda m: m.machine_run_id == 41).ack_code == OK
+    story(cell, "wc:wc3", "set up run 41", "accept types: none", r"run 41 complete \(ACK_OK\)")
+    wait_for(lambda: accepts(cell, "wc3") == ["dummy_op", "measure", "mill_chess"], T, "all operations again")
