@@ -35,20 +35,26 @@ class BlockingBus:
         log: logging.Logger,
         interest: Iterable[str] = (),
         transport: Transport | None = None,
+        ignored_peers: str = "",
     ) -> None:
         self._loop = eventloop.new_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name=f"bus-{name}", daemon=True)
         self._thread.start()
-        self.bus: Bus = self.run(self._make(name, cfg, log, interest, transport))
+        self.bus: Bus = self.run(self._make(name, cfg, log, interest, transport, ignored_peers))
         self._closed = False
 
     @staticmethod
     async def _make(
-        name: str, cfg: BusConfig, log: logging.Logger, interest: Iterable[str], transport: Transport | None
+        name: str,
+        cfg: BusConfig,
+        log: logging.Logger,
+        interest: Iterable[str],
+        transport: Transport | None,
+        ignored_peers: str,
     ) -> Bus:
         from gwc.ipc.bus import Bus  # here: gwc.ipc.bus imports this module to re-export BlockingBus
 
-        bus = Bus(name, cfg, log, interest, transport)
+        bus = Bus(name, cfg, log, interest, transport, ignored_peers)
         await bus.sign_on()
         return bus
 

@@ -137,7 +137,7 @@ class Bus:
         except BaseException:
             self._open = False
             raise
-        self._transport.set_filter(self.name, self.inc, self._interest)
+        self._transport.set_filter(self.name, self.inc, self._interest, self.ignored_peers)
         self._transport.ignore_beats_from(self.ignored_peers)
         self._hello(query=True)
         self._heartbeat = loop.create_task(self._beat())
@@ -186,7 +186,7 @@ class Bus:
         self._interest = new
         self._beat_body = None
         if self._open:
-            self._transport.set_filter(self.name, self.inc, new)
+            self._transport.set_filter(self.name, self.inc, new, self.ignored_peers)
             if announce:
                 self._hello()
 

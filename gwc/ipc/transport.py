@@ -57,8 +57,9 @@ class Transport(ABC):
     def beats(self) -> Iterator[bytes]:
         """The beat-channel datagrams that came since the last call, our own skipped."""
 
-    def set_filter(self, src: str, inc: int, interest: Iterable[str]) -> None:  # noqa: B027  (optional)
-        """Drop before the module wakes what module `src` would drop unread (a hint; none by default)."""
+    def set_filter(self, src: str, inc: int, interest: Iterable[str], ignored: str = "") -> None:  # noqa: B027
+        """Drop before the module wakes what module `src` would drop unread, the hellos and byes of modules
+        whose names begin with `ignored` among them (a hint; none by default)."""
 
     def ignore_beats_from(self, prefix: str) -> None:  # noqa: B027  (optional)
         """Drop before the module reads them the beats of modules whose names begin with `prefix`
@@ -135,10 +136,10 @@ class UdpTransport(Transport):
             self.close()
             raise
 
-    def set_filter(self, src: str, inc: int, interest: Iterable[str]) -> None:
+    def set_filter(self, src: str, inc: int, interest: Iterable[str], ignored: str = "") -> None:
         """Have the kernel drop what this module would drop unread (wire.kernel_filter), where it can."""
         if self._sock is not None:
-            self._attach(self._sock, wire.kernel_filter(src, inc, interest))
+            self._attach(self._sock, wire.kernel_filter(src, inc, interest, ignored))
 
     def ignore_beats_from(self, prefix: str) -> None:
         if self._beat_sock is not None and prefix:

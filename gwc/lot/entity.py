@@ -113,8 +113,14 @@ class OperationEntity(EntityResume):
         if self.state in (S.FAILED, S.EXPORTED):
             self._failed = True  # nothing of ours to clean up
             raise LotError(f"entity {self.entity_id} is already {self.state}: nothing to do")
+        # A lot talks to servers and WCs, never to another lot: it does not track the other lot scripts
+        # (their beats, hellos and byes are dropped before it wakes), nor answer their queries.
         self._bus = BlockingBus(
-            self.name, self.cfg.bus, self.log, interest=LISTENS if self.state in IMPORTED else WAITING_LISTENS
+            self.name,
+            self.cfg.bus,
+            self.log,
+            interest=LISTENS if self.state in IMPORTED else WAITING_LISTENS,
+            ignored_peers="lot:",
         )
         self._bus.call_soon(self._watch_peers, self._bus.bus)
         self._bus.peers()  # returns after _watch_peers ran (the bus thread runs callbacks in order)

@@ -349,9 +349,9 @@ def test_faults_config_is_deterministic_per_module_with_a_seed() -> None:
 
 
 def test_a_module_never_tracks_the_peers_it_ignores_and_the_others_track_it() -> None:
-    """WCs ignore each other (gwc.wc.wc.WC.ignored_peers): over UDP the kernel drops the other WCs'
-    beats unread; hellos on the bus port are ignored too. The Machine Server still tracks both and
-    hears what each broadcasts."""
+    """WCs ignore each other (gwc.wc.wc.WC.ignored_peers; lot scripts ignore other lot scripts): over
+    UDP the kernel drops the other WCs' beats, hellos and byes unread. The Machine Server still tracks
+    both and hears what each broadcasts."""
 
     async def t(make: Make, cfg: BusConfig) -> None:
         a = await make("wc:a", ("PING",), ignored="wc:")
@@ -363,6 +363,13 @@ def test_a_module_never_tracks_the_peers_it_ignores_and_the_others_track_it() ->
         assert "wc:b" not in a.peers() and "wc:a" not in b.peers() and "ms" in a.peers()
         if TRANSPORT == "udp":
             assert a.stats["beat_ignored"] == 0 and a.stats["beat"] > 0  # dropped in the kernel
+            # ... and so are its hellos on the bus port (an interest change here), not those of the others
+            hellos = a.stats["hello"]
+            b.set_interest(("PING", "RUN_COMPL"))
+            ms.set_interest(("PING", "RUN_COMPL"))
+            await until(lambda: a.stats["hello"] > hellos, "the Machine Server's hello")
+            await until(lambda: ms.peers()["wc:b"].interest == {"PING", "RUN_COMPL"}, "b's hello at ms")
+            assert a.stats["hello"] == hellos + 1
         conv = await a.start("RUN_COMPL", message("Run_Complete", machine_id="a", machine_run_id=1, ack_code="ACK_OK"))
         heard = await ms.first_message(5)
         assert heard is not None and heard.first.first.machine_id == "a"

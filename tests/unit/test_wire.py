@@ -287,6 +287,27 @@ def test_the_kernel_filter_keeps_exactly_what_the_module_would_read() -> None:
         assert run_filter(code, garbage)
 
 
+def test_the_kernel_filter_drops_the_hellos_and_byes_of_ignored_modules() -> None:
+    code = wire.kernel_filter("lot:7", 5, ["RUN_COMPL"], ignored="lot:")
+
+    def kept(**kw: object) -> bool:
+        return run_filter(code, wire.encode(Envelope(**kw)))  # type: ignore[arg-type]
+
+    for kind in ("hello", "bye"):
+        assert not kept(kind=kind, src="lot:12", inc=3)  # another lot's sign-on, interest change, bye
+        assert not kept(kind=kind, src="lot:", inc=3)
+        assert kept(kind=kind, src="wc:wc1", inc=3) and kept(kind=kind, src="lot", inc=3)
+        assert kept(kind=kind, src="lotx:1", inc=3) and kept(kind=kind, src="msched", inc=3)
+    assert not kept(kind="hello", src="lot:12", inc=3, query=True)  # not answered: not even read
+    assert kept(kind="hello", src="msched", inc=3, to="lot:7")  # an answer to its own query
+    msg = dict(kind="msg", inc=3, seq=1, msg="Run_Complete", cls="RUN_COMPL")
+    assert kept(**msg, src="wc:wc1", conv="wc:wc1.3.1")  # msgs go by interest, whoever sends them
+    assert kept(**msg, src="lot:12", conv="lot:12.3.1")
+    assert kept(kind="ack", src="wc:wc1", inc=3, to="lot:7", to_inc=5, acks=(1,))
+    unfiltered = wire.kernel_filter("lot:7", 5, ["RUN_COMPL"])
+    assert run_filter(unfiltered, wire.encode(Envelope(kind="hello", src="lot:12", inc=3)))
+
+
 def test_the_beat_filter_drops_exactly_the_beats_of_the_ignored_modules() -> None:
     code = wire.beat_filter("wc:")
 
