@@ -116,29 +116,21 @@ class WCSteps(WCDevice):
         if refusal is not None:
             await self._refuse_now(conv, Msg.SETUP_RUN_ACK, *refusal)
             return
-        # The recipe is asked of the ERS first, so that the ERS looks it up while we wait our turn and read
-        # our tables.
-        fetch = asyncio.ensure_future(self.fetch_recipe(req.recipe_id))
-        await asyncio.sleep(0)  # let it send before the (blocking) read
-        try:
-            if not await self._serve_step(conv, Msg.SETUP_RUN_ACK, (S.IDLE,), lambda r: self._setup(r, entity, fetch)):
-                return
-        finally:
-            fetch.cancel()  # a refusal before the ME's turn: not needed (done by then otherwise)
+        if not await self._serve_step(conv, Msg.SETUP_RUN_ACK, (S.IDLE,), lambda r: self._setup(r, entity)):
+            return
         self._set_up_for = (conv.initiator, req.machine_run_id)
         self.log.info("set up run %d with recipe %s", req.machine_run_id, req.recipe_id)
         await conv.send(message(Msg.SETUP_RUN_ACK, ack_code=AckCode.ACK_OK))
 
-    async def _setup(
-        self, req: Message, entity: int | None, fetch: Awaitable[tuple[Path | None, str]]
-    ) -> tuple[str, str] | None:
-        try:  # the reservation (a lot's) and OP_MACHINE_RECIPE, one read
-            reserved, valid = await self._read_when_up(
+    async def _setup(self, req: Message, entity: int | None) -> tuple[str, str] | None:
+        try:  # the reservation (a lot's), OP_MACHINE_RECIPE and the recipe's approved version, one read
+            reserved, valid, version, checksum = await self._read_when_up(
                 "SELECT %(e)s::bigint IS NULL OR EXISTS (SELECT 1 FROM reserved_machines WHERE machine_id = %(m)s "
                 "AND machine_run_id = %(run)s AND entity_id = %(e)s), EXISTS (SELECT 1 FROM op_machine_recipe "
-                "WHERE machine_id = %(m)s AND recipe_id = %(r)s AND op_type = %(op)s)",
+                "WHERE machine_id = %(m)s AND recipe_id = %(r)s AND op_type = %(op)s), v.version, v.checksum "
+                "FROM (SELECT) one LEFT JOIN recipe_versions v ON v.recipe_id = %(r)s AND v.approved",
                 {"e": entity, "m": self.machine_id, "run": req.machine_run_id, "r": req.recipe_id, "op": req.op_type},
-            ) or (False, False)
+            ) or (False, False, None, None)
         except DatabaseUnavailable:
             raise  # the module answers DB_Badrea: the lot may ask again once the database is back
         except DatabaseError as e:
@@ -151,7 +143,7 @@ class WCSteps(WCDevice):
         if not valid:
             return AckCode.REC_INVAL, f"recipe {req.recipe_id} is not for op type {req.op_type} on {self.machine_id}"
         # Listing 3: a machine set up for a run accepts no other operation until the run is over. That and
-        # the status Setup are asked now, beside the recipe's download, which depends on neither. The
+        # the status Setup are asked now, beside the recipe's setup on the ME, which depends on neither. The
         # lot is not kept waiting for MSCHED's answer to the accept types: while the run is reserved
         # MSCHED binds the machine to nobody else anyway, so what the accepts-nothing protects is the
         # run's end, and the run's Run_Complete waits for it (docs/machine-interface.md 4.1).
@@ -160,7 +152,7 @@ class WCSteps(WCDevice):
             self.change_status(S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id, machine_run_id=req.machine_run_id)
         )
         try:
-            refusal = await self._set_up_on_me(req, fetch)
+            refusal = await self._set_up_on_me(req, self._recipe(req.recipe_id, version, checksum))
         finally:
             set_up = await status
         if refusal is None and not set_up:
@@ -178,7 +170,7 @@ class WCSteps(WCDevice):
         return None
 
     async def _set_up_on_me(self, req: Message, fetch: Awaitable[tuple[Path | None, str]]) -> tuple[str, str] | None:
-        """The approved recipe (`fetch`: from the ERS) to the ME, which sets up with it; the refusal, or None."""
+        """The approved recipe (`fetch`) to the ME, which sets up with it; the refusal, or None."""
         path, why = await fetch
         if path is None:
             await self.raise_alarm("REC_INVAL", f"{self.machine_id}: recipe {req.recipe_id} refused: {why}", wait=False)
@@ -191,6 +183,20 @@ class WCSteps(WCDevice):
         if answer.ack_code != AckCode.ACK_OK:
             return answer.ack_code or AckCode.START_FAIL, f"ME refused the setup: {answer.alarm_text}"
         return None
+
+    async def _recipe(self, recipe_id: str, version: int | None, checksum: str | None) -> tuple[Path | None, str]:
+        """The approved recipe for the ME: the copy this machine holds when it is the approved version (its
+        sha256 checked now), else fetched from the ERS (a new version, a machine's first setup with it, a
+        copy changed on disk, or no approved version: the ERS says why)."""
+        if version is not None and checksum is not None:
+            path = self._recipe_file(recipe_id, version)
+            with contextlib.suppress(OSError):
+                if hashlib.sha256(path.read_bytes()).hexdigest() == checksum:
+                    return path, ""
+        return await self.fetch_recipe(recipe_id)
+
+    def _recipe_file(self, recipe_id: str, version: int) -> Path:
+        return self.recipe_dir / f"{recipe_id}.v{version}"
 
     async def fetch_recipe(self, recipe_id: str) -> tuple[Path | None, str]:
         """The approved version from the ERS, checksum verified, written where the ME can read it."""
@@ -209,7 +215,7 @@ class WCSteps(WCDevice):
         digest = hashlib.sha256(reply.content.encode()).hexdigest()
         if digest != reply.checksum:
             return None, f"recipe {recipe_id} v{reply.version} checksum mismatch: the recipe was modified"
-        path = self.recipe_dir / f"{recipe_id}.v{reply.version}"
+        path = self._recipe_file(recipe_id, reply.version)
         with contextlib.suppress(OSError, UnicodeDecodeError):
             if path.read_text() == reply.content:  # written by an earlier setup, as approved: a read, not a write
                 return path, ""

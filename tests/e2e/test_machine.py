@@ -639,3 +639,32 @@ def test_a_setup_is_answered_without_mscheds_accept_types_and_the_run_end_waits_
     assert ear.wait("Run_Complete of run 41", lambda m: m.machine_run_id == 41).ack_code == OK
     story(cell, "wc:wc3", "set up run 41", "accept types: none", r"run 41 complete \(ACK_OK\)")
     wait_for(lambda: accepts(cell, "wc3") == ["dummy_op", "measure", "mill_chess"], T, "all operations again")
+
+
+def test_a_machine_sets_up_with_the_approved_copy_it_holds_and_asks_the_ers_only_for_what_it_lacks(
+    machine_cell: Any,
+) -> None:
+    # docs/machine-interface.md 4.1: the setup's read gives the approved version and its sha256; a copy
+    # held by the machine that matches is used as it is, anything else comes from the ERS.
+    cell, ear = machine_cell({"id": "wc3", "kind": "dummy", "run_time": 0.05})
+    start_machine(cell, "wc3", homing=False)
+    held = cell.cfg.var / "recipes" / "wc3" / "dummy_recipe.v1"
+
+    def fetched() -> int:
+        return cell.log_text("ers").count("recipe dummy_recipe v1 to wc3")
+
+    def run(run_id: int) -> None:
+        assert setup_run(cell, "wc3", run_id).ack_code == OK
+        assert start_run(cell, "wc3", run_id).ack_code == OK
+        assert ear.wait(f"Run_Complete of run {run_id}", lambda m: m.machine_run_id == run_id).ack_code == OK
+        wait_for(lambda: status(cell, "wc3")[0] == "Idle", T, "Idle again")
+
+    run(61)  # the machine's first setup with v1: from the ERS
+    assert fetched() == 1 and held.exists()
+    run(62)  # held, and the approved version: the ERS is not asked
+    assert fetched() == 1
+    approved = held.read_text()
+    held.write_text(approved + "SPEED 99\n")  # the held copy changed on disk: not the approved version
+    run(63)
+    assert fetched() == 2 and held.read_text() == approved
+    story(cell, "me:wc3", *[f"set up with recipe dummy_recipe \\({held}\\)"] * 3)
