@@ -13,7 +13,9 @@ a request twice (docs/scheduling.md, "Restart without loss").
 The scheduling pass keeps one invariant: after every step, no queued request can be bound. So a
 step only has to look at requests that touch a machine the step may have made usable (its
 "triggers"): a request queued, a machine freed, started or given new accept types. That keeps a
-pass over 10,000 queued requests to a few index lookups.
+pass over 10,000 queued requests to a few index lookups. A machine freed or given new accept types
+with no request queued for it triggers nothing (the statement that frees it says so), so the step
+of a lot's unreserve or of a WC's "accepts all" makes no pass when nobody waits.
 """
 
 from __future__ import annotations
@@ -74,7 +76,8 @@ gone as (delete from accept_types a where a.machine_id = %(m)s and exists (selec
 added as (insert into accept_types (machine_id, op_type) select %(m)s, op_type from wanted
           where exists (select 1 from ok) on conflict do nothing returning 1)
 select exists (select 1 from machine), array(select distinct u from unknown order by u),
-       array(select op_type from wanted order by op_type), (select count(*) from added)
+       array(select op_type from wanted order by op_type), (select count(*) from added),
+       exists (select 1 from request_machines q where q.machine_id = %(m)s)
 """
 
 
@@ -210,25 +213,26 @@ class Step:
             "d as (select distinct on (r.machine_id) r.machine_id, f.i from reserved_machines r join f "
             "      on r.entity_id = f.entity_id and (f.machine_id is null or r.machine_id = f.machine_id) "
             "      order by r.machine_id, f.i) "
-            "delete from reserved_machines r using d where r.machine_id = d.machine_id returning d.i, r.machine_id",
+            "delete from reserved_machines r using d where r.machine_id = d.machine_id returning d.i, r.machine_id, "
+            "exists (select 1 from request_machines q where q.machine_id = r.machine_id)",
             (list(range(len(frees))), [e for e, _ in frees], [m for _, m in frees]),
         ).fetchall()
         freed: list[list[str]] = [[] for _ in frees]
-        for i, m in rows:
+        for i, m, _ in rows:
             freed[i].append(m)
-        self.triggers.update(m for _, m in rows)
+        self.triggers.update(m for _, m, waited_for in rows if waited_for)
         return freed
 
     def set_accept_types(self, machine_id: str, op_types: Sequence[str]) -> tuple[str, str]:
         """Chg_Accept_Type: what the machine accepts from now on (['*'] = all it has recipes for)."""
         every = list(op_types) == ["*"]
         row = self.cur.execute(_ACCEPT, {"m": machine_id, "all": every, "types": [] if every else list(op_types)})
-        known, unknown, wanted, added = row.fetchone() or (False, [], [], 0)
+        known, unknown, wanted, added, waited_for = row.fetchone() or (False, [], [], 0, False)
         if not known:
             return AckCode.UNKNOWN, f"machine {machine_id} does not exist (ME_CONFIG)"
         if unknown:
             return AckCode.UNKNOWN, f"op type(s) {', '.join(unknown)} not known"
-        if added:
+        if added and waited_for:
             self.triggers.add(machine_id)
         return AckCode.ACK_OK, f"{machine_id} accepts {', '.join(wanted) or 'nothing'}"
 

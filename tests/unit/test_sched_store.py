@@ -60,6 +60,29 @@ def test_frees_of_one_step_each_get_their_own_machines(conn: psycopg.Connection[
     assert conn.execute("select count(*) from reserved_machines").fetchone()[0] == 0
 
 
+def test_a_machine_freed_or_accepting_again_with_nobody_waiting_makes_no_pass(conn: psycopg.Connection[Any]) -> None:
+    fifo = Fifo()
+    _accept_all(conn, fifo)
+    _step(conn, fifo, lambda s: [s.queue_request(e, "dummy_op", ["wc1"], None, "t", f"c{e}") for e in (1, 2)])
+
+    def triggers(op: Any) -> set[str]:  # what the step would pass over, before its pass
+        with conn.transaction(), conn.cursor() as cur:
+            step = Step(cur, fifo)
+            op(step)
+            return step.triggers
+
+    # entity 1 holds wc1, entity 2 waits for it: freeing it or its accepting again is a pass's business
+    _step(conn, fifo, lambda s: s.set_accept_types("wc1", []))
+    assert triggers(lambda s: s.set_accept_types("wc1", ["*"])) == {"wc1"}
+    _, step = _step(conn, fifo, lambda s: s.unreserve(1, None))
+    assert [o.entity_id for o in step.outcomes] == [2]
+    # nobody waits now: neither is
+    _step(conn, fifo, lambda s: s.set_accept_types("wc1", []))
+    assert triggers(lambda s: s.set_accept_types("wc1", ["*"])) == set()
+    assert triggers(lambda s: s.unreserve(2, None)) == set()
+    assert triggers(lambda s: s.queue_request(3, "dummy_op", ["wc2"], None, "t", "c3")) == {"wc2"}
+
+
 def test_priority_rank_is_stored_and_set_again_when_the_policy_changes(conn: psycopg.Connection[Any]) -> None:
     fifo, prio = Fifo(), Priority(ageing_s=10)
     # wc1 is held, so the requests queue: entity 3 asks first with priority 30, entity 4 later with 5
