@@ -135,12 +135,20 @@ class Module:
     stop_class = Conv.SHUTDOWN
     always: tuple[str, ...] = ()  # classes listened to even when not started
     ignored_peers = ""  # a name prefix of modules this one never talks to (gwc.ipc.bus.Bus)
+    unanswered_peers = ""  # ... of modules whose query at sign-on it does not answer (they hear its beat)
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
         self.cfg = cfg
         self.name = name
         self.log = log
-        self.bus = Bus(name, cfg.bus, log, interest=self.idle_interest(), ignored_peers=self.ignored_peers)
+        self.bus = Bus(
+            name,
+            cfg.bus,
+            log,
+            interest=self.idle_interest(),
+            ignored_peers=self.ignored_peers,
+            unanswered_peers=self.unanswered_peers,
+        )
         self.started = False
         self.exit_code = 0
         self._stop = asyncio.Event()

@@ -77,6 +77,7 @@ class Bus:
         interest: Iterable[str] = (),
         transport: Transport | None = None,
         ignored_peers: str = "",
+        unanswered_peers: str = "",
     ) -> None:
         if not name or len(name) > wire.MAX_NAME - 30:
             raise BusError(f"bad bus module name {name!r}")
@@ -94,6 +95,7 @@ class Bus:
         self._conv_n = 0
         self._loop: asyncio.AbstractEventLoop | None = None
         self.ignored_peers = ignored_peers  # names of modules not tracked (docs/protocol.md, Membership)
+        self.unanswered_peers = unanswered_peers  # ... tracked, whose queries it leaves to its beats
         self._members = Membership(self)
         self._peers = self._members.peers  # the same dict: read on the hot paths
         self._pending: dict[int, Pending] = {}

@@ -59,6 +59,10 @@ class WC(WCSteps):
     # The other WCs: a WC addresses none and starts no class one listens to (it starts RUN_COMPL and
     # asks the servers), so it need not read their beats: with N machines, N-1 fewer a heartbeat.
     ignored_peers = "wc:"
+    # A lot script signing on needs the servers at once (it attaches to the Lot Server), not the WCs: it
+    # sets up on one only once it holds the machine, and hears every WC's beat within a heartbeat. So
+    # the WCs leave its query unanswered: N machines, N fewer hellos for every lot script to read.
+    unanswered_peers = "lot:"
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger, machine_id: str) -> None:
         # Before the base's __init__: it asks idle_interest(), which depends on the status.

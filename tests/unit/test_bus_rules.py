@@ -73,9 +73,13 @@ def run(test: Callable[[Make, BusConfig], Awaitable[None]], **cfg: Any) -> None:
         buses: list[Bus] = []
 
         async def make(
-            name: str, interest: tuple[str, ...] = ("PING",), c: BusConfig = config, ignored: str = ""
+            name: str,
+            interest: tuple[str, ...] = ("PING",),
+            c: BusConfig = config,
+            ignored: str = "",
+            unanswered: str = "",
         ) -> Bus:
-            bus = Bus(name, c, logging.getLogger(f"gwc.test.{name}"), interest, transport_for(c), ignored)
+            bus = Bus(name, c, logging.getLogger(f"gwc.test.{name}"), interest, transport_for(c), ignored, unanswered)
             await bus.sign_on()
             buses.append(bus)
             return bus
@@ -336,6 +340,24 @@ def test_invalid_message_in_a_batch_drops_the_batch_not_the_stream(caplog: Any) 
     with caplog.at_level(logging.WARNING):
         run(t)
     assert "holds an invalid message" in caplog.text
+
+
+def test_a_module_leaves_the_queries_of_unanswered_peers_to_its_beat() -> None:
+    """WCs do not answer a lot script's query at sign-on (gwc.wc.wc.WC.unanswered_peers): the lot
+    hears of them from their beats; the servers answer it at once. The WC tracks the lot all the same."""
+
+    async def t(make: Make, cfg: BusConfig) -> None:
+        wc = await make("wc:a", ("PING",), unanswered="lot:")
+        ms = await make("ms", ("PING",))
+        await known(wc, ms)
+        lot = await make("lot:1", ("RUN_COMPL",))
+        await until(
+            lambda: {"ms", "wc:a"} <= lot.peers().keys() and "lot:1" in wc.peers(), "both, and the WC to know it"
+        )
+        # the server's answer came on the bus port; the WC came by its beat, long after its answer would have
+        assert lot.stats["hello"] == 1
+
+    run(t)
 
 
 def test_faults_config_is_deterministic_per_module_with_a_seed() -> None:
