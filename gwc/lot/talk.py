@@ -282,8 +282,18 @@ class EntityTalk(EntityCore):
                 self._peer_inc.pop(name, None)
                 self._peer_left[name] = time.monotonic()
             else:
+                if name not in self._peer_inc and name.startswith("wc:"):
+                    self._first_heard(name[3:], peer.inc)
                 self._peer_inc[name] = peer.inc
             self._cond.notify_all()
+
+    def _first_heard(self, machine_id: str, inc: int) -> None:
+        """(under the lock) A WC heard of for the first time (WCs leave a lot's query at sign-on to their
+        beat: gwc/wc/wc.py): runs begun on its machine before are its, so that from now on a restart of
+        that WC (a new incarnation) tells the run is lost to it, as for a WC known when the run began."""
+        for key, (when, known) in list(self._began.items()):
+            if key[0] == machine_id and known is None:
+                self._began[key] = (when, inc)
 
     # ----------------------------------------------------------------- MACH_REQ
 

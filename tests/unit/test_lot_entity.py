@@ -23,6 +23,7 @@ from gwc.config import Config
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
+from gwc.ipc.conversation import Peer
 from gwc.lot import (
     LotError,
     LotTimeout,
@@ -442,6 +443,21 @@ def test_a_second_alternative_bound_too_is_given_back(fake: tuple[FakeCell, Oper
 
 
 # ----------------------------------------------------------------- machines that go away (soak BUG-1, 3, 4)
+
+
+def test_a_wc_first_heard_after_its_run_began_is_the_runs_and_its_restart_loses_the_run(
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
+    # A WC leaves a lot's query to its beat: a lot bound at once may set up on a WC it has not heard of.
+    _, entity = fake
+    with entity._cond:
+        entity._peer_inc.pop("wc:m1", None)
+        entity._began[("m1", 5)] = (time.monotonic(), None)
+    assert entity._lost("m1", 5) is None  # not heard of yet, within lost_grace
+    entity._peer_changed("wc:m1", Peer("wc:m1", 7, frozenset(), time.monotonic()))
+    assert entity._lost("m1", 5) is None  # heard of: the run's WC
+    entity._peer_changed("wc:m1", Peer("wc:m1", 8, frozenset(), time.monotonic()))
+    assert entity._lost("m1", 5) == "wc:m1 restarted"
 
 
 @pytest.mark.parametrize(
