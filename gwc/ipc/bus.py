@@ -94,8 +94,7 @@ class Bus:
         self._seq = 0
         self._conv_n = 0
         self._loop: asyncio.AbstractEventLoop | None = None
-        self.ignored_peers = ignored_peers  # names of modules not tracked (docs/protocol.md, Membership)
-        self.unanswered_peers = unanswered_peers  # ... tracked, whose queries it leaves to its beats
+        self.ignored_peers, self.unanswered_peers = ignored_peers, unanswered_peers  # docs/protocol.md, Membership
         self._members = Membership(self)
         self._peers = self._members.peers  # the same dict: read on the hot paths
         self._pending: dict[int, Pending] = {}
