@@ -6,7 +6,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
-import secrets
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 
@@ -219,8 +218,9 @@ class WCSteps(WCDevice):
         with contextlib.suppress(OSError, UnicodeDecodeError):
             if path.read_text() == reply.content:  # written by an earlier setup, as approved: a read, not a write
                 return path, ""
-        # A name of its own: the fetch runs before the state lock, so two setups' fetches may overlap.
-        tmp = path.with_name(f"{path.name}.{secrets.token_hex(4)}.tmp")
+        # Written whole, then renamed: the ME never reads half a recipe. Every fetch runs under the state
+        # lock (SETUP_RUN, DNLD_ME), so one temporary name serves.
+        tmp = path.with_name(f"{path.name}.tmp")
         try:
             self.recipe_dir.mkdir(parents=True, exist_ok=True)
             tmp.write_text(reply.content)
