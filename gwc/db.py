@@ -442,6 +442,12 @@ def _one_line(e: BaseException) -> str:
 
 
 _ROLE = re.compile(r"^[a-z][a-z0-9_]*$")
+# A TCP connection (from another host) is watched by the kernel, not by queries: probed after 3 s of
+# silence, dead after 3 probes unanswered. Data unacknowledged for 8 s ends it: a query on a cut link
+# fails instead of holding its module for TCP's ~15 min of retries. The socket then turns readable, as
+# a resting module's watch sees without a round trip (gwc/module.py). libpq ignores it on a Unix socket.
+_KEEPALIVE = {"keepalives": 1, "keepalives_idle": 3, "keepalives_interval": 1, "keepalives_count": 3}
+TCP_WATCH: dict[str, Any] = {**_KEEPALIVE, "tcp_user_timeout": 8000}  # ms
 
 
 def connect(
@@ -462,7 +468,7 @@ def connect(
         attempt = backoff.tries + 1
         try:
             conn = psycopg.connect(
-                url, autocommit=False, connect_timeout=5, application_name=f"gwc_{role}" if role else "gwc"
+                url, autocommit=False, connect_timeout=5, application_name=f"gwc_{role}" if role else "gwc", **TCP_WATCH
             )
         except psycopg.OperationalError as e:
             error = e

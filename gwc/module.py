@@ -51,10 +51,10 @@ NOT_STARTED = "module not started"
 # A module that uses the database watches it while nothing else does, so that a lost database is noticed
 # (and reconnected to) within seconds, not at the next conversation that needs it. After DATABASE_WATCH_S
 # without a step it looks at its connection's socket at each heartbeat: a server that stops or dies
-# closes it (readable: then a query tells), at the cost of one poll() and no round trip. A server cut off
-# by the network closes nothing: a query every DATABASE_PROBE_S without a step finds that.
+# closes it, and a link cut off fails the kernel's keepalive probes (db.TCP_WATCH); either way it turns
+# readable and then a query tells. One poll() and no round trip: a resting module's database costs
+# neither it nor the server a wake-up.
 DATABASE_WATCH_S = 1.0
-DATABASE_PROBE_S = 5.0
 # How long a module waits for its database at startup, and asks to other modules go on while
 # their database is away: the outage the cell rides out without a step failing (docs/reliability.md).
 DATABASE_OUTAGE_S = 60.0
@@ -327,7 +327,7 @@ class Module:
         if idle < DATABASE_WATCH_S:
             return
         conn = self._conn
-        if idle >= DATABASE_PROBE_S or conn is None or conn.closed or _readable(conn.fileno()):
+        if conn is None or conn.closed or _readable(conn.fileno()):
             self.transaction(db.Statement("select 1", fetch=None))
 
     # ----------------------------------------------------------------- running

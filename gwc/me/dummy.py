@@ -29,8 +29,10 @@ from gwc.me.machine import MachineSide, Refusal, RunOutcome
 class DummyMachine(MachineSide):
     kind = "dummy"
     # Nothing to watch between runs, and a request or a signal ends the wait at once: each turn of its
-    # loop is only a wake-up of a resting machine (docs/performance.md, A resting cell).
-    idle_poll = 2.0
+    # loop is only a wake-up of a resting machine (docs/performance.md, A resting cell). Its WC pings
+    # it every 5 s anyway; the bound is for a SIGTERM that comes between the loop's look at `stop` and
+    # its wait.
+    idle_poll = 10.0
 
     def __init__(self, cfg: Config, spec: MachineSpec, log: logging.Logger) -> None:
         super().__init__(cfg, spec, log)

@@ -44,6 +44,7 @@ RUN_NO_FILE = "run_no"  # in the machine's memory directory: the last run number
 
 IDLE_POLL = 0.25  # wait this long for a request when nothing runs
 RUN_POLL = 0.02  # ... and this long while a run is in progress, to notice its end soon
+OUTBOX_POLL = 1.0  # ... and at most this long while answers wait for the WC to read again (send())
 
 
 class MeState(StrEnum):
@@ -229,7 +230,7 @@ class MachineSide:
             while not stop.is_set():
                 self._flush()
                 try:
-                    msg = self.channel.receive(RUN_POLL if self.state == MeState.RUNNING else self.idle_poll)
+                    msg = self.channel.receive(self._poll())
                 except QueueTimeout:
                     msg = None
                 except QueueError as e:
@@ -247,6 +248,12 @@ class MachineSide:
             self.close()
             self.channel.close()
         return 0
+
+    def _poll(self) -> float:
+        """How long this turn of the loop waits for a request."""
+        if self.state == MeState.RUNNING:
+            return RUN_POLL
+        return min(self.idle_poll, OUTBOX_POLL) if self._outbox else self.idle_poll
 
     def handle(self, msg: MeMessage) -> None:
         """One request from the WC: act and answer. Nothing the WC sends can stop the loop."""

@@ -193,6 +193,14 @@ def test_a_cell_over_three_hosts_makes_the_chess_order_and_rides_out_a_cut_cable
     good_on_wc1 = "select count(*) from machine_run_outcome where machine_id = 'wc1' and ack_code = 'ACK_OK'"
     before = cell.query(good_on_wc1)[0][0]
     wait_for(lambda: lots_done(cell, entities) or cell.query(good_on_wc1)[0][0] > before, 25, "a milling run on h2")
+    # h3's WCs find their database connections dead without querying them (the kernel's keepalive
+    # probes, or the finished run's store unacknowledged: db.TCP_WATCH); a query on the cut link used
+    # to hold its WC until the cable came back.
+    wait_for(
+        lambda: all("the cell database is away" in cell.log("h3", f"wc:{m}") for m in ("wc2", "wc3")),
+        max(0.0, 15 - (time.monotonic() - cut_at)),
+        "h3's WCs to find the database away within 15 s of the cut",
+    )
 
     # The cable back within the run's doubt bound: h3's WC stores the run it finished meanwhile, its lot
     # takes that outcome, and one operator command brings the host's machines back into service (it waits

@@ -6,6 +6,7 @@ Each ME runs its real loop in a thread on real queues; the test plays the WC wit
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import re
 import shutil
@@ -20,7 +21,7 @@ from typing import Any
 import pytest
 
 from gwc.config import Config
-from gwc.errors import ConfigError, QueueTimeout
+from gwc.errors import ConfigError, QueueError, QueueTimeout
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import Channel, MeMessage, MessageId, remove_queues
 from gwc.me import make_machine
@@ -59,10 +60,19 @@ class Running:
         assert answer.seq == self.seq, answer
         return answer
 
-    def close(self) -> None:
+    def halt(self) -> None:
+        """Stop the threads. In its own process a signal ends the ME's wait for a request; in a thread a
+        request does (its answer, seq 0, is stale to whoever reads the WC's queue)."""
         self.stop.set()
+        waker = Channel(self.cfg.ipc_prefix, self.machine, "wc", LOG).open()
+        with contextlib.suppress(QueueError):
+            waker.send(MeMessage(MessageId.NO_MESSAGE, seq=0))
+        waker.close()
         for t in self.threads:
             t.join(5)
+
+    def close(self) -> None:
+        self.halt()
         self.wc.close()
         remove_queues(self.cfg.ipc_prefix, [self.machine])
 
@@ -455,9 +465,7 @@ def test_link_matches_answers_by_seq_and_declares_a_silent_me_dead(machine) -> N
             assert (await link.request(MeMessage(MessageId.ME_START), 5)).ack_code == AckCode.ACK_OK
             answers = await asyncio.gather(*(link.request(MeMessage(MessageId.NO_MESSAGE), 5) for _ in range(5)))
             assert len({a.seq for a in answers}) == 5
-            m.stop.set()  # the ME stops answering
-            for t in m.threads:
-                t.join(5)
+            m.halt()  # the ME stops answering
             with pytest.raises(MeDied, match="within 0.3s"):
                 await link.request(MeMessage(MessageId.NO_MESSAGE), 0.3)
         finally:
