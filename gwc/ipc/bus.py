@@ -52,7 +52,7 @@ from gwc.ipc.conversation import (
     Pending,
     initiator,
 )
-from gwc.ipc.membership import Membership
+from gwc.ipc.membership import Membership, tick
 from gwc.ipc.order import Inbound
 from gwc.ipc.transport import FaultInjector, Transport, UdpTransport
 from gwc.ipc.wire import Envelope
@@ -503,8 +503,8 @@ class Bus:
 
     async def _beat(self) -> None:
         """Every heartbeat: read the beats that came, send ours, then look for who went silent."""
-        while True:
-            await asyncio.sleep(self.cfg.heartbeat)
+        while True:  # at the ticks of the host's clock: the host's modules wake together (membership.tick)
+            await asyncio.sleep(tick(self.cfg.heartbeat))
             try:
                 self._read_beats(heartbeat=True)
                 self._send_beat()

@@ -20,6 +20,15 @@ MAX_GONE = 1024  # incarnations that said bye, remembered so that their late bea
 LOT = "lot:"  # lot scripts' bus names
 
 
+def tick(heartbeat: float) -> float:
+    """Seconds until the next heartbeat: the next multiple of `heartbeat` on the host's monotonic clock at
+    least half a beat away. Every module of a host beats at the same ticks, so that a resting host wakes
+    once a heartbeat for all of them, not once per module at scattered times: a cold wake-up costs the
+    more, the fewer of its neighbours ran just before it (its code and the interpreter's are shared).
+    Half a beat away, so that a timer that fires a little early does not beat twice."""
+    return heartbeat - (time.monotonic() + heartbeat / 2) % heartbeat + heartbeat / 2
+
+
 def _level(bus: Bus, name: str) -> int:
     """How a peer's coming and going is logged: a note, but trace where a lot script is either end. Lot
     scripts come and go with every lot: two lines per lot in every module's log, and a lot's own log

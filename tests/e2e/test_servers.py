@@ -4,10 +4,12 @@ operator) are played from the test's own bus attachments, named as the real ones
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import subprocess
 import sys
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -16,6 +18,7 @@ import pytest
 from gwc.ipc.bus import BlockingBus, BlockingConversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, LotState, MachineStatus
+from gwc.ipc.transport import open_socket
 from gwc.servers.recipe import version_path
 from tests.harness import CellHarness, wait_for
 
@@ -509,3 +512,27 @@ def test_servers_answer_db_badrea_while_the_database_is_gone_and_serve_again_whe
         "the status line to show the alarm",
     )
     assert {n: cell.pid(n) for n in pids} == pids and all(cell.alive(n) for n in pids)
+
+
+# --------------------------------------------------------------------------------- the bus's heartbeat
+
+
+def test_the_servers_of_a_host_beat_together_at_the_ticks_of_its_clock(servers: Any) -> None:
+    """Heartbeats fall on the ticks of the host's clock (docs/protocol.md, Membership): the beats of
+    the servers, each a process started at its own moment, arrive together, just after each tick."""
+    cell = servers("ms", "cas", "ers", "sls")
+    hb = cell.cfg.bus.heartbeat
+    sock = open_socket(cell.cfg.bus, cell.cfg.bus.port + 1)  # the beat port
+    sock.settimeout(0.1)
+    phases: list[float] = []
+    try:
+        deadline = time.monotonic() + 10
+        while len(phases) < 40 and time.monotonic() < deadline:
+            with contextlib.suppress(TimeoutError):
+                sock.recv(65536)
+                phases.append(time.monotonic() % hb)
+    finally:
+        sock.close()
+    assert len(phases) >= 40, f"{len(phases)} beats heard in 10 s"
+    from_tick = sorted(min(p, hb - p) for p in phases)  # scattered beats: uniform over [0, hb/2]
+    assert from_tick[len(from_tick) // 2] < hb / 8, from_tick

@@ -9,6 +9,7 @@ import asyncio
 import logging
 import random
 import tempfile
+import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -356,6 +357,25 @@ def test_a_module_leaves_the_queries_of_unanswered_peers_to_its_beat() -> None:
         )
         # the server's answer came on the bus port; the WC came by its beat, long after its answer would have
         assert lot.stats["hello"] == 1
+
+    run(t)
+
+
+def test_the_modules_of_a_host_beat_together_at_the_clocks_ticks() -> None:
+    """A resting module's cost is its wake-ups: the modules of one host beat at the same ticks of the
+    host's clock (docs/protocol.md, Membership), whenever each signed on."""
+
+    async def t(make: Make, cfg: BusConfig) -> None:
+        beats: dict[str, list[float]] = {"a": [], "b": []}
+        a = await make("a")
+        a.beat_listeners.append(lambda: beats["a"].append(time.monotonic()))
+        await until(lambda: beats["a"], "a's first beat")
+        await asyncio.sleep(cfg.heartbeat / 2)  # b signs on half a heartbeat after a beat of a's, on purpose
+        b = await make("b")
+        b.beat_listeners.append(lambda: beats["b"].append(time.monotonic()))
+        await until(lambda: len(beats["a"]) >= 6 and len(beats["b"]) >= 6, "six beats each")
+        gaps = [min(abs(tb - ta) for ta in beats["a"]) for tb in beats["b"][:5]]
+        assert sorted(gaps)[2] < cfg.heartbeat / 5, gaps  # the median: a loaded machine may delay one
 
     run(t)
 
