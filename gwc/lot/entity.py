@@ -269,14 +269,16 @@ class OperationEntity(EntityResume):
                 self._record(op_type, res, [], f"machine lost: {e}")
                 self.unreserve()
                 continue
+            # The results are read and the operation recorded while MSCHED frees the machines. A script
+            # restarted after the record gives back what is still reserved for a done run (resume.py).
             freeing = self.unreserve_soon()
             try:
-                runs = self._results(res, chosen, codes)  # read while MSCHED frees the machines
+                runs = self._results(res, chosen, codes)
+                self._record_step(step, res, chosen, attempt, codes, save=False)  # saved by _record
+                op = Operation(op_type, res.machine_run_id, runs, attempt)
+                self._record(op_type, res, runs, verdict(op.results)[1] if op.ok else "run failed")
             finally:
                 freeing()
-            self._record_step(step, res, chosen, attempt, codes, save=False)  # saved by _record
-            op = Operation(op_type, res.machine_run_id, runs, attempt)
-            self._record(op_type, res, runs, verdict(op.results)[1] if op.ok else "run failed")
             return op
         raise MachineLost(f"{op_type}: {lost} ({self.max_tries} tries)")
 

@@ -145,11 +145,14 @@ class WCSteps(WCDevice):
         # the status Setup are asked now, beside the recipe's setup on the ME, which depends on neither. The
         # lot is not kept waiting for MSCHED's answer to the accept types: while the run is reserved
         # MSCHED binds the machine to nobody else anyway, so what the accepts-nothing protects is the
-        # run's end, and the run's Run_Complete waits for it (docs/machine-interface.md 4.1).
-        accept = asyncio.ensure_future(self.set_accept_types([]))
+        # run's end, and the run's Run_Complete waits for it (docs/machine-interface.md 4.1). Both are on
+        # the wire before the ME is asked: the Machine Server's change, a durable commit, takes longer
+        # than the ME's setup, and the answer to the lot waits for it.
         status = asyncio.ensure_future(
             self.change_status(S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id, machine_run_id=req.machine_run_id)
         )
+        accept = asyncio.ensure_future(self.set_accept_types([]))
+        await asyncio.sleep(0)  # each sends its request in its first step
         try:
             refusal = await self._set_up_on_me(req, self._recipe(req.recipe_id, version, checksum))
         finally:
