@@ -26,7 +26,7 @@ from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module
-from gwc.servers.common import Server
+from gwc.servers.common import NOT_LOTS, Server
 
 OUTAGE_ALARM = "DB_DOWN"
 OUTAGE_ALARM_S = 10.0  # a database away longer than this is an alarm ([database] outage_alarm_s)
@@ -34,6 +34,7 @@ OUTAGE_ALARM_S = 10.0  # a database away longer than this is an alarm ([database
 
 class AlarmServer(Server, Module):
     role = "cas"
+    ignored_peers = NOT_LOTS
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
         super().__init__(cfg, name, log)

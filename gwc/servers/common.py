@@ -22,6 +22,10 @@ from gwc.ipc.names import Conv, Msg
 from gwc.module import DATABASE_OUTAGE_S
 
 SERVER_TIMEOUT = 5.0  # longest one server waits for another's answer
+# The servers no lot script talks to (CAS, ERS, SLS) do not track lot scripts (Module.ignored_peers): a
+# lot may open only the catalogue's LOT_CLASSES, none of theirs, and none of them starts a class a lot
+# listens to. Each lot's sign-on, change of interest at import and bye no longer wake them.
+NOT_LOTS = "lot:"
 
 
 class Server:

@@ -30,7 +30,7 @@ from gwc.ipc.bus import Conversation
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module
-from gwc.servers.common import Server
+from gwc.servers.common import NOT_LOTS, Server
 
 RECIPE_ID = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 MAX_RECIPE = 48_000  # bytes: a recipe travels in one bus datagram (wire.MAX_DATAGRAM, with headroom)
@@ -66,6 +66,7 @@ def _read(path: Path) -> bytes | None:
 
 class RecipeServer(Server, Module):
     role = "ers"
+    ignored_peers = NOT_LOTS
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
         super().__init__(cfg, name, log)

@@ -21,7 +21,7 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module
-from gwc.servers.common import Server
+from gwc.servers.common import NOT_LOTS, Server
 
 SHOW = 5  # entity ids named on the line before "..."
 
@@ -47,6 +47,7 @@ def _describe(cls: str, msg: Message) -> str:
 
 class StatusLineServer(Server, Module):
     role = "sls"
+    ignored_peers = NOT_LOTS
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
         super().__init__(cfg, name, log)

@@ -19,6 +19,7 @@ from gwc.ipc.bus import BlockingBus, BlockingConversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, LotState, MachineStatus
 from gwc.ipc.transport import open_socket
+from gwc.log import log_file_name
 from gwc.servers.recipe import version_path
 from tests.harness import CellHarness, wait_for
 
@@ -536,3 +537,26 @@ def test_the_servers_of_a_host_beat_together_at_the_ticks_of_its_clock(servers: 
     assert len(phases) >= 40, f"{len(phases)} beats heard in 10 s"
     from_tick = sorted(min(p, hb - p) for p in phases)  # scattered beats: uniform over [0, hb/2]
     assert from_tick[len(from_tick) // 2] < hb / 8, from_tick
+
+
+def test_the_servers_no_lot_talks_to_never_hear_a_lot_script_come_and_go(make_cell: Any, ears: Any) -> None:
+    """The CAS, ERS and SLS ignore lot scripts (docs/protocol.md, *Peers a module ignores*): a lot's
+    sign-on and bye reach the Lot Server, which watches lot scripts, and are dropped before they wake
+    the others, which still answer everyone else."""
+    cell = make_cell(machines=MACHINES, level="trace")  # a lot's coming and going is logged at trace
+    cell.start_servers("ls", "cas", "ers", "sls")
+    logs = {name: cell.cfg.log_dir / log_file_name(name) for name in ("ls", "cas", "ers", "sls")}
+    lot = ears(cell, "lot:4242", "RUN_COMPL", "UPD_ME_ST")
+    wait_for(lambda: "lot:4242 joined the bus" in logs["ls"].read_text(), 10, "the Lot Server to take the lot")
+    lot.bus.close()
+    wait_for(lambda: "lot:4242 left the bus" in logs["ls"].read_text(), 10, "the Lot Server to hear its bye")
+    # Each answers a question asked after the bye: it has read (or the kernel dropped) what came before.
+    assert status_line(cell).text
+    cleared = ask(cell.bus, "ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=999999, cleared_by="t"), "cas")
+    assert cleared.ack_code != OK
+    fetched = ask(cell.bus, "RECIPE_GET", message("Recipe_Fetch", recipe_id="no_such_recipe"), "ers")
+    assert fetched.ack_code != OK
+    for name in ("cas", "ers", "sls"):
+        text = logs[name].read_text()
+        assert "joined the bus" in text, f"{name} logs its peers at trace"
+        assert "lot:4242" not in text, f"{name} heard the lot script"

@@ -9,9 +9,13 @@ from typing import Any
 import pytest
 
 from gwc.config import Config
-from gwc.ipc.catalogue import message
+from gwc.ipc.catalogue import LOT_CLASSES, message
 from gwc.ipc.codes import LotState, MachineStatus
 from gwc.servers import lot, machine, recipe, status_line
+from gwc.servers.alarm import AlarmServer
+from gwc.servers.lot import LotServer
+from gwc.servers.machine import MachineServer
+from gwc.servers.recipe import RecipeServer
 from gwc.servers.status_line import StatusLineServer
 
 S = MachineStatus
@@ -97,3 +101,13 @@ def test_status_line_describes_what_it_hears() -> None:
         == "wc1 run 7 failed (Run_Fail)"
     )
     assert d("CELL_EVENT", message("Cell_Event", text="hello")) == "hello"
+
+
+def test_the_servers_that_ignore_lot_scripts_serve_no_class_a_lot_may_open() -> None:
+    """A lot opens only LOT_CLASSES (its key allows no other): a server that serves none of them never
+    hears from a lot, so it need not track lots (docs/protocol.md, *Peers a module ignores*)."""
+    for server in (AlarmServer, RecipeServer, StatusLineServer):
+        assert "lot:7".startswith(server.ignored_peers) and server.ignored_peers, server
+        assert not set(server.handlers(server.__new__(server))) & LOT_CLASSES, server
+    for server in (LotServer, MachineServer):  # a lot asks the first; the second broadcasts to lots
+        assert not server.ignored_peers, server
