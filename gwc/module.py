@@ -134,8 +134,7 @@ class Module:
     start_class = Conv.STARTUP
     stop_class = Conv.SHUTDOWN
     always: tuple[str, ...] = ()  # classes listened to even when not started
-    ignored_peers = ""  # a name prefix of modules this one never talks to (gwc.ipc.bus.Bus)
-    unanswered_peers = ""  # ... of modules whose query at sign-on it does not answer (they hear its beat)
+    ignored_peers: tuple[str, ...] = ()  # name prefixes of modules this one does not track (gwc.ipc.bus.Bus)
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
         self.cfg = cfg
@@ -147,7 +146,6 @@ class Module:
             log,
             interest=self.idle_interest(),
             ignored_peers=self.ignored_peers,
-            unanswered_peers=self.unanswered_peers,
         )
         self.started = False
         self.exit_code = 0

@@ -35,7 +35,7 @@ class BlockingBus:
         log: logging.Logger,
         interest: Iterable[str] = (),
         transport: Transport | None = None,
-        ignored_peers: str = "",
+        ignored_peers: tuple[str, ...] = (),
     ) -> None:
         self._loop = eventloop.new_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name=f"bus-{name}", daemon=True)
@@ -50,7 +50,7 @@ class BlockingBus:
         log: logging.Logger,
         interest: Iterable[str],
         transport: Transport | None,
-        ignored_peers: str,
+        ignored_peers: tuple[str, ...],
     ) -> Bus:
         from gwc.ipc.bus import Bus  # here: gwc.ipc.bus imports this module to re-export BlockingBus
 

@@ -47,6 +47,7 @@ from gwc.ipc.conversation import (
     Batch,
     Conversation,
     Deadlines,
+    Names,
     Outgoing,
     Peer,
     Pending,
@@ -76,8 +77,7 @@ class Bus:
         log: logging.Logger,
         interest: Iterable[str] = (),
         transport: Transport | None = None,
-        ignored_peers: str = "",
-        unanswered_peers: str = "",
+        ignored_peers: Names = (),
     ) -> None:
         if not name or len(name) > wire.MAX_NAME - 30:
             raise BusError(f"bad bus module name {name!r}")
@@ -91,10 +91,9 @@ class Bus:
         self._transport = UdpTransport(cfg, log) if transport is None else transport
         self._open = False  # the transport is open (signed on, not yet closed)
         self.set_interest(interest, announce=False)
-        self._seq = 0
-        self._conv_n = 0
+        self._seq = self._conv_n = 0  # the last msg seq and conversation number used
         self._loop: asyncio.AbstractEventLoop | None = None
-        self.ignored_peers, self.unanswered_peers = ignored_peers, unanswered_peers  # docs/protocol.md, Membership
+        self.ignored_peers = ignored_peers  # prefixes of the names of peers not tracked (docs/protocol.md)
         self._members = Membership(self)
         self._peers = self._members.peers  # the same dict: read on the hot paths
         self._pending: dict[int, Pending] = {}
@@ -209,11 +208,12 @@ class Bus:
         self._conv_n += 1
         return f"{self._conv_prefix}{self._conv_n}"
 
-    async def start(self, cls: str, *messages: Message, to: str | None = None) -> Conversation:
-        """Open a conversation and send its first batch (broadcast to listeners of cls, or to one module)."""
-        return self._start(cls, messages, to)
+    async def start(self, cls: str, *messages: Message, to: str | None = None, heard_by: Names = ()) -> Conversation:
+        """Open a conversation and send its first batch: to one module, or to the listeners of cls, among
+        them `heard_by`, listeners this bus does not track that must acknowledge it (docs/protocol.md)."""
+        return self._start(cls, messages, to, heard_by)
 
-    def _start(self, cls: str, messages: tuple[Message, ...], to: str | None) -> Conversation:
+    def _start(self, cls: str, messages: tuple[Message, ...], to: str | None, heard_by: Names = ()) -> Conversation:
         """start() without its coroutine (request() calls it on every round trip)."""
         spec = catalogue.CONVERSATION_CLASSES.get(cls)
         if spec is None:
@@ -222,7 +222,7 @@ class Bus:
         conv.peer = to
         self._convs[conv.id] = conv
         try:
-            conv._idx = self._send_batch(conv, messages, to)  # conv.send() without its coroutine
+            conv._idx = self._send_batch(conv, messages, to, heard_by)  # conv.send() without its coroutine
         except BaseException:
             conv.end()
             raise
@@ -302,7 +302,7 @@ class Bus:
 
     # ----------------------------------------------------------------- sending
 
-    def _send_batch(self, conv: Conversation, messages: tuple[Message, ...], to: str | None) -> int:
+    def _send_batch(self, conv: Conversation, messages: tuple[Message, ...], to: str | None, also: Names = ()) -> int:
         """Number, encode (all or nothing), transmit and track one batch; returns the conversation's next idx."""
         if not messages:
             raise MessageError("a send needs at least one message")
@@ -353,7 +353,7 @@ class Bus:
         out.next_idx = start + n
         for data in datas:  # first on the wire; the bookkeeping below can wait that long
             self._transmit(data)
-        waiting = {to} if to is not None else {p.name for p in self._peers.values() if cls in p.interest}
+        waiting = {to} if to is not None else {p.name for p in self._peers.values() if cls in p.interest}.union(also)
         if waiting:
             batch = [start, n]
             if out.unsettled is None:

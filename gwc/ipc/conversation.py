@@ -21,6 +21,7 @@ if TYPE_CHECKING:
 
 DEFAULT: Any = object()
 INF = float("inf")
+Names = tuple[str, ...]  # module names, or prefixes of them
 
 
 @dataclass

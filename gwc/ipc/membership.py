@@ -105,7 +105,7 @@ class Membership:
                 # It no longer listens to some classes: it will not ack broadcasts of them.
                 self.bus._forget_waiting(env.src, directed_too=False, unless_cls=interest)
             peer.last_seen = now
-        if env.query and not (bus.unanswered_peers and env.src.startswith(bus.unanswered_peers)):
+        if env.query:
             bus._hello(to=env.src)  # addressed to the newcomer: N answers to one module, not N x N receptions
 
     def left(self, name: str, why: str, clean: bool = False) -> None:

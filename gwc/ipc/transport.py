@@ -57,13 +57,15 @@ class Transport(ABC):
     def beats(self) -> Iterator[bytes]:
         """The beat-channel datagrams that came since the last call, our own skipped."""
 
-    def set_filter(self, src: str, inc: int, interest: Iterable[str], ignored: str = "") -> None:  # noqa: B027
+    def set_filter(  # noqa: B027
+        self, src: str, inc: int, interest: Iterable[str], ignored: tuple[str, ...] = ()
+    ) -> None:
         """Drop before the module wakes what module `src` would drop unread, the hellos and byes of modules
-        whose names begin with `ignored` among them (a hint; none by default)."""
+        whose names begin with one of `ignored` among them (a hint; none by default)."""
 
-    def ignore_beats_from(self, prefix: str) -> None:  # noqa: B027  (optional)
-        """Drop before the module reads them the beats of modules whose names begin with `prefix`
-        (none if it is empty; a hint: the bus ignores them itself)."""
+    def ignore_beats_from(self, prefixes: tuple[str, ...]) -> None:  # noqa: B027  (optional)
+        """Drop before the module reads them the beats of modules whose names begin with one of
+        `prefixes` (none if there is none; a hint: the bus ignores them itself)."""
 
     def follow_beats(self, on_beats: Callable[[], None] | None) -> None:  # noqa: B027  (optional)
         """Call on_beats whenever beats are waiting (None: stop); for a transport a flood can fill."""
@@ -136,14 +138,14 @@ class UdpTransport(Transport):
             self.close()
             raise
 
-    def set_filter(self, src: str, inc: int, interest: Iterable[str], ignored: str = "") -> None:
+    def set_filter(self, src: str, inc: int, interest: Iterable[str], ignored: tuple[str, ...] = ()) -> None:
         """Have the kernel drop what this module would drop unread (wire.kernel_filter), where it can."""
         if self._sock is not None:
             self._attach(self._sock, wire.kernel_filter(src, inc, interest, ignored))
 
-    def ignore_beats_from(self, prefix: str) -> None:
-        if self._beat_sock is not None and prefix:
-            self._attach(self._beat_sock, wire.beat_filter(prefix))
+    def ignore_beats_from(self, prefixes: tuple[str, ...]) -> None:
+        if self._beat_sock is not None and prefixes:
+            self._attach(self._beat_sock, wire.beat_filter(prefixes))
 
     def _attach(self, sock: socket.socket, code: list[tuple[int, int, int, int]]) -> None:
         if not self.kernel_filter:

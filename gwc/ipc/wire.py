@@ -391,15 +391,18 @@ UDP_HEADER = 8  # Linux runs a UDP socket's filter on the datagram from its UDP 
 _WHOLE = 0xFFFF_FFFF  # a filter's "keep the whole datagram"
 
 
-def kernel_filter(src: str, inc: int, interest: Iterable[str], ignored: str = "") -> list[tuple[int, int, int, int]]:
+def kernel_filter(
+    src: str, inc: int, interest: Iterable[str], ignored: tuple[str, ...] = ()
+) -> list[tuple[int, int, int, int]]:
     """The socket filter for module `src` (incarnation `inc`) listening to `interest`.
 
     It keeps exactly what the bus would not drop unread: every datagram that is too short or not of
     this version (so the bus logs it), hellos and byes for everyone, acks, msgs and hellos (answers
     to its query) addressed to `src`, and broadcast msgs of a class in `interest` or of a
     conversation's later batches (a conversation the module holds is received whatever its
-    interest). It drops the module's own datagrams, and the hellos and byes of the modules it never
-    talks to (names beginning with `ignored`: the bus would drop them unread). Tags can collide, so it
+    interest). It drops the module's own datagrams, and the hellos and byes of the modules it does not
+    track (names beginning with one of `ignored`: the bus would drop them unread); their acks to it are
+    kept. Tags can collide, so it
     may keep a little more than needed, never less: the bus checks every datagram it reads again.
     """
     own, hi, lo = tag(src), inc >> 32, inc & 0xFFFF_FFFF
@@ -419,6 +422,7 @@ def kernel_filter(src: str, inc: int, interest: Iterable[str], ignored: str = ""
         "not_own",
         ((_LD_B, u + OFF_KIND), None, None),
         ((_JEQ, _KIND_CODE["msg"]), "msg", None),
+        ((_JEQ, _KIND_CODE["ack"]), "ours", None),
         *_from(ignored, "drop", "ours"),
         "ours",
         # ack, hello, bye: addressed to us, or to nobody in particular (a hello or bye for everyone)
@@ -444,30 +448,36 @@ def kernel_filter(src: str, inc: int, interest: Iterable[str], ignored: str = ""
     return _assemble(prog)
 
 
-def beat_filter(ignored: str) -> list[tuple[int, int, int, int]]:
-    """The beat socket's filter for a module that tracks no module whose name begins with `ignored`:
+def beat_filter(ignored: tuple[str, ...]) -> list[tuple[int, int, int, int]]:
+    """The beat socket's filter for a module that tracks no module whose name begins with one of `ignored`:
     their beats are dropped before the module wakes to read them. Like kernel_filter, it keeps
     anything too short to tell, and the bus checks what it reads again."""
     prog = [*_from(ignored, None, "keep"), ((_RET, 0), None, None), "keep", ((_RET, _WHOLE), None, None)]
     return _assemble(prog)
 
 
-def _from(prefix: str, yes: str | None, no: str) -> list[Any]:
-    """Instructions that go to `yes` when the sender's name begins with `prefix` (None: fall through),
-    else to `no`; a datagram too short to tell goes to `no`. No prefix: straight to `no`."""
-    if not prefix:
+def _from(prefixes: tuple[str, ...], yes: str | None, no: str) -> list[Any]:
+    """Instructions that go to `yes` when the sender's name begins with one of `prefixes` (None: fall
+    through), else to `no`; a datagram too short to tell goes to `no`. No prefix: straight to `no`."""
+    if not prefixes:
         return [((_JEQ, 0), no, no)]
-    name = prefix.encode()
     at = UDP_HEADER + _BODY  # where the sender's name begins
-    prog: list[Any] = [
-        ((_LD_LEN, 0), None, None),
-        ((_JGE, at + len(name)), None, no),
-        ((_LD_B, UDP_HEADER + SRC_LEN_OFFSET), None, None),
-        ((_JGE, len(name)), None, no),
-    ]
-    for i, byte in enumerate(name):
-        prog += [((_LD_B, at + i), None, None), ((_JEQ, byte), yes if i == len(name) - 1 else None, no)]
-    return prog
+    matched = yes or "from_matched"
+    prog: list[Any] = []
+    for n, prefix in enumerate(prefixes):
+        name = prefix.encode()
+        other = f"from_{n + 1}" if n + 1 < len(prefixes) else no  # the next prefix, after the last `no`
+        if n:
+            prog.append(f"from_{n}")
+        prog += [
+            ((_LD_LEN, 0), None, None),
+            ((_JGE, at + len(name)), None, other),
+            ((_LD_B, UDP_HEADER + SRC_LEN_OFFSET), None, None),
+            ((_JGE, len(name)), None, other),
+        ]
+        for i, byte in enumerate(name):
+            prog += [((_LD_B, at + i), None, None), ((_JEQ, byte), matched if i == len(name) - 1 else None, other)]
+    return prog if yes else [*prog, "from_matched"]
 
 
 def _assemble(prog: list[Any]) -> list[tuple[int, int, int, int]]:

@@ -120,7 +120,7 @@ class OperationEntity(EntityResume):
             self.cfg.bus,
             self.log,
             interest=LISTENS if self.state in IMPORTED else WAITING_LISTENS,
-            ignored_peers="lot:",
+            ignored_peers=("lot:",),
         )
         self._bus.call_soon(self._watch_peers, self._bus.bus)
         self._bus.peers()  # returns after _watch_peers ran (the bus thread runs callbacks in order)

@@ -25,7 +25,7 @@ SERVER_TIMEOUT = 5.0  # longest one server waits for another's answer
 # The servers no lot script talks to (CAS, ERS, SLS) do not track lot scripts (Module.ignored_peers): a
 # lot may open only the catalogue's LOT_CLASSES, none of theirs, and none of them starts a class a lot
 # listens to. Each lot's sign-on, change of interest at import and bye no longer wake them.
-NOT_LOTS = "lot:"
+NOT_LOTS = ("lot:",)
 
 
 class Server:

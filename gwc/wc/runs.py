@@ -4,6 +4,7 @@ completions), a dead ME, and the end of a run: results stored, status, Run_Compl
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections.abc import Coroutine
 from pathlib import Path
@@ -20,6 +21,13 @@ from gwc.me.results import read_outcome, read_results
 from gwc.module import DATABASE_OUTAGE_S
 from gwc.wc.base import ALL_OPERATIONS, S, WCBase
 from gwc.wc.link import MeDied
+
+# Whose run it is: the lot its Run_Complete must reach, named to the bus (a WC does not track lot scripts).
+_RUN_LOT = "SELECT entity_id FROM reserved_machines WHERE machine_id = %(m)s AND machine_run_id = %(run)s"
+
+
+def _lot(row: tuple[Any, ...] | None) -> str | None:
+    return None if row is None or row[0] is None else f"lot:{row[0]}"
 
 
 class WCRuns(WCBase):
@@ -73,7 +81,10 @@ class WCRuns(WCBase):
             return
         await self._go_shutdown(f"ME died: {why}", tell_me=False)
         if run_id is not None:
-            await self._announce_run(run_id, AckCode.RUN_FAIL, "the ME died during the run")
+            lot = None
+            with contextlib.suppress(DatabaseError):  # its lot then finds the machine Shutdown
+                lot = _lot(self.transaction(Statement(_RUN_LOT, {"m": self.machine_id, "run": run_id})))
+            await self._announce_run(run_id, AckCode.RUN_FAIL, "the ME died during the run", lot)
 
     async def _go_shutdown(self, note: str, tell_me: bool = True) -> None:
         """Machine to Shutdown: no operations accepted, status Shutdown, ME told (6.3.2.2)."""
@@ -201,14 +212,16 @@ class WCRuns(WCBase):
 
         # The results and, with them, before Idle, the outcome: a lot that misses our Run_Complete (we die
         # before it goes out) finds the outcome here instead of running the operation again. One
-        # statement, so one round trip, without BEGIN and COMMIT (db.Statement).
+        # statement, so one round trip, without BEGIN and COMMIT (db.Statement). It reads back whose run
+        # it was: that lot is named to the bus as a listener of Run_Complete (a WC does not track lots).
         store = Statement(
             "WITH results AS (INSERT INTO machine_run_result (machine_run_id, machine_id, param, value) "
             "    SELECT %(run)s, %(m)s, p, v FROM unnest(%(params)s::text[], %(values)s::text[]) AS r (p, v) "
             "    ON CONFLICT (machine_run_id, machine_id, param) DO UPDATE SET value = EXCLUDED.value) "
             "INSERT INTO machine_run_outcome (machine_run_id, machine_id, ack_code, note) "
             "VALUES (%(run)s, %(m)s, %(code)s, %(note)s) ON CONFLICT (machine_run_id, machine_id) DO UPDATE "
-            "SET ack_code = EXCLUDED.ack_code, note = EXCLUDED.note, ended_at = clock_timestamp()",
+            "SET ack_code = EXCLUDED.ack_code, note = EXCLUDED.note, ended_at = clock_timestamp() "
+            f"RETURNING ({_RUN_LOT})",
             {
                 "run": run_id,
                 "m": self.machine_id,
@@ -217,12 +230,11 @@ class WCRuns(WCBase):
                 "code": str(code),
                 "note": note,
             },
-            fetch=None,
         )
-
+        lot = None
         try:
             # Results are kept (file and all) through a database outage rather than failing the run.
-            await self.transaction_when_up(store, within=DATABASE_OUTAGE_S)
+            lot = _lot(await self.transaction_when_up(store, within=DATABASE_OUTAGE_S))
         except DatabaseError as e:
             self.log.error("results of run %d not stored: %s (file %s kept)", run_id, e, path)
             code = AckCode.DB_BADUPD
@@ -238,11 +250,11 @@ class WCRuns(WCBase):
         await self._accepted_none(run_id)  # before the lot can give the machine back
         if shutdown is not None:
             await self._go_shutdown(shutdown, tell_me=tell_me)
-            await self._announce_run(run_id, code, note)
+            await self._announce_run(run_id, code, note, lot)
             return
         # 6.3.2.7's order: Run_Complete, then Idle and all operations, those two asked together (the
         # machine is bound again only once MSCHED has both: docs/machine-interface.md).
-        await self._announce_run(run_id, code, note)
+        await self._announce_run(run_id, code, note, lot)
         await asyncio.gather(
             self.change_status(S.IDLE, note=None if code == AckCode.ACK_OK else f"run {run_id}: {code}"),
             self.set_accept_types(ALL_OPERATIONS),
@@ -261,10 +273,11 @@ class WCRuns(WCBase):
         if not accepted:
             self.log.error("run %d: MSCHED did not take its setup's accept types none", run_id)
 
-    async def _announce_run(self, run_id: int, code: str, note: str | None) -> None:
+    async def _announce_run(self, run_id: int, code: str, note: str | None, lot: str | None) -> None:
         self.log.info("run %d complete (%s)%s", run_id, code, f": {note}" if note else "")
         conv = await self.bus.start(
             Conv.RUN_COMPL,
             message(Msg.RUN_COMPLETE, machine_id=self.machine_id, machine_run_id=run_id, ack_code=code, note=note),
+            heard_by=(lot,) if lot else (),
         )
         conv.end()

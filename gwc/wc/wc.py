@@ -56,13 +56,12 @@ class WC(WCSteps):
     start_class = Conv.ME_START
     stop_class = Conv.ME_SHUT
     always = (Conv.ALARM_CLE,)
-    # The other WCs: a WC addresses none and starts no class one listens to (it starts RUN_COMPL and
-    # asks the servers), so it need not read their beats: with N machines, N-1 fewer a heartbeat.
-    ignored_peers = "wc:"
-    # A lot script signing on needs the servers at once (it attaches to the Lot Server), not the WCs: it
-    # sets up on one only once it holds the machine, and hears every WC's beat within a heartbeat. So
-    # the WCs leave its query unanswered: N machines, N fewer hellos for every lot script to read.
-    unanswered_peers = "lot:"
+    # Peers a WC does not track (docs/protocol.md, *Peers a module ignores*). The other WCs: a WC
+    # addresses none and starts no class one listens to (it starts RUN_COMPL and asks the servers), so
+    # it need not read their beats: with N machines, N-1 fewer a heartbeat. The lot scripts: a WC only
+    # answers them, and the one lot that must hear its Run_Complete is the one whose run it was, named
+    # to the bus when it is sent; so no lot's sign-on, change of interest or bye wakes N WCs.
+    ignored_peers = ("wc:", "lot:")
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger, machine_id: str) -> None:
         # Before the base's __init__: it asks idle_interest(), which depends on the status.

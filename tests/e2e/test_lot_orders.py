@@ -34,7 +34,9 @@ CMM = {"id": "cmm_wc", "kind": "cmm", "serial": {"port": "sim", "baudrate": 9600
 
 
 def test_chess_order_goes_from_work_order_to_exported_lots_in_fifo_order(lot_cell: Any) -> None:
-    cell = cell_with_machines(lot_cell(machines=[{**CMM, "sim": {"measure_time": 0.4, "pattern": "P"}}]), "cmm_wc")
+    # The CMM's WC logs at trace, where a peer's coming and going is logged (lot scripts' included).
+    cmm = {**CMM, "sim": {"measure_time": 0.4, "pattern": "P"}, "level": "trace"}
+    cell = cell_with_machines(lot_cell(machines=[cmm]), "cmm_wc")
     entities = order(cell, "alum_chess_set=3")
     assert len(entities) == 3
     for e in entities:
@@ -68,6 +70,11 @@ def test_chess_order_goes_from_work_order_to_exported_lots_in_fifo_order(lot_cel
         log = lot_log(cell, e)
         for told in ("attached", "imported", "got machine_run_id", "run", "complete", "unreserved", "exported"):
             assert told in log, f"lot:{e} log does not tell '{told}'"
+        # The WC does not track lot scripts, yet named this one as the listener its Run_Complete must
+        # reach (docs/protocol.md, *Peers a module ignores*): heard on the bus, not read back from the tables.
+        assert f"run {runs[e][0]} complete: cmm_wc" in log and "no RUN_COMPL came" not in log, log
+        assert f"lot:{e} joined the bus" not in cell.log_text("wc:cmm_wc")
+    assert "ms joined the bus" in cell.log_text("wc:cmm_wc")  # (what it does track, it logs at trace)
     results = cell.query(
         "SELECT machine_run_id, param, value FROM machine_run_result WHERE machine_id = 'cmm_wc' "
         "AND param = 'RESULT' ORDER BY 1"

@@ -11,6 +11,7 @@ import random
 import tempfile
 import time
 from collections.abc import Awaitable, Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -77,10 +78,9 @@ def run(test: Callable[[Make, BusConfig], Awaitable[None]], **cfg: Any) -> None:
             name: str,
             interest: tuple[str, ...] = ("PING",),
             c: BusConfig = config,
-            ignored: str = "",
-            unanswered: str = "",
+            ignored: tuple[str, ...] = (),
         ) -> Bus:
-            bus = Bus(name, c, logging.getLogger(f"gwc.test.{name}"), interest, transport_for(c), ignored, unanswered)
+            bus = Bus(name, c, logging.getLogger(f"gwc.test.{name}"), interest, transport_for(c), ignored)
             await bus.sign_on()
             buses.append(bus)
             return bus
@@ -343,20 +343,38 @@ def test_invalid_message_in_a_batch_drops_the_batch_not_the_stream(caplog: Any) 
     assert "holds an invalid message" in caplog.text
 
 
-def test_a_module_leaves_the_queries_of_unanswered_peers_to_its_beat() -> None:
-    """WCs do not answer a lot script's query at sign-on (gwc.wc.wc.WC.unanswered_peers): the lot
-    hears of them from their beats; the servers answer it at once. The WC tracks the lot all the same."""
+def test_a_broadcast_waits_for_the_listener_it_names_though_it_does_not_track_it() -> None:
+    """A WC does not track lot scripts (gwc.wc.wc.WC.ignored_peers): their hellos never reach it, yet
+    their acks do, and it names the lot whose run it was as a listener of its Run_Complete (heard_by),
+    so that lot's ack is waited for and what the lot lost is sent again. A lot it does not name is not
+    waited for."""
 
     async def t(make: Make, cfg: BusConfig) -> None:
-        wc = await make("wc:a", ("PING",), unanswered="lot:")
-        ms = await make("ms", ("PING",))
-        await known(wc, ms)
-        lot = await make("lot:1", ("RUN_COMPL",))
-        await until(
-            lambda: {"ms", "wc:a"} <= lot.peers().keys() and "lot:1" in wc.peers(), "both, and the WC to know it"
-        )
-        # the server's answer came on the bus port; the WC came by its beat, long after its answer would have
-        assert lot.stats["hello"] == 1
+        wc = await make("wc:a", ("START_RUN",), ignored=("wc:", "lot:"))
+        lot = await make("lot:1", ("RUN_COMPL",), replace(cfg, faults=Faults(drop=0.3, seed=7)))
+        await until(lambda: "wc:a" in lot.peers(), "the lot to hear the WC's beat")
+        asked = await lot.start("START_RUN", message("Start_Run", machine_id="a", machine_run_id=1), to="wc:a")
+        start = await wc.first_message(5)
+        assert start is not None
+        await start.send(message("Start_Run_Ack", ack_code="ACK_OK"))  # to a lot it does not track: acked
+        assert (await asked.next_message(5)).first.ack_code == "ACK_OK" and "lot:1" not in wc.peers()
+        for n in range(20):
+            sent = await wc.start("RUN_COMPL", done(n), heard_by=("lot:1",))
+            sent.end()
+        got = set()
+        while len(got) < 20:
+            heard = await lot.first_message(5)
+            assert heard is not None, f"runs {sorted(set(range(20)) - got)} never reached the lot"
+            got.add(heard.first.first.machine_run_id)
+            heard.end()
+        await until(lambda: not wc._pending, "the lot's acks for all of them")
+        assert wc.stats["gave_up"] == 0 and wc.stats["retransmitted"] > 0  # the drops were made good
+        unnamed = await wc.start("RUN_COMPL", done(99))
+        assert not wc._pending  # nobody it tracks listens: nothing to wait for
+        unnamed.end()
+
+    def done(n: int) -> Any:
+        return message("Run_Complete", machine_id="a", machine_run_id=n, ack_code="ACK_OK")
 
     run(t)
 
@@ -396,8 +414,8 @@ def test_a_module_never_tracks_the_peers_it_ignores_and_the_others_track_it() ->
     both and hears what each broadcasts."""
 
     async def t(make: Make, cfg: BusConfig) -> None:
-        a = await make("wc:a", ("PING",), ignored="wc:")
-        b = await make("wc:b", ("PING",), ignored="wc:")
+        a = await make("wc:a", ("PING",), ignored=("wc:",))
+        b = await make("wc:b", ("PING",), ignored=("wc:",))
         ms = await make("ms", ("RUN_COMPL",))
         await known(ms, a, b)
         seen = ms.stats["beat"]

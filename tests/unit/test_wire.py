@@ -288,7 +288,7 @@ def test_the_kernel_filter_keeps_exactly_what_the_module_would_read() -> None:
 
 
 def test_the_kernel_filter_drops_the_hellos_and_byes_of_ignored_modules() -> None:
-    code = wire.kernel_filter("lot:7", 5, ["RUN_COMPL"], ignored="lot:")
+    code = wire.kernel_filter("lot:7", 5, ["RUN_COMPL"], ignored=("lot:",))
 
     def kept(**kw: object) -> bool:
         return run_filter(code, wire.encode(Envelope(**kw)))  # type: ignore[arg-type]
@@ -304,12 +304,29 @@ def test_the_kernel_filter_drops_the_hellos_and_byes_of_ignored_modules() -> Non
     assert kept(**msg, src="wc:wc1", conv="wc:wc1.3.1")  # msgs go by interest, whoever sends them
     assert kept(**msg, src="lot:12", conv="lot:12.3.1")
     assert kept(kind="ack", src="wc:wc1", inc=3, to="lot:7", to_inc=5, acks=(1,))
+    assert kept(kind="ack", src="lot:12", inc=3, to="lot:7", to_inc=5, acks=(1,))  # an ignored module's ack to it
+    assert not kept(kind="ack", src="lot:12", inc=3, to="lot:8", to_inc=5, acks=(1,))
     unfiltered = wire.kernel_filter("lot:7", 5, ["RUN_COMPL"])
     assert run_filter(unfiltered, wire.encode(Envelope(kind="hello", src="lot:12", inc=3)))
 
 
+def test_the_kernel_filter_of_a_wc_drops_the_membership_of_both_prefixes_it_ignores() -> None:
+    code = wire.kernel_filter("wc:a", 5, ["SETUP_RUN"], ignored=("wc:", "lot:"))
+
+    def kept(**kw: object) -> bool:
+        return run_filter(code, wire.encode(Envelope(**kw)))  # type: ignore[arg-type]
+
+    for src in ("wc:b", "lot:12"):
+        for kind in ("hello", "bye"):
+            assert not kept(kind=kind, src=src, inc=3), (kind, src)
+        assert kept(kind="ack", src=src, inc=3, to="wc:a", to_inc=5, acks=(1,))  # acks to it: kept
+        assert kept(kind="msg", src=src, inc=3, seq=1, conv=f"{src}.3.1", cls="SETUP_RUN", msg="Setup_Run", to="wc:a")
+    for src in ("ms", "msched", "lot", "wc", "lotx:1"):
+        assert kept(kind="hello", src=src, inc=3) and kept(kind="bye", src=src, inc=3), src
+
+
 def test_the_beat_filter_drops_exactly_the_beats_of_the_ignored_modules() -> None:
-    code = wire.beat_filter("wc:")
+    code = wire.beat_filter(("wc:",))
 
     def kept(src: str) -> bool:
         return run_filter(code, wire.encode(Envelope(kind="hello", src=src, inc=3, interest=("SETUP_RUN",))))
