@@ -252,13 +252,12 @@ class WCRuns(WCBase):
             await self._go_shutdown(shutdown, tell_me=tell_me)
             await self._announce_run(run_id, code, note, lot)
             return
-        # 6.3.2.7's order: Run_Complete, then Idle and all operations, those two asked together (the
-        # machine is bound again only once MSCHED has both: docs/machine-interface.md).
+        # 6.3.2.7's order: Run_Complete, Idle, all operations (the machine is bound again only once MSCHED
+        # has both). All operations once the Machine Server has the Idle: the lot's UNRESERVE, sent as it
+        # hears the Run_Complete, then finds MSCHED free (docs/machine-interface.md 4.1).
         await self._announce_run(run_id, code, note, lot)
-        await asyncio.gather(
-            self.change_status(S.IDLE, note=None if code == AckCode.ACK_OK else f"run {run_id}: {code}"),
-            self.set_accept_types(ALL_OPERATIONS),
-        )
+        await self.change_status(S.IDLE, note=None if code == AckCode.ACK_OK else f"run {run_id}: {code}")
+        await self.set_accept_types(ALL_OPERATIONS)
 
     async def _accepted_none(self, run_id: int) -> None:
         """The run's setup asked MSCHED for accepts-nothing without waiting: its answer, now."""
