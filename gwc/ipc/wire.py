@@ -402,8 +402,8 @@ def kernel_filter(
     conversation's later batches (a conversation the module holds is received whatever its
     interest). It drops the module's own datagrams, and the hellos and byes of the modules it does not
     track (names beginning with one of `ignored`: the bus would drop them unread); their acks to it are
-    kept. Tags can collide, so it
-    may keep a little more than needed, never less: the bus checks every datagram it reads again.
+    kept. Tags can collide, so it may keep a little more than needed, never less: the bus checks every
+    datagram it reads again.
     """
     own, hi, lo = tag(src), inc >> 32, inc & 0xFFFF_FFFF
     u = UDP_HEADER
