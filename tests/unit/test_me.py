@@ -277,9 +277,10 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def cmm_on(transport: str, **options: Any) -> dict[str, Any]:
-    """A CMM machine whose simulator is on a pty, or a serial device server on TCP (socket:// or rfc2217://)."""
-    serial = {"port": "sim", "timeout": 0.5}
+def cmm_on(transport: str, line_timeout: float = 0.5, **options: Any) -> dict[str, Any]:
+    """A CMM machine whose simulator is on a pty, or a serial device server on TCP (socket:// or rfc2217://).
+    The line's timeout is short, so that the fault tests find a silent CMM soon."""
+    serial = {"port": "sim", "timeout": line_timeout}
     sim = {"measure_time": 0.05, **options.pop("sim", {})}
     if transport != "pty":
         port = free_port()
@@ -369,7 +370,9 @@ def test_cmm_silent_at_a_setup_refuses_it_notnow_is_lost_then_back(machine, tmp_
 @pytest.mark.skipif(shutil.which("gkermit") is None, reason="gkermit is not installed (bin/setup installs it as root)")
 @pytest.mark.parametrize("transport", ["socket", "rfc2217"])  # RFC 2217 doubles Kermit's 0xFF bytes (Telnet's IAC)
 def test_cmm_in_thesis_mode_kermit_transfer_and_a_verdict_without_bang(machine, tmp_path: Path, transport: str) -> None:
-    m = machine(**cmm_on(transport, transfer="kermit", sim={"bang": False, "pattern": "PF"}))
+    # No fault here: a longer line timeout, so that the homing's resync is not refused on a loaded machine
+    # (four test workers on two cores, the RFC 2217 server starting up beside two Kermit transfers).
+    m = machine(**cmm_on(transport, line_timeout=3.0, transfer="kermit", sim={"bang": False, "pattern": "PF"}))
     assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
     verdicts = []
     for n in (1, 2):
