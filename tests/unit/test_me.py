@@ -90,6 +90,9 @@ def machine(tmp_path: Path) -> Iterator[Callable[..., Running]]:
             r.run(CmmSimulator(cfg, cfg.machine(r.machine), LOG).serve)
             if spec["serial"]["port"] == "sim":
                 wait_for(lambda: sim_link(cfg, r.machine).exists(), 10, "the simulator's pty link")
+            if "listen" in spec.get("sim", {}):  # else the ME's first open may come before the bind, and be refused
+                port = int(spec["sim"]["listen"].rpartition(":")[2])
+                wait_for(lambda: listening(port), 10, f"the simulator's device server on port {port}")
         r.me = make_machine(cfg, r.machine, LOG)
         r.run(r.me.serve)
         return r
@@ -269,6 +272,12 @@ def test_record_stream_takes_listing_9s_verdict_without_its_bang() -> None:
     assert stream.next_record(1, bare_verdict=True) == "READY!"
     assert stream.next_record(1, bare_verdict=True) == "FAIL!"  # unambiguous: the line went quiet
     assert stream.next_record(0.1, bare_verdict=True) is None
+
+
+def listening(port: int) -> bool:
+    """Whether a socket listens on TCP port (read from /proc: connecting would take the one ME's place)."""
+    rows = (row.split() for row in Path("/proc/net/tcp").read_text().splitlines()[1:])
+    return any(r[1].endswith(f":{port:04X}") and r[3] == "0A" for r in rows)  # 0A: LISTEN
 
 
 def free_port() -> int:
