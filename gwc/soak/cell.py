@@ -9,14 +9,17 @@ killed; restart() then only makes sure the agent has the module running.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import signal
 import stat
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from gwc import db
@@ -74,6 +77,10 @@ def config_doc(
     }
 
 
+def _exit_on_sigterm(signum: int, frame: FrameType | None) -> None:
+    sys.exit(128 + signum)
+
+
 class PrivateCell:
     """A whole cell (servers, MSCHED, dummy machines) under `var`, on a bus group of its own."""
 
@@ -98,15 +105,20 @@ class PrivateCell:
         self._text_args: dict[str, Any] = dict(
             var=self.var, database_url=database_url, machines=machines, policy=policy, db_settings=db_settings
         )
-        self.cfg: Config = write_config(
-            self.var / "etc" / "cell.toml", config_doc(bus=self._bus_cfg, **self._text_args)
-        )
+        written = write_config(self.var / "etc" / "cell.toml", config_doc(bus=self._bus_cfg, **self._text_args))
+        # Its own var/, whatever GWC_VAR says: that names the operator's cell, whose pid files this one's would
+        # overwrite. Its processes are given GWC_VAR=var (env(), spawn()).
+        self.cfg: Config = dataclasses.replace(written, var=self.var)
         self.bus: BlockingBus | None = None
 
     # ----------------------------------------------------------------- whole cell
 
     def start(self, start_machines: bool = True) -> None:
         """Database, schema, every process (servers through STARTUP), then each machine (ME_START)."""
+        if threading.current_thread() is threading.main_thread():
+            # `timeout`, `kill`: unwind as Ctrl-C does, so that the owner's `finally: stop()` runs. Python's
+            # default SIGTERM ends the process where it stands, and left the whole cell running behind it.
+            signal.signal(signal.SIGTERM, _exit_on_sigterm)
         if self.cfg.embedded:
             db.cluster_start(self.cfg, self.log)
         db.init_schema(self.cfg, self.log)

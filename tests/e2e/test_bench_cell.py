@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
+
+from tests.harness import wait_for
 
 
 def bench(tmp_path: Path, database_url: str, *args: str, timeout: float) -> dict[str, Any]:
@@ -59,6 +62,9 @@ def test_bench_cell_runs_lots_and_a_death_trial_and_reports_them(tmp_path: Path,
     assert 0 <= result["idle_cpu_percent"] < 100
     assert result["check_held"] is True, result["check_breaches"]
     assert not list((tmp_path / "bench" / "run").glob("*.pid"))  # the bench stopped its cell
+    # and kept to its folder: $GWC_VAR names another cell's
+    assert (tmp_path / "bench" / "log" / "msched.log").exists()
+    assert not (tmp_path / "var" / "log" / "msched.log").exists()
 
 
 @pytest.mark.timeout(300)
@@ -71,3 +77,35 @@ def test_bench_console_compares_the_cell_with_and_without_a_console(tmp_path: Pa
     assert without["console_cpu_ms_per_lot"] == 0 < with_console["console_cpu_ms_per_lot"]  # it found the console
     assert with_console["cell_cpu_ms_per_lot"] > 0
     assert result["check_held"] is True, result["check_breaches"]
+
+
+def cell_processes(var: Path) -> list[int]:
+    """Live processes started for the private cell under var (they carry GWC_VAR=var: PrivateCell.pids)."""
+    mark = f"GWC_VAR={var.resolve()}".encode()
+    found = []
+    for d in Path("/proc").iterdir():
+        try:
+            if d.name.isdigit() and mark in (d / "environ").read_bytes().split(b"\0"):
+                found.append(int(d.name))
+        except OSError:
+            continue
+    return found
+
+
+@pytest.mark.timeout(300)
+def test_bench_cell_ended_by_sigterm_stops_its_cell(tmp_path: Path, database_url: str) -> None:
+    """`timeout gwc bench cell ...`: the bench's SIGTERM stops its private cell too, as Ctrl-C does."""
+    var = tmp_path / "bench"
+    env = dict(os.environ, GWC_DATABASE_URL=database_url)
+    args = ["--machines", "1", "--lots", "2", "--solo", "0", "--deaths", "0", "--idle", "600", "--dir", str(var)]
+    bench = subprocess.Popen([sys.executable, "-m", "gwc", "bench", "cell", *args], env=env, stdout=subprocess.DEVNULL)
+    try:
+        wait_for(lambda: (var / "run" / "wc-wc1.pid").exists() and len(cell_processes(var)) >= 9, 120, "the cell up")
+        bench.terminate()
+        assert bench.wait(120) == 128 + signal.SIGTERM
+        assert cell_processes(var) == []
+        assert not list((var / "run").glob("*.pid"))
+    finally:
+        bench.kill()
+        for pid in cell_processes(var):
+            os.kill(pid, signal.SIGKILL)
