@@ -27,6 +27,8 @@ import logging
 import os
 import re
 import shutil
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from datetime import datetime
@@ -66,6 +68,20 @@ PHASES = [
     ("complete", re.compile(r"run \d+ complete:")),
     ("unreserved", re.compile(r"unreserved .* freed\)")),
 ]
+FLOOR_S = 30.0  # the resting floor is measured for at most this long
+
+# A process that only wakes once a heartbeat on the cell's event loop, and prints the CPU its wake-ups took:
+# what a wake-up costs on this machine at this time, whatever a module does in it.
+_SLEEPER = """
+import asyncio, sys, time
+from gwc.ipc.eventloop import run
+async def rest(beat, until):
+    began = time.process_time()
+    while time.monotonic() < until:
+        await asyncio.sleep(beat)
+    return time.process_time() - began
+print(run(rest(float(sys.argv[1]), time.monotonic() + float(sys.argv[2]))))
+"""
 _STAMP = re.compile(r"\| Date (\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3}) \|.*?\| (?:Note|Warning|Error|Trace): (.*)$")
 
 
@@ -338,7 +354,12 @@ class CellBench:
         took = time.monotonic() - began
         after = self._cpu_by_role()
         percent = {role: 100 * (c - before.get(role, c)) / took for role, c in after.items()}
+        beating = sum(1 for pid, cmd in self.cell.pids().items() if _role(cmd) != "me" and not _lot_script(pid, cmd))
+        floor_s = min(self.idle_s, FLOOR_S)
+        self.say(f"the floor: {beating} bare processes waking once a heartbeat, {floor_s:g}s")
         return {
+            "idle_floor_cpu_percent": round(wake_floor(beating, self.cell.cfg.bus.heartbeat, floor_s), 3),
+            "idle_floor_processes": beating,
             "idle_s": round(took, 1),
             "idle_cpu_percent": round(sum(v for r, v in percent.items() if r != "database"), 3),
             "idle_cpu_percent_database": round(percent.get("database", 0.0), 3),
@@ -437,6 +458,16 @@ def _role(cmd: str) -> str:
     if m:
         return m.group(1) or m.group(2)
     return cmd.split(" ", 1)[0].rsplit("/", 1)[-1]
+
+
+def wake_floor(processes: int, beat: float, seconds: float) -> float:
+    """A resting cell's floor, in percent of one core: as many bare processes as the cell has bus members,
+    at once, each only waking once a heartbeat for `seconds` (on a shared VM a wake-up's cost varies 4x)."""
+    sleepers = [
+        subprocess.Popen([sys.executable, "-c", _SLEEPER, str(beat), str(seconds)], stdout=subprocess.PIPE, text=True)
+        for _ in range(processes)
+    ]
+    return 100 * sum(float(p.communicate(timeout=seconds + 60)[0]) for p in sleepers) / seconds
 
 
 def _lot_script(pid: int, cmd: str) -> bool:
@@ -565,6 +596,8 @@ def command(
             f"the cell at rest ({result['idle_s']:g}s): {result['idle_cpu_percent']:.2f}% of one core "
             f"(the database: {result['idle_cpu_percent_database']:.2f}%): "
             + ", ".join(f"{k} {v:.2f}" for k, v in result["idle_cpu_percent_by_role"].items())
+            + f"; the floor ({result['idle_floor_processes']} bare processes waking once a heartbeat): "
+            f"{result['idle_floor_cpu_percent']:.2f}%"
         )
     click.echo(
         "gwc check at the end: "

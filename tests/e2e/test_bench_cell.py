@@ -60,6 +60,9 @@ def test_bench_cell_runs_lots_and_a_death_trial_and_reports_them(tmp_path: Path,
     # the resting cell's CPU, summed over its processes (servers, MSCHED, 2 WCs and MEs at least)
     assert {"msched", "ms", "ls", "wc", "me"} <= set(result["idle_cpu_percent_by_role"])
     assert 0 <= result["idle_cpu_percent"] < 100
+    # its floor: one bare process for each bus member (MSCHED, 5 servers, the agent, 4 WCs), only waking
+    assert result["idle_floor_processes"] == 11
+    assert 0 < result["idle_floor_cpu_percent"] < 100
     assert result["check_held"] is True, result["check_breaches"]
     assert not list((tmp_path / "bench" / "run").glob("*.pid"))  # the bench stopped its cell
     # and kept to its folder: $GWC_VAR names another cell's
