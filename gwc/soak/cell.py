@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import FrameType
 from typing import Any
@@ -110,6 +111,7 @@ class PrivateCell:
         # overwrite. Its processes are given GWC_VAR=var (env(), spawn()).
         self.cfg: Config = dataclasses.replace(written, var=self.var)
         self.bus: BlockingBus | None = None
+        self._sigterm: signal.Handlers | Callable[[int, FrameType | None], Any] | int | None = None
 
     # ----------------------------------------------------------------- whole cell
 
@@ -118,7 +120,7 @@ class PrivateCell:
         if threading.current_thread() is threading.main_thread():
             # `timeout`, `kill`: unwind as Ctrl-C does, so that the owner's `finally: stop()` runs. Python's
             # default SIGTERM ends the process where it stands, and left the whole cell running behind it.
-            signal.signal(signal.SIGTERM, _exit_on_sigterm)
+            self._sigterm = signal.signal(signal.SIGTERM, _exit_on_sigterm)
         if self.cfg.embedded:
             db.cluster_start(self.cfg, self.log)
         db.init_schema(self.cfg, self.log)
@@ -139,6 +141,9 @@ class PrivateCell:
         if self.bus is not None:
             self.bus.close()
             self.bus = None
+        if self._sigterm is not None:  # the process's own handler again
+            signal.signal(signal.SIGTERM, self._sigterm)
+            self._sigterm = None
 
     def env(self, config: Path | None = None) -> dict[str, str]:
         env = dict(os.environ, GWC_CONFIG=str(config or self.cfg.path), GWC_VAR=str(self.var), PYTHONUNBUFFERED="1")
