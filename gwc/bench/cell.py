@@ -467,7 +467,14 @@ def wake_floor(processes: int, beat: float, seconds: float) -> float:
         subprocess.Popen([sys.executable, "-c", _SLEEPER, str(beat), str(seconds)], stdout=subprocess.PIPE, text=True)
         for _ in range(processes)
     ]
-    return 100 * sum(float(p.communicate(timeout=seconds + 60)[0]) for p in sleepers) / seconds
+    try:
+        used = [float(p.communicate(timeout=seconds + 60)[0]) for p in sleepers]
+    finally:  # one that failed or hung leaves none of the others behind
+        for p in sleepers:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    return 100 * sum(used) / seconds
 
 
 def _lot_script(pid: int, cmd: str) -> bool:
