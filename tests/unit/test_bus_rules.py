@@ -8,7 +8,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import random
-import tempfile
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import replace
@@ -27,6 +26,7 @@ from gwc.ipc.transport import Transport
 
 Make = Callable[..., Awaitable[Bus]]
 TRANSPORT = "udp"  # set for each test by the fixture below
+KEYS_DIR = Path()  # the running test's own folder, for its bus keys (the fixture below)
 
 
 @pytest.fixture(autouse=True, params=["udp", "memory"])
@@ -37,6 +37,12 @@ def transport(request: Any) -> Any:
     TRANSPORT = "udp"
 
 
+@pytest.fixture(autouse=True)
+def keys_dir(tmp_path: Path) -> None:
+    global KEYS_DIR
+    KEYS_DIR = tmp_path  # pytest removes it (a mkdtemp of our own was left behind by every test)
+
+
 def transport_for(cfg: BusConfig) -> Transport | None:
     """The transport of the running test's kind (None: the bus's default, UDP multicast)."""
     return MemoryTransport(cfg) if TRANSPORT == "memory" else None
@@ -45,7 +51,7 @@ def transport_for(cfg: BusConfig) -> Transport | None:
 def private_cfg(**kw: Any) -> BusConfig:
     """A bus of its own (group, port, keys)."""
     rnd = random.Random()
-    where = Path(tempfile.mkdtemp(prefix="gwc-bus-keys-"))
+    where = KEYS_DIR
     cfg = BusConfig(
         group=f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
         port=rnd.randrange(20000, 60000),
