@@ -22,6 +22,7 @@ from collections.abc import Callable
 from typing import Any
 
 from gwc.config import Config
+from gwc.db import Statement
 from gwc.errors import DatabaseUnavailable, GwcError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
@@ -139,7 +140,16 @@ class Msched(Module):
     async def on_idle(self) -> None:
         if self.started and time.monotonic() - self._last_sweep >= self.sweep_s:
             self._last_sweep = time.monotonic()
-            self._submit(lambda s: s.sweep(), wait=False)
+            if self._sweep_has_work():
+                self._submit(lambda s: s.sweep(), wait=False)
+
+    def _sweep_has_work(self) -> bool:
+        """(store.SWEEP_WORK) One read, alone; a read that fails says yes: the step then meets the failure."""
+        try:
+            return bool(self.transaction(Statement(store.SWEEP_WORK))[0])
+        except GwcError as e:
+            self.log.debug("sweep's look at the queue failed (%s): sweeping", e)
+            return True
 
     async def on_database_back(self, down_for: float) -> None:
         """Whatever happened meanwhile (a lot that finished, a machine that went): sweep at once."""

@@ -475,6 +475,16 @@ class Step:
             )
 
 
+# Whether a sweep could change anything: a request queued (a pass, a machine down, an orphan), a machine
+# reserved (its entity may have finished), a satisfied group of an entity that finished. A resting cell
+# has none: its sweep is this one statement, not a transaction of eight round trips every sweep_s.
+SWEEP_WORK = (
+    "select exists (select 1 from request_machines) or exists (select 1 from reserved_machines) "
+    "or exists (select 1 from satisfied_alt_groups g where not exists "
+    "           (select 1 from live_entities v where v.entity_id = g.entity_id))"
+)
+
+
 def run_step(
     cur: psycopg.Cursor[Any], policy: Policy, ops: Sequence[Callable[[Step], Any]]
 ) -> tuple[list[Any], list[Outcome]]:

@@ -23,6 +23,7 @@ from gwc.errors import ConversationTimeout
 from gwc.ipc.bus import Batch, BlockingBus, BlockingConversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
+from gwc.msched.store import SWEEP_WORK
 from tests.harness import CellHarness, wait_for
 
 T = 20.0  # generous deadlines: the machines are shared
@@ -472,6 +473,24 @@ def test_finished_entity_is_never_bound_and_its_orphan_request_ends(make_cell: A
     assert (comp.ack_code, comp.note) == (AckCode.REQ_CANCEL, "entity finished")
     assert queued_keys(cell) == [] and reservations(cell) == {}
     assert cell.query("select count(*) from satisfied_alt_groups")[0][0] == 0
+
+
+def test_a_resting_msched_sweeps_with_one_read(make_cell: Any) -> None:
+    """Nothing queued, reserved or left of a finished entity: the periodic sweep ([msched] sweep_s, 5 s)
+    is its one look at the queue (store.SWEEP_WORK), alone, not a transaction: it stays MSCHED's last
+    statement. (That a sweep with work still runs: the test above.)"""
+    cell = msched_cell(make_cell)
+    cell.start("msched")
+
+    def last_statement() -> str | None:
+        rows = cell.query("select query from pg_stat_activity where application_name = 'gwc_msched'")
+        return rows[0][0] if rows else None
+
+    wait_for(lambda: last_statement() == SWEEP_WORK, 15, "MSCHED's sweep to look at the queue")
+    held_until = time.monotonic() + 1.0
+    while time.monotonic() < held_until:  # no transaction follows the look
+        assert last_statement() == SWEEP_WORK
+        time.sleep(0.05)
 
 
 # ----------------------------------------------------------------------------- the operator's screen (MREQ)

@@ -15,8 +15,9 @@ import pytest
 
 from gwc import db
 from gwc.config import Config
+from gwc.ipc.codes import AckCode
 from gwc.msched.policy import Fifo, Policy, Priority
-from gwc.msched.store import Step
+from gwc.msched.store import SWEEP_WORK, Step
 
 MACHINES = ["wc1", "wc2", "wc3"]
 
@@ -164,3 +165,63 @@ def test_queue_statistics_are_refreshed_only_when_much_changed(conn: psycopg.Con
     assert conn.execute(
         "select last_analyze is not null from pg_stat_user_tables where relname = 'request_machines'"
     ).fetchone()[0]
+
+
+def test_a_refused_request_is_neither_queued_nor_given_a_key(conn: psycopg.Connection[Any]) -> None:
+    """The checks and the insert are one statement: each refusal says which check failed, and only a
+    request that passes them all is queued (and takes a MACH_R_KEY); a repeat gets its first answer."""
+    fifo = Fifo()
+    with psycopg.connect(conn.info.dsn, autocommit=True) as admin:
+        admin.execute("update lot_status set state = 'exported' where entity_id = 2")
+        admin.execute("insert into satisfied_alt_groups (entity_id, alt_group, request_key) values (3, 'g', 77)")
+        admin.execute("update machine_status set status = 'Shutdown' where machine_id = 'wc3'")
+
+    def key() -> int:
+        return int(conn.execute("select value from max_values where type = 'MACH_R_KEY'").fetchone()[0])
+
+    before = key()
+    refusals = {
+        (99, "dummy_op", ("wc1",), None): (AckCode.UNKNOWN, "entity 99 is not known to the Lot Server"),
+        (2, "dummy_op", ("wc1",), None): (AckCode.NOTNOW, "entity 2 is exported: it cannot ask for machines"),
+        (3, "dummy_op", ("wc1",), "g"): (AckCode.REQ_CANCEL, "alternative 77 already satisfied"),
+        (4, "no_such_op", ("wc1",), None): (AckCode.UNKNOWN, "op type 'no_such_op' is not known"),
+        (5, "dummy_op", ("wc1", "wc9"), None): (AckCode.NO_MACHINE, "machine wc9 does not exist (ME_CONFIG)"),
+        (6, "dummy_op", ("wc1", "wc3"), None): (AckCode.NO_MACHINE, "machine wc3 is Shutdown"),
+    }
+    for (e, op, machines, group), want in refusals.items():
+        got, _ = _step(conn, fifo, lambda s, a=(e, op, machines, None, "t", f"r{e}", group): s.queue_request(*a))
+        assert (got.ack_code, got.note) == want
+    assert key() == before
+    assert conn.execute("select count(*) from request_machines").fetchone()[0] == 0
+
+    first, _ = _step(conn, fifo, lambda s: s.queue_request(7, "dummy_op", ["wc1", "wc2"], 4, "t", "ok", "h"))
+    again, _ = _step(conn, fifo, lambda s: s.queue_request(7, "dummy_op", ["wc1", "wc2"], 4, "t", "ok", "h"))
+    assert (first.ack_code, first.request_key) == (AckCode.ACK_OK, before + 1)
+    assert (again.ack_code, again.request_key, again.note) == (AckCode.ACK_OK, before + 1, "already queued")
+    assert key() == before + 1
+    rows = conn.execute("select machine_id, priority, alt_group from request_machines order by seq").fetchall()
+    assert rows == [("wc1", 4, "h"), ("wc2", 4, "h")]  # queued, not bound: the machines accept nothing yet
+
+
+def test_a_sweep_is_looked_for_only_where_it_could_change_something(conn: psycopg.Connection[Any]) -> None:
+    """store.SWEEP_WORK: a resting cell (nothing queued, reserved or remembered of a finished entity)
+    is not swept; any one of them is."""
+
+    def needed() -> bool:
+        return bool(conn.execute(SWEEP_WORK).fetchone()[0])
+
+    fifo = Fifo()
+    assert not needed()
+    _step(conn, fifo, lambda s: s.queue_request(1, "dummy_op", ["wc1"], None, "t", "q"))
+    assert needed()  # queued (the machines accept nothing yet)
+    _accept_all(conn, fifo)
+    assert conn.execute("select count(*) from reserved_machines").fetchone()[0] == 1
+    assert needed()  # bound now: reserved
+    _step(conn, fifo, lambda s: s.unreserve(1, None))
+    with psycopg.connect(conn.info.dsn, autocommit=True) as admin:
+        admin.execute("insert into satisfied_alt_groups (entity_id, alt_group, request_key) values (2, 'g', 9)")
+        assert not needed()  # entity 2 is alive: its group is remembered on purpose
+        admin.execute("update lot_status set state = 'exported' where entity_id = 2")
+    assert needed()
+    _step(conn, fifo, lambda s: s.sweep())
+    assert not needed()
