@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
-import json
 import logging
 import threading
 import time
@@ -34,7 +33,7 @@ from gwc.lot.model import (
     T,
     Timeouts,
     now_text,
-    traveller_path,
+    save_traveller,
 )
 
 
@@ -153,13 +152,9 @@ class EntityCore:
         self._save()
 
     def _save(self) -> None:
-        """Write the traveller (var/lots/entity-E.json) atomically; it is a record, never required."""
+        """Write the traveller (var/lots/entity-E.json) whole; it is a record, never required."""
         try:
-            path = traveller_path(self.cfg, self.entity_id)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(".tmp")
-            tmp.write_text(json.dumps(self.traveller, default=str, indent=1))
-            tmp.replace(path)
+            save_traveller(self.cfg, self.entity_id, self.traveller)
         except OSError as e:
             self.log.warning("could not write the traveller: %s", e)
 

@@ -63,6 +63,7 @@ from gwc.lot.model import (
     S,
     Timeouts,
     failure_reason,
+    forget_previous_traveller,
     now_text,
     read_traveller,
     traveller_path,
@@ -157,6 +158,7 @@ class OperationEntity(EntityResume):
             with contextlib.suppress(Exception):
                 self._conn.close()
             self._conn = None
+        forget_previous_traveller(self.cfg, self.entity_id)
 
     def fail(self, reason: str) -> None:
         """Give back everything and mark the entity failed: requests cancelled, machines unreserved."""
