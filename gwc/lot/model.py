@@ -5,10 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ctypes
-import errno
 import json
-import os
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -16,6 +13,7 @@ from typing import Any, TypeVar
 
 from gwc.config import Config
 from gwc.errors import BusError, GwcError
+from gwc.files import forget_previous, rewrite
 from gwc.ipc.catalogue import Message
 from gwc.ipc.codes import AckCode, LotState, MachineStatus
 from gwc.ipc.names import Conv
@@ -245,60 +243,14 @@ def traveller_path(cfg: Config, entity_id: int) -> Path:
     return cfg.var / "lots" / f"entity-{entity_id}.json"
 
 
-def _previous(path: Path) -> Path:
-    """The traveller's previous version: the file the next save writes into."""
-    return path.with_name(path.name + ".prev")
-
-
-# renameat2(2)'s RENAME_EXCHANGE (Linux 3.15, glibc 2.28): two names swap their files in one step.
-_RENAME_EXCHANGE = 2
-_AT_FDCWD = -100
-_libc = ctypes.CDLL(None, use_errno=True)
-
-
-def _exchange(a: Path, b: Path) -> None:
-    if _libc.renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) != 0:
-        code = ctypes.get_errno()
-        raise OSError(code, os.strerror(code), str(a), None, str(b))
-
-
 def save_traveller(cfg: Config, entity_id: int, traveller: dict[str, Any]) -> None:
-    """Write the traveller whole, never torn: the new text goes into the previous version's file
-    (entity-E.json.prev), overwritten in place, and the two names swap their files in one step. A
-    kill -9 mid-write tears only the previous version. So a save creates no file and replaces none:
-    on ext4 a new file costs an inode, and a rename over a file (or a truncation to nothing) makes the
-    kernel write the new blocks out at once (auto_da_alloc): 130-490 us a save against 16-60 us
-    (docs/performance.md, 28 Nov). The first save of an entity, and a file system without
-    RENAME_EXCHANGE, write a new file and rename it over."""
-    path = traveller_path(cfg, entity_id)
-    data = json.dumps(traveller, default=str, indent=1).encode()
-    if path.exists():
-        prev = _previous(path)
-        fd = os.open(prev, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o644)
-        try:
-            done = 0
-            while done < len(data):
-                done += os.pwrite(fd, data[done:], done)
-            os.ftruncate(fd, len(data))  # shorter than before, never empty: no flush at close
-        finally:
-            os.close(fd)
-        try:
-            _exchange(prev, path)
-            return
-        except OSError as e:
-            if e.errno not in (errno.EINVAL, errno.ENOSYS):  # EINVAL: this file system cannot swap
-                raise
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
+    """Write the traveller whole, never torn (gwc.files.rewrite)."""
+    rewrite(traveller_path(cfg, entity_id), json.dumps(traveller, default=str, indent=1).encode())
 
 
 def forget_previous_traveller(cfg: Config, entity_id: int) -> None:
-    """The entity's script is ending: its traveller's previous version goes (a script restarted
-    makes it again at its second save)."""
-    with contextlib.suppress(OSError):
-        _previous(traveller_path(cfg, entity_id)).unlink()
+    """The entity's script is ending: its traveller's previous version goes."""
+    forget_previous(traveller_path(cfg, entity_id))
 
 
 def read_traveller(cfg: Config, entity_id: int) -> dict[str, Any] | None:

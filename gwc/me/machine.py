@@ -36,6 +36,7 @@ from typing import Any
 from gwc.agent.control import notify_ready
 from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError, GwcError, QueueError, QueueFull, QueueTimeout
+from gwc.files import rewrite
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import ALARM_TEXT_SIZE, Channel, MeMessage, MessageId
 from gwc.me.results import write_results
@@ -204,10 +205,7 @@ class MachineSide:
     def _next_run_no(self) -> int:
         """The next run number, written before the run starts, so no two runs of a machine share one."""
         n = self.run_no + 1
-        self.memory.mkdir(parents=True, exist_ok=True)
-        tmp = self.memory / (RUN_NO_FILE + ".tmp")
-        tmp.write_text(f"{n}\n")
-        tmp.replace(self.memory / RUN_NO_FILE)
+        rewrite(self.memory / RUN_NO_FILE, f"{n}\n".encode())  # on a run's start: no file made or replaced
         return n
 
     # ----------------------------------------------------------------- the loop

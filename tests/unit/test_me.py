@@ -22,12 +22,13 @@ import pytest
 
 from gwc.config import Config
 from gwc.errors import ConfigError, QueueError, QueueTimeout
+from gwc.files import previous
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import Channel, MeMessage, MessageId, remove_queues
 from gwc.me import make_machine
 from gwc.me.cmm_sim import CmmSimulator, fault_file, inject_fault, sim_link
 from gwc.me.line import Garbage, LineTimeout, RecordStream
-from gwc.me.machine import MachineSide
+from gwc.me.machine import RUN_NO_FILE, MachineSide
 from gwc.me.results import read_outcome, read_results, write_results
 from gwc.wc.link import MeDied, MeLink
 from tests.harness import wait_for, write_cell_config
@@ -440,6 +441,17 @@ def test_run_numbers_go_on_across_me_restarts(machine, tmp_path: Path) -> None:
     assert read_results(next_from_me(m).file_name)["RUN_NO"] == "1"
     again = make_machine(m.cfg, m.machine, LOG)  # a new ME process of the same machine
     assert again.run_no == 1
+    # Each run's number is written over the previous one's file and the two swapped (gwc.files.rewrite):
+    # from the second run on, no file is made or replaced.
+    run_no = again.memory / RUN_NO_FILE
+    inodes = set()
+    for n in (2, 3, 4):
+        setup = m.ask(MessageId.SETUP_RUN, file_name=recipe(tmp_path), recipe_id="dummy_recipe")
+        assert setup.ack_code == AckCode.ACK_OK
+        assert m.ask(MessageId.START_RUN, file_name=str(tmp_path / f"r{n}")).ack_code == AckCode.ACK_OK
+        assert read_results(next_from_me(m).file_name)["RUN_NO"] == str(n)
+        inodes.add(run_no.stat().st_ino)
+    assert run_no.read_text() == "4\n" and previous(run_no).read_text() == "3\n" and len(inodes) == 2
 
 
 # ----------------------------------------------------------------------------- results file

@@ -1,6 +1,6 @@
-"""The traveller's file (gwc/lot/model.py save_traveller): every save leaves it whole, and after the
-second save no file is created or replaced: the new text goes into the previous version's file and
-the two names swap."""
+"""gwc.files.rewrite, through a lot's traveller (the ME's run number: tests/unit/test_me.py): every save
+leaves the file whole, and after the second save no file is created or replaced: the new text goes
+into the previous version's file and the two names swap."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from gwc import files
 from gwc.config import Config
-from gwc.lot import model
 from gwc.lot.model import forget_previous_traveller, read_traveller, save_traveller, traveller_path
 from tests.conftest import make_config
 
@@ -60,7 +60,7 @@ def test_a_file_system_that_cannot_swap_gets_a_new_file_renamed_over(
     def cannot(a: Path, b: Path) -> None:
         raise OSError(errno.EINVAL, "Invalid argument")
 
-    monkeypatch.setattr(model, "_exchange", cannot)
+    monkeypatch.setattr(files, "_exchange", cannot)
     for n in (1, 2, 3):
         save_traveller(cfg, 7, doc(n))
         assert read_traveller(cfg, 7) == doc(n)
@@ -71,7 +71,7 @@ def test_another_failure_of_the_swap_is_not_hidden(cfg: Config, monkeypatch: pyt
         raise OSError(errno.EACCES, "Permission denied")
 
     save_traveller(cfg, 7, doc(1))
-    monkeypatch.setattr(model, "_exchange", denied)
+    monkeypatch.setattr(files, "_exchange", denied)
     with pytest.raises(PermissionError):
         save_traveller(cfg, 7, doc(2))
     assert read_traveller(cfg, 7) == doc(1)  # the traveller as it was
