@@ -75,6 +75,11 @@ def test_chess_order_goes_from_work_order_to_exported_lots_in_fifo_order(lot_cel
         assert f"run {runs[e][0]} complete: cmm_wc" in log and "no RUN_COMPL came" not in log, log
         assert f"lot:{e} joined the bus" not in cell.log_text("wc:cmm_wc")
     assert "ms joined the bus" in cell.log_text("wc:cmm_wc")  # (what it does track, it logs at trace)
+    # Each traveller was saved several times, swapped with its previous version (gwc/files.py): the
+    # previous versions go as the scripts end, and no save left a file of its own behind.
+    travellers = sorted(f"entity-{e}.json" for e in entities)
+    lots_dir = cell.cfg.var / "lots"
+    wait_for(lambda: sorted(p.name for p in lots_dir.iterdir()) == travellers, 20, "only the travellers in var/lots")
     results = cell.query(
         "SELECT machine_run_id, param, value FROM machine_run_result WHERE machine_id = 'cmm_wc' "
         "AND param = 'RESULT' ORDER BY 1"

@@ -27,7 +27,7 @@ def doc(n: int, pad: int = 0) -> dict[str, object]:
 
 def test_each_save_is_whole_and_two_files_take_turns(cfg: Config) -> None:
     path = traveller_path(cfg, 7)
-    prev = path.with_name(path.name + ".prev")
+    prev = files.previous(path)
     inodes = set()
     for n in range(1, 8):
         # Long and short in turn: a shorter text written over a longer one must leave nothing behind.
@@ -48,7 +48,7 @@ def test_a_torn_previous_version_does_not_reach_the_traveller(cfg: Config) -> No
     """What a kill -9 mid-write leaves (a half-written previous version) is overwritten by the next save."""
     save_traveller(cfg, 7, doc(1))
     path = traveller_path(cfg, 7)
-    path.with_name(path.name + ".prev").write_text('{"entity_id": 7, "ste' + "#" * 5000)
+    files.previous(path).write_text('{"entity_id": 7, "ste' + "#" * 5000)
     assert read_traveller(cfg, 7) == doc(1)
     save_traveller(cfg, 7, doc(2))
     assert read_traveller(cfg, 7) == doc(2)

@@ -168,8 +168,8 @@ def test_queue_statistics_are_refreshed_only_when_much_changed(conn: psycopg.Con
 
 
 def test_a_refused_request_is_neither_queued_nor_given_a_key(conn: psycopg.Connection[Any]) -> None:
-    """The checks and the insert are one statement: each refusal says which check failed, and only a
-    request that passes them all is queued (and takes a MACH_R_KEY); a repeat gets its first answer."""
+    """Each refusal says which check failed, and only a request that passes them all is queued (and
+    takes a MACH_R_KEY); a repeat of the conversation gets its first answer."""
     fifo = Fifo()
     with psycopg.connect(conn.info.dsn, autocommit=True) as admin:
         admin.execute("update lot_status set state = 'exported' where entity_id = 2")
