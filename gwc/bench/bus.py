@@ -38,7 +38,7 @@ from typing import Any, Protocol
 import click
 
 from gwc import netns
-from gwc.bench import cpu_s, summary
+from gwc.bench import cpu_s, pin_cpu, summary
 from gwc.config import BusConfig
 from gwc.errors import GwcError
 from gwc.ipc import auth, eventloop, keys, wire
@@ -375,14 +375,6 @@ async def _measure(
     }
 
 
-def _pin(which: int) -> None:
-    """Keep client and server on different CPUs (when there are two), for both modes alike: otherwise
-    the kernel often wakes the server on the client's CPU and every round trip pays a context switch."""
-    cpus = sorted(os.sched_getaffinity(0))
-    if len(cpus) >= 2:
-        os.sched_setaffinity(0, {cpus[which % len(cpus)]})
-
-
 def _spawn(mode: str, cfg: BusConfig, pin: bool, peer: tuple[str, str] | None) -> subprocess.Popen[bytes]:
     """One server; with `peer` (its namespace and address), on that other host."""
     where = ["ip", "netns", "exec", peer[0]] if peer else []
@@ -426,7 +418,7 @@ def run(
     mask = os.sched_getaffinity(0)
     servers = {mode: _spawn(mode, cfgs[mode], pin, peer) for mode in MODES}
     if pin:
-        _pin(0)
+        pin_cpu(0)
     try:
         raw = eventloop.run(_measure(cfgs, {mode: p.pid for mode, p in servers.items()}, n, window))
         for server in servers.values():
@@ -529,7 +521,7 @@ def _main() -> None:
         return
     cfg = _cfg(args.group, args.port, args.keys, args.interface)
     if args.pin:
-        _pin(1)
+        pin_cpu(1)
     if args.serve == "bus":
         eventloop.run(_serve_bus(cfg))
     elif args.serve == "asyncio":
