@@ -20,7 +20,7 @@ from gwc.errors import DatabaseError, DatabaseUnavailable
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import Message
 from gwc.ipc.codes import AckCode
-from gwc.lot.errors import LotError, LotTimeout, MachineLost
+from gwc.lot.errors import LotTimeout, MachineLost
 from gwc.lot.model import (
     HISTORY,
     POLL,
@@ -29,7 +29,6 @@ from gwc.lot.model import (
     MachineRequest,
     Reservation,
     Run,
-    S,
     T,
     Timeouts,
     now_text,
@@ -63,7 +62,8 @@ class EntityCore:
         self._bus: BlockingBus | None = None
         self._conn: psycopg.Connection[Any] | None = None
         self._cond = threading.Condition()
-        self._runs: dict[tuple[str, int], str] = {}
+        self._runs: dict[tuple[str, int], str] = {}  # (machine, run) -> ack code, from RUN_COMPL
+        self._heard_results: dict[tuple[str, int], dict[str, str]] = {}  # our runs' results that came with it
         # Every machine's status changes as (when, status, machine_run_id), from UPD_ME_ST (and MACHINE_STATUS
         # when a wait reads it): a Shutdown stays known after the machine is up again.
         self._history: dict[str, list[tuple[float, str, int | None]]] = {}
@@ -74,7 +74,6 @@ class EntityCore:
         self._requests: list[MachineRequest] = []  # asked for and not yet waited for
         self._asked: list[MachineRequest] = []  # every request this process made
         self._groups = 0
-        self._recipes: dict[tuple[str, str], str] = {}  # (machine, op type) -> recipe, read ahead (_read_recipes)
         self._moved: list[tuple[str, int | None]] = []
         # Progress reports (waiting_machine, running) on their way to the Lot Server, in order (report()).
         self._reporter: concurrent.futures.ThreadPoolExecutor | None = None
@@ -110,28 +109,6 @@ class EntityCore:
     def _query_one(self, sql: str, *params: Any) -> tuple[Any, ...] | None:
         rows = self._query(sql, *params)
         return rows[0] if rows else None
-
-    def _read_lot(self) -> None:
-        """The entity's lot, and its lot script (the lot's own, else its product's; None if neither names one)."""
-        row = self._query_one(
-            "SELECT s.state, s.lot_id, l.product_id, l.priority, l.work_order_id, ls.script_id, ls.path "
-            "FROM lot_status s JOIN lots l USING (lot_id) LEFT JOIN products p ON p.product_id = l.product_id "
-            "LEFT JOIN lot_scripts ls ON ls.script_id = coalesce(l.script_id, p.script_id) WHERE s.entity_id = %s",
-            self.entity_id,
-        )
-        if row is None:
-            raise LotError(f"unknown lot entity {self.entity_id}: the Lot Server has no LOT_STATUS row for it")
-        self._set_state(row[0])
-        self.lot_id, self.product_id, self.priority, self.work_order_id = row[1], row[2], row[3], row[4]
-        self.script_id, self.script_path = row[5], row[6]
-
-    def read_state(self) -> str | None:
-        """The entity's state in LOT_STATUS (None if the Lot Server has no row for it)."""
-        row = self._query_one("SELECT state, lot_id FROM lot_status WHERE entity_id = %s", self.entity_id)
-        if row is None:
-            return None
-        self.lot_id = row[1]
-        return str(row[0])
 
     def _set_state(self, state: str) -> None:
         self.state = state
@@ -267,34 +244,6 @@ class EntityCore:
                     self.log.error("timed out after %.0fs waiting for %s", timeout, what)
                     raise LotTimeout(f"entity {self.entity_id}: timed out after {timeout:.0f}s waiting for {what}")
                 self._cond.wait(max(0.0, min(left, 0.5, next_poll - time.monotonic() if poll else 0.5)))
-
-    def _wait_moved(self, action: str, states: Sequence[str], timeout: float) -> None:
-        """Wait for LOT_MOVED(action) for this entity, reading LOT_STATUS as a fallback every POLL seconds
-        (not at every wake-up: every machine's news wakes a lot in the cell)."""
-        deadline = time.monotonic() + timeout
-        while True:
-            next_poll = time.monotonic() + POLL
-            with self._cond:
-                while True:
-                    for act, lot_id in self._moved:
-                        if act == action:
-                            if lot_id is not None:
-                                self.lot_id = lot_id
-                            return
-                    left = min(next_poll, deadline) - time.monotonic()
-                    if left <= 0:
-                        break
-                    self._cond.wait(left)
-            state = self.read_state()
-            if state in states:
-                return
-            if state == S.FAILED:
-                raise LotError(f"entity {self.entity_id} was marked failed while waiting for {action}")
-            if time.monotonic() > deadline:
-                raise LotTimeout(
-                    f"entity {self.entity_id}: the operator did not {action} the lot within "
-                    f"{timeout:.0f}s (it is {state})"
-                )
 
     def _pause(self, tries: int, what: str) -> None:
         """The pause before an operation's next try: a machine that just failed gets time to be marked

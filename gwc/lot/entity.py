@@ -54,7 +54,6 @@ from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import LotError, MachineDied, MachineLost, ScriptStopped
 from gwc.lot.model import (
     IMPORTED,
-    LISTENS,
     WAITING_LISTENS,
     MachineRequest,
     Operation,
@@ -109,27 +108,21 @@ class OperationEntity(EntityResume):
             self.close()
 
     def open(self) -> None:
-        """Join the bus as lot:E, listen, attach to the Lot Server (ENTITY_REQ attach, our pid)."""
-        self._read_lot()
-        if self.state in (S.FAILED, S.EXPORTED):
-            self._failed = True  # nothing of ours to clean up
-            raise LotError(f"entity {self.entity_id} is already {self.state}: nothing to do")
+        """Join the bus as lot:E, attach to the Lot Server (ENTITY_REQ attach, our pid), which answers with
+        the entity's state, lot and lot script, and listen."""
         # A lot talks to servers and WCs, never to another lot: it does not track the other lot scripts
-        # (their beats, hellos and byes are dropped before it wakes), nor answer their queries.
-        self._bus = BlockingBus(
-            self.name,
-            self.cfg.bus,
-            self.log,
-            interest=LISTENS if self.state in IMPORTED else WAITING_LISTENS,
-            ignored_peers=("lot:",),
-        )
+        # (their beats, hellos and byes are dropped before it wakes), nor answer their queries. It hears
+        # the machines' news once it is in the cell (_listen_in_cell).
+        self._bus = BlockingBus(self.name, self.cfg.bus, self.log, interest=WAITING_LISTENS, ignored_peers=("lot:",))
         self._bus.call_soon(self._watch_peers, self._bus.bus)
         self._bus.peers()  # returns after _watch_peers ran (the bus thread runs callbacks in order)
         self._spawn(self._listen())
         # Started now, not at the first report: starting a thread takes milliseconds on a busy machine.
         self._reporter = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"{self.name}-reports")
         self._reporter.submit(lambda: None)
-        ack = self.entity_request("attach", script_pid=os.getpid())
+        ack = self._attach()
+        if self.state in IMPORTED:
+            self._listen_in_cell()
         self.log.info(
             "entity %d attached (lot %s, product %s, state %s, pid %d)",
             self.entity_id,

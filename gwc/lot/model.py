@@ -183,7 +183,6 @@ class Alternative:
     reserved: list[str] = field(default_factory=list)
     error: str | None = None
     done: bool = False
-    sent: bool = False  # its first Machine_Request has gone out (or could not: msched away)
     group: MachineRequest | None = None
 
     @property

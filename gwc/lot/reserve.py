@@ -7,7 +7,7 @@ import os
 import time
 from collections.abc import Callable, Sequence
 
-from gwc.errors import DatabaseError, GwcError
+from gwc.errors import GwcError
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
@@ -47,10 +47,6 @@ class EntityReserve(EntityTalk):
         self._asked.append(request)
         for alt in alts:
             self._spawn(self._request(alt, priority if priority is not None else self.priority))
-        # The recipes are read while MSCHED decides, once the requests are out: a read begun before
-        # would hold the GIL while the bus thread sends them (a millisecond later, measured).
-        self._wait(lambda: all(a.sent or a.done for a in alts), self.timeouts.answer, "the requests to go out")
-        self._read_recipes(op_type, {m for a in alts for m in a.machines})
         self._wait(
             lambda: all(a.ack is not None or a.done for a in alts),
             self.timeouts.retry + self.timeouts.answer + 1,
@@ -273,18 +269,3 @@ class EntityReserve(EntityTalk):
             with self._cond:
                 self._cond.wait(min(POLL, max(0.0, deadline - time.monotonic())))
         raise LotTimeout(f"entity {self.entity_id}: no machine for {op_type} came up in time")
-
-    def _read_recipes(self, op_type: str, machines: set[str]) -> None:
-        """recipe_for each machine asked for, in one read while MSCHED decides: the ones bound need it next."""
-        try:
-            rows = self._query(
-                "SELECT machine_id, min(recipe_id) FROM op_machine_recipe WHERE op_type = %s "
-                "AND machine_id = ANY(%s) GROUP BY machine_id",
-                op_type,
-                sorted(machines),
-                within=0,
-            )
-        except DatabaseError as e:  # recipe_for reads them again, and says so if it cannot
-            self.log.warning("recipes for %s not read ahead: %s", op_type, e)
-            return
-        self._recipes = {(str(m), op_type): str(r) for m, r in rows}

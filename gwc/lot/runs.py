@@ -19,9 +19,8 @@ class EntityRuns(EntityReserve):
     """A reserved machine's run, step by step."""
 
     def recipe_for(self, machine_id: str, op_type: str) -> str:
-        known = self._recipes.pop((machine_id, op_type), None)
-        if known is not None:
-            return known
+        """The machine's recipe for the op type (OP_MACHINE_RECIPE, the first by name): the one its WC
+        sets up when a SETUP_RUN names none."""
         rows = self._query(
             "SELECT recipe_id FROM op_machine_recipe WHERE machine_id = %s AND op_type = %s ORDER BY recipe_id",
             machine_id,
@@ -31,13 +30,15 @@ class EntityRuns(EntityReserve):
             raise RunFailed(f"no recipe for {op_type} on {machine_id} in OP_MACHINE_RECIPE")
         return str(rows[0][0])
 
-    def setup_run(self, machine_id: str, recipe_id: str, op_type: str, machine_run_id: int) -> None:
+    def setup_run(self, machine_id: str, recipe_id: str | None, op_type: str, machine_run_id: int) -> str:
         """SETUP_RUN to the machine's WC: recipe downloaded, machine set up (the CMM is homed first).
+        With no recipe_id the WC sets up its machine's recipe for the op type (recipe_for); returns the
+        recipe set up.
 
         Waits up to Timeouts.setup (the CMM waits for its start button), but no longer than the
         machine lives: MachineLost as soon as it goes Shutdown or its WC leaves the bus.
         """
-        self.log.info("setting up run %d on %s with recipe %s", machine_run_id, machine_id, recipe_id)
+        self.log.info("setting up run %d on %s with recipe %s", machine_run_id, machine_id, recipe_id or "(its own)")
         with self._cond:  # the run's life on this machine begins: what happens to it from now on counts
             self._began[(machine_id, machine_run_id)] = (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
         ack = self._ask_wc(
@@ -57,9 +58,10 @@ class EntityRuns(EntityReserve):
         if ack.ack_code != AckCode.ACK_OK:
             self._raise_if_lost(machine_id, machine_run_id, ack)
             raise RunFailed(
-                f"{machine_id} refused to set up run {machine_run_id} ({recipe_id}): {ack.ack_code}"
+                f"{machine_id} refused to set up run {machine_run_id} ({recipe_id or op_type}): {ack.ack_code}"
                 + (f" ({ack.note})" if ack.note else "")
             )
+        return str(ack.recipe_id or recipe_id or "")  # (a WC names the recipe it set up)
 
     def start_run(self, machine_id: str, machine_run_id: int) -> None:
         """START_RUN to the machine's WC: run what was set up (MachineLost if the machine goes meanwhile).
@@ -315,7 +317,12 @@ class EntityRuns(EntityReserve):
         return {str(m): str(code) for m, code in rows}
 
     def run_results(self, machine_id: str, machine_run_id: int) -> dict[str, str]:
-        """The run's MACHINE_RUN_RESULT rows as param -> value."""
+        """The run's MACHINE_RUN_RESULT rows as param -> value: as they came with its Run_Complete (a WC
+        sends small ones along, as stored), else read from the table."""
+        with self._cond:
+            came = self._heard_results.get((machine_id, machine_run_id))
+        if came is not None:
+            return dict(sorted(came.items()))
         rows = self._query(
             "SELECT param, value FROM machine_run_result WHERE machine_run_id = %s AND machine_id = %s ORDER BY param",
             machine_run_id,
@@ -340,10 +347,11 @@ class EntityRuns(EntityReserve):
         chosen = {}
         for m in reservation.machines:
             recipe = recipes.get(m) if isinstance(recipes, dict) else recipes
-            chosen[m] = recipe or self.recipe_for(m, op_type)
             step = (todo or {}).get(m, "setup")
             if step == "setup":
-                self.setup_run(m, chosen[m], op_type, run_id)
+                chosen[m] = self.setup_run(m, recipe, op_type, run_id)
+            else:
+                chosen[m] = recipe or self.recipe_for(m, op_type)
             if step != "wait":
                 self.start_run(m, run_id)
         return chosen, self.wait_run_complete(run_id, reservation.machines)

@@ -5,8 +5,9 @@ the broadcasts it listens to, the peers it watches, and its conversations with t
 from __future__ import annotations
 
 import asyncio
+import os
 import time
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Sequence
 from typing import Any
 
 from gwc.errors import ConversationTimeout, GwcError
@@ -16,7 +17,7 @@ from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.core import EntityCore
 from gwc.lot.errors import LotError, LotTimeout, MachineLost
-from gwc.lot.model import ALREADY, FOREVER, HISTORY, LISTENS, SHUT, Alternative, WcCall
+from gwc.lot.model import ALREADY, FOREVER, HISTORY, LISTENS, POLL, SHUT, Alternative, S, WcCall
 from gwc.module import ask_again
 
 
@@ -43,6 +44,57 @@ class EntityTalk(EntityCore):
         """
         self._drain_reports()
         return self._entity_request(action, reason, script_pid, timeout, within)
+
+    def _attach(self) -> Message:
+        """ENTITY_REQ attach: the Lot Server records our pid and answers with the entity's state, its lot
+        and its lot script (the lot's own, else its product's; None if neither names one)."""
+        try:
+            ack = self.entity_request("attach", script_pid=os.getpid())
+        except LotTimeout:
+            raise
+        except LotError:
+            self._failed = True  # refused (unknown, failed or exported): nothing of ours to clean up
+            raise
+        self.product_id, self.priority, self.work_order_id = ack.product_id, ack.priority, ack.work_order_id
+        self.script_id, self.script_path = ack.script_id, ack.script_path
+        return ack
+
+    def read_state(self) -> str | None:
+        """The entity's state as the Lot Server has it, asked once (None if it has none for the entity or
+        does not answer now): the fallback of a wait for a broadcast that may have been missed."""
+        try:
+            return str(self._entity_request("state", within=0, keep_state=True).state)
+        except GwcError as e:
+            self.log.warning("entity %d: state not read from the Lot Server: %s", self.entity_id, e)
+            return None
+
+    def _wait_moved(self, action: str, states: Sequence[str], timeout: float) -> None:
+        """Wait for LOT_MOVED(action) for this entity, asking the Lot Server for its state as a fallback
+        every POLL seconds (not at every wake-up: every machine's news wakes a lot in the cell)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            next_poll = time.monotonic() + POLL
+            with self._cond:
+                while True:
+                    for act, lot_id in self._moved:
+                        if act == action:
+                            if lot_id is not None:
+                                self.lot_id = lot_id
+                            return
+                    left = min(next_poll, deadline) - time.monotonic()
+                    if left <= 0:
+                        break
+                    self._cond.wait(left)
+            state = self.read_state()
+            if state in states:
+                return
+            if state == S.FAILED:
+                raise LotError(f"entity {self.entity_id} was marked failed while waiting for {action}")
+            if time.monotonic() > deadline:
+                raise LotTimeout(
+                    f"entity {self.entity_id}: the operator did not {action} the lot within "
+                    f"{timeout:.0f}s (it is {state})"
+                )
 
     def report(self, action: str) -> None:
         """ENTITY_REQ for a progress state (waiting_machine, running), sent without waiting for the answer.
@@ -259,7 +311,10 @@ class EntityTalk(EntityCore):
             m = conv.first.first
             with self._cond:
                 if m.name == Msg.RUN_COMPLETE and m.machine_run_id is not None:
-                    self._runs[(m.machine_id, int(m.machine_run_id))] = m.ack_code
+                    key = (m.machine_id, int(m.machine_run_id))
+                    self._runs[key] = m.ack_code
+                    if key in self._began and _all_str(m.results):
+                        self._heard_results[key] = m.results
                 elif m.name == Msg.UPDATE_ME_STATUS:
                     self._note(m.machine_id, m.status, m.machine_run_id)
                 elif m.name == Msg.MODULE_DIED:
@@ -319,7 +374,6 @@ class EntityTalk(EntityCore):
                     return
                 if not self._present("msched"):
                     why = "msched is not on the bus"
-                    self._sent(alt)
                 else:
                     conv = await bus.start(
                         Conv.MACH_REQ,
@@ -334,7 +388,6 @@ class EntityTalk(EntityCore):
                         *[message(Msg.MACHINE_ENTRY, machine_id=m) for m in alt.machines],
                         to="msched",
                     )
-                    self._sent(alt)
                     try:
                         batch = await conv.next_message(self.timeouts.answer)
                     except ConversationTimeout:
@@ -368,12 +421,6 @@ class EntityTalk(EntityCore):
         finally:
             if conv is not None:
                 conv.end()
-
-    def _sent(self, alt: Alternative) -> None:
-        if not alt.sent:
-            with self._cond:
-                alt.sent = True
-                self._cond.notify_all()
 
     async def _answered(self, alt: Alternative, conv: Conversation, batch: Batch) -> None:
         """MSCHED's Machine_Req_Ack or Machine_Req_Comp for one alternative."""
@@ -410,3 +457,9 @@ class EntityTalk(EntityCore):
             self.log.info("%s: %s", cls, batch.first.ack_code)
         except GwcError as e:
             self.log.error("%s failed: %s", cls, e)
+
+
+def _all_str(results: Any) -> bool:
+    """Whether a Run_Complete's results are what a WC sends (param -> value, all text); else they are read
+    from MACHINE_RUN_RESULT."""
+    return isinstance(results, dict) and all(isinstance(p, str) and isinstance(v, str) for p, v in results.items())

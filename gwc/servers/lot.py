@@ -332,6 +332,8 @@ class LotServer(Server, Module):
         # A move to another state (the usual ENTITY_REQ) is one statement; the rest reads first.
         movable = None if target is None or req.action == "destroy" else allowed - {target, L.EXPORTED}
 
+        lot: dict[str, Any] = {}  # an attach's answer: the entity's lot and lot script
+
         def step(cur: Any) -> tuple[str, int | None, LotState | None, str | None]:
             row = cur.execute(
                 "select s.lot_id, s.state, e.destroyed_at from lot_status s "
@@ -345,9 +347,19 @@ class LotServer(Server, Module):
                 return AckCode.NOTNOW, lot_id, state, f"entity {req.entity_id} is {state}: cannot {req.action}"
             note = "destroyed" if row[2] is not None else None
             if req.action == "attach":
-                cur.execute(
-                    "update lot_status set script_pid = %s, updated_at = now() where entity_id = %s",
-                    (req.script_pid, req.entity_id),
+                lot.update(
+                    zip(
+                        ("product_id", "priority", "work_order_id", "script_id", "script_path"),
+                        cur.execute(
+                            "update lot_status s set script_pid = %s, updated_at = now() FROM lots l "
+                            "LEFT JOIN products p USING (product_id) LEFT JOIN lot_scripts ls "
+                            "ON ls.script_id = coalesce(l.script_id, p.script_id) "
+                            "WHERE s.entity_id = %s AND l.lot_id = s.lot_id "
+                            "RETURNING l.product_id, l.priority, l.work_order_id, ls.script_id, ls.path",
+                            (req.script_pid, req.entity_id),
+                        ).fetchone()
+                        or (),
+                    )
                 )
             elif req.action == "destroy":
                 cur.execute("update lot_entities set destroyed_at = now() where entity_id = %s", (req.entity_id,))
@@ -375,7 +387,7 @@ class LotServer(Server, Module):
             self._after(req.entity_id, req.action, state, conv)
             if req.action not in ("state", "attach"):
                 self.log.info("entity %d: %s -> %s%s", req.entity_id, req.action, state, f" ({note})" if note else "")
-        await self.answer(conv, ack, code, note, lot_id=lot_id, state=state.value if state else None)
+        await self.answer(conv, ack, code, note, lot_id=lot_id, state=state.value if state else None, **lot)
         if code == AckCode.ACK_OK and req.action in ("import", "export"):
             await self.event(f"entity {req.entity_id} (lot {lot_id}) waits to be {req.action}ed")
 

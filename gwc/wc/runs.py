@@ -22,6 +22,9 @@ from gwc.module import DATABASE_OUTAGE_S
 from gwc.wc.base import ALL_OPERATIONS, S, WCBase
 from gwc.wc.link import MeDied
 
+# A run's results ride in its Run_Complete when they are this small (characters of params and values
+# together), so that its lot need not read them back; larger ones only in MACHINE_RUN_RESULT.
+INLINE_RESULTS = 2000
 # Whose run it is: the lot its Run_Complete must reach, named to the bus (a WC does not track lot scripts).
 _RUN_LOT = "SELECT entity_id FROM reserved_machines WHERE machine_id = %(m)s AND machine_run_id = %(run)s"
 
@@ -231,7 +234,7 @@ class WCRuns(WCBase):
                 "note": note,
             },
         )
-        lot = None
+        lot, stored = None, None
         try:
             # Results are kept (file and all) through a database outage rather than failing the run.
             lot = _lot(await self.transaction_when_up(store, within=DATABASE_OUTAGE_S))
@@ -239,6 +242,8 @@ class WCRuns(WCBase):
             self.log.error("results of run %d not stored: %s (file %s kept)", run_id, e, path)
             code = AckCode.DB_BADUPD
         else:
+            if sum(len(p) + len(v) for p, v in results.items()) <= INLINE_RESULTS:
+                stored = results
             self.log.info("run %d: %d results stored in MACHINE_RUN_RESULT", run_id, len(results))
             if path is not None:
                 path.unlink(missing_ok=True)
@@ -250,12 +255,12 @@ class WCRuns(WCBase):
         await self._accepted_none(run_id)  # before the lot can give the machine back
         if shutdown is not None:
             await self._go_shutdown(shutdown, tell_me=tell_me)
-            await self._announce_run(run_id, code, note, lot)
+            await self._announce_run(run_id, code, note, lot, stored)
             return
         # 6.3.2.7's order: Run_Complete, Idle, all operations (the machine is bound again only once MSCHED
         # has both). All operations once the Machine Server has the Idle: the lot's UNRESERVE, sent as it
         # hears the Run_Complete, then finds MSCHED free (docs/machine-interface.md 4.1).
-        await self._announce_run(run_id, code, note, lot)
+        await self._announce_run(run_id, code, note, lot, stored)
         await self.change_status(S.IDLE, note=None if code == AckCode.ACK_OK else f"run {run_id}: {code}")
         await self.set_accept_types(ALL_OPERATIONS)
 
@@ -272,11 +277,21 @@ class WCRuns(WCBase):
         if not accepted:
             self.log.error("run %d: MSCHED did not take its setup's accept types none", run_id)
 
-    async def _announce_run(self, run_id: int, code: str, note: str | None, lot: str | None) -> None:
+    async def _announce_run(
+        self, run_id: int, code: str, note: str | None, lot: str | None, results: dict[str, str] | None = None
+    ) -> None:
+        """Run_Complete; `results` as stored, when they are small enough to ride with it."""
         self.log.info("run %d complete (%s)%s", run_id, code, f": {note}" if note else "")
         conv = await self.bus.start(
             Conv.RUN_COMPL,
-            message(Msg.RUN_COMPLETE, machine_id=self.machine_id, machine_run_id=run_id, ack_code=code, note=note),
+            message(
+                Msg.RUN_COMPLETE,
+                machine_id=self.machine_id,
+                machine_run_id=run_id,
+                ack_code=code,
+                note=note,
+                results=results,
+            ),
             heard_by=(lot,) if lot else (),
         )
         conv.end()

@@ -107,10 +107,12 @@ class WCSteps(WCDevice):
 
     async def setup_run(self, conv: Conversation) -> None:
         """6.3.2.3: Idle only; reservation, recipe and op type checked; the approved recipe to the ME;
-        status Setup (asked beside the ME's setup: docs/machine-interface.md, *The order of a run's steps*)."""
+        status Setup (asked beside the ME's setup: docs/machine-interface.md, *The order of a run's steps*).
+        A request that names no recipe gets this machine's for the op type (OP_MACHINE_RECIPE), named in
+        the answer."""
         assert conv.first is not None
         req = conv.first.first
-        self.log.info("SETUP_RUN run %d recipe %s op %s", req.machine_run_id, req.recipe_id, req.op_type)
+        self.log.info("SETUP_RUN run %d recipe %s op %s", req.machine_run_id, req.recipe_id or "(ours)", req.op_type)
         entity, refusal = self._asking_entity(conv)
         if refusal is not None:
             await self._refuse_now(conv, Msg.SETUP_RUN_ACK, *refusal)
@@ -118,18 +120,22 @@ class WCSteps(WCDevice):
         if not await self._serve_step(conv, Msg.SETUP_RUN_ACK, (S.IDLE,), lambda r: self._setup(r, entity)):
             return
         self._set_up_for = (conv.initiator, req.machine_run_id)
-        self.log.info("set up run %d with recipe %s", req.machine_run_id, req.recipe_id)
-        await conv.send(message(Msg.SETUP_RUN_ACK, ack_code=AckCode.ACK_OK))
+        self.log.info("set up run %d with recipe %s", req.machine_run_id, self.recipe_id)
+        await conv.send(message(Msg.SETUP_RUN_ACK, ack_code=AckCode.ACK_OK, recipe_id=self.recipe_id))
 
     async def _setup(self, req: Message, entity: int | None) -> tuple[str, str] | None:
-        try:  # the reservation (a lot's), OP_MACHINE_RECIPE and the recipe's approved version, one read
-            reserved, valid, version, checksum = await self._read_when_up(
+        # The reservation (a lot's), the recipe (the one asked for, else the machine's first for the op
+        # type), that OP_MACHINE_RECIPE allows it, and its approved version: one read.
+        try:
+            reserved, recipe, valid, version, checksum = await self._read_when_up(
                 "SELECT %(e)s::bigint IS NULL OR EXISTS (SELECT 1 FROM reserved_machines WHERE machine_id = %(m)s "
-                "AND machine_run_id = %(run)s AND entity_id = %(e)s), EXISTS (SELECT 1 FROM op_machine_recipe "
-                "WHERE machine_id = %(m)s AND recipe_id = %(r)s AND op_type = %(op)s), v.version, v.checksum "
-                "FROM (SELECT) one LEFT JOIN recipe_versions v ON v.recipe_id = %(r)s AND v.approved",
+                "AND machine_run_id = %(run)s AND entity_id = %(e)s), r.recipe, EXISTS (SELECT 1 FROM "
+                "op_machine_recipe WHERE machine_id = %(m)s AND recipe_id = r.recipe AND op_type = %(op)s), "
+                "v.version, v.checksum FROM (SELECT coalesce(%(r)s::text, (SELECT min(recipe_id) FROM "
+                "op_machine_recipe WHERE machine_id = %(m)s AND op_type = %(op)s)) AS recipe) r "
+                "LEFT JOIN recipe_versions v ON v.recipe_id = r.recipe AND v.approved",
                 {"e": entity, "m": self.machine_id, "run": req.machine_run_id, "r": req.recipe_id, "op": req.op_type},
-            ) or (False, False, None, None)
+            ) or (False, None, False, None, None)
         except DatabaseUnavailable:
             raise  # the module answers DB_Badrea: the lot may ask again once the database is back
         except DatabaseError as e:
@@ -139,8 +145,10 @@ class WCSteps(WCDevice):
                 AckCode.NOT_RESERVED,
                 f"run {req.machine_run_id} on {self.machine_id} is not reserved to lot:{entity}",
             )
+        if recipe is None:
+            return AckCode.REC_INVAL, f"{self.machine_id} has no recipe for op type {req.op_type}"
         if not valid:
-            return AckCode.REC_INVAL, f"recipe {req.recipe_id} is not for op type {req.op_type} on {self.machine_id}"
+            return AckCode.REC_INVAL, f"recipe {recipe} is not for op type {req.op_type} on {self.machine_id}"
         # Listing 3: a machine set up for a run accepts no other operation until the run is over. That and
         # the status Setup are asked now, beside the recipe's setup on the ME, which depends on neither. The
         # lot is not kept waiting for MSCHED's answer to the accept types: while the run is reserved
@@ -149,12 +157,12 @@ class WCSteps(WCDevice):
         # the wire before the ME is asked: the Machine Server's change, a durable commit, takes longer
         # than the ME's setup, and the answer to the lot waits for it.
         status = asyncio.ensure_future(
-            self.change_status(S.SETUP, expect=[S.IDLE], recipe_id=req.recipe_id, machine_run_id=req.machine_run_id)
+            self.change_status(S.SETUP, expect=[S.IDLE], recipe_id=recipe, machine_run_id=req.machine_run_id)
         )
         accept = asyncio.ensure_future(self.set_accept_types([]))
         await asyncio.sleep(0)  # each sends its request in its first step
         try:
-            refusal = await self._set_up_on_me(req, self._recipe(req.recipe_id, version, checksum))
+            refusal = await self._set_up_on_me(recipe, self._recipe(recipe, version, checksum))
         finally:
             set_up = await status
         if refusal is None and not set_up:
@@ -163,23 +171,21 @@ class WCSteps(WCDevice):
             note = f"setup of run {req.machine_run_id} failed"
             if set_up and not await self.change_status(S.IDLE, expect=[S.SETUP], note=note) and self.status == S.SETUP:
                 # Left in Setup: given up by the abandoned-setup watch once the lot has unreserved the run.
-                self.machine_run_id, self.recipe_id = req.machine_run_id, req.recipe_id
+                self.machine_run_id, self.recipe_id = req.machine_run_id, recipe
             if await accept and self.status == S.IDLE:  # (not on a machine that went down meanwhile)
                 await self.set_accept_types(ALL_OPERATIONS)
             return refusal
-        self.machine_run_id, self.recipe_id = req.machine_run_id, req.recipe_id
+        self.machine_run_id, self.recipe_id = req.machine_run_id, recipe
         self._accepting_none = accept
         return None
 
-    async def _set_up_on_me(self, req: Message, fetch: Awaitable[tuple[Path | None, str]]) -> tuple[str, str] | None:
+    async def _set_up_on_me(self, recipe_id: str, fetch: Awaitable[tuple[Path | None, str]]) -> tuple[str, str] | None:
         """The approved recipe (`fetch`) to the ME, which sets up with it; the refusal, or None."""
         path, why = await fetch
         if path is None:
-            await self.raise_alarm("REC_INVAL", f"{self.machine_id}: recipe {req.recipe_id} refused: {why}", wait=False)
+            await self.raise_alarm("REC_INVAL", f"{self.machine_id}: recipe {recipe_id} refused: {why}", wait=False)
             return AckCode.REC_INVAL, why
-        answer, refusal = await self._ask_me(
-            MeMessage(MessageId.SETUP_RUN, file_name=str(path), recipe_id=req.recipe_id)
-        )
+        answer, refusal = await self._ask_me(MeMessage(MessageId.SETUP_RUN, file_name=str(path), recipe_id=recipe_id))
         if answer is None:
             return refusal
         if answer.ack_code != AckCode.ACK_OK:

@@ -58,6 +58,11 @@ def test_chess_order_goes_from_work_order_to_exported_lots_in_fifo_order(lot_cel
         "the second lot's request to be queued (or served)",
     )
     ok(gwc(cell, "import", str(third)))
+    # The first lot's whole operation is done, the others have waited to be imported: none of the three
+    # scripts opened a database connection (docs/lot-scripts.md, *The database*). One, once opened, is
+    # held until its script ends.
+    wait_state(cell, first, "waiting_export")
+    assert cell.query("SELECT count(*) FROM pg_stat_activity WHERE application_name = 'gwc_lot'") == [(0,)]
     import_export_all(cell, entities)
 
     runs = {e: [s["machine_run_id"] for s in steps(cell, e)] for e in entities}

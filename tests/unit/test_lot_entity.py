@@ -57,6 +57,7 @@ class FakeCell:
         self.run_id = 100
         self.key = 0
         self.complete_runs = True  # False: the next run's ME dies (its agent says so) and the machine shuts down
+        self.inline: dict[str, str] | None = None  # the results a Run_Complete carries (None: only the table's)
         self.lose_run: list[tuple[str, int | None]] = []  # instead of completing the next run: these UPD_ME_ST
         self.comp: dict[str, Any] = {}  # how MSCHED ends requests: machine -> (ack_code, note)
         self.ack: dict[str, Any] = {}  # how MSCHED answers requests at once: machine -> (ack_code, note)
@@ -115,9 +116,11 @@ class FakeCell:
         self.thread.join(5)
         self.loop.close()  # its self-pipe sockets, else left open (the leak check finds them)
 
-    def sql(self, text: str, *params: Any) -> None:
+    def sql(self, text: str, *params: Any) -> Any:
+        """Run one statement; its first row, if it returns any."""
         with psycopg.connect(self.url, autocommit=True) as conn:
-            conn.execute(text, params)
+            cur = conn.execute(text, params)
+            return cur.fetchone() if cur.description else None
 
     def actions(self) -> list[str]:
         return [f["action"] for cls, f in self.seen if cls == "ENTITY_REQ"]
@@ -174,7 +177,9 @@ class FakeCell:
         state = moves.get(m.action)
         if state:
             self.sql("UPDATE lot_status SET state = %s, reason = %s WHERE entity_id = %s", state, m.reason, m.entity_id)
-        await conv.send(message("Entity_Ack", ack_code=OK, lot_id=1, state=state or "created"))
+        else:  # attach, state: as the table has it
+            state = self.sql("SELECT state FROM lot_status WHERE entity_id = %s", m.entity_id)[0]
+        await conv.send(message("Entity_Ack", ack_code=OK, lot_id=1, state=state))
         if m.action in ("import", "export"):  # the operator decides at once
             done = "imported" if m.action == "import" else "exported"
             self.sql("UPDATE lot_status SET state = %s WHERE entity_id = %s", done, m.entity_id)
@@ -239,7 +244,7 @@ class FakeCell:
 
     async def setup(self, conv: Conversation, m: Message) -> None:
         code = AckCode.REC_INVAL if m.recipe_id == "bad" else OK
-        await conv.send(message("Setup_Run_Ack", ack_code=code))
+        await conv.send(message("Setup_Run_Ack", ack_code=code, recipe_id=m.recipe_id or "dummy_recipe"))
 
     async def start(self, conv: Conversation, m: Message) -> None:
         self.status(m.machine_id, "Running", m.machine_run_id)
@@ -283,7 +288,13 @@ class FakeCell:
         await self.broadcast(
             wc,
             "RUN_COMPL",
-            message("Run_Complete", machine_id=m.machine_id, machine_run_id=m.machine_run_id, ack_code=OK),
+            message(
+                "Run_Complete",
+                machine_id=m.machine_id,
+                machine_run_id=m.machine_run_id,
+                ack_code=OK,
+                results=self.inline,
+            ),
         )
 
 
@@ -350,6 +361,20 @@ def test_a_lot_goes_through_listing_1_with_alternatives(fake: tuple[FakeCell, Op
     ]
     trav = read_traveller(entity.cfg, 7)
     assert trav and trav["steps"][0]["machines"] == ["m2"] and trav["result"] == "PASS"
+
+
+def test_a_runs_results_that_came_with_its_run_complete_are_not_read_again(
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
+    # The table holds RESULT only: what the lot reports can have come only from the Run_Complete.
+    cell, entity = fake
+    cell.inline = {"RESULT": "PASS", "LENGTH": "31.98"}
+    with entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", [["m1"]])
+        assert op.ok and op.results == {"LENGTH": "31.98", "RESULT": "PASS"}
+        entity.lot_completed("PASS")
+        entity.wait_for_export()
 
 
 def test_an_exception_in_the_script_cancels_unreserves_and_fails_the_entity(
