@@ -25,6 +25,14 @@ def cpu_s(pid: int) -> float:
         return int(f.read().split()[0]) / 1e9
 
 
+def reaped_cpu_s(pid: int) -> float:
+    """CPU time of the children process `pid` has reaped, in seconds (/proc/PID/stat cutime + cstime, in
+    clock ticks): what processes that came and went between two samples of cpu_s spent."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
+    return (int(fields[13]) + int(fields[14])) / os.sysconf("SC_CLK_TCK")
+
+
 def percentile(values: Sequence[float], p: float) -> float:
     """The p-th percentile (0-100) by nearest rank; NaN for no values."""
     if not values:

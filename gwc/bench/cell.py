@@ -21,6 +21,7 @@ machine's cycle has to dwarf.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import logging
@@ -39,7 +40,7 @@ import click
 import psycopg
 
 from gwc import db
-from gwc.bench import cpu_s, summary
+from gwc.bench import cpu_s, reaped_cpu_s, summary
 from gwc.bench.heal import freeze_trials
 from gwc.cell import machine_procs
 from gwc.check import check_cell
@@ -288,13 +289,17 @@ class CellBench:
         # Lot scripts come and go (their operation's CPU is in their timing files): not counted here.
         # The agent forks them: their command line is the agent's, their name (comm) lot:E.
         roles = {pid: _role(cmd) for pid, cmd in self.cell.pids().items() if not _lot_script(pid, cmd)}
-        roles.update({pid: "database" for pid in self._database_pids()})
+        database = self._database_pids()
+        roles.update({pid: "database" for pid in database})
         out: dict[str, float] = {}
         for pid, role in roles.items():
             try:
                 out[role] = out.get(role, 0.0) + cpu_s(pid)
             except OSError:
                 continue
+        if database:  # and the backends that ended (a lot script's connection, a probe's), reaped by the postmaster
+            with contextlib.suppress(OSError):
+                out["database"] = out.get("database", 0.0) + reaped_cpu_s(database[0])
         return out
 
     def _commits(self) -> int:

@@ -144,7 +144,7 @@ def setup_run(
     cell: CellHarness,
     machine: str,
     run_id: int,
-    recipe: str = "dummy_recipe",
+    recipe: str | None = "dummy_recipe",
     op: str = "dummy_op",
     machine_id: str | None = None,
 ) -> Message:
@@ -218,7 +218,8 @@ def test_dummy_machine_homes_sets_up_runs_and_stores_its_results(machine_cell: A
     assert status(cell, "wc3")[0] == "Idle"
     wait_for(lambda: accepts(cell, "wc3") == ["dummy_op", "measure", "mill_chess"], T, "accept types: all")
 
-    assert setup_run(cell, "wc3", 9001).ack_code == OK
+    set_up = setup_run(cell, "wc3", 9001, recipe=None)  # the machine's own recipe for the op type
+    assert (set_up.ack_code, set_up.recipe_id) == (OK, "dummy_recipe")
     assert status(cell, "wc3")[:3] == ("Setup", "dummy_recipe", 9001)
     assert accepts(cell, "wc3") == []  # set up for a run: no other operation (Listing 3)
     assert start_run(cell, "wc3", 9001).ack_code == OK
@@ -230,6 +231,7 @@ def test_dummy_machine_homes_sets_up_runs_and_stores_its_results(machine_cell: A
     got = results(cell, "wc3", 9001)  # in the table before Run_Complete was sent
     assert got["RESULT"] == "PASS" and got["RECIPE"] == "dummy_recipe" and got["DIAMETER"] == "25.02"
     assert float(got["RUN_TIME"]) >= 0.3
+    assert done.results == got  # small results ride with it, as stored: its lot need not read them
     wait_for(lambda: status(cell, "wc3")[0] == "Idle", T, "Idle again")
     assert status(cell, "wc3")[4] is not None  # end time
     wait_for(lambda: accepts(cell, "wc3") == ["dummy_op", "measure", "mill_chess"], T, "all operations again")
@@ -535,6 +537,20 @@ def test_kill_9_of_both_halves_the_restarted_wc_finds_a_fresh_me_refuses_setups_
     assert setup_run(cell, "wc5", 53).ack_code == OK
     assert start_run(cell, "wc5", 53).ack_code == OK
     assert ear.wait("Run_Complete of run 53", lambda m: m.machine_run_id == 53).ack_code == OK
+
+
+def test_large_results_stay_in_the_table_and_a_setup_without_a_recipe_needs_one_for_the_op_type(
+    machine_cell: Any,
+) -> None:
+    cell, ear = machine_cell({"id": "wc3", "kind": "dummy", "results": {"PROFILE": "x" * 2100}})
+    start_machine(cell, "wc3", homing=False)
+    refused = setup_run(cell, "wc3", 51, recipe=None, op="no_such_op")
+    assert refused.ack_code == AckCode.REC_INVAL and "no recipe for op type no_such_op" in (refused.note or "")
+    assert setup_run(cell, "wc3", 52).ack_code == OK
+    assert start_run(cell, "wc3", 52).ack_code == OK
+    done = ear.wait("Run_Complete of run 52", lambda m: m.machine_run_id == 52)
+    assert done.ack_code == OK and done.results is None  # over INLINE_RESULTS: read from the table
+    assert results(cell, "wc3", 52)["PROFILE"] == "x" * 2100
 
 
 def test_kill_9_of_the_wc_after_it_read_run_compl_the_restarted_wc_completes_the_run_from_its_results_file(

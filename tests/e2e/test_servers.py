@@ -407,7 +407,14 @@ def test_dead_lot_script_fails_its_entity_and_msched_is_asked_to_free_its_machin
     e, finished = made.entity_ids
     msched = ears(cell, "msched", "CANCEL_RE", "UNRESERVE")
     script = ears(cell, f"lot:{e}")
-    assert entity(script.bus, e, "attach", script_pid=os.getpid()).ack_code == OK
+    attached = entity(script.bus, e, "attach", script_pid=os.getpid())
+    assert attached.ack_code == OK and attached.state == "created"
+    # All a lot script needs to start: its lot and its lot script (here its product's: the chess script).
+    assert (attached.product_id, attached.script_id, attached.script_path) == (
+        "alum_chess_set",
+        "chess",
+        "gwc/lot/scripts/chess.py",
+    )
     assert entity(script.bus, e, "import").ack_code == OK
     done = ears(cell, f"lot:{finished}")  # a script whose entity is finished may go quietly
     entity(done.bus, finished, "attach", script_pid=os.getpid())

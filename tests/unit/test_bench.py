@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from gwc.bench import percentile
+from gwc.bench import percentile, reaped_cpu_s
 
 # In a child process: pytest's own CPUs stay as they are.
 PLACE = """
@@ -45,3 +45,13 @@ def test_percentile_is_by_nearest_rank() -> None:
     assert percentile(values, 50) == 50 and percentile(values, 99) == 99 and percentile(values, 100) == 100
     assert percentile([7.0], 99) == 7.0
     assert percentile([], 50) != percentile([], 50)  # NaN
+
+
+def test_reaped_cpu_s_counts_the_children_a_process_waited_for() -> None:
+    before = reaped_cpu_s(os.getpid())
+    # A child that burns about 0.2 s of CPU, then is reaped: its time is ours as a parent's.
+    subprocess.run(
+        [sys.executable, "-c", "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.2: pass"],
+        check=True,
+    )
+    assert reaped_cpu_s(os.getpid()) - before >= 0.15
