@@ -183,7 +183,7 @@ class OperationEntity(EntityResume):
 
     def wait_for_import(self, timeout: float | None = None) -> None:
         """Ask to be imported and wait for the operator's IMPORT_LOT (Listing 1's wait_for_import)."""
-        state = self.state  # read at open, and changed since only by our requests and the operator's moves
+        state = self.state  # from the attach, and changed since only by our requests and the operator's moves
         if state in IMPORTED:
             self.log.info("entity %d already imported (%s)", self.entity_id, state)
         else:

@@ -26,8 +26,6 @@ from pathlib import Path
 from types import FrameType, ModuleType
 from typing import NoReturn
 
-from psycopg import sql
-
 from gwc.agent import control as agent_control
 from gwc.cell import lot_proc, out_file, pid_file, process_env, spawn, write_pid_file
 from gwc.config import PROJECT_ROOT, Config, load_config
@@ -39,13 +37,10 @@ from gwc.lot.errors import LotError, ScriptStopped
 SWITCH_INTERVAL = 0.0005  # seconds
 PR_SET_NAME = 15  # prctl(2): the process's name in /proc/PID/comm, ps -e and top
 
-# psycopg compiles its list dumper's regular expression at the first list a process sends (a lot's
-# request reads its recipes with one): compiled here once, in the agent that forks the lot scripts.
-sql.Literal([""]).as_bytes(None)
-
 
 def script_of(entity: OperationEntity) -> tuple[str, Path]:
-    """The entity's lot script: (script_id, path), the lot's own script or else its product's (read at open)."""
+    """The entity's lot script: (script_id, path), the lot's own script or else its product's (as the Lot
+    Server's answer to the attach named it)."""
     if entity.script_id is None or entity.script_path is None:
         raise LotError(
             f"entity {entity.entity_id}: its lot and product name no lot script "

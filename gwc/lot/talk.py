@@ -63,10 +63,11 @@ class EntityTalk(EntityCore):
         """The entity's state as the Lot Server has it, asked once (None if it has none for the entity or
         does not answer now): the fallback of a wait for a broadcast that may have been missed."""
         try:
-            return str(self._entity_request("state", within=0, keep_state=True).state)
+            state = self._entity_request("state", within=0, keep_state=True).state
         except GwcError as e:
             self.log.warning("entity %d: state not read from the Lot Server: %s", self.entity_id, e)
             return None
+        return None if state is None else str(state)
 
     def _wait_moved(self, action: str, states: Sequence[str], timeout: float) -> None:
         """Wait for LOT_MOVED(action) for this entity, asking the Lot Server for its state as a fallback
