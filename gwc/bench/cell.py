@@ -64,7 +64,7 @@ FINAL = (LotState.EXPORTED.value, LotState.FAILED.value)
 PHASES = [
     ("queued", re.compile(r"request \S+ for \S+ \(.*\) queued")),
     ("bound", re.compile(r"got machine_run_id \d+ on (\S+) for")),
-    ("setup", re.compile(r"setting up run \d+ on")),
+    ("setup", re.compile(r"setting up (?:and starting )?run \d+ on")),
     ("started", re.compile(r"run \d+ started on")),
     ("complete", re.compile(r"run \d+ complete:")),
     ("unreserved", re.compile(r"unreserved .* freed\)")),

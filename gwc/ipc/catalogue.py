@@ -190,14 +190,18 @@ MESSAGE_CLASSES: dict[str, MessageClass] = {
         # --- WC (addressed to one machine) ---
         _msg(
             "Setup_Run",
-            "download a recipe and set the machine up for a run (no recipe_id: the machine's for op_type)",
+            "download a recipe and set the machine up for a run (no recipe_id: the machine's for op_type; "
+            "start: and start the run once set up, as a Start_Run would)",
             machine_id="str",
             recipe_id="str?",
             op_type="str",
             machine_run_id="int",
             entity_id="int?",
+            start="bool?",
         ),
-        _msg("Setup_Run_Ack", "recipe_id: the recipe set up", recipe_id="str?", **ACK),
+        _msg(
+            "Setup_Run_Ack", "recipe_id: the recipe set up (with start: and the run started)", recipe_id="str?", **ACK
+        ),
         _msg("Start_Run", "start the run that was set up", machine_id="str", machine_run_id="int"),
         _msg("Start_Run_Ack", **ACK),
         _msg(

@@ -7,7 +7,7 @@ import time
 from collections.abc import Sequence
 
 from gwc.errors import DatabaseError, GwcError
-from gwc.ipc.catalogue import message
+from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import MachineDied, MachineLost, RunFailed, RunInDoubt
@@ -30,62 +30,63 @@ class EntityRuns(EntityReserve):
             raise RunFailed(f"no recipe for {op_type} on {machine_id} in OP_MACHINE_RECIPE")
         return str(rows[0][0])
 
-    def setup_run(self, machine_id: str, recipe_id: str | None, op_type: str, machine_run_id: int) -> str:
+    def setup_run(
+        self, machine_id: str, recipe_id: str | None, op_type: str, machine_run_id: int, start: bool = False
+    ) -> str:
         """SETUP_RUN to the machine's WC: recipe downloaded, machine set up (the CMM is homed first).
         With no recipe_id the WC sets up its machine's recipe for the op type (recipe_for); returns the
-        recipe set up.
+        recipe set up. With `start` the WC also starts the run once it is set up (START_RUN's work in the
+        same conversation: one round trip to the WC fewer), so a lost answer leaves the run in doubt,
+        as start_run's does.
 
         Waits up to Timeouts.setup (the CMM waits for its start button), but no longer than the
         machine lives: MachineLost as soon as it goes Shutdown or its WC leaves the bus.
         """
-        self.log.info("setting up run %d on %s with recipe %s", machine_run_id, machine_id, recipe_id or "(its own)")
-        with self._cond:  # the run's life on this machine begins: what happens to it from now on counts
-            self._began[(machine_id, machine_run_id)] = (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
-        ack = self._ask_wc(
-            Conv.SETUP_RUN,
-            message(
-                Msg.SETUP_RUN,
-                machine_id=machine_id,
-                recipe_id=recipe_id,
-                op_type=op_type,
-                machine_run_id=machine_run_id,
-                entity_id=self.entity_id,
-            ),
-            machine_id,
+        self.log.info(
+            "setting up%s run %d on %s with recipe %s",
+            " and starting" if start else "",
             machine_run_id,
-            self.timeouts.setup,
+            machine_id,
+            recipe_id or "(its own)",
         )
+        msg = message(
+            Msg.SETUP_RUN,
+            machine_id=machine_id,
+            recipe_id=recipe_id,
+            op_type=op_type,
+            machine_run_id=machine_run_id,
+            entity_id=self.entity_id,
+            start=start or None,
+        )
+        if start:
+            timeout = self.timeouts.setup + self.timeouts.answer
+            ack = self._ask_wc_to_start(Conv.SETUP_RUN, msg, machine_id, machine_run_id, timeout, began=True)
+            if ack is None:
+                return recipe_id or self.recipe_for(machine_id, op_type)
+        else:
+            with self._cond:  # the run's life on this machine begins: what happens to it from now on counts
+                self._began[(machine_id, machine_run_id)] = (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
+            ack = self._ask_wc(Conv.SETUP_RUN, msg, machine_id, machine_run_id, self.timeouts.setup)
         if ack.ack_code != AckCode.ACK_OK:
             self._raise_if_lost(machine_id, machine_run_id, ack)
             raise RunFailed(
-                f"{machine_id} refused to set up run {machine_run_id} ({recipe_id or op_type}): {ack.ack_code}"
-                + (f" ({ack.note})" if ack.note else "")
+                f"{machine_id} refused to set up{' and start' if start else ''} run {machine_run_id} "
+                f"({recipe_id or op_type}): {ack.ack_code}" + (f" ({ack.note})" if ack.note else "")
             )
+        if start:
+            self.log.info("run %d started on %s", machine_run_id, machine_id)
         return str(ack.recipe_id or recipe_id or "")  # (a WC names the recipe it set up)
 
     def start_run(self, machine_id: str, machine_run_id: int) -> None:
-        """START_RUN to the machine's WC: run what was set up (MachineLost if the machine goes meanwhile).
-
-        A machine that goes Shutdown unheard (no death known) before its answer may have started the
-        run all the same (its WC froze after telling the ME): the run is then waited for as a run in
-        doubt (wait_run_complete), never given up and run elsewhere blindly."""
-        started = time.monotonic()
-        with self._cond:
-            self._began.setdefault((machine_id, machine_run_id), (started, self._peer_inc.get(f"wc:{machine_id}")))
-        try:
-            ack = self._ask_wc(
-                Conv.START_RUN,
-                message(Msg.START_RUN, machine_id=machine_id, machine_run_id=machine_run_id),
-                machine_id,
-                machine_run_id,
-                self.timeouts.answer,
-            )
-        except MachineLost as e:
-            with self._cond:
-                doubt = self._doubt_since(machine_id, machine_run_id, started) is not None
-            if not doubt:
-                raise
-            self.log.warning("START_RUN of run %d unanswered (%s): it may have started: in doubt", machine_run_id, e)
+        """START_RUN to the machine's WC: run what was set up (MachineLost if the machine goes meanwhile)."""
+        ack = self._ask_wc_to_start(
+            Conv.START_RUN,
+            message(Msg.START_RUN, machine_id=machine_id, machine_run_id=machine_run_id),
+            machine_id,
+            machine_run_id,
+            self.timeouts.answer,
+        )
+        if ack is None:
             return
         if ack.ack_code != AckCode.ACK_OK:
             self._raise_if_lost(machine_id, machine_run_id, ack)
@@ -94,6 +95,31 @@ class EntityRuns(EntityReserve):
                 + (f" ({ack.note})" if ack.note else "")
             )
         self.log.info("run %d started on %s", machine_run_id, machine_id)
+
+    def _ask_wc_to_start(
+        self, cls: str, first: Message, machine_id: str, machine_run_id: int, timeout: float, began: bool = False
+    ) -> Message | None:
+        """A conversation whose answer says the run started (START_RUN, or SETUP_RUN with start). A
+        machine that goes Shutdown unheard (no death known) before the answer may have started the run
+        all the same (its WC froze after telling the ME): None, the run in doubt, waited for as such
+        (wait_run_complete), never given up and run elsewhere blindly. `began`: the run's life on the
+        machine begins with this conversation (else with its SETUP_RUN)."""
+        started = time.monotonic()
+        with self._cond:
+            key, since = (machine_id, machine_run_id), (started, self._peer_inc.get(f"wc:{machine_id}"))
+            if began:
+                self._began[key] = since
+            else:
+                self._began.setdefault(key, since)
+        try:
+            return self._ask_wc(cls, first, machine_id, machine_run_id, timeout)
+        except MachineLost as e:
+            with self._cond:
+                doubt = self._doubt_since(machine_id, machine_run_id, started) is not None
+            if not doubt:
+                raise
+            self.log.warning("%s of run %d unanswered (%s): it may have started: in doubt", cls, machine_run_id, e)
+            return None
 
     def wait_run_complete(
         self, machine_run_id: int, machines: Sequence[str], timeout: float | None = None
@@ -349,10 +375,10 @@ class EntityRuns(EntityReserve):
             recipe = recipes.get(m) if isinstance(recipes, dict) else recipes
             step = (todo or {}).get(m, "setup")
             if step == "setup":
-                chosen[m] = self.setup_run(m, recipe, op_type, run_id)
-            else:
-                chosen[m] = recipe or self.recipe_for(m, op_type)
-            if step != "wait":
+                chosen[m] = self.setup_run(m, recipe, op_type, run_id, start=True)
+                continue
+            chosen[m] = recipe or self.recipe_for(m, op_type)
+            if step == "start":
                 self.start_run(m, run_id)
         return chosen, self.wait_run_complete(run_id, reservation.machines)
 

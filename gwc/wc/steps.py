@@ -109,10 +109,17 @@ class WCSteps(WCDevice):
         """6.3.2.3: Idle only; reservation, recipe and op type checked; the approved recipe to the ME;
         status Setup (asked beside the ME's setup: docs/machine-interface.md, *The order of a run's steps*).
         A request that names no recipe gets this machine's for the op type (OP_MACHINE_RECIPE), named in
-        the answer."""
+        the answer. One that says `start` is started as soon as it is set up, as START_RUN would, and
+        answered once Running: the lot's START_RUN round trip saved (docs/lot-scripts.md)."""
         assert conv.first is not None
         req = conv.first.first
-        self.log.info("SETUP_RUN run %d recipe %s op %s", req.machine_run_id, req.recipe_id or "(ours)", req.op_type)
+        self.log.info(
+            "SETUP_RUN run %d recipe %s op %s%s",
+            req.machine_run_id,
+            req.recipe_id or "(ours)",
+            req.op_type,
+            " and start" if req.start else "",
+        )
         entity, refusal = self._asking_entity(conv)
         if refusal is not None:
             await self._refuse_now(conv, Msg.SETUP_RUN_ACK, *refusal)
@@ -120,7 +127,9 @@ class WCSteps(WCDevice):
         if not await self._serve_step(conv, Msg.SETUP_RUN_ACK, (S.IDLE,), lambda r: self._setup(r, entity)):
             return
         self._set_up_for = (conv.initiator, req.machine_run_id)
-        self.log.info("set up run %d with recipe %s", req.machine_run_id, self.recipe_id)
+        self.log.info(
+            "set up run %d with recipe %s%s", req.machine_run_id, self.recipe_id, ", started" if req.start else ""
+        )
         await conv.send(message(Msg.SETUP_RUN_ACK, ack_code=AckCode.ACK_OK, recipe_id=self.recipe_id))
 
     async def _setup(self, req: Message, entity: int | None) -> tuple[str, str] | None:
@@ -177,7 +186,8 @@ class WCSteps(WCDevice):
             return refusal
         self.machine_run_id, self.recipe_id = req.machine_run_id, recipe
         self._accepting_none = accept
-        return None
+        # A start refused leaves the run set up, as a refused START_RUN does: its lot gives it up.
+        return await self._run_on_me(req) if req.start else None
 
     async def _set_up_on_me(self, recipe_id: str, fetch: Awaitable[tuple[Path | None, str]]) -> tuple[str, str] | None:
         """The approved recipe (`fetch`) to the ME, which sets up with it; the refusal, or None."""

@@ -147,6 +147,7 @@ def setup_run(
     recipe: str | None = "dummy_recipe",
     op: str = "dummy_op",
     machine_id: str | None = None,
+    start: bool = False,
 ) -> Message:
     return ask(
         cell,
@@ -158,6 +159,7 @@ def setup_run(
             op_type=op,
             machine_run_id=run_id,
             entity_id=1,
+            start=start or None,
         ),
         f"wc:{machine}",
     )
@@ -539,18 +541,25 @@ def test_kill_9_of_both_halves_the_restarted_wc_finds_a_fresh_me_refuses_setups_
     assert ear.wait("Run_Complete of run 53", lambda m: m.machine_run_id == 53).ack_code == OK
 
 
-def test_large_results_stay_in_the_table_and_a_setup_without_a_recipe_needs_one_for_the_op_type(
+def test_a_setup_that_starts_its_run_answers_once_running_and_large_results_stay_in_the_table(
     machine_cell: Any,
 ) -> None:
-    cell, ear = machine_cell({"id": "wc3", "kind": "dummy", "results": {"PROFILE": "x" * 2100}})
+    cell, ear = machine_cell({"id": "wc3", "kind": "dummy", "run_time": 0.5, "results": {"PROFILE": "x" * 2100}})
     start_machine(cell, "wc3", homing=False)
-    refused = setup_run(cell, "wc3", 51, recipe=None, op="no_such_op")
+    refused = setup_run(cell, "wc3", 51, recipe=None, op="no_such_op", start=True)  # a setup needs a recipe
     assert refused.ack_code == AckCode.REC_INVAL and "no recipe for op type no_such_op" in (refused.note or "")
-    assert setup_run(cell, "wc3", 52).ack_code == OK
-    assert start_run(cell, "wc3", 52).ack_code == OK
+    assert status(cell, "wc3")[0] == "Idle"  # refused: nothing set up, nothing started
+    set_up = setup_run(cell, "wc3", 52, recipe=None, start=True)  # the lot's one conversation for both
+    assert (set_up.ack_code, set_up.recipe_id) == (OK, "dummy_recipe")
+    assert status(cell, "wc3")[:3] == ("Running", "dummy_recipe", 52)  # answered once Running
+    again = start_run(cell, "wc3", 52)  # a START_RUN after it finds the run started: refused, not run twice
+    assert again.ack_code == AckCode.NOTNOW
     done = ear.wait("Run_Complete of run 52", lambda m: m.machine_run_id == 52)
     assert done.ack_code == OK and done.results is None  # over INLINE_RESULTS: read from the table
     assert results(cell, "wc3", 52)["PROFILE"] == "x" * 2100
+    story(cell, "wc:wc3", r"SETUP_RUN run 52 recipe \(ours\) op dummy_op and start", "Idle -> Setup", "-> Running")
+    story(cell, "wc:wc3", "set up run 52 with recipe dummy_recipe, started", r"run 52 complete \(ACK_OK\)")
+    story(cell, "me:wc3", "set up with recipe dummy_recipe", r"run \d+ started", r"run \d+ complete: ACK_OK")
 
 
 def test_kill_9_of_the_wc_after_it_read_run_compl_the_restarted_wc_completes_the_run_from_its_results_file(

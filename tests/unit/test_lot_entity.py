@@ -107,7 +107,37 @@ class FakeCell:
             m = conv.first.first
             self.seen.append((conv.cls, dict(m.fields)))
             self.at.append(time.monotonic())
-            self.loop.create_task(self.handlers[conv.cls](conv, m))
+            start = conv.cls == "SETUP_RUN" and m.start
+            self.loop.create_task(self._setup_and_start(conv, m) if start else self.handlers[conv.cls](conv, m))
+
+    async def _setup_and_start(self, conv: Conversation, m: Message) -> None:
+        """A SETUP_RUN that also starts its run, as a WC serves it: the test's SETUP_RUN handler, then (set
+        up) its START_RUN handler, seen as a START_RUN `with_setup`; one Setup_Run_Ack answers both."""
+        setup = await self._answer_of("SETUP_RUN", m)
+        if setup is None or setup.ack_code != OK:
+            if setup is not None:
+                await conv.send(setup)
+            return
+        self.seen.append(("START_RUN", {**m.fields, "with_setup": True}))
+        self.at.append(time.monotonic())
+        started = await self._answer_of("START_RUN", m)
+        if started is not None:
+            await conv.send(
+                message("Setup_Run_Ack", ack_code=started.ack_code, note=started.note, recipe_id=setup.recipe_id)
+            )
+
+    async def _answer_of(self, cls: str, m: Message) -> Message | None:
+        """What the test's handler of `cls` answers m (None: nothing), the rest of its work left running."""
+        answered: asyncio.Future[Message] = self.loop.create_future()
+
+        class Kept:
+            async def send(self, msg: Message) -> None:
+                if not answered.done():
+                    answered.set_result(msg)
+
+        work = self.loop.create_task(self.handlers[cls](Kept(), m))  # type: ignore[arg-type]
+        await asyncio.wait({answered, work}, return_when=asyncio.FIRST_COMPLETED)
+        return answered.result() if answered.done() else None
 
     def close(self) -> None:
         for bus in self.buses.values():
@@ -359,6 +389,8 @@ def test_a_lot_goes_through_listing_1_with_alternatives(fake: tuple[FakeCell, Op
         "START_RUN",
         "UNRESERVE",
     ]
+    setup, start = (f for cls, f in cell.seen if cls in ("SETUP_RUN", "START_RUN"))
+    assert setup["start"] and start["with_setup"], "started by its SETUP_RUN: no START_RUN round trip"
     trav = read_traveller(entity.cfg, 7)
     assert trav and trav["steps"][0]["machines"] == ["m2"] and trav["result"] == "PASS"
 
@@ -805,6 +837,34 @@ def test_a_run_whose_machine_went_shutdown_unheard_is_in_doubt_and_counts_once_i
         entity.lot_completed("PASS")
     assert op.tries == 1 and op.ok and op.machine_run_id == 101 and op.results == {"RESULT": "PASS"}
     assert [cls for cls, _ in cell.seen].count("START_RUN") == 1, "run once, never twice"
+
+
+def test_a_setup_that_starts_its_run_unanswered_by_a_machine_gone_shutdown_unheard_leaves_the_run_in_doubt(
+    fake: tuple[FakeCell, OperationEntity],
+) -> None:
+    # The SETUP_RUN also starts the run, so a machine lost before its answer may have started it: in doubt,
+    # as a START_RUN's, not given up and set up elsewhere. Its frozen WC wakes and stores the run.
+    cell, entity = fake
+    entity.timeouts = Timeouts(answer=3, machines=5, setup=3, run=60, lost_grace=0.2, in_doubt=20, pause=0.1)
+
+    async def start(conv: Conversation, m: Message) -> None:  # the ME told to start, then the WC went silent
+        cell.status(m.machine_id, "Shutdown")
+        await cell.broadcast(
+            f"wc:{m.machine_id}",
+            "UPD_ME_ST",
+            message("Update_ME_Status", machine_id=m.machine_id, status="Shutdown", previous="Setup"),
+        )
+        await asyncio.sleep(1.0)
+        cell.store_pass(m.machine_id, m.machine_run_id)
+
+    cell.handlers["START_RUN"] = start
+    with entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", [["m1"]])
+        entity.lot_completed("PASS")
+    assert op.tries == 1 and op.ok and op.machine_run_id == 101 and op.results == {"RESULT": "PASS"}
+    assert op.runs[0].recipe_id == "dummy_recipe"
+    assert [cls for cls, _ in cell.seen].count("SETUP_RUN") == 1, "not set up again: it may have started"
 
 
 @pytest.mark.parametrize("decision", ["hold", "reroute"])
