@@ -40,6 +40,7 @@ import click
 import psycopg
 
 from gwc import db
+from gwc.agent import control as agent_control
 from gwc.bench import cpu_s, reaped_cpu_s, summary
 from gwc.bench.heal import freeze_trials
 from gwc.cell import machine_procs
@@ -351,8 +352,11 @@ class CellBench:
 
     def _idle(self) -> dict[str, Any]:
         """CPU the resting cell uses: every module and machine process, summed, in percent of one core,
-        over `idle_s` seconds with no lot anywhere; the embedded database's processes apart."""
-        self.say(f"the cell at rest for {self.idle_s:g}s: CPU of all its processes")
+        over `idle_s` seconds with no lot anywhere; the embedded database's processes apart. The cell
+        is the N machines asked for: the death trials' two are stopped first."""
+        if self.slow:
+            self._stop_machines(self.slow)
+        self.say(f"the cell of {self.n} machines at rest for {self.idle_s:g}s: CPU of all its processes")
         before = self._cpu_by_role()
         began = time.monotonic()
         time.sleep(self.idle_s)
@@ -363,6 +367,7 @@ class CellBench:
         floor_s = min(self.idle_s, FLOOR_S)
         self.say(f"the floor: {beating} bare processes waking once a heartbeat, {floor_s:g}s")
         return {
+            "idle_machines": self.n,
             "idle_floor_cpu_percent": round(wake_floor(beating, self.cell.cfg.bus.heartbeat, floor_s), 3),
             "idle_floor_processes": beating,
             "idle_s": round(took, 1),
@@ -370,6 +375,20 @@ class CellBench:
             "idle_cpu_percent_database": round(percent.get("database", 0.0), 3),
             "idle_cpu_percent_by_role": {r: round(v, 3) for r, v in sorted(percent.items())},
         }
+
+    def _stop_machines(self, machines: list[str]) -> None:
+        """Stop these machines' processes through the agent (off its watch: not restarted), and wait
+        until the Machine Server has them Shutdown, so that the rest measured is the rest of the others."""
+        self.say(f"stopping {', '.join(machines)}: the resting cell is the {self.n} machines asked for")
+        names = [p.name for m in machines for p in reversed(machine_procs(self.cell.cfg, m))]  # the WC first
+        agent_control.call(self.cell.cfg, "stop", names=names)
+        assert self.conn is not None
+        deadline = time.monotonic() + LOT_TIMEOUT
+        query = "SELECT count(*) FROM machine_status WHERE machine_id = ANY(%s) AND status <> 'Shutdown'"
+        while (row := self.conn.execute(query, (machines,)).fetchone()) and row[0]:
+            if time.monotonic() > deadline:
+                raise GwcError(f"{', '.join(machines)} not Shutdown {LOT_TIMEOUT:.0f}s after their processes stopped")
+            time.sleep(SOLO_POLL)
 
     def _database_pids(self) -> list[int]:
         """The embedded cluster's postmaster and its children (none for an outside database)."""
