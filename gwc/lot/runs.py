@@ -60,12 +60,11 @@ class EntityRuns(EntityReserve):
         )
         if start:
             timeout = self.timeouts.setup + self.timeouts.answer
-            ack = self._ask_wc_to_start(Conv.SETUP_RUN, msg, machine_id, machine_run_id, timeout, began=True)
+            ack = self._ask_wc_to_start(Conv.SETUP_RUN, msg, machine_id, machine_run_id, timeout, begins=True)
             if ack is None:
                 return recipe_id or self.recipe_for(machine_id, op_type)
         else:
-            with self._cond:  # the run's life on this machine begins: what happens to it from now on counts
-                self._began[(machine_id, machine_run_id)] = (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
+            self._begin(machine_id, machine_run_id, anew=True)
             ack = self._ask_wc(Conv.SETUP_RUN, msg, machine_id, machine_run_id, self.timeouts.setup)
         if ack.ack_code != AckCode.ACK_OK:
             self._raise_if_lost(machine_id, machine_run_id, ack)
@@ -96,21 +95,27 @@ class EntityRuns(EntityReserve):
             )
         self.log.info("run %d started on %s", machine_run_id, machine_id)
 
+    def _begin(self, machine_id: str, machine_run_id: int, anew: bool) -> float:
+        """The run's life on the machine begins now (anew: with this setup; else unless its setup began
+        it): what happens to the machine from then on counts for the run. Returns now."""
+        now = time.monotonic()
+        with self._cond:
+            key, since = (machine_id, machine_run_id), (now, self._peer_inc.get(f"wc:{machine_id}"))
+            if anew:
+                self._began[key] = since
+            else:
+                self._began.setdefault(key, since)
+        return now
+
     def _ask_wc_to_start(
-        self, cls: str, first: Message, machine_id: str, machine_run_id: int, timeout: float, began: bool = False
+        self, cls: str, first: Message, machine_id: str, machine_run_id: int, timeout: float, begins: bool = False
     ) -> Message | None:
         """A conversation whose answer says the run started (START_RUN, or SETUP_RUN with start). A
         machine that goes Shutdown unheard (no death known) before the answer may have started the run
         all the same (its WC froze after telling the ME): None, the run in doubt, waited for as such
-        (wait_run_complete), never given up and run elsewhere blindly. `began`: the run's life on the
-        machine begins with this conversation (else with its SETUP_RUN)."""
-        started = time.monotonic()
-        with self._cond:
-            key, since = (machine_id, machine_run_id), (started, self._peer_inc.get(f"wc:{machine_id}"))
-            if began:
-                self._began[key] = since
-            else:
-                self._began.setdefault(key, since)
+        (wait_run_complete), never given up and run elsewhere blindly. `begins`: the run's life on the
+        machine begins with this conversation (a setup's), see _begin."""
+        started = self._begin(machine_id, machine_run_id, anew=begins)
         try:
             return self._ask_wc(cls, first, machine_id, machine_run_id, timeout)
         except MachineLost as e:
