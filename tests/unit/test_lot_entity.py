@@ -28,6 +28,7 @@ from gwc.lot import (
     LotError,
     LotTimeout,
     MachineLost,
+    Operation,
     OperationEntity,
     RequestCancelled,
     RunFailed,
@@ -42,6 +43,15 @@ from tests.harness import wait_for
 
 OK = AckCode.ACK_OK
 Handler = Callable[[Conversation, Message], Awaitable[None]]
+
+
+def one_lot(entity: OperationEntity, alternatives: list[list[str]]) -> Operation:
+    """The whole life of a lot of one operation: imported, the operation, completed (PASS)."""
+    with entity:
+        entity.wait_for_import()
+        op = entity.operate("dummy_op", alternatives)
+        entity.lot_completed("PASS")
+    return op
 
 
 class FakeCell:
@@ -490,10 +500,7 @@ def test_verdict_reads_pass_fail_and_measured_tolerances(results: dict[str, str]
 
 def test_a_second_alternative_bound_too_is_given_back(fake: tuple[FakeCell, OperationEntity]) -> None:
     cell, entity = fake  # this MSCHED binds both alternatives: the entity keeps one, frees the other
-    with entity:
-        entity.wait_for_import()
-        op = entity.operate("dummy_op", [["m1"], ["m2"]])
-        entity.lot_completed("PASS")
+    op = one_lot(entity, [["m1"], ["m2"]])
     spare = ({"m1", "m2"} - set(op.machines)).pop()
     freed = [f.get("machine_id") for cls, f in cell.seen if cls == "UNRESERVE"]
     assert spare in freed, freed
@@ -541,10 +548,7 @@ def test_a_machine_that_lost_its_run_is_not_waited_for_even_when_it_is_up_again(
 
     cell.handlers["START_RUN"] = start
     t0 = time.monotonic()
-    with entity:
-        entity.wait_for_import()
-        op = entity.operate("dummy_op", [["m1"]])
-        entity.lot_completed("PASS")
+    op = one_lot(entity, [["m1"]])
     assert op.tries == 2 and op.ok and op.machine_run_id == 102
     assert time.monotonic() - t0 < 10  # not Timeouts.run (60 s)
     notes = [s["note"] for s in read_traveller(entity.cfg, 7)["steps"]]  # type: ignore[index]
@@ -562,10 +566,7 @@ def test_a_run_whose_run_compl_never_came_counts_from_the_outcome_its_wc_stored(
         await FakeCell.start(cell, conv, m)
 
     cell.handlers["START_RUN"] = start
-    with entity:
-        entity.wait_for_import()
-        op = entity.operate("dummy_op", [["m1"]])
-        entity.lot_completed("PASS")
+    op = one_lot(entity, [["m1"]])
     assert op.tries == 1 and op.ok and op.machine_run_id == 101 and op.results == {"RESULT": "PASS"}
 
 
@@ -592,10 +593,7 @@ def test_setup_gives_up_as_soon_as_the_machine_shuts_down_and_asks_again_once_it
 
     cell.handlers["SETUP_RUN"] = setup
     t0 = time.monotonic()
-    with entity:
-        entity.wait_for_import()
-        op = entity.operate("dummy_op", [["m1"]])
-        entity.lot_completed("PASS")
+    op = one_lot(entity, [["m1"]])
     assert op.tries == 2 and op.ok
     assert time.monotonic() - t0 < 10  # not Timeouts.setup (60 s)
     first, second = cell.when("SETUP_RUN")
@@ -640,10 +638,7 @@ def test_a_machine_refusing_a_setup_is_asked_again_after_a_pause_once_it_is_up(
         )
 
     cell.handlers["SETUP_RUN"] = setup
-    with entity:
-        entity.wait_for_import()
-        op = entity.operate("dummy_op", [["m1"]])
-        entity.lot_completed("PASS")
+    op = one_lot(entity, [["m1"]])
     assert op.tries == 2 and op.ok
     first, second = cell.when("SETUP_RUN")
     assert second - first >= 0.5  # the pause, then m1 up again: not three tries in 150 ms
@@ -690,10 +685,7 @@ def test_the_lot_server_and_msched_are_asked_again_while_not_started_silent_or_w
     cell.handlers["ENTITY_REQ"] = entity_req
     cell.handlers["MACH_REQ"] = mach_req
     cell.handlers["UNRESERVE"] = unreserve
-    with entity:
-        entity.wait_for_import()
-        op = entity.operate("dummy_op", [["m1"]])
-        entity.lot_completed("PASS")
+    op = one_lot(entity, [["m1"]])
     assert op.ok and attaches == 3 and requests == 2 and unreserves == 3
     assert cell.actions()[:3] == ["attach", "attach", "attach"] and cell.actions()[-1] == "completed"
 
@@ -831,10 +823,7 @@ def test_a_run_whose_machine_went_shutdown_unheard_is_in_doubt_and_counts_once_i
     cell, entity = fake
     entity.timeouts = Timeouts(answer=3, machines=5, setup=3, run=60, lost_grace=0.2, in_doubt=20, pause=0.1)
     _shut_unheard(cell, outcome_after=4.0)  # longer than lost_grace: before, the run was counted lost
-    with entity:
-        entity.wait_for_import()
-        op = entity.operate("dummy_op", [["m1"], ["m2"]])
-        entity.lot_completed("PASS")
+    op = one_lot(entity, [["m1"], ["m2"]])
     assert op.tries == 1 and op.ok and op.machine_run_id == 101 and op.results == {"RESULT": "PASS"}
     assert [cls for cls, _ in cell.seen].count("START_RUN") == 1, "run once, never twice"
 
@@ -858,10 +847,7 @@ def test_a_setup_that_starts_its_run_unanswered_by_a_machine_gone_shutdown_unhea
         cell.store_pass(m.machine_id, m.machine_run_id)
 
     cell.handlers["START_RUN"] = start
-    with entity:
-        entity.wait_for_import()
-        op = entity.operate("dummy_op", [["m1"]])
-        entity.lot_completed("PASS")
+    op = one_lot(entity, [["m1"]])
     assert op.tries == 1 and op.ok and op.machine_run_id == 101 and op.results == {"RESULT": "PASS"}
     assert op.runs[0].recipe_id == "dummy_recipe"
     assert [cls for cls, _ in cell.seen].count("SETUP_RUN") == 1, "not set up again: it may have started"
@@ -910,10 +896,7 @@ def test_a_held_entity_whose_run_completes_after_all_counts_the_run(fake: tuple[
     cell, entity = fake
     entity.timeouts = Timeouts(answer=3, machines=5, setup=3, run=60, lost_grace=0.2, in_doubt=1.0, pause=0.1)
     _shut_unheard(cell, outcome_after=2.5)  # past the bound (held), then its frozen WC wakes and stores it
-    with entity:
-        entity.wait_for_import()
-        op = entity.operate("dummy_op", [["m1"], ["m2"]])
-        entity.lot_completed("PASS")
+    op = one_lot(entity, [["m1"], ["m2"]])
     assert op.tries == 1 and op.ok and op.machine_run_id == 101, op
     assert [cls for cls, _ in cell.seen].count("START_RUN") == 1, "run once, never twice"
     assert cell.actions().count("held") == 1 and "running" in cell.actions()[cell.actions().index("held") :]
