@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import logging
 import threading
 import time
@@ -104,8 +105,9 @@ class EntityCore:
         said = 0.0
         while True:
             try:
-                return db.transaction(self._db, db.Statement(sql, params, "all"), log=self.log)
+                rows = db.transaction(self._db, db.Statement(sql, params, "all"), log=self.log)
             except DatabaseUnavailable as e:
+                self._release()
                 if OVER_BUDGET in str(e):  # lot scripts' share of the connections is taken: wait, never fail
                     if time.monotonic() - said >= BUDGET_SAY_S:
                         said = time.monotonic()
@@ -117,6 +119,18 @@ class EntityCore:
                     raise
                 self.log.warning("%s; reading again in %.1fs", e, pause)
                 time.sleep(pause)
+            else:
+                self._release()
+                return rows
+
+    def _release(self) -> None:
+        """Close the entity's connection: a lot holds one only while it reads (reads are rare on its path,
+        a connect costs a few ms), so that a cell of many lots waiting for machines holds none for them
+        (docs/lot-scripts.md, Admission)."""
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            with contextlib.suppress(psycopg.Error):
+                conn.close()
 
     def _query_one(self, sql: str, *params: Any) -> tuple[Any, ...] | None:
         rows = self._query(sql, *params)
