@@ -44,7 +44,8 @@ from gwc.soak.cell import PrivateCell
 SAMPLE_S = 0.5
 WAITING_SQL = """
 SELECT r.request_key, r.entity_id, r.op_type, r.machine_id,
-       round(extract(epoch FROM clock_timestamp() - r.requested_at)::numeric, 2) AS waited_s
+       round(extract(epoch FROM clock_timestamp() - r.requested_at)::numeric, 2) AS waited_s,
+       EXISTS (SELECT 1 FROM accept_types a WHERE a.machine_id = r.machine_id AND a.op_type = r.op_type) AS accepts
   FROM request_machines r
  WHERE r.requested_at < clock_timestamp() - interval '1 second'
    AND NOT EXISTS (
@@ -173,7 +174,7 @@ def run_order(
                 if waiting:
                     run.idle_while_waiting += 1
                     if len(run.idle_while_waiting_examples) < 5:
-                        keys = ("request_key", "entity_id", "op_type", "machine_id", "waited_s")
+                        keys = ("request_key", "entity_id", "op_type", "machine_id", "waited_s", "accepts")
                         run.idle_while_waiting_examples.append(dict(zip(keys, map(str, waiting[0]), strict=True)))
                 modules = agent_control.call(cell.cfg, "status")["modules"]
                 scripts = sum(1 for m in modules if m["module"].startswith("lot:") and m["state"] == "RUNNING")
