@@ -33,7 +33,7 @@ from gwc.ipc.bus import BlockingBus, Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
-from gwc.log import log_file_name
+from gwc.log import log_file_name, open_out
 from gwc.me.cmm_sim import simulated
 from gwc.module import module_name
 
@@ -145,7 +145,7 @@ def spawn_process(
     cfg.run_dir.mkdir(parents=True, exist_ok=True)
     cfg.log_dir.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, **process_env(cfg), **(extra_env or {})}  # extra_env may name GWC_CONFIG again: it wins
-    with open(out_file(cfg, proc.name), "ab") as out:
+    with os.fdopen(open_out(out_file(cfg, proc.name)), "ab") as out:
         child = subprocess.Popen(
             proc.argv,
             env=env,

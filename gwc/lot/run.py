@@ -30,7 +30,7 @@ from gwc.agent import control as agent_control
 from gwc.cell import lot_proc, out_file, pid_file, process_env, spawn, write_pid_file
 from gwc.config import PROJECT_ROOT, Config, load_config
 from gwc.errors import GwcError
-from gwc.log import open_log
+from gwc.log import cap_output, open_log, open_out
 from gwc.lot.entity import OperationEntity
 from gwc.lot.errors import LotError, ScriptStopped
 
@@ -103,7 +103,7 @@ def fork_lot_script(cfg: Config, entity_id: int) -> Forked:
     the child is this process's copy of one thread, its loop, sockets and files all dropped."""
     proc = lot_proc(entity_id)
     cfg.log_dir.mkdir(parents=True, exist_ok=True)
-    out = os.open(out_file(cfg, proc.name), os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
+    out = open_out(out_file(cfg, proc.name))
     for stream in (sys.stdout, sys.stderr):  # nothing of ours written twice, once by the child
         stream.flush()
     inherited = open_files()
@@ -176,6 +176,7 @@ def _stop(signum: int, frame: FrameType | None) -> None:
 def run_entity(cfg: Config, entity_id: int) -> int:
     """Run entity E's lot script to its end; the process's exit code."""
     log = open_log(f"lot:{entity_id}", cfg.log_dir, cfg.level_of(f"lot:{entity_id}"))
+    cap_output()
     log.info("lot script process for entity %d starting (pid %d)", entity_id, os.getpid())
     signal.signal(signal.SIGTERM, _stop)
     # The script and its bus thread hand the GIL back and forth at every step: with the default 5 ms

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import pytest
@@ -41,3 +42,21 @@ def test_a_log_that_is_not_a_regular_file_is_written_not_rotated(tmp_path: Path)
         for h in logger.handlers:
             h.close()
     assert not list(tmp_path.glob("wc-fifo.log.*"))
+
+
+def test_a_process_out_file_is_bounded_and_moved_aside_at_the_next_start(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(gwc_log, "MAX_OUT_BYTES", 1000)
+    out = tmp_path / "wc-x.out"
+    with open(gwc_log.open_out(out), "w") as f:
+        capped = gwc_log.CappedStream(f, 1000)  # type: ignore[arg-type]
+        for _ in range(500):
+            capped.write("Traceback (most recent call last): ...\n")
+    assert 1000 <= out.stat().st_size < 1200 and "dropped" in out.read_text()
+    os.close(gwc_log.open_out(out))  # the next start: the full file moves aside
+    assert not out.stat().st_size and (tmp_path / "wc-x.out.1").stat().st_size >= 1000
+    (tmp_path / "evil.out").symlink_to(tmp_path / "target")
+    with pytest.raises(OSError):
+        gwc_log.open_out(tmp_path / "evil.out")  # never written through a link
+    assert not (tmp_path / "target").exists()
