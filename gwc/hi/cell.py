@@ -27,7 +27,7 @@ def db_start() -> None:
         click.echo("using $GWC_DATABASE_URL: nothing to start")
     else:
         db.cluster_start(cfg, log)
-        click.echo(f"embedded cluster running (socket in {cfg.run_dir})")
+        click.echo(f"embedded cluster running (socket in {db.socket_dir(cfg)})")
     db.init_schema(cfg, log)
 
 
