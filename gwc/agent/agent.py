@@ -476,8 +476,10 @@ class Agent(Server):
         peer = peer_of(writer.get_extra_info("socket"))
         who = f"uid {peer.uid} (pid {peer.pid})"
         try:
-            if not peer.allowed:  # read nothing of what it sends: no parser sees it
+            if not peer.allowed:  # no parser sees what it sends: taken off the socket (briefly), unread
                 self.log.warning("control: refused a connection from %s: not the cell's user nor root", who)
+                with contextlib.suppress(TimeoutError, ValueError, OSError):
+                    await asyncio.wait_for(reader.readline(), 1.0)  # else the close could reset its answer
                 raise ModuleError(f"not allowed: the agent takes commands from uid {os.geteuid()} and root only")
             req = json.loads(await reader.readline())
             if not isinstance(req, dict):
