@@ -60,6 +60,21 @@ def current_conversation() -> str:
     return _conversation.get()
 
 
+# Every control character (C0, DEL, C1), \n and \r among them, as a visible escape: a field that
+# came from outside (a conversation id, a sender's name, a note) can neither start a forged log line
+# nor send a terminal its control sequences (docs/security.md).
+_ESCAPES = {c: f"\\x{c:02x}" for c in (*range(0x20), *range(0x7F, 0xA0))} | {
+    ord("\n"): "\\n",
+    ord("\r"): "\\r",
+    ord("\t"): "\\t",
+}
+
+
+def escape(text: str) -> str:
+    """`text` with every control character escaped (see _ESCAPES); unchanged, and cheap, when it has none."""
+    return text if text.isprintable() else text.translate(_ESCAPES)
+
+
 def _terminal() -> str:
     for fd in (0, 1, 2):
         try:
@@ -83,13 +98,13 @@ class Figure2Formatter(logging.Formatter):
 
     def format(self, record: logging.LogRecord) -> str:
         date = datetime.fromtimestamp(record.created).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3]
-        conv = getattr(record, "conv", None) or _conversation.get()
-        message = record.getMessage().replace("\n", " | ")
-        if record.exc_info:
-            message += " | " + self.formatException(record.exc_info).replace("\n", " | ")
+        conv = escape(str(getattr(record, "conv", None) or _conversation.get()))
+        message = escape(record.getMessage())
+        if record.exc_info:  # a traceback's lines, each escaped, joined on one line
+            message += " | " + " | ".join(escape(line) for line in self.formatException(record.exc_info).split("\n"))
         return (
-            f"From {record.funcName} | Date {date} | User {self.user} | Term {self.term} | "
-            f"PID {record.process} | Module {self.module} | Conv {conv} | {record.levelname}: {message}"
+            f"From {record.funcName} | Date {date} | User {escape(self.user)} | Term {escape(self.term)} | "
+            f"PID {record.process} | Module {escape(self.module)} | Conv {conv} | {record.levelname}: {message}"
         )
 
 

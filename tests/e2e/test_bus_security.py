@@ -10,8 +10,11 @@ import functools
 import logging
 import os
 import random
+import select
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -97,7 +100,44 @@ def test_the_bus_obeys_only_its_own_cell(lot_cell: Any, outsider: Any, tmp_path:
     forgeries_and_replays_are_refused_and_change_nothing(cell, outsider(cell))
     the_wc_sets_up_only_what_is_reserved_and_malformed_kinds_stop_at_the_wire(cell)
     a_lot_script_outside_its_rights_is_refused_and_its_lot_goes_on(cell, tmp_path)
+    control_characters_off_the_wire_are_escaped_in_the_log_and_the_monitor(cell)
     ok(gwc(cell, "check"))
+
+
+FORGED = "\nFrom forged | Date 2026-01-01 | Module msched | Error: forged\r\x1b[2J\x9b31m"
+
+
+def control_characters_off_the_wire_are_escaped_in_the_log_and_the_monitor(cell: CellHarness) -> None:
+    """A lot key holder's conversation id and field carrying a newline, a carriage return and terminal
+    control sequences: msched's log line stays one line, the monitor prints them escaped."""
+    monitor = subprocess.Popen(
+        [sys.executable, "-m", "gwc", "monitor", "--class", "CANCEL_RE", "--count", "1", "--duration", "20"],
+        env=cell.env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert monitor.stderr is not None and select.select([monitor.stderr], [], [], 20)[0], "the monitor said nothing"
+        assert "monitoring bus" in monitor.stderr.readline()  # it listens now
+        guard = Guard(cell.cfg.bus, "lot:66", cell.log, collections.Counter())
+        env = wire.Envelope(
+            kind="msg", src="lot:66", inc=66, seq=1, conv="lot:66.42.1" + FORGED, cls="CANCEL_RE",
+            msg="Cancel_Request", to="msched", fields={"request_key": 999, "by": "lot" + FORGED},
+        )  # fmt: skip
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(cell.cfg.bus.interface))
+        sock.sendto(guard.seal(wire.encode(env)), (cell.cfg.bus.group, cell.cfg.bus.port))
+        sock.close()
+        out, err = monitor.communicate(timeout=30)
+    finally:
+        monitor.kill()
+        monitor.wait()
+    wait_for(lambda: cell.log_has("msched", "cancel request 999 by lot"), 10, "msched to log the cancel")
+    (line,) = [x for x in cell.log_text("msched").splitlines() if "cancel request 999" in x]
+    assert "Conv lot:66.42.1\\nFrom forged" in line and "\\r\\x1b[2J\\x9b31m" in line, line
+    assert not any(x.startswith("From forged") for x in cell.log_text("msched").splitlines())
+    assert "lot:66.42.1\\nFrom forged" in out and "\x1b" not in out and "\r" not in out and "\x9b" not in out, out
 
 
 def the_keys_change_on_the_running_cell(cell: CellHarness) -> None:
