@@ -78,5 +78,5 @@ def test_every_control_character_in_a_field_is_escaped_so_no_line_can_be_forged(
     assert len(lines) == 2 and all(line.startswith("From ") for line in lines)
     assert "Conv c.1\\nFrom forged | Error: x CANCEL_RE" in lines[0]
     assert lines[0].endswith("by a\\rb\\x1b[2J\\x9b\\x7f\\t\\x00")
-    assert "ValueError: two | lines" in lines[1]  # a traceback.s lines joined on one
+    assert "ValueError: two | lines" in lines[1]  # a traceback's lines joined on one
     assert gwc_log.escape("plain text, ünïcode") == "plain text, ünïcode"
