@@ -228,3 +228,17 @@ def test_gwc_key_commands_make_show_and_rotate_without_printing_secrets(
     assert shown.exit_code == 0 and len(json.loads(shown.output)) == 4
     assert all(k.secret.hex() not in shown.output for k in keys.load(cfg.bus, "module")[1].keys)
     assert keys.load(cfg.bus, "module")[1].cell_id == keyset.cell_id
+
+
+def test_key_rotate_keeps_each_key_files_mode_and_group(tmp_path: Path) -> None:
+    cfg = cfg_in(tmp_path)
+    lot = tmp_path / "lot.key"
+    group = 65534 if os.geteuid() == 0 else os.getegid()  # nogroup: a group of lot scripts' own
+    os.chown(lot, -1, group)
+    lot.chmod(0o640)  # as docs/security.md asks for scripts run as another user
+    keys.rotate(cfg, overlap=10, take_up=3)
+    assert (stat.S_IMODE(lot.stat().st_mode), lot.stat().st_gid) == (0o640, group)
+    assert stat.S_IMODE((tmp_path / "cell.key").stat().st_mode) == 0o600
+    lot.chmod(0o666)  # never made readable by others, whatever it was
+    keys.rotate(cfg, overlap=10, take_up=3)
+    assert stat.S_IMODE(lot.stat().st_mode) == 0o660
