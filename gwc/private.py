@@ -154,3 +154,24 @@ def not_the_cells(cfg: Config, pid: int) -> str | None:
         if env.get(name) and Path(env[name]).resolve() == ours.resolve():
             return None
     return f"pid {pid} was not started for this cell ({cfg.var}): no GWC_VAR or GWC_CONFIG of it"
+
+
+def check_trusted_file(path: Path, what: str = "file") -> None:
+    """Refuse (NotPrivate) a file the cell would run as code unless only the cell's user or root could
+    have written it: it and every folder above it owned by one of them, and writable by nobody else (a
+    sticky folder, /tmp, protects the entries of its other users, so it may be writable by all)."""
+    me = os.geteuid()
+    path = Path(os.path.abspath(path))
+    for p in (path, *path.parents):
+        try:
+            st = os.stat(p)
+        except OSError as e:
+            raise NotPrivate(f"{what} {path}: cannot look at {p}: {e.strerror}") from None
+        writable_by_others = st.st_mode & 0o002 and not (st.st_mode & stat.S_ISVTX and p != path)
+        writable_by_group = st.st_mode & 0o020 and st.st_gid not in (0, os.getegid())
+        if st.st_uid not in (0, me) or writable_by_others or writable_by_group:
+            raise NotPrivate(
+                f"{what} {path}: {p} is {stat.filemode(st.st_mode)}, owner uid {st.st_uid}, group {st.st_gid}: "
+                "another user could change it, and the cell would run what they wrote: refused. Give it to "
+                "the cell's user or root, writable only by its owner"
+            )

@@ -33,6 +33,7 @@ from gwc.errors import GwcError
 from gwc.log import cap_output, open_log, open_out
 from gwc.lot.entity import OperationEntity
 from gwc.lot.errors import LotError, ScriptStopped
+from gwc.private import NotPrivate, check_trusted_file
 
 SWITCH_INTERVAL = 0.0005  # seconds
 PR_SET_NAME = 15  # prctl(2): the process's name in /proc/PID/comm, ps -e and top
@@ -59,6 +60,10 @@ def load_script(path: Path) -> ModuleType:
     """Import a lot script file and check it has `main(entity)`."""
     if not path.is_file():
         raise LotError(f"lot script {path} does not exist")
+    try:
+        check_trusted_file(path, "lot script")  # run as the cell's user: written by it or root alone
+    except NotPrivate as e:
+        raise LotError(str(e)) from None
     spec = importlib.util.spec_from_file_location(f"gwc_lot_script_{path.stem}", path)
     if spec is None or spec.loader is None:
         raise LotError(f"cannot load lot script {path}")

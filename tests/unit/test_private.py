@@ -111,3 +111,30 @@ def test_gwc_stop_signals_the_cells_own_process(cfg: Config) -> None:
     finally:
         child.kill()
         child.wait()
+
+
+@as_root
+def test_a_lot_script_another_user_could_have_written_is_refused(tmp_path: Path) -> None:
+    from gwc.lot.errors import LotError
+    from gwc.lot.run import load_script
+
+    tmp_path.chmod(0o755)
+    script = tmp_path / "pawn.py"
+    script.write_text("def main(entity):\n    pass\n")
+    assert callable(load_script(script).main)  # root's, 0644, in root's folders
+    for change, says in (
+        (lambda: script.chmod(0o666), "-rw-rw-rw-"),
+        (lambda: os.chown(script, NOBODY, -1), f"owner uid {NOBODY}"),
+        (lambda: tmp_path.chmod(0o777), "drwxrwxrwx"),  # anyone could put another file in its place
+    ):
+        change()
+        with pytest.raises(LotError, match=f"{says}.*refused"):
+            load_script(script)
+        script.chmod(0o644)
+        os.chown(script, 0, -1)
+        tmp_path.chmod(0o755)
+    sticky = tmp_path / "sticky"
+    sticky.mkdir(mode=0o1777)
+    sticky.chmod(0o1777)  # like /tmp: its users cannot replace each other's files
+    (sticky / "pawn.py").write_text("def main(entity):\n    pass\n")
+    assert callable(load_script(sticky / "pawn.py").main)
