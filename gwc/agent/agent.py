@@ -488,7 +488,7 @@ class Agent(Server):
             names = req.get("names")
             if names is not None and not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
                 raise ValueError("names must be a list of module names")
-            quiet = cmd in ("ping", "status")  # asked often, by every `gwc status` and `gwc start`
+            quiet = cmd == "ping"  # asked by most `gwc` commands (is an agent there?): changes and tells nothing
             what = " ".join([str(cmd), *(names or [])])[:200]
             self.log.log(TRACE if quiet else logging.INFO, "control: %s from %s", what, who)
             if cmd == "ping":
