@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import logging
 import threading
 import time
@@ -34,6 +35,11 @@ from gwc.lot.model import (
     now_text,
     save_traveller,
 )
+
+# PostgreSQL's refusal when a role's connection limit is reached (gwc_lot's: gwc/budget.py).
+OVER_BUDGET = "too many connections for role"
+BUDGET_PAUSE_S = 0.5  # s between tries while the lot scripts' connections are all taken
+BUDGET_SAY_S = 30.0  # s: how often the lot's log says it still waits for one
 
 
 class EntityCore:
@@ -96,15 +102,35 @@ class EntityCore:
         """Read rows. A database away is read again after a pause, as a server away is asked again, for
         `within` seconds (Timeouts.retry by default; 0 for a read that is only a fallback)."""
         backoff = self.timeouts.asking(within)
+        said = 0.0
         while True:
             try:
-                return db.transaction(self._db, db.Statement(sql, params, "all"), log=self.log)
+                rows = db.transaction(self._db, db.Statement(sql, params, "all"), log=self.log)
             except DatabaseUnavailable as e:
+                self._release()
+                if OVER_BUDGET in str(e):  # lot scripts' share of the connections is taken: wait, never fail
+                    if time.monotonic() - said >= BUDGET_SAY_S:
+                        said = time.monotonic()
+                        self.log.warning("lot scripts hold every connection they may (gwc/budget.py): waiting")
+                    time.sleep(BUDGET_PAUSE_S)
+                    continue
                 pause = backoff.next()
                 if pause is None:
                     raise
                 self.log.warning("%s; reading again in %.1fs", e, pause)
                 time.sleep(pause)
+            else:
+                self._release()
+                return rows
+
+    def _release(self) -> None:
+        """Close the entity's connection: a lot holds one only while it reads (reads are rare on its path,
+        a connect costs a few ms), so that a cell of many lots waiting for machines holds none for them
+        (docs/lot-scripts.md, Admission)."""
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            with contextlib.suppress(psycopg.Error):
+                conn.close()
 
     def _query_one(self, sql: str, *params: Any) -> tuple[Any, ...] | None:
         rows = self._query(sql, *params)

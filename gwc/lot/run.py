@@ -77,14 +77,21 @@ def load_script(path: Path) -> ModuleType:
     return module
 
 
-def spawn_lot_script(cfg: Config, entity_id: int) -> int:
+def spawn_lot_script(cfg: Config, entity_id: int) -> int | None:
     """Start the entity's lot script process with a pid file (so `gwc stop` stops it too): by this host's
-    agent when one runs, which restarts it if it is killed (docs/reliability.md); else detached."""
+    agent when one runs, which restarts it if it is killed (docs/reliability.md) and queues it while the
+    most scripts it runs at once are running (None: queued, gwc/lot/admission.py); else detached."""
+    return spawn_lot_scripts(cfg, [entity_id])[entity_id]
+
+
+def spawn_lot_scripts(cfg: Config, entities: list[int]) -> dict[int, int | None]:
+    """spawn_lot_script for many entities in one call to the agent: entity -> pid, None if queued."""
     try:
-        answer = agent_control.call(cfg, "lots", entities=[entity_id], timeout=30.0)
+        answer = agent_control.call(cfg, "lots", entities=entities, timeout=30.0)
     except agent_control.NoAgent:
-        return spawn(cfg, lot_proc(entity_id))
-    return int(answer["pids"][str(entity_id)])
+        return {e: spawn(cfg, lot_proc(e)) for e in entities}
+    pids = answer["pids"]
+    return {e: None if pids[str(e)] is None else int(pids[str(e)]) for e in entities}
 
 
 class Forked:

@@ -114,3 +114,21 @@ def test_bench_cell_ended_by_sigterm_stops_its_cell(tmp_path: Path, database_url
         bench.kill()
         for pid in cell_processes(var):
             os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.timeout(300)
+def test_bench_order_runs_an_order_through_the_agent_and_reports_memory_and_connections(
+    tmp_path: Path, database_url: str
+) -> None:
+    """`gwc bench order` small: 10 pawns, 3 machines (two mills, a CMM), at most 4 scripts at once."""
+    result = bench(
+        tmp_path, database_url, "order", "--parts", "10", "--machines", "3", "--max-running", "4", timeout=240
+    )
+    assert (result["parts"], result["mills"], result["cmms"], result["max_running"]) == (10, 2, 1, 4)
+    assert result["exported"] == 10 and result["failed"] == 0
+    assert 1 <= result["peak_scripts"] <= 4
+    assert result["peak_memory_mb"] > 100, "every process of the cell counted, the lot scripts among them"
+    assert 0 < result["peak_connections"] <= result["max_connections"]
+    assert result["idle_while_waiting"] == 0
+    assert result["check_ok"], result["check_failures"]
+    assert not (tmp_path / "bench").exists(), "the private cell's folder is removed"
