@@ -10,7 +10,6 @@ message queue and pty link so that the next start finds a clean state. Both are 
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
@@ -33,11 +32,13 @@ from gwc.ipc.bus import BlockingBus, Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
-from gwc.log import log_file_name
+from gwc.log import log_file_name, open_out
 from gwc.me.cmm_sim import simulated
 from gwc.module import module_name
+from gwc.private import NotPrivate, not_the_cells, pid_info, secure_var, write_new
 
 GRACE = 5.0
+REFUSED = "refused"  # how stop_proc's answer begins when a pid file named what is not the cell's
 UP_TIMEOUT = 20.0
 
 
@@ -110,15 +111,18 @@ class ProcStatus:
     pid: int | None
     alive: bool
     since: str | None
+    refused: str | None = None  # why the pid file is not believed (not the cell's: gwc.private)
 
 
 def read_pid(cfg: Config, name: str) -> ProcStatus:
     path = pid_file(cfg, name)
     try:
-        info = json.loads(path.read_text())
-        pid = int(info["pid"])
-    except (OSError, ValueError, KeyError, TypeError):
+        info = pid_info(path)
+    except NotPrivate as e:
+        return ProcStatus(name, None, False, None, str(e))
+    if info is None:
         return ProcStatus(name, None, False, None)
+    pid = int(info["pid"])
     alive = _proc_start_ticks(pid) == info.get("ticks") and not _zombie(pid)
     return ProcStatus(name, pid, alive, info.get("since"))
 
@@ -142,10 +146,10 @@ def spawn_process(
     """Start one module in a session of its own, with its pid file; output before its log opens goes to .out.
 
     The caller is its parent: the agent keeps the Popen to reap it; a command that exits leaves it to init."""
-    cfg.run_dir.mkdir(parents=True, exist_ok=True)
+    secure_var(cfg)
     cfg.log_dir.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, **process_env(cfg), **(extra_env or {})}  # extra_env may name GWC_CONFIG again: it wins
-    with open(out_file(cfg, proc.name), "ab") as out:
+    with os.fdopen(open_out(out_file(cfg, proc.name)), "ab") as out:
         child = subprocess.Popen(
             proc.argv,
             env=env,
@@ -172,10 +176,8 @@ def write_pid_file(cfg: Config, name: str, pid: int, argv: list[str]) -> None:
         "since": datetime.now().isoformat(" ", "seconds"),
         "argv": argv,
     }
-    cfg.run_dir.mkdir(parents=True, exist_ok=True)
-    tmp = pid_file(cfg, name).with_suffix(".tmp")
-    tmp.write_text(json.dumps(info))
-    tmp.replace(pid_file(cfg, name))
+    secure_var(cfg)
+    write_new(pid_file(cfg, name), json.dumps(info).encode())
 
 
 def _out_tail(cfg: Config, name: str, lines: int = 5) -> str:
@@ -303,10 +305,30 @@ def start_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = pr
     agent_control.call(cfg, "start", say=say)
 
 
+def signal_cells(cfg: Config, pid: int, sig: int) -> str | None:
+    """Signal one of the cell's processes (its process group when it leads one, as everything the cell
+    starts does); None once sent, else why it was not: a process that is not the cell's is never
+    signalled, whatever a pid file says (gwc.private.not_the_cells)."""
+    why = not_the_cells(cfg, pid)
+    if why is not None:
+        return why
+    try:
+        if os.getpgid(pid) == pid:
+            os.killpg(pid, sig)
+        else:
+            os.kill(pid, sig)
+    except ProcessLookupError:
+        pass
+    return None
+
+
 def stop_proc(cfg: Config, name: str, grace: float = GRACE) -> str:
     """SIGTERM, wait, SIGKILL; remove the pid file. Returns what happened."""
     st = read_pid(cfg, name)
     path = pid_file(cfg, name)
+    if st.refused:
+        path.unlink(missing_ok=True)
+        return f"{REFUSED}: pid file not the cell's, removed unread ({st.refused})"
     if st.pid is None:
         path.unlink(missing_ok=True)
         return "not running"
@@ -314,19 +336,16 @@ def stop_proc(cfg: Config, name: str, grace: float = GRACE) -> str:
         path.unlink(missing_ok=True)
         return "was dead"
     how = "stopped"
-    try:
-        os.killpg(st.pid, signal.SIGTERM)
-    except ProcessLookupError:
-        pass
+    why = signal_cells(cfg, st.pid, signal.SIGTERM)
+    if why is not None:
+        path.unlink(missing_ok=True)
+        return f"{REFUSED}: not signalled: {why} (pid file removed)"
     deadline = time.monotonic() + grace
     while time.monotonic() < deadline and read_pid(cfg, name).alive:
         time.sleep(0.05)
     if read_pid(cfg, name).alive:
         how = "killed"
-        try:
-            os.killpg(st.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
+        signal_cells(cfg, st.pid, signal.SIGKILL)
         deadline = time.monotonic() + grace
         while time.monotonic() < deadline and read_pid(cfg, name).alive:
             time.sleep(0.05)
@@ -334,7 +353,7 @@ def stop_proc(cfg: Config, name: str, grace: float = GRACE) -> str:
     return how
 
 
-def _wait_gone(st: ProcStatus, grace: float = GRACE) -> str:
+def _wait_gone(cfg: Config, st: ProcStatus, grace: float = GRACE) -> str:
     """Wait for a process that is exiting of itself (it removed its own pid file); SIGKILL after grace."""
     assert st.pid is not None
     pid = st.pid
@@ -348,9 +367,8 @@ def _wait_gone(st: ProcStatus, grace: float = GRACE) -> str:
         time.sleep(0.05)
     if not alive():
         return "stopped"
-    with contextlib.suppress(ProcessLookupError):
-        os.killpg(st.pid, signal.SIGKILL)
-    return "killed"
+    why = signal_cells(cfg, pid, signal.SIGKILL)
+    return "killed" if why is None else f"not killed: {why}"
 
 
 def clean_machine_state(cfg: Config, machine_ids: list[str]) -> list[str]:
@@ -375,25 +393,28 @@ def stop_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = pri
     for name in lots:
         st = read_pid(cfg, name)
         if st.alive and st.pid is not None:
-            try:
-                os.killpg(st.pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
+            signal_cells(cfg, st.pid, signal.SIGTERM)  # what is not the cell's, stop_proc says below
+
+    def stopped(name: str, what: str) -> None:
+        if what.startswith(REFUSED):  # a pid file that named what is not the cell's: said in the log too
+            log.warning("%s: %s", name, what)
+        say(f"{name}: {what}")
+
     for name in lots:
-        say(f"{name}: {stop_proc(cfg, name)}")
+        stopped(name, stop_proc(cfg, name))
     if agent_control.running(cfg):  # the agent stops its modules in reverse order, then itself
         agent = read_pid(cfg, AGENT.name)
         agent_control.call(cfg, "stop", say=say, exit=True)
-        say(f"agent: {_wait_gone(agent) if agent.pid else stop_proc(cfg, AGENT.name)}")
+        say(f"agent: {_wait_gone(cfg, agent) if agent.pid else stop_proc(cfg, AGENT.name)}")
     for proc in reversed(cell_procs(cfg)):
         what = stop_proc(cfg, proc.name)
         if what != "not running":
-            say(f"{proc.name}: {what}")
+            stopped(proc.name, what)
     # Pid files of processes no longer in the configuration (or started by hand) go too.
     if cfg.run_dir.exists():
         for path in cfg.run_dir.glob("*.pid"):
             name = path.stem.replace("-", ":", 1)
-            say(f"{name}: {stop_proc(cfg, name)}")
+            stopped(name, stop_proc(cfg, name))
     for item in clean_machine_state(cfg, [m.id for m in cfg.machines]):
         log.info("removed %s", item)
     if database and cfg.embedded:

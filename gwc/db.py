@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import grp
 import logging
 import os
 import pwd
@@ -36,6 +35,7 @@ from psycopg import sql
 from gwc.budget import MAX_CONNECTIONS, plan
 from gwc.config import Config, HostSpec, shipped
 from gwc.errors import DatabaseError, DatabaseUnavailable
+from gwc.private import PG_OS_USER, open_lock, secure_var, traversable_by
 from gwc.retry import Backoff
 
 T = TypeVar("T")
@@ -44,7 +44,6 @@ SQL_DIR = shipped("sql")
 DB_NAME = "gwc"
 SUPERUSER = "gwc"
 LOT_ROLE = "lot"  # lot scripts' role: logs in as itself, with a connection limit (_limit_lot_connections)
-PG_OS_USER = "postgres"  # who runs initdb/postgres when we are root: Debian's package creates it
 SOCKET_MAX = 107  # sun_path limit on Linux, including the terminating NUL
 INSTALL_HINT = "install the PostgreSQL server (Debian/Ubuntu: `apt-get install postgresql`)"
 
@@ -122,20 +121,9 @@ def _run_pg(argv: list[str], timeout: float = 120) -> subprocess.CompletedProces
         raise DatabaseError(f"cannot run {argv[0]}: {e}") from None
 
 
-def _traversable_by(path: Path, user: pwd.struct_passwd) -> bool:
-    """Whether `user` may search (x) directory `path`, by its mode bits."""
-    st = path.stat()
-    gids = {user.pw_gid} | {g.gr_gid for g in grp.getgrall() if user.pw_name in g.gr_mem}
-    if st.st_uid == user.pw_uid:
-        return bool(st.st_mode & stat.S_IXUSR)
-    if st.st_gid in gids:
-        return bool(st.st_mode & stat.S_IXGRP)
-    return bool(st.st_mode & stat.S_IXOTH)
-
-
 def _check_traversable(path: Path, user: pwd.struct_passwd) -> None:
     for parent in reversed(path.resolve().parents):
-        if not _traversable_by(parent, user):
+        if not traversable_by(parent, user):
             raise DatabaseError(
                 f"the embedded cluster runs as OS user {user.pw_name!r} (we are root), which cannot enter "
                 f"{parent} (mode {stat.filemode(parent.stat().st_mode)}): put var/ somewhere it can reach "
@@ -143,8 +131,13 @@ def _check_traversable(path: Path, user: pwd.struct_passwd) -> None:
             )
 
 
+def socket_dir(cfg: Config) -> Path:
+    """The embedded cluster's socket and lock: a folder of its own, var/run stays the cell's alone."""
+    return cfg.run_dir / "pg"
+
+
 def _socket_path(cfg: Config) -> Path:
-    return cfg.run_dir / f".s.PGSQL.{_port(cfg)}"
+    return socket_dir(cfg) / f".s.PGSQL.{_port(cfg)}"
 
 
 def _port(cfg: Config) -> int:
@@ -179,8 +172,8 @@ def cluster_running(cfg: Config) -> bool:
 @contextlib.contextmanager
 def _cluster_lock(cfg: Config) -> Iterator[None]:
     """Serialise start/stop of one cluster between processes (two `gwc start` at once)."""
-    cfg.run_dir.mkdir(parents=True, exist_ok=True)
-    with open(cfg.run_dir / "pg.lock", "a") as f:
+    secure_var(cfg)
+    with os.fdopen(open_lock(cfg.run_dir / "pg.lock"), "a") as f:
         fcntl.flock(f, fcntl.LOCK_EX)
         try:
             yield
@@ -200,7 +193,7 @@ def _write_settings(cfg: Config, owner: pwd.struct_passwd | None) -> None:
     settings = {**DEFAULT_SETTINGS, **cfg.raw.get("database", {}).get("settings", {})}
     host = cfg.database_host
     settings.update(
-        listen_addresses=host.address if host else "", unix_socket_directories=str(cfg.run_dir), port=_port(cfg)
+        listen_addresses=host.address if host else "", unix_socket_directories=str(socket_dir(cfg)), port=_port(cfg)
     )
     if host is not None:
         _write_hba(cfg, host, owner)
@@ -315,8 +308,9 @@ def _log_tail(path: Path, lines: int = 15) -> str:
 
 def _prepare_dirs(cfg: Config) -> pwd.struct_passwd | None:
     """Make var/pg and var/run usable by whoever runs the server; return that user when we are root."""
-    cfg.run_dir.mkdir(parents=True, exist_ok=True)
+    secure_var(cfg)
     cfg.pg_dir.mkdir(parents=True, exist_ok=True)
+    socket_dir(cfg).mkdir(mode=0o700, exist_ok=True)
     if len(str(_socket_path(cfg))) >= SOCKET_MAX:
         raise DatabaseError(
             f"unix socket path {_socket_path(cfg)} is longer than {SOCKET_MAX - 1} bytes: use a shorter var/ (GWC_VAR)"
@@ -326,8 +320,10 @@ def _prepare_dirs(cfg: Config) -> pwd.struct_passwd | None:
         return None
     user = _pg_user()
     _check_traversable(cfg.pg_dir, user)
-    _check_traversable(cfg.run_dir, user)
-    cfg.run_dir.chmod(0o1777)  # postgres writes its socket and lock file here; others their pid files
+    _check_traversable(socket_dir(cfg), user)
+    # var/ and var/run are root's, 0710 with postgres's group (private.secure_var): it passes through
+    os.lchown(socket_dir(cfg), user.pw_uid, user.pw_gid)
+    socket_dir(cfg).chmod(0o700)
     if not (cfg.pg_dir / "PG_VERSION").exists():
         for root, dirs, files in os.walk(cfg.pg_dir):
             for name in dirs + files:
@@ -338,7 +334,7 @@ def _prepare_dirs(cfg: Config) -> pwd.struct_passwd | None:
 
 
 def _admin_conninfo(cfg: Config, dbname: str) -> str:
-    return psycopg.conninfo.make_conninfo(host=str(cfg.run_dir), port=_port(cfg), user=SUPERUSER, dbname=dbname)
+    return psycopg.conninfo.make_conninfo(host=str(socket_dir(cfg)), port=_port(cfg), user=SUPERUSER, dbname=dbname)
 
 
 def _ensure_database(cfg: Config, log: logging.Logger) -> None:
@@ -387,7 +383,7 @@ def cluster_start(cfg: Config, log: logging.Logger | None = None) -> None:
                     f"the embedded cluster in {cfg.pg_dir} did not start: "
                     f"{(r.stderr or r.stdout).strip()[-400:]} | server log: {_log_tail(logfile)}"
                 )
-            log.info("embedded cluster started (socket in %s)", cfg.run_dir)
+            log.info("embedded cluster started (socket in %s)", socket_dir(cfg))
         _ensure_database(cfg, log)
 
 
@@ -422,7 +418,7 @@ def database_url(cfg: Config, role: str | None = None) -> str:
         # so that their role's connection limit holds them to their share (_limit_lot_connections).
         user = f"gwc_{role or 'hi'}"
         if host is None or host.name == cfg.host:
-            return f"postgresql://{user}@/{DB_NAME}?host={quote(str(cfg.run_dir), safe='')}" + (
+            return f"postgresql://{user}@/{DB_NAME}?host={quote(str(socket_dir(cfg)), safe='')}" + (
                 f"&port={port}" if port != 5432 else ""
             )
         password = role_passwords(cfg).get(user)
@@ -430,7 +426,7 @@ def database_url(cfg: Config, role: str | None = None) -> str:
             raise DatabaseError(f"no password for {user} in {_passwords_file(cfg)}: copy it from the database host")
         tls = f"?sslmode=verify-ca&sslrootcert={quote(str(_ca_file(cfg)), safe='')}" if _tls(cfg) else ""
         return f"postgresql://{user}:{quote(password, safe='')}@{host.address}:{port}/{DB_NAME}{tls}"
-    return f"postgresql://{SUPERUSER}@/{DB_NAME}?host={quote(str(cfg.run_dir), safe='')}" + (
+    return f"postgresql://{SUPERUSER}@/{DB_NAME}?host={quote(str(socket_dir(cfg)), safe='')}" + (
         f"&port={port}" if port != 5432 else ""
     )
 

@@ -53,6 +53,11 @@ class QueueFull(QueueError):
     """A WC<->ME queue is full: the other half is not reading (down, or stuck)."""
 
 
+class QueueNotOurs(QueueError):
+    """A queue of the cell's name exists that the cell did not make (another user's, or open to other
+    users): refused, never used (docs/security.md, Local users)."""
+
+
 class LineError(GwcError):
     """The RS-232 line to a machine failed: port gone, no answer in time, or a garbled record."""
 

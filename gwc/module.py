@@ -40,7 +40,7 @@ from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
-from gwc.log import conversation, open_log
+from gwc.log import cap_output, conversation, open_log
 from gwc.retry import Backoff, Deadline
 
 Handler = Callable[[Conversation], Awaitable[None]]
@@ -384,8 +384,8 @@ class Module:
                 await self.on_idle()
             except DatabaseUnavailable:
                 pass  # said once when it went; done again once it is back
-            except Exception:
-                self.log.exception("idle work failed")
+            except Exception as e:
+                self.bus.faults.failed("idle work", e)
 
     async def _serve(self, conv: Conversation) -> None:
         with conversation(conv.id, conv.cls):
@@ -539,6 +539,7 @@ def run_module(
         cfg.machine(machine)  # unknown machine: ConfigError before anything starts
     name = module_name(kind, machine)
     log = open_log(name, cfg.log_dir, cfg.level_of(name))
+    cap_output()
     log.info("Starting %s (pid %d)", name, os.getpid())
     if kind in MACHINE_PROCESSES:
         stop = threading.Event()

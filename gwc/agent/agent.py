@@ -36,7 +36,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from gwc.agent.child import Child, Process
-from gwc.agent.control import READY_FD, address
+from gwc.agent.control import READY_FD, address, peer_of
 from gwc.agent.states import LIVE, ProcessState
 from gwc.budget import plan
 from gwc.cell import cell_procs, hold_startup, lot_proc, pid_file, read_pid, spawn_process, write_pid_file
@@ -50,6 +50,7 @@ from gwc.log import TRACE
 from gwc.lot.admission import LotQueue
 from gwc.lot.run import Forked, fork_lot_script
 from gwc.module import ask, module_name
+from gwc.private import open_lock, secure_var
 from gwc.servers.common import Server
 
 S = ProcessState
@@ -151,8 +152,8 @@ class Agent(Server):
     # ----------------------------------------------------------------- the agent's life
 
     async def run(self) -> int:
-        self.cfg.run_dir.mkdir(parents=True, exist_ok=True)
-        with open(self.cfg.run_dir / "agent.lock", "w") as lock:
+        secure_var(self.cfg)
+        with os.fdopen(open_lock(self.cfg.run_dir / "agent.lock"), "w") as lock:
             try:
                 fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -518,7 +519,14 @@ class Agent(Server):
             writer.write(json.dumps({"say": text}).encode() + b"\n")
 
         answer: dict[str, Any] = {}
+        peer = peer_of(writer.get_extra_info("socket"))
+        who = f"uid {peer.uid} (pid {peer.pid})"
         try:
+            if not peer.allowed:  # no parser sees what it sends: taken off the socket (briefly), unread
+                self.log.warning("control: refused a connection from %s: not the cell's user nor root", who)
+                with contextlib.suppress(TimeoutError, ValueError, OSError):
+                    await asyncio.wait_for(reader.readline(), 1.0)  # else the close could reset its answer
+                raise ModuleError(f"not allowed: the agent takes commands from uid {os.geteuid()} and root only")
             req = json.loads(await reader.readline())
             if not isinstance(req, dict):
                 raise ValueError("not a JSON object")
@@ -526,8 +534,9 @@ class Agent(Server):
             names = req.get("names")
             if names is not None and not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
                 raise ValueError("names must be a list of module names")
-            quiet = cmd in ("ping", "status")  # asked often, by every `gwc status` and `gwc start`
-            self.log.log(TRACE if quiet else logging.INFO, "control: %s", " ".join([str(cmd), *(names or [])]))
+            quiet = cmd == "ping"  # asked by most `gwc` commands (is an agent there?): changes and tells nothing
+            what = " ".join([str(cmd), *(names or [])])[:200]
+            self.log.log(TRACE if quiet else logging.INFO, "control: %s from %s", what, who)
             if cmd == "ping":
                 pass
             elif cmd == "status":
@@ -561,7 +570,7 @@ class Agent(Server):
                 )
             answer.update(done=True, ok=True)
         except (ValueError, UnicodeDecodeError) as e:
-            self.log.warning("control: bad request: %s", e)
+            self.log.warning("control: bad request from %s: %s", who, e)
             answer = {"done": True, "ok": False, "error": f"bad request: {e}"}
         except GwcError as e:
             answer = {"done": True, "ok": False, "error": str(e)}

@@ -4,6 +4,9 @@ One request per connection: a JSON line `{"cmd": ..., ...}`; the agent answers w
 `{"say": text}` lines (progress, for a person) and ends with `{"done": true, "ok": bool, ...}`.
 The socket is in Linux's abstract namespace, named after the cell's var/ (as its queues are), so it
 needs no file, cannot be left behind, and is private to the host (a network namespace) it runs on.
+An abstract socket has no file mode: any local user can connect. So the agent asks the kernel who
+connected (SO_PEERCRED) and takes commands only from the cell's user (its own) and root; every
+command is logged with the asker's uid and pid (docs/security.md, Local users).
 """
 
 from __future__ import annotations
@@ -11,8 +14,9 @@ from __future__ import annotations
 import json
 import os
 import socket
+import struct
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 from gwc.config import Config
 from gwc.errors import ModuleError
@@ -23,6 +27,24 @@ READY_FD = "GWC_READY_FD"  # the pipe an off-bus module writes to once it serves
 
 class NoAgent(ModuleError):
     """No agent answers on this host for this cell."""
+
+
+class Peer(NamedTuple):
+    """Who is at the other end of a unix socket, as the kernel tells (SO_PEERCRED)."""
+
+    pid: int
+    uid: int
+    gid: int
+
+    @property
+    def allowed(self) -> bool:
+        """The cell's user (the agent's own) and root may command the agent; nobody else."""
+        return self.uid in (0, os.geteuid())
+
+
+def peer_of(sock: socket.socket) -> Peer:
+    creds = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    return Peer(*struct.unpack("3i", creds))
 
 
 def address(cfg: Config) -> str:

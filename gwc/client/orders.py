@@ -15,7 +15,7 @@ from gwc import db
 from gwc.cell import read_pid
 from gwc.client.session import ask, hi_conn, need_server, rows_of
 from gwc.config import PROJECT_ROOT, Config
-from gwc.errors import GwcError, Refused
+from gwc.errors import GwcError, MessageError, Refused
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, LotState
@@ -23,6 +23,7 @@ from gwc.ipc.names import Conv, Msg
 from gwc.lot.admission import LotQueue
 from gwc.lot.entity import create_lot, read_traveller
 from gwc.lot.run import load_script, spawn_lot_script, spawn_lot_scripts
+from gwc.servers.lot import MAX_QUANTITY
 
 __all__ = [
     "add_customer",
@@ -64,6 +65,26 @@ def parse_items(items: tuple[str, ...]) -> list[tuple[str, int]]:
     return list(out.items())
 
 
+INT4 = range(-(2**31), 2**31)  # what the lots table's int columns hold (priority)
+
+
+def check_order(customer: str, items: list[tuple[str, int]], note: str | None, priority: int | None) -> None:
+    """What the Lot Server and the tables will refuse, refused before the order is written: an order
+    saved and then refused its lots would be left behind with none (GwcError naming what is wrong)."""
+    if priority is not None and priority not in INT4:
+        raise GwcError(f"priority {priority} is out of range ({INT4.start}..{INT4.stop - 1}; default 20)")
+    for product, qty in items:
+        if not 0 < qty <= MAX_QUANTITY:
+            raise GwcError(f"{qty} x {product}: a lot holds 1..{MAX_QUANTITY} units; split the order")
+        try:  # each lot's request, as it will be sent: its fields checked by the catalogue now
+            message(Msg.CREATE_LOT_ENTITY, product_id=product, quantity=qty, work_order_id=1, owner=customer,
+                    priority=priority, request_id="check")  # fmt: skip
+        except MessageError as e:
+            raise GwcError(f"{product}: {e}") from None
+    if note is not None and "\0" in note:
+        raise GwcError("the order's note holds a NUL byte")
+
+
 def enter_order(
     cfg: Config,
     log: logging.Logger,
@@ -76,7 +97,9 @@ def enter_order(
 ) -> dict[str, Any]:
     """Work Order Entry: checks the customer and products, writes the order (as gwc_hi, the owner of
     WORK_ORDERS), asks the Lot Server for each product's lot (CREATE_LOT, asked again while it is away),
-    and starts one lot script process per entity. Returns the order, its lots, entities and pids."""
+    and starts one lot script process per entity. Returns the order, its lots, entities and pids.
+    Everything is checked before the order is written (check_order, the customer, the products)."""
+    check_order(customer, items, note, priority)
     with hi_conn(cfg, log) as conn:
         if not conn.execute("SELECT 1 FROM customers WHERE customer_id = %s", (customer,)).fetchone():
             known = ", ".join(r[0] for r in conn.execute("SELECT customer_id FROM customers ORDER BY 1")) or "none"

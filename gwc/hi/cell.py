@@ -10,7 +10,7 @@ from gwc import cell, db
 from gwc.agent import control as agent_control
 from gwc.agent.agent import agent_name, run_agent, systemd_unit
 from gwc.hi import context, json_option, table
-from gwc.log import open_log
+from gwc.log import cap_output, open_log
 from gwc.module import BUS_MODULES, MACHINE_PROCESSES, run_module
 
 
@@ -27,7 +27,7 @@ def db_start() -> None:
         click.echo("using $GWC_DATABASE_URL: nothing to start")
     else:
         db.cluster_start(cfg, log)
-        click.echo(f"embedded cluster running (socket in {cfg.run_dir})")
+        click.echo(f"embedded cluster running (socket in {db.socket_dir(cfg)})")
     db.init_schema(cfg, log)
 
 
@@ -108,6 +108,7 @@ def agent(unit: bool) -> None:
         click.echo(systemd_unit(cfg), nl=False)
         return
     log = open_log(agent_name(cfg.host), cfg.log_dir, cfg.level_of("agent"))
+    cap_output()
     sys.exit(run_agent(cfg, log))
 
 

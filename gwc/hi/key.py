@@ -66,4 +66,13 @@ def show(as_json: bool) -> None:
     table(rows, ["cell_id", "role", "id", "sending", "send_from", "until"], as_json)
 
 
+@key.command("opcua-password")
+@click.option("--password", prompt=True, hide_input=True, confirmation_prompt=True, help="(asked when not given)")
+def opcua_password(password: str) -> None:
+    """Print the salted hash of an OPC UA user's password, for cell.toml's [opcua] users."""
+    from gwc.opcua.security import hash_password  # (asyncua: loaded only for this command)
+
+    click.echo(hash_password(password))
+
+
 commands = [key]

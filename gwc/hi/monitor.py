@@ -32,6 +32,7 @@ from gwc.ipc import catalogue, keys, wire
 from gwc.ipc.auth import Guard
 from gwc.ipc.conversation import initiator
 from gwc.ipc.transport import open_socket
+from gwc.log import escape
 
 SEEN_MAX = 100_000
 
@@ -265,17 +266,17 @@ def monitor(
         if record is not None:
             record.write(text + "\n")
             record.flush()
-        if as_json:
+        if as_json:  # JSON escapes every control character itself
             click.echo(text)
-        elif "message" in rec:
-            click.echo(line_of(rec))
+        elif "message" in rec:  # what came off the wire (names, ids, fields) never reaches the terminal raw
+            click.echo(escape(line_of(rec)))
         elif "ack" in rec:
-            click.echo(f"{rec['time'][11:]} {rec['bus']}   ack {rec['of']} in {rec['conv']} by {rec['by']}")
+            click.echo(escape(f"{rec['time'][11:]} {rec['bus']}   ack {rec['of']} in {rec['conv']} by {rec['by']}"))
         elif "unauthenticated" in rec:
             why = "refused: not authentic, not fresh or another cell's" if rec["keyed"] else "no key: not decoded"
             click.echo(f"{rec['time'][11:]} {rec['bus']}   {rec['unauthenticated']} datagram(s) ({why})")
         else:
-            click.echo(f"{rec['time'][11:]} {rec['bus']}   malformed datagram: {rec['malformed']}")
+            click.echo(escape(f"{rec['time'][11:]} {rec['bus']}   malformed datagram: {rec['malformed']}"))
         if "message" in rec:
             shown += 1
 

@@ -31,6 +31,7 @@ from gwc.config import BusConfig
 from gwc.errors import BusError
 from gwc.ipc import keys, wire
 from gwc.ipc.transport import Transport
+from gwc.log import FaultLog
 
 TRAILER = struct.Struct("!8sBHHQQ")
 MAC_BYTES = 16
@@ -94,6 +95,7 @@ class Guard:
         self.log = log
         self.stats = stats
         self.drops = DropLog(log, stats)
+        self.faults = FaultLog(log, stats)
         self._path, keyset = keys.load(cfg, self.role)
         self._mtime = self._stat()
         self._use(keyset)
@@ -207,6 +209,9 @@ class Guard:
         window = self.cfg.replay_window
         if not now - window <= sealed <= now + window:
             return self._drop("stale", beat, source)
+        body = data[:t]
+        if lot and not self._lot_name(body):  # before the window: a misused key moves no counter
+            return self._drop("lot_key_misused", beat, source)
         key = data[4:MIN_BODY]
         windows = self._windows[flags]
         w = windows.get(key)
@@ -219,16 +224,16 @@ class Guard:
         else:
             high = w[0]
             if counter > high:
-                w[0], w[1] = counter, ((w[1] << (counter - high)) | 1) & _MASK
+                # A jump past the window forgets the window: constant time and memory for any
+                # counter (a shift by the jump itself, 2^62 under a lot key, would need 2^59 bytes).
+                ahead = counter - high
+                w[0], w[1] = counter, ((w[1] << ahead) | 1) & _MASK if ahead < WINDOW else 1
             else:
                 back = high - counter
                 if back >= WINDOW or (w[1] >> back) & 1:
                     return self._drop("replay", beat, source)
                 w[1] |= 1 << back
             w[2] = now
-        body = data[:t]
-        if lot and not self._lot_name(body):
-            return self._drop("lot_key_misused", beat, source)
         return body, lot
 
     @staticmethod
@@ -248,6 +253,10 @@ class Guard:
     def beats(self, transport: Transport) -> Iterator[bytes]:
         """The bodies of the authentic, fresh beats that came since the last call."""
         for data in transport.beats():
-            got = self.open(data, True, transport.source)
+            try:
+                got = self.open(data, True, transport.source)
+            except Exception as e:  # one beat no check foresaw must not leave the others unread
+                self.faults.failed("opening a beat", e)
+                continue
             if got is not None:
                 yield got[0]

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import functools
 import heapq
 import logging
 import random
@@ -57,7 +58,7 @@ from gwc.ipc.membership import Membership, tick
 from gwc.ipc.order import Inbound
 from gwc.ipc.transport import FaultInjector, Transport, UdpTransport
 from gwc.ipc.wire import Envelope
-from gwc.log import TRACE
+from gwc.log import TRACE, FaultLog
 
 __all__ = ["Batch", "BlockingBus", "BlockingConversation", "Bus", "Conversation", "Peer"]
 
@@ -116,6 +117,7 @@ class Bus:
         self._heartbeat: asyncio.Task[None] | None = None
         self._faults = FaultInjector(cfg.faults, name, self.stats)
         self._guard = Guard(cfg, name, log, self.stats)  # signs what we send, checks what we receive
+        self.faults = FaultLog(log, self.stats)  # a step that failed: counted, logged once per kind
         self._following_beats = False  # reading beats as they come (under a flood), not once a heartbeat
         self._origin = wire.origin(name, self.inc)
         self._mine = f"{name}."  # how the ids of conversations this module opened begin
@@ -505,15 +507,15 @@ class Bus:
         """Every heartbeat: read the beats that came, send ours, then look for who went silent."""
         while True:  # at the ticks of the host's clock: the host's modules wake together (membership.tick)
             await asyncio.sleep(tick(self.cfg.heartbeat))
-            try:
-                self._read_beats(heartbeat=True)
-                self._send_beat()
-                self._expire()
-                self._guard.refresh()
-                for listener in self.beat_listeners:
-                    listener()
-            except Exception:  # a bug here must not stop the heartbeat
-                self.log.exception("bus housekeeping failed")
+            # Each step apart: whatever one of them meets (a bug, a datagram no check foresaw) must
+            # not cost the others their turn, least of all our beat and the expiry of silent peers.
+            run = self.faults.run
+            run("reading beats", lambda: self._read_beats(heartbeat=True))
+            run("sending our beat", self._send_beat)
+            run("expiring peers", self._expire)
+            run("refreshing keys", self._guard.refresh)
+            for listener in self.beat_listeners:
+                run("heartbeat listener", listener)
 
     def _read_beats(self, heartbeat: bool = False) -> None:
         """The beats that came, checked. A heartbeat that finds many refused (a flood on the beat port)
@@ -526,7 +528,8 @@ class Bus:
         self._guard.beat_drops = 0
         if flood != self._following_beats:
             self._following_beats = flood
-            self._transport.follow_beats(self._read_beats if flood else None)
+            follow = functools.partial(self.faults.run, "reading beats", self._read_beats)
+            self._transport.follow_beats(follow if flood else None)
             self.log.warning("beat port %s", "flooded: beats read as they come" if flood else "quiet again")
 
     def _send_beat(self) -> None:
@@ -572,18 +575,14 @@ class Bus:
             return None
 
     def _handle(self, data: bytes) -> None:
-        opened = self._guard.open(data, False, self._transport.source)
-        if opened is None:
-            return
-        env = self._decode(opened[0], "datagram")
-        if env is None:
-            return
-        if env.inc == self.inc and env.src == self.name:
-            return
-        if opened[1] and env.kind == "msg" and env.cls not in catalogue.LOT_CLASSES:
-            self._refuse(env)
-            return
-        try:
+        try:  # no datagram, and no bug, takes the receive path down, nor writes a traceback per datagram
+            opened = self._guard.open(data, False, self._transport.source)
+            env = None if opened is None else self._decode(opened[0], "datagram")
+            if opened is None or env is None or (env.inc == self.inc and env.src == self.name):
+                return
+            if opened[1] and env.kind == "msg" and env.cls not in catalogue.LOT_CLASSES:
+                self._refuse(env)
+                return
             now = time.monotonic()
             peer = self._peers.get(env.src)
             if peer is not None and peer.inc == env.inc:
@@ -598,8 +597,8 @@ class Bus:
                 self._members.on_hello(env, peer)
             elif peer is not None and peer.inc == env.inc:
                 self._members.left(env.src, "said bye", clean=True)
-        except Exception:  # a bug must not take the receive path down with it
-            self.log.exception("error handling %s from %s", env.kind, env.src)
+        except Exception as e:
+            self.faults.failed("handling a datagram", e)
 
     def _refuse(self, env: Envelope) -> None:
         """A msg a lot script may not send: acknowledged (so it is not sent again), answered Not_Auth

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import os
 import secrets
+import stat
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -140,11 +141,27 @@ def _dump(keyset: KeySet, roles: tuple[str, ...]) -> str:
 
 
 def _write(path: Path, text: str) -> None:
-    """Write atomically with mode 0600 (a reader sees the old file or the new, never half of one)."""
+    """Write atomically (a reader sees the old file or the new, never half of one): a new file 0600, a
+    replaced one with the mode and group it had (lot.key made group-readable for lot scripts run as
+    another user stays so), less any bit for others."""
     path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
     try:
+        try:
+            was = os.stat(path)
+        except FileNotFoundError:
+            pass
+        else:
+            if was.st_gid != os.getegid():
+                try:
+                    os.fchown(fd, -1, was.st_gid)
+                except PermissionError:
+                    raise BusError(
+                        f"cannot keep {path}'s group (gid {was.st_gid}): run this as root or as a member of it"
+                    ) from None
+            os.fchmod(fd, stat.S_IMODE(was.st_mode) & 0o660)
         with os.fdopen(fd, "w") as f:
             f.write(text + "\n")
         os.replace(tmp, path)

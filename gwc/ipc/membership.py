@@ -69,8 +69,8 @@ class Membership:
             if env is None:
                 continue
             if env.kind != "hello":
-                bus.stats["malformed"] += 1
-                bus.log.warning("dropped a %s from %s on the beat port", env.kind, env.src)
+                bus.stats["malformed"] += 1  # summarised with the drops: a line per datagram would flood the log
+                bus._guard.drops.drop(f"{env.kind}_on_the_beat_port", env.src)
                 continue
             if bus.ignored_peers and env.src.startswith(bus.ignored_peers):
                 bus.stats["beat_ignored"] += 1  # (the kernel drops these where it can)

@@ -11,15 +11,20 @@ and alarm_text, plus a sequence number (an answer carries its request's, so a la
 taken for the answer to the next request) and a CRC32 (so a garbled record is refused, not acted
 on). The byte layout is in docs/machine-interface.md and in `LAYOUT` below.
 
-Either half may start first: both open the queues with O_CREAT and the same attributes, so the
-queues outlive the restart of either half, and a request sent while the other half is down waits
-in its queue. Only `gwc stop` (remove_queues) deletes them. Nothing is ever truncated: a field too
-long for its slot, a full queue or a garbled record is a QueueError that says which.
+Either half may start first: each creates a queue exclusively (O_CREAT|O_EXCL, mode 0600) or opens
+the one the other half made, so the queues outlive the restart of either half, and a request sent
+while the other half is down waits in its queue. Only `gwc stop` (remove_queues) deletes them. A
+queue found already there must be the cell's: owned by the cell's user, open to nobody else (0600,
+or 0660 with the cell's group); any other was made by someone else to talk to both halves, and is
+refused (QueueNotOurs), never used. Nothing is ever truncated: a field too long for its slot, a full
+queue or a garbled record is a QueueError that says which.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import stat
 import struct
 import zlib
 from enum import IntEnum
@@ -27,7 +32,7 @@ from typing import Any, Literal, NamedTuple
 
 import posix_ipc
 
-from gwc.errors import QueueError, QueueFull, QueueTimeout
+from gwc.errors import QueueError, QueueFull, QueueNotOurs, QueueTimeout
 from gwc.ipc.codes import AckCode
 
 MAGIC = b"GWME"
@@ -228,13 +233,34 @@ def remove_queues(prefix: str, machine_ids: list[str]) -> list[str]:
 
 
 def open_queue(name: str, max_messages: int = MAX_MESSAGES) -> posix_ipc.MessageQueue:
-    """Create the queue or open the one the other half created; refuse one of another layout."""
-    try:
-        q = posix_ipc.MessageQueue(
-            name, posix_ipc.O_CREAT, mode=0o600, max_messages=max_messages, max_message_size=LAYOUT_SIZE
-        )
-    except (posix_ipc.Error, OSError, ValueError) as e:
-        raise QueueError(f"cannot open message queue {name}: {e} (queue limits: /proc/sys/fs/mqueue)") from e
+    """Create the queue exclusively or open the one the other half created; refuse one of another
+    layout, and one the cell did not make (QueueNotOurs)."""
+    for _ in range(3):  # made, or removed, by the other half between our two calls: once more
+        try:
+            q = posix_ipc.MessageQueue(
+                name, posix_ipc.O_CREX, mode=0o600, max_messages=max_messages, max_message_size=LAYOUT_SIZE
+            )
+            break
+        except posix_ipc.ExistentialError:
+            pass
+        except (posix_ipc.Error, OSError, ValueError) as e:
+            raise QueueError(f"cannot create message queue {name}: {e} (queue limits: /proc/sys/fs/mqueue)") from e
+        try:
+            q = posix_ipc.MessageQueue(name)
+        except posix_ipc.ExistentialError:
+            continue
+        except (posix_ipc.Error, OSError, ValueError) as e:
+            raise QueueError(
+                f"cannot open message queue {name}: {e}: the queue is not the cell's (made by another user?)"
+            ) from e
+        try:
+            check_ours(q, name)
+        except QueueError:
+            q.close()
+            raise
+        break
+    else:
+        raise QueueError(f"message queue {name} keeps coming and going: is another cell on this var/?")
     if q.max_message_size != LAYOUT_SIZE:
         size = q.max_message_size
         q.close()
@@ -243,6 +269,20 @@ def open_queue(name: str, max_messages: int = MAX_MESSAGES) -> posix_ipc.Message
             "left by another GWC version; remove it with `gwc stop`"
         )
     return q
+
+
+def check_ours(q: posix_ipc.MessageQueue, name: str) -> None:
+    """Refuse a queue this process's user did not make, or that others may open (QueueNotOurs)."""
+    st = os.fstat(q.mqd)  # on Linux a queue descriptor is a file's: its owner and mode
+    mode = stat.S_IMODE(st.st_mode)
+    uid, gid = os.geteuid(), os.getegid()
+    if st.st_uid == uid and not mode & 0o007 and (not mode & 0o070 or st.st_gid == gid):
+        return
+    raise QueueNotOurs(
+        f"message queue {name} exists but is not the cell's: owner uid {st.st_uid}, group {st.st_gid}, "
+        f"mode {mode:04o} (the cell runs as uid {uid} and makes its queues 0600): refused, not used. "
+        "Find who made it; `gwc stop` removes it"
+    )
 
 
 class Channel:

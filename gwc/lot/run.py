@@ -30,9 +30,10 @@ from gwc.agent import control as agent_control
 from gwc.cell import lot_proc, out_file, pid_file, process_env, spawn, write_pid_file
 from gwc.config import PROJECT_ROOT, Config, load_config
 from gwc.errors import GwcError
-from gwc.log import open_log
+from gwc.log import cap_output, open_log, open_out
 from gwc.lot.entity import OperationEntity
 from gwc.lot.errors import LotError, ScriptStopped
+from gwc.private import NotPrivate, check_trusted_file
 
 SWITCH_INTERVAL = 0.0005  # seconds
 PR_SET_NAME = 15  # prctl(2): the process's name in /proc/PID/comm, ps -e and top
@@ -59,6 +60,10 @@ def load_script(path: Path) -> ModuleType:
     """Import a lot script file and check it has `main(entity)`."""
     if not path.is_file():
         raise LotError(f"lot script {path} does not exist")
+    try:
+        check_trusted_file(path, "lot script")  # run as the cell's user: written by it or root alone
+    except NotPrivate as e:
+        raise LotError(str(e)) from None
     spec = importlib.util.spec_from_file_location(f"gwc_lot_script_{path.stem}", path)
     if spec is None or spec.loader is None:
         raise LotError(f"cannot load lot script {path}")
@@ -110,7 +115,7 @@ def fork_lot_script(cfg: Config, entity_id: int) -> Forked:
     the child is this process's copy of one thread, its loop, sockets and files all dropped."""
     proc = lot_proc(entity_id)
     cfg.log_dir.mkdir(parents=True, exist_ok=True)
-    out = os.open(out_file(cfg, proc.name), os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
+    out = open_out(out_file(cfg, proc.name))
     for stream in (sys.stdout, sys.stderr):  # nothing of ours written twice, once by the child
         stream.flush()
     inherited = open_files()
@@ -183,6 +188,7 @@ def _stop(signum: int, frame: FrameType | None) -> None:
 def run_entity(cfg: Config, entity_id: int) -> int:
     """Run entity E's lot script to its end; the process's exit code."""
     log = open_log(f"lot:{entity_id}", cfg.log_dir, cfg.level_of(f"lot:{entity_id}"))
+    cap_output()
     log.info("lot script process for entity %d starting (pid %d)", entity_id, os.getpid())
     signal.signal(signal.SIGTERM, _stop)
     # The script and its bus thread hand the GIL back and forth at every step: with the default 5 ms

@@ -4,7 +4,8 @@
   ConditionRefresh (the active alarms again) but call nothing else.
 * A user (a name and password from [opcua] users, or a certificate of [opcua] user_certificates)
   may also call methods, but only over a SignAndEncrypt channel: a password sent over an unsecured
-  channel must not be enough to stop a machine.
+  channel must not be enough to stop a machine. A password sent unencrypted over an unsecured
+  channel is refused outright; passwords are kept as salted scrypt hashes, never in clear.
 
 asyncua hands every secure channel the permission ruleset of the endpoint it opened, but one
 ruleset object is shared by all endpoints; `GatewayServer` gives each endpoint its own, so the rule
@@ -13,9 +14,11 @@ can know whether the channel is encrypted.
 
 from __future__ import annotations
 
+import base64
 import hashlib
 import hmac
 import logging
+import os
 import socket
 from pathlib import Path
 from typing import Any
@@ -29,7 +32,7 @@ from asyncua.ua.ua_binary import struct_from_binary
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from gwc.errors import ConfigError
-from gwc.opcua.settings import OpcuaSettings
+from gwc.opcua.settings import OpcuaSettings, parse_hash
 
 CALL = ua.NodeId(ua.Int32(ua.ObjectIds.CallRequest_Encoding_DefaultBinary))
 WRITE = ua.NodeId(ua.Int32(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary))
@@ -45,11 +48,32 @@ SECURE_POLICIES = [
 OPERATOR = "operator"  # the role name a method's caller gets
 
 
+# Passwords are kept as salted scrypt hashes ("scrypt$N$r$p$salt$hash", base64): slow to try by the
+# million, so cell.toml leaking gives no password away (docs/opcua.md; `gwc key opcua-password`).
+SCRYPT_N, SCRYPT_R, SCRYPT_P = 2**14, 8, 1  # about 16 MiB and tens of milliseconds a try
+
+
+class ClearText(str):
+    """A password a client sent unencrypted (no EncryptionAlgorithm): on an unsecured channel it
+    crossed the network readable, and is refused (GatewayUsers.get_user)."""
+
+
+def hash_password(password: str, salt: bytes | None = None) -> str:
+    """The form [opcua] users keeps a password in."""
+    salt = os.urandom(16) if salt is None else salt
+    digest = hashlib.scrypt(password.encode(), salt=salt, n=SCRYPT_N, r=SCRYPT_R, p=SCRYPT_P, dklen=32)
+    b64 = base64.b64encode
+    return f"scrypt${SCRYPT_N}${SCRYPT_R}${SCRYPT_P}${b64(salt).decode()}${b64(digest).decode()}"
+
+
 def password_matches(stored: str, given: str) -> bool:
-    """A configured password, plain or "sha256:<hex>", against the one a client gave."""
-    if stored.startswith("sha256:"):
-        return hmac.compare_digest(stored[7:].lower(), hashlib.sha256(given.encode()).hexdigest())
-    return hmac.compare_digest(stored.encode(), given.encode())
+    """A configured salted hash (parse_hash) against the password a client gave."""
+    try:
+        n, r, p, salt, digest = parse_hash(stored)
+    except ValueError:
+        return False
+    tried = hashlib.scrypt(given.encode(), salt=salt, n=n, r=r, p=p, dklen=len(digest), maxmem=2**31 - 1)
+    return hmac.compare_digest(tried, digest)
 
 
 class GatewayUsers:
@@ -74,6 +98,13 @@ class GatewayUsers:
         """asyncua passes the channel's client certificate with every token, not only with a certificate
         token: a certificate that is not configured makes no user, and the session is anonymous."""
         if username is not None:
+            if isinstance(password, ClearText) and certificate is None:  # no client certificate: the None channel
+                self.log.warning(
+                    "OPC UA session refused: %r sent its password unencrypted over an unsecured channel "
+                    "(use a SignAndEncrypt endpoint)",
+                    username,
+                )
+                return None
             stored = self.settings.users.get(username)
             if stored is None or not password_matches(stored, password or ""):
                 self.log.warning("OPC UA session refused: wrong user name or password for %r", username)
@@ -117,6 +148,14 @@ class GatewayServer(Server):
         await super()._setup_server_nodes()
         for factory in self._policies:
             factory.permission_ruleset = GatewayRules(factory.mode == ua.MessageSecurityMode.SignAndEncrypt)
+        decrypt = self.iserver.decrypt_user_token
+
+        def marked(isession: Any, token: ua.UserNameIdentityToken) -> tuple[str, str]:
+            """asyncua's decryption, with a password that came unencrypted marked ClearText."""
+            name, password = decrypt(isession, token)
+            return name, (password if token.EncryptionAlgorithm else ClearText(password or ""))
+
+        self.iserver.decrypt_user_token = marked  # type: ignore[method-assign]
 
 
 async def server_certificate(settings: OpcuaSettings, app_uri: str) -> tuple[Path, Path]:

@@ -36,7 +36,7 @@ import time
 
 from gwc.cell import read_pid
 from gwc.config import Config
-from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, QueueError
+from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, QueueError, QueueNotOurs
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import Channel, MeMessage, MessageId
@@ -153,7 +153,12 @@ class WC(WCSteps):
         self.status, self.machine_run_id, self.recipe_id = self._read_status()
         # What the ME sent while no WC listened is read now (a RUN_COMPL is completed by its own task,
         # which takes the state lock before _resume looks at the run).
-        self.me.start(self._loop)
+        try:
+            self.me.start(self._loop)
+        except QueueNotOurs as e:  # someone else's queue under our name: said to the operator, never used
+            self.log.error("%s", e)
+            await self.raise_alarm("IPC_FOREIGN", f"{self.machine_id}: {e}"[:200], wait=False)
+            raise
         self._watch_me_process()
         if self.status != S.SHUTDOWN:
             self.log.warning(

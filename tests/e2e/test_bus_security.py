@@ -5,10 +5,16 @@ malformed kinds that once got through, a flood while lots run, two cells on one 
 from __future__ import annotations
 
 import collections
+import contextlib
 import functools
 import logging
+import os
 import random
+import select
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -94,7 +100,44 @@ def test_the_bus_obeys_only_its_own_cell(lot_cell: Any, outsider: Any, tmp_path:
     forgeries_and_replays_are_refused_and_change_nothing(cell, outsider(cell))
     the_wc_sets_up_only_what_is_reserved_and_malformed_kinds_stop_at_the_wire(cell)
     a_lot_script_outside_its_rights_is_refused_and_its_lot_goes_on(cell, tmp_path)
+    control_characters_off_the_wire_are_escaped_in_the_log_and_the_monitor(cell)
     ok(gwc(cell, "check"))
+
+
+FORGED = "\nFrom forged | Date 2026-01-01 | Module msched | Error: forged\r\x1b[2J\x9b31m"
+
+
+def control_characters_off_the_wire_are_escaped_in_the_log_and_the_monitor(cell: CellHarness) -> None:
+    """A lot key holder's conversation id and field carrying a newline, a carriage return and terminal
+    control sequences: msched's log line stays one line, the monitor prints them escaped."""
+    monitor = subprocess.Popen(
+        [sys.executable, "-m", "gwc", "monitor", "--class", "CANCEL_RE", "--count", "1", "--duration", "20"],
+        env=cell.env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert monitor.stderr is not None and select.select([monitor.stderr], [], [], 20)[0], "the monitor said nothing"
+        assert "monitoring bus" in monitor.stderr.readline()  # it listens now
+        guard = Guard(cell.cfg.bus, "lot:66", cell.log, collections.Counter())
+        env = wire.Envelope(
+            kind="msg", src="lot:66", inc=66, seq=1, conv="lot:66.42.1" + FORGED, cls="CANCEL_RE",
+            msg="Cancel_Request", to="msched", fields={"request_key": 999, "by": "lot" + FORGED},
+        )  # fmt: skip
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(cell.cfg.bus.interface))
+        sock.sendto(guard.seal(wire.encode(env)), (cell.cfg.bus.group, cell.cfg.bus.port))
+        sock.close()
+        out, err = monitor.communicate(timeout=30)
+    finally:
+        monitor.kill()
+        monitor.wait()
+    wait_for(lambda: cell.log_has("msched", "cancel request 999 by lot"), 10, "msched to log the cancel")
+    (line,) = [x for x in cell.log_text("msched").splitlines() if "cancel request 999" in x]
+    assert "Conv lot:66.42.1\\nFrom forged" in line and "\\r\\x1b[2J\\x9b31m" in line, line
+    assert not any(x.startswith("From forged") for x in cell.log_text("msched").splitlines())
+    assert "lot:66.42.1\\nFrom forged" in out and "\x1b" not in out and "\r" not in out and "\x9b" not in out, out
 
 
 def the_keys_change_on_the_running_cell(cell: CellHarness) -> None:
@@ -341,3 +384,83 @@ def test_two_cells_with_their_own_keys_share_a_group_and_port(
         the_keys_change_on_the_running_cell(one)
     finally:
         two.close()
+
+
+class CounterJumper:
+    """A holder of the lot key (a hostile lot script) sealing authentic datagrams whose replay
+    counter jumps by 2^62 (then to the top of 64 bits), on both ports, under a new incarnation each
+    round: every module's replay window for that sender meets the jump."""
+
+    def __init__(self, cell: CellHarness) -> None:
+        self.cfg = cell.cfg.bus
+        self.guard = Guard(self.cfg, "lot:999", logging.getLogger("jumper"), collections.Counter())
+        assert self.guard.role == "lot"
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(self.cfg.interface))
+        self.stop = threading.Event()
+        self.sent = 0
+        self.thread = threading.Thread(target=self.run)
+
+    def run(self) -> None:
+        inc = 1000
+        while not self.stop.is_set():
+            inc += 1
+            hello = wire.encode(wire.Envelope(kind="hello", src="lot:999", inc=inc))
+            ask = msg(
+                "lot:999", inc, "MACH_REQ", "Machine_Request", to="nobody", entity_id=9, op_type="x", num_machines=0
+            )
+            for counter in (0, 2**62, 2**63, 2**64 - 2):
+                for beat, body, port in ((True, hello, self.cfg.beat_port), (False, ask, self.cfg.port)):
+                    self.guard._counters[beat] = counter
+                    with contextlib.suppress(BlockingIOError):
+                        self.sock.sendto(self.guard.seal(body, beat=beat), (self.cfg.group, port))
+                        self.sent += 1
+            time.sleep(0.005)
+
+    def __enter__(self) -> CounterJumper:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join()
+        self.sock.close()
+
+
+def test_a_lot_key_holders_counter_jumps_of_2_62_on_both_ports_blind_no_module(lot_cell: Any) -> None:
+    """Issue 40: the jump once raised MemoryError in every module, a frozen WC stayed Idle for 30 s
+    and tracebacks filled the .out files. Now: nothing raises, a frozen WC is shut down within its
+    liveness while the jumps go on, and logs and outputs barely grow."""
+    liveness = 1.5
+    cell = cell_with_machines(
+        lot_cell(machines=[{"id": "wc1", "kind": "dummy", "run_time": 0.2, "liveness": liveness}]), "wc1"
+    )
+    outs = {name: Path(cell.xprocess.getinfo(cell._xname(name)).logpath) for name in cell.started}  # their .out
+    sizes = {name: (path.stat().st_size, cell.log_path(name).stat().st_size) for name, path in outs.items()}
+    wc = cell.pid("wc", "wc1")
+    assert wc is not None
+    with CounterJumper(cell) as jumper:
+        wait_for(lambda: jumper.sent > 2000, 20, "the first 2000 jumps")
+        os.kill(wc, signal.SIGSTOP)  # frozen: silent, not dead
+        frozen = time.monotonic()
+        try:
+            wait_for(lambda: status(cell, "wc1") == "Shutdown", 15, "the Machine Server to shut the frozen wc1 down")
+            took = time.monotonic() - frozen
+        finally:
+            os.kill(wc, signal.SIGCONT)
+        wait_for(lambda: jumper.sent > 6000, 20, "6000 jumps")
+        ok(gwc(cell, "machine", "start", "wc1"))
+        assert status(cell, "wc1") == "Idle"
+        healthy_until = time.monotonic() + 2 * liveness  # a healthy machine is not shut down afterwards
+        while time.monotonic() < healthy_until:
+            assert status(cell, "wc1") == "Idle"
+            time.sleep(0.2)
+    print(f"frozen wc1 shut down {took:.2f}s after SIGSTOP under {jumper.sent} jumps (liveness {liveness}s)")
+    assert took < liveness + 4, took  # its liveness, the watch's rounds, a busy machine (30 s before)
+    ok(gwc(cell, "check"))
+    for name, path in outs.items():
+        out_grew = path.stat().st_size - sizes[name][0]
+        log = cell.log_text(name)
+        assert out_grew < 2000, f"{name}'s output grew {out_grew} bytes"
+        assert cell.log_path(name).stat().st_size - sizes[name][1] < 50_000, name
+        assert "MemoryError" not in log and " failed (" not in log, name

@@ -98,7 +98,7 @@ class HostCell:
 
     def query(self, text: str, *args: Any) -> list[tuple[Any, ...]]:
         """The test's own look at the tables, through h1's unix socket (the test is not on the bridge)."""
-        url = f"postgresql://gwc@/gwc?host={self.var('h1') / 'run'}"
+        url = f"postgresql://gwc@/gwc?host={self.var('h1') / 'run' / 'pg'}"
         with psycopg.connect(url) as conn:
             return conn.execute(text, args).fetchall()
 

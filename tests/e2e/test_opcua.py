@@ -24,6 +24,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from gwc.config import write_config
 from gwc.ipc.bus import BlockingBus
+from gwc.opcua.security import hash_password
 from tests.e2e.lotkit import cell_with_machines, gwc, ok, order, stop_lot_scripts
 from tests.harness import CellHarness, wait_for
 
@@ -55,7 +56,8 @@ def with_gateway(cell: CellHarness) -> str:
     """Add an [opcua] section to the cell's configuration (a free port, one user); the endpoint."""
     endpoint = f"opc.tcp://127.0.0.1:{free_port()}/gwc/"
     raw = dict(cell.cfg.raw)
-    raw["opcua"] = {"endpoint": endpoint, "anonymous": True, "users": {USER: PASSWORD}, "refresh": 1.0}
+    users = {USER: hash_password(PASSWORD)}  # kept as a salted hash, never in clear
+    raw["opcua"] = {"endpoint": endpoint, "anonymous": True, "users": users, "refresh": 1.0}
     cell.cfg = write_config(cell.cfg.path, raw)
     return endpoint
 

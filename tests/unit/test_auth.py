@@ -61,6 +61,27 @@ def test_a_sealed_datagram_opens_once_and_its_replay_is_refused(tmp_path: Path) 
     assert b.open(again, False, "x") is not None
 
 
+def test_a_counter_of_any_value_costs_constant_time_and_memory(tmp_path: Path) -> None:
+    """A lot key holder's counter jumps by 2^62 (then to the top of 64 bits): each is taken in
+    microseconds, the window is forgotten past WINDOW (not shifted 2^62 bits), and replays of the
+    new high counter are still refused."""
+    cfg = cfg_in(tmp_path)
+    lot, module = guard(cfg, "lot:7"), guard(cfg, "msched")
+    assert module.open(lot.seal(body("lot:7")), False, "x") is not None
+    started = time.perf_counter()
+    for counter in (2**62, 2**63, 2**64 - 2):
+        lot._counters[0] = counter
+        sealed = lot.seal(body("lot:7"))
+        assert module.open(sealed, False, "x") is not None
+        assert module.open(sealed, False, "x") is None  # its replay
+    assert time.perf_counter() - started < 0.1
+    (window,) = module._windows[auth.LOT].values()
+    assert window[0] == 2**64 - 1 and window[1].bit_length() <= auth.WINDOW
+    lot._counters[0] = 2**64 - 2 - auth.WINDOW  # sealed WINDOW behind the highest: just outside
+    assert module.open(lot.seal(body("lot:7")), False, "x") is None
+    assert module.stats["dropped_replay"] == 4
+
+
 def test_forged_altered_and_foreign_datagrams_are_dropped_unread(tmp_path: Path) -> None:
     cfg = cfg_in(tmp_path / "one")
     other = cfg_in(tmp_path / "two")
@@ -207,3 +228,17 @@ def test_gwc_key_commands_make_show_and_rotate_without_printing_secrets(
     assert shown.exit_code == 0 and len(json.loads(shown.output)) == 4
     assert all(k.secret.hex() not in shown.output for k in keys.load(cfg.bus, "module")[1].keys)
     assert keys.load(cfg.bus, "module")[1].cell_id == keyset.cell_id
+
+
+def test_key_rotate_keeps_each_key_files_mode_and_group(tmp_path: Path) -> None:
+    cfg = cfg_in(tmp_path)
+    lot = tmp_path / "lot.key"
+    group = 65534 if os.geteuid() == 0 else os.getegid()  # nogroup: a group of lot scripts' own
+    os.chown(lot, -1, group)
+    lot.chmod(0o640)  # as docs/security.md asks for scripts run as another user
+    keys.rotate(cfg, overlap=10, take_up=3)
+    assert (stat.S_IMODE(lot.stat().st_mode), lot.stat().st_gid) == (0o640, group)
+    assert stat.S_IMODE((tmp_path / "cell.key").stat().st_mode) == 0o600
+    lot.chmod(0o666)  # never made readable by others, whatever it was
+    keys.rotate(cfg, overlap=10, take_up=3)
+    assert stat.S_IMODE(lot.stat().st_mode) == 0o660

@@ -442,3 +442,29 @@ def test_a_module_never_tracks_the_peers_it_ignores_and_the_others_track_it() ->
         conv.end()
 
     run(t)
+
+
+def test_a_datagram_that_breaks_the_receive_path_stops_no_heartbeat_work(caplog: Any) -> None:
+    """Every datagram b opens raises (as the replay window's 2^62 shift once did): b still sends its
+    beats (a keeps it), still expires the peers it no longer hears (a), and says each kind of failure
+    once, counting the rest."""
+
+    async def t(make: Make, cfg: BusConfig) -> None:
+        a, b = await make("ms"), await make("msched")
+        await known(a, b)
+
+        def broken(*args: Any) -> None:
+            raise MemoryError
+
+        b._guard.open = broken  # type: ignore[method-assign]
+        await until(lambda: "ms" not in b.peers(), "b to expire the peer it can no longer hear")
+        await until(lambda: b.stats["failed_opening a beat"] >= 3, "three beats to fail")
+        assert "msched" in a.peers()  # b's beats went on all along
+        await a.start("PING", message("Ping", n=1))  # a datagram on the bus port too
+        await until(lambda: b.stats["failed_handling a datagram"] >= 1, "a bus-port datagram to fail")
+
+    with caplog.at_level(logging.ERROR):
+        run(t)
+    said = [r.getMessage() for r in caplog.records if r.name == "gwc.test.msched"]
+    assert sum("opening a beat failed (MemoryError)" in s for s in said) == 1, said
+    assert sum("handling a datagram failed (MemoryError)" in s for s in said) == 1, said

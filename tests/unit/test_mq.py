@@ -15,7 +15,7 @@ from pathlib import Path
 import posix_ipc
 import pytest
 
-from gwc.errors import QueueError, QueueFull, QueueTimeout
+from gwc.errors import QueueError, QueueFull, QueueNotOurs, QueueTimeout
 from gwc.ipc import mq
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import (
@@ -285,3 +285,34 @@ def test_queues_are_gone_after_gwc_stop(tmp_path: Path) -> None:
             assert not any(queue_exists(q) for q in queue_names(cfg.ipc_prefix, mid))
     finally:
         mq.remove_queues(cfg.ipc_prefix, ["wc1", "wc2"])
+
+
+def _squat(name: str, uid: int, mode: int) -> None:
+    """Another user (uid) making a queue of the cell's name before the cell does."""
+    if uid:
+        os.setuid(uid)
+    os.umask(0)
+    posix_ipc.MessageQueue(name, posix_ipc.O_CREX, mode=mode, max_messages=2, max_message_size=mq.LAYOUT_SIZE).close()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="makes a queue as another user")
+@pytest.mark.parametrize("uid, mode", [(65534, 0o600), (65534, 0o666), (0, 0o666), (0, 0o622)])
+def test_a_queue_the_cell_did_not_make_is_refused_never_used(prefix: str, uid: int, mode: int) -> None:
+    to_me, from_me = queue_names(prefix, MACHINE)
+    squatter = multiprocessing.get_context("fork").Process(target=_squat, args=(to_me, uid, mode))
+    squatter.start()
+    squatter.join()
+    assert squatter.exitcode == 0
+    with pytest.raises(QueueNotOurs, match=f"{to_me} exists but is not the cell's"):
+        Channel(prefix, MACHINE, "wc", LOG).open()
+    with pytest.raises(QueueError, match="not the cell's"):
+        Channel(prefix, MACHINE, "me", LOG).open()
+    assert posix_ipc.MessageQueue(to_me).current_messages == 0  # nothing was written to it
+
+
+def test_the_cells_own_queues_are_made_exclusively_0600_and_reopened(prefix: str) -> None:
+    with Channel(prefix, MACHINE, "wc", LOG) as wc, Channel(prefix, MACHINE, "me", LOG) as me:
+        for q in (wc._out, wc._in):
+            assert q is not None and os.fstat(q.mqd).st_mode & 0o777 == 0o600
+        wc.send(MeMessage(MessageId.NO_MESSAGE, seq=1))
+        assert me.receive(1).seq == 1

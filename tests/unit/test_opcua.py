@@ -14,7 +14,15 @@ from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.ua.ua_binary import struct_to_binary
 
 from gwc.errors import ConfigError
-from gwc.opcua.security import CALL, WRITE, GatewayRules, GatewayUsers, password_matches
+from gwc.opcua.security import (
+    CALL,
+    WRITE,
+    ClearText,
+    GatewayRules,
+    GatewayUsers,
+    hash_password,
+    password_matches,
+)
 from gwc.opcua.settings import OpcuaSettings, load_settings
 from gwc.opcua.space import machinery_state, operation_mode
 from tests.conftest import make_config
@@ -50,13 +58,19 @@ def test_anyone_may_ask_for_the_active_alarms_again_but_not_with_another_call() 
     assert not GatewayRules(encrypted=False).check_validity(ANONYMOUS, CALL, calls(refresh, 12345))
 
 
-def test_passwords_plain_or_hashed_and_users_by_name() -> None:
+def test_passwords_are_salted_slow_hashes_and_never_taken_in_clear_off_an_unsecured_channel() -> None:
+    stored = hash_password("pw")
+    assert stored.startswith("scrypt$16384$8$1$") and stored != hash_password("pw")  # salted: never twice alike
+    assert password_matches(stored, "pw") and not password_matches(stored, "px")
     digest = "sha256:" + hashlib.sha256(b"pw").hexdigest()
-    assert password_matches("pw", "pw") and password_matches(digest, "pw")
-    assert not password_matches("pw", "px") and not password_matches(digest, "px")
-    users = GatewayUsers(OpcuaSettings(users={"op": digest}, anonymous=False), logging.getLogger("t"))
-    assert users.get_user(None, "op", "pw") == User(role=UserRole.User, name="op")
-    assert users.get_user(None, "op", "bad") is None
+    assert not password_matches(digest, "pw") and not password_matches("pw", "pw")  # the old forms: no more
+    users = GatewayUsers(OpcuaSettings(users={"op": stored}, anonymous=False), logging.getLogger("t"))
+    cert = b"client certificate"  # asyncua passes the channel's: none on the None endpoint
+    assert users.get_user(None, "op", "pw", cert) == User(role=UserRole.User, name="op")
+    assert users.get_user(None, "op", ClearText("pw"), cert) == User(role=UserRole.User, name="op")  # channel encrypts
+    assert users.get_user(None, "op", ClearText("pw"), None) is None  # in clear on the None endpoint
+    assert users.get_user(None, "op", "pw", None) == User(role=UserRole.User, name="op")  # encrypted to our key
+    assert users.get_user(None, "op", "bad", cert) is None
     assert users.get_user(None) is None  # anonymous not allowed
     allowed = GatewayUsers(OpcuaSettings(), logging.getLogger("t"))
     assert allowed.get_user(None, certificate=b"a client's certificate") == ANONYMOUS
@@ -80,10 +94,14 @@ def test_machinery_states_of_the_cells_statuses(status: str | None, on_bus: bool
 
 
 def test_settings_are_checked_and_certificates_go_under_var(tmp_path: Path) -> None:
-    cfg = make_config(tmp_path, None, opcua={"endpoint": "opc.tcp://127.0.0.1:4999/x/", "users": {"op": "pw"}})
+    stored = hash_password("pw")
+    cfg = make_config(tmp_path, None, opcua={"endpoint": "opc.tcp://127.0.0.1:4999/x/", "users": {"op": stored}})
     s = load_settings(cfg)
-    assert s.endpoint.endswith(":4999/x/") and s.users == {"op": "pw"}
+    assert s.endpoint.endswith(":4999/x/") and s.users == {"op": stored}
     assert s.cert_dir == cfg.var / "opcua"
+    for plain in ("pw", "sha256:" + hashlib.sha256(b"pw").hexdigest(), "scrypt$3$8$1$AAAAAAAAAAA=$AAAA"):
+        with pytest.raises(ConfigError, match=r"users.op: .* never in clear"):
+            load_settings(make_config(tmp_path, None, opcua={"users": {"op": plain}}))
     for bad in ({"endpoint": "http://x"}, {"refresh": 0}, {"colour": "red"}):
         with pytest.raises(ConfigError, match=r"\[opcua\]"):
             load_settings(make_config(tmp_path, None, opcua=bad))
