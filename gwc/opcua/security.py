@@ -13,19 +13,26 @@ can know whether the channel is encrypted.
 
 from __future__ import annotations
 
+import datetime
 import hashlib
 import hmac
+import ipaddress
 import logging
 import socket
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlparse
 
 from asyncua import Server, ua
-from asyncua.common.utils import Buffer
+from asyncua.common.utils import Buffer, ServiceError
 from asyncua.crypto import uacrypto
-from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from asyncua.crypto.cert_gen import dump_private_key_as_pem, generate_private_key, generate_self_signed_app_certificate
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
+from asyncua.server import binary_server_asyncio
+from asyncua.server.uaprocessor import UaProcessor
 from asyncua.ua.ua_binary import struct_from_binary
+from cryptography import x509
+from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from gwc.errors import ConfigError
@@ -43,6 +50,7 @@ SECURE_POLICIES = [
     ua.SecurityPolicyType.Aes256Sha256RsaPss_SignAndEncrypt,
 ]
 OPERATOR = "operator"  # the role name a method's caller gets
+PRODUCT_URI = "urn:gwc:opcua-gateway"  # the product (BuildInfo, the application description)
 
 
 def password_matches(stored: str, given: str) -> bool:
@@ -110,29 +118,151 @@ class GatewayRules(PermissionRuleset):
         return all(c.MethodId in REFRESH for c in calls)
 
 
+# Services a client may ask for on a channel without a session (Part 4: the rest need one).
+SESSIONLESS = {
+    ua.NodeId(ua.Int32(getattr(ua.ObjectIds, f"{name}Request_Encoding_DefaultBinary")))
+    for name in (
+        "CreateSession",
+        "CloseSession",
+        "ActivateSession",
+        "FindServers",
+        "GetEndpoints",
+        "RegisterServer",
+        "RegisterServer2",
+        "CloseSecureChannel",
+    )
+}
+
+
+class GatewayProcessor(UaProcessor):
+    """asyncua's request processor, but a request on a channel without a session (a client that
+    reconnects after a gateway restart resends its Publish with its old session's token) answers
+    BadSessionIdInvalid as Part 4 says, not BadUserAccessDenied: a client then makes a new session
+    and its subscriptions again, where on BadUserAccessDenied it gives up."""
+
+    async def _process_message(self, typeid: ua.NodeId, requesthdr: Any, seqhdr: Any, body: Buffer) -> Any:
+        if self.session is None and typeid not in SESSIONLESS:
+            raise ServiceError(ua.StatusCodes.BadSessionIdInvalid)
+        return await super()._process_message(typeid, requesthdr, seqhdr, body)
+
+
+def with_timestamps(params: ua.ReadParameters, values: list[ua.DataValue]) -> list[ua.DataValue]:
+    """Part 4 Read: a Value read carries the timestamps TimestampsToReturn asks for. asyncua returns
+    what was stored: the cell's variables have both (Space writes them); a value of asyncua's own
+    address space (ServerStatus, the nodesets' properties) gets a ServerTimestamp of now."""
+    want = params.TimestampsToReturn
+    source = want in (ua.TimestampsToReturn.Source, ua.TimestampsToReturn.Both)
+    server = want in (ua.TimestampsToReturn.Server, ua.TimestampsToReturn.Both)
+    now = datetime.datetime.now(datetime.UTC)
+    out = []
+    for item, dv in zip(params.NodesToRead, values):
+        if item.AttributeId != ua.AttributeIds.Value or dv.StatusCode is None or not dv.StatusCode.is_good():
+            out.append(dv)
+            continue
+        fixed = ua.DataValue(
+            dv.Value,
+            StatusCode=dv.StatusCode,
+            SourceTimestamp=dv.SourceTimestamp if source else None,
+            ServerTimestamp=(dv.ServerTimestamp or now) if server else None,  # type: ignore[arg-type]
+        )
+        if dv.Value is None:  # a null kept absent (space.data_value)
+            object.__setattr__(fixed, "Value", None)
+        out.append(fixed)
+    return out
+
+
 class GatewayServer(Server):
-    """asyncua's Server with a rule per endpoint (see the module docstring)."""
+    """asyncua's Server with a rule per endpoint (see the module docstring), GatewayProcessor, and
+    Read's timestamps (with_timestamps)."""
+
+    async def init(self, shelf_file: Path | None = None) -> None:
+        await super().init(shelf_file)
+        service = self.iserver.attribute_service
+        read = service.read
+        service.read = lambda params: with_timestamps(params, read(params))  # type: ignore[method-assign]
 
     async def _setup_server_nodes(self) -> None:
         await super()._setup_server_nodes()
         for factory in self._policies:
             factory.permission_ruleset = GatewayRules(factory.mode == ua.MessageSecurityMode.SignAndEncrypt)
 
+    async def stop(self) -> None:
+        # Listen no more before the open connections are closed: clients reconnect at once (node-opcua
+        # within 0.2 s), and a connection made while asyncua stops holds its stop for seconds.
+        listener = getattr(self.bserver, "_server", None)
+        if listener is not None:
+            listener.close()
+        await super().stop()
+
+    async def start(self) -> None:
+        # asyncua makes each connection's processor from this module-level name; the gateway is a
+        # process of its own, so it is replaced for this process only.
+        binary_server_asyncio.UaProcessor = GatewayProcessor  # type: ignore[misc]
+        await super().start()
+
+
+def certificate_names(endpoint: str) -> tuple[list[str], list[str]]:
+    """The DNS names and IP addresses the server's certificate names: the host's name, localhost,
+    the loopback addresses, the host's addresses, and the endpoint's host (a name or an address)."""
+    hostname = socket.gethostname()
+    dns, ips = [hostname, "localhost"], ["127.0.0.1", "::1"]
+    try:
+        ips += socket.gethostbyname_ex(hostname)[2]
+    except OSError:
+        pass
+    host = urlparse(endpoint).hostname or ""
+    try:
+        ipaddress.ip_address(host)
+        ips.append(host)
+    except ValueError:
+        if host:
+            dns.append(host)
+    ips = [ip for ip in ips if ip not in ("0.0.0.0", "::")]
+    return list(dict.fromkeys(dns)), list(dict.fromkeys(ips))
+
+
+def _certificate_fits(cert: x509.Certificate, app_uri: str, dns: list[str], ips: list[str]) -> bool:
+    if cert.not_valid_after_utc < datetime.datetime.now(datetime.UTC) + datetime.timedelta(days=1):
+        return False
+    try:
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    except x509.ExtensionNotFound:
+        return False
+    have_ips = {str(ip) for ip in san.get_values_for_type(x509.IPAddress)}
+    return (
+        app_uri in san.get_values_for_type(x509.UniformResourceIdentifier)
+        and set(dns) <= set(san.get_values_for_type(x509.DNSName))
+        and {str(ipaddress.ip_address(ip)) for ip in ips} <= have_ips
+    )
+
 
 async def server_certificate(settings: OpcuaSettings, app_uri: str) -> tuple[Path, Path]:
-    """The server's certificate and key under var/opcua/, made (self-signed) when missing or expired."""
+    """The server's certificate and key under var/opcua/, made (self-signed) when missing, expiring,
+    or not naming the host by every name and address a client may use (certificate_names). The key
+    is kept, so a client that trusted the certificate sees the same key."""
     settings.cert_dir.mkdir(parents=True, exist_ok=True)
-    cert, key = settings.cert_dir / "server-cert.der", settings.cert_dir / "server-key.pem"
-    await setup_self_signed_certificate(
+    cert_file, key_file = settings.cert_dir / "server-cert.der", settings.cert_dir / "server-key.pem"
+    if key_file.is_file():
+        key = await uacrypto.load_private_key(key_file)
+    else:
+        key = generate_private_key()
+        key_file.write_bytes(dump_private_key_as_pem(key))
+    key_file.chmod(0o600)
+    dns, ips = certificate_names(settings.endpoint)
+    if cert_file.is_file() and _certificate_fits(await uacrypto.load_certificate(cert_file), app_uri, dns, ips):
+        return cert_file, key_file
+    names: list[x509.GeneralName] = [x509.UniformResourceIdentifier(app_uri)]
+    names += [x509.DNSName(d) for d in dns] + [x509.IPAddress(ipaddress.ip_address(i)) for i in ips]
+    cert = generate_self_signed_app_certificate(
         key,
-        cert,
         app_uri,
-        socket.gethostname(),
-        [ExtendedKeyUsageOID.CLIENT_AUTH, ExtendedKeyUsageOID.SERVER_AUTH],
         {"organizationName": "GWC", "commonName": "GWC OPC UA gateway"},
+        names,
+        extended=[ExtendedKeyUsageOID.CLIENT_AUTH, ExtendedKeyUsageOID.SERVER_AUTH],
+        days=365,
     )
-    key.chmod(0o600)
-    return cert, key
+    cert_file.write_bytes(cert.public_bytes(encoding=Encoding.DER))
+    return cert_file, key_file
 
 
 def identity_tokens(settings: OpcuaSettings) -> list[type]:
