@@ -18,6 +18,7 @@ import hashlib
 import hmac
 import ipaddress
 import logging
+import secrets
 import socket
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,7 @@ from asyncua.crypto import uacrypto
 from asyncua.crypto.cert_gen import dump_private_key_as_pem, generate_private_key, generate_self_signed_app_certificate
 from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
 from asyncua.server import binary_server_asyncio
+from asyncua.server.internal_session import InternalSession
 from asyncua.server.uaprocessor import UaProcessor
 from asyncua.ua.ua_binary import struct_from_binary
 from cryptography import x509
@@ -118,6 +120,7 @@ class GatewayRules(PermissionRuleset):
         return all(c.MethodId in REFRESH for c in calls)
 
 
+REPUBLISH = ua.NodeId(ua.Int32(ua.ObjectIds.RepublishRequest_Encoding_DefaultBinary))
 # Services a client may ask for on a channel without a session (Part 4: the rest need one).
 SESSIONLESS = {
     ua.NodeId(ua.Int32(getattr(ua.ObjectIds, f"{name}Request_Encoding_DefaultBinary")))
@@ -135,14 +138,29 @@ SESSIONLESS = {
 
 
 class GatewayProcessor(UaProcessor):
-    """asyncua's request processor, but a request on a channel without a session (a client that
-    reconnects after a gateway restart resends its Publish with its old session's token) answers
-    BadSessionIdInvalid as Part 4 says, not BadUserAccessDenied: a client then makes a new session
-    and its subscriptions again, where on BadUserAccessDenied it gives up."""
+    """asyncua's request processor, answering as Part 4 says where asyncua does not, so that a
+    standard client's reconnect after a gateway restart gets data again: a request on a channel
+    without a session, or naming another session (a client resends its Publish with its lost
+    session's token), answers BadSessionIdInvalid, not BadUserAccessDenied (on which clients give
+    up); a Republish of a message the server no longer has BadMessageNotAvailable, not an empty
+    Good message (on which node-opcua asks again for ever)."""
 
     async def _process_message(self, typeid: ua.NodeId, requesthdr: Any, seqhdr: Any, body: Buffer) -> Any:
-        if self.session is None and typeid not in SESSIONLESS:
+        if typeid not in SESSIONLESS and (
+            self.session is None or requesthdr.AuthenticationToken != self.session.auth_token
+        ):
+            # No session on this channel, or a request naming another one (a Publish a client resends
+            # with its lost session's token while it makes a new session): Part 4 says which.
             raise ServiceError(ua.StatusCodes.BadSessionIdInvalid)
+        if typeid == REPUBLISH:
+            # asyncua answers a message it no longer has with an empty Good one; a client (node-opcua)
+            # then asks again and again and never resumes. Part 4: BadMessageNotAvailable.
+            params = struct_from_binary(ua.RepublishParameters, body.copy())
+            sub = self.iserver.subscription_service.subscriptions.get(params.SubscriptionId)
+            if sub is None:
+                raise ServiceError(ua.StatusCodes.BadSubscriptionIdInvalid)
+            if params.RetransmitSequenceNumber not in sub._not_acknowledged_results:
+                raise ServiceError(ua.StatusCodes.BadMessageNotAvailable)
         return await super()._process_message(typeid, requesthdr, seqhdr, body)
 
 
@@ -176,7 +194,15 @@ class GatewayServer(Server):
     Read's timestamps (with_timestamps)."""
 
     async def init(self, shelf_file: Path | None = None) -> None:
+        # asyncua numbers sessions and their authentication tokens from the same start in every
+        # process: a client reconnecting after a restart could present a token the new process has
+        # given another session. Each process starts from a random number instead.
+        InternalSession._counter = secrets.randbelow(2**30) + 1
+        InternalSession._auth_counter = secrets.randbelow(2**30) + 2**30
         await super().init(shelf_file)
+        # Subscription ids too (asyncua starts at 78 in every process): a client's TransferSubscriptions
+        # after a restart must not name, and take over, another client's new subscription.
+        self.iserver.subscription_service._sub_id_counter = secrets.randbelow(2**30) + 2**20
         service = self.iserver.attribute_service
         read = service.read
         service.read = lambda params: with_timestamps(params, read(params))  # type: ignore[method-assign]
