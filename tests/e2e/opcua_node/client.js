@@ -3,6 +3,9 @@
 // on stdout. Anything else node-opcua says goes to stderr.
 "use strict";
 const readline = require("readline");
+// node-opcua writes its warnings with console.log: stdout is this script's protocol, so they go to stderr.
+const toStderr = (...args) => process.stderr.write(args.map(String).join(" ") + "\n");
+console.log = console.info = console.warn = console.debug = toStderr;
 const {
     OPCUAClient,
     AttributeIds,
