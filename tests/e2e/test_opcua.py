@@ -266,7 +266,7 @@ def node_opcua() -> Any:
         c.close()
 
 
-def test_two_independent_clients_see_machinery_timestamps_alarms_checked_methods_and_a_restart(
+def test_two_independent_clients_see_machinery_timestamps_alarms_and_checked_methods(
     opcua_cell: Any, node_opcua: Any, tmp_path: Path
 ) -> None:
     cell, endpoint, ear = opcua_cell(CMM, WC1)
