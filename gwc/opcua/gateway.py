@@ -37,7 +37,7 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module, module_name
-from gwc.opcua import model, security
+from gwc.opcua import model, security, store
 from gwc.opcua.settings import load_settings
 from gwc.opcua.space import (
     ALARM,
@@ -79,41 +79,6 @@ PRIORITIES = (1, 1000)  # a work order's priority (0: the cell's default, 20)
 ACKNOWLEDGE = ua.ObjectIds.AcknowledgeableConditionType_Acknowledge
 CONFIRM = ua.ObjectIds.AcknowledgeableConditionType_Confirm
 CONDITION_ARGS = [("EventId", V.ByteString, "the event"), ("Comment", V.LocalizedText, "a comment")]
-
-MACHINES_SQL = """
-select s.machine_id, s.status, s.recipe_id, s.machine_run_id, s.start_time, s.end_time, s.note, s.updated_at,
-       s.runs_since_maintenance, s.scrap_count, s.maintenance_every,
-       (select count(*) from machine_run_outcome o where o.machine_id = s.machine_id) as runs,
-       coalesce((select string_agg(a.op_type, ',' order by a.op_type) from accept_types a
-                 where a.machine_id = s.machine_id), '') as accepts
-  from machine_status s where s.machine_id = any(%s)
-"""
-LAST_RUNS_SQL = """
-select distinct on (machine_id) machine_id, machine_run_id, ack_code, note, ended_at
-  from machine_run_outcome where machine_id = any(%s) order by machine_id, ended_at desc
-"""
-RESULTS_SQL = """
-select machine_id, param, value from machine_run_result
- where (machine_run_id, machine_id) in (select * from unnest(%s::bigint[], %s::text[])) order by param
-"""
-ALARMS_SQL = """
-select a.alarm_no, a.alarm_id, a.machine_id, a.alarm_text, a.raised_by, a.raised_at,
-       coalesce(d.severity, 'warning') as severity
-  from alarms a left join alarm_description d using (alarm_id) where a.cleared_at is null order by a.alarm_no
-"""
-LOTS_SQL = """
-select s.entity_id, s.lot_id, s.state, s.reason, s.updated_at, l.product_id, l.work_order_id, l.owner,
-       l.priority, l.quantity
-  from lot_status s join lots l using (lot_id) join lot_entities e using (entity_id)
- where e.destroyed_at is null
-   and (s.state not in ('exported', 'failed') or s.updated_at > now() - make_interval(secs => %s))
-"""
-
-
-def _rows(cur: Any, sql: str, *params: Any) -> list[dict[str, Any]]:
-    cur.execute(sql, params)
-    cols = [d.name for d in cur.description or []]
-    return [dict(zip(cols, r)) for r in cur.fetchall()]
 
 
 def result(code: str | int, note: str = "", *more: ua.Variant) -> ua.CallMethodResult:
@@ -380,9 +345,11 @@ class Gateway(Module):
         heard = dict(self._heard)
 
         def read(cur: Any) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
-            machines = _rows(cur, MACHINES_SQL, self.machine_ids)
-            last = _rows(cur, LAST_RUNS_SQL, self.machine_ids)
-            results = _rows(cur, RESULTS_SQL, [r["machine_run_id"] for r in last], [r["machine_id"] for r in last])
+            machines = store.rows(cur, store.MACHINES_SQL, self.machine_ids)
+            last = store.rows(cur, store.LAST_RUNS_SQL, self.machine_ids)
+            results = store.rows(
+                cur, store.RESULTS_SQL, [r["machine_run_id"] for r in last], [r["machine_id"] for r in last]
+            )
             return machines, last, results
 
         machines, last, results = await self._read(read)
@@ -412,7 +379,7 @@ class Gateway(Module):
 
     async def _refresh_alarms(self) -> None:
         cleared = self._cleared
-        rows = await self._read(lambda cur: _rows(cur, ALARMS_SQL))
+        rows = await self._read(lambda cur: store.rows(cur, store.ALARMS_SQL))
         if cleared != self._cleared:  # an ALARM_CLE came while we read
             self._poke("alarms")
             return
@@ -476,7 +443,7 @@ class Gateway(Module):
     async def _refresh_lots(self) -> None:
         sp, types = self.space, self.types
         assert sp is not None and types is not None
-        rows = await self._read(lambda cur: _rows(cur, LOTS_SQL, self.settings.keep_done))
+        rows = await self._read(lambda cur: store.rows(cur, store.LOTS_SQL, self.settings.keep_done))
         now = {int(r["entity_id"]): r for r in rows}
         for entity, lot in list(self.entities.items()):
             if entity not in now or int(now[entity]["lot_id"]) != lot:
