@@ -74,6 +74,7 @@ SEVERITY = {"note": 200, "warning": 500, "error": 800}  # OPC UA event severity,
 COMPLETE_WAIT = 0.5
 OUT = [("ack_code", V.String, "the cell's ack code"), ("note", V.String, "what the cell said")]
 MethodResult = Awaitable[ua.CallMethodResult]
+READ_DRAIN = 5.0  # s the shutdown waits for a read of the tables in progress
 PRIORITIES = (1, 1000)  # a work order's priority (0: the cell's default, 20)
 # Part 9's methods of a condition, as asyncua's standard address space numbers them.
 ACKNOWLEDGE = ua.ObjectIds.AcknowledgeableConditionType_Acknowledge
@@ -141,6 +142,7 @@ class Gateway(Module):
         self._heard: dict[str, int] = dict.fromkeys(self.machine_ids, 0)  # UPD_ME_ST heard per machine
         self._cleared = 0  # ALARM_CLE heard
         self._refresher: asyncio.Task[None] | None = None
+        self._reading: asyncio.Future[Any] | None = None  # the read of the tables in its thread, if any
 
     def handlers(self) -> dict[str, Handler]:
         return dict.fromkeys(LISTENS, self.heard)
@@ -164,6 +166,10 @@ class Gateway(Module):
     async def on_shutdown(self) -> str | None:
         if self._refresher is not None:
             self._refresher.cancel()
+        if self._reading is not None and not self._reading.done():
+            # The module closes its connection once this returns: not while a read still uses it in
+            # its thread (that held the process's exit for seconds past "Stopped").
+            await asyncio.wait({self._reading}, timeout=READ_DRAIN)
         if self.server is not None:
             began = time.monotonic()
             await self.server.stop()
@@ -327,7 +333,8 @@ class Gateway(Module):
         """One read of the tables, in a thread: the OPC UA server shares this event loop, and its
         notifications must not wait while PostgreSQL answers. Only the refresher reads, one read at a
         time, so the module's one connection is never used by two threads at once."""
-        return await asyncio.to_thread(self.transaction, fn)
+        self._reading = asyncio.get_running_loop().run_in_executor(None, self.transaction, fn)
+        return await asyncio.shield(self._reading)  # cancelled, the refresher leaves the read to end
 
     async def _refresh(self, what: set[str]) -> None:
         if "machines" in what:
