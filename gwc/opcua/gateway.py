@@ -14,15 +14,19 @@ from __future__ import annotations
 
 import asyncio
 import copy
+import functools
+import importlib.metadata
 import json
 import logging
 import re
 import time
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
-from asyncua import Node, ua
+from asyncua import ua
 from asyncua.server.event_generator import EventGenerator
 
 from gwc.cell import hi_bus
@@ -33,21 +37,19 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module, module_name
-from gwc.opcua import security
+from gwc.opcua import model, security, store
 from gwc.opcua.settings import load_settings
 from gwc.opcua.space import (
     ALARM,
     ENTITY,
-    IDENTIFICATION,
-    ITEM_STATES,
     LAST_RUN,
     LOT,
     MACHINE,
-    OPERATION_MODES,
-    STATE,
     STATUS_LINE,
     Space,
+    check_arguments,
     machinery_state,
+    nid,
     operation_mode,
 )
 
@@ -72,41 +74,12 @@ SEVERITY = {"note": 200, "warning": 500, "error": 800}  # OPC UA event severity,
 COMPLETE_WAIT = 0.5
 OUT = [("ack_code", V.String, "the cell's ack code"), ("note", V.String, "what the cell said")]
 MethodResult = Awaitable[ua.CallMethodResult]
-
-MACHINES_SQL = """
-select s.machine_id, s.status, s.recipe_id, s.machine_run_id, s.start_time, s.end_time, s.note,
-       s.runs_since_maintenance, s.scrap_count, s.maintenance_every,
-       (select count(*) from machine_run_outcome o where o.machine_id = s.machine_id) as runs,
-       coalesce((select string_agg(a.op_type, ',' order by a.op_type) from accept_types a
-                 where a.machine_id = s.machine_id), '') as accepts
-  from machine_status s where s.machine_id = any(%s)
-"""
-LAST_RUNS_SQL = """
-select distinct on (machine_id) machine_id, machine_run_id, ack_code, note, ended_at
-  from machine_run_outcome where machine_id = any(%s) order by machine_id, ended_at desc
-"""
-RESULTS_SQL = """
-select machine_id, param, value from machine_run_result
- where (machine_run_id, machine_id) in (select * from unnest(%s::bigint[], %s::text[])) order by param
-"""
-ALARMS_SQL = """
-select a.alarm_no, a.alarm_id, a.machine_id, a.alarm_text, a.raised_by, a.raised_at,
-       coalesce(d.severity, 'warning') as severity
-  from alarms a left join alarm_description d using (alarm_id) where a.cleared_at is null order by a.alarm_no
-"""
-LOTS_SQL = """
-select s.entity_id, s.lot_id, s.state, s.reason, s.updated_at, l.product_id, l.work_order_id, l.owner,
-       l.priority, l.quantity
-  from lot_status s join lots l using (lot_id) join lot_entities e using (entity_id)
- where e.destroyed_at is null
-   and (s.state not in ('exported', 'failed') or s.updated_at > now() - make_interval(secs => %s))
-"""
-
-
-def _rows(cur: Any, sql: str, *params: Any) -> list[dict[str, Any]]:
-    cur.execute(sql, params)
-    cols = [d.name for d in cur.description or []]
-    return [dict(zip(cols, r)) for r in cur.fetchall()]
+READ_DRAIN = 5.0  # s the shutdown waits for a read of the tables in progress
+PRIORITIES = (1, 1000)  # a work order's priority (0: the cell's default, 20)
+# Part 9's methods of a condition, as asyncua's standard address space numbers them.
+ACKNOWLEDGE = ua.ObjectIds.AcknowledgeableConditionType_Acknowledge
+CONFIRM = ua.ObjectIds.AcknowledgeableConditionType_Confirm
+CONDITION_ARGS = [("EventId", V.ByteString, "the event"), ("Comment", V.LocalizedText, "a comment")]
 
 
 def result(code: str | int, note: str = "", *more: ua.Variant) -> ua.CallMethodResult:
@@ -119,6 +92,32 @@ def result(code: str | int, note: str = "", *more: ua.Variant) -> ua.CallMethodR
     )
 
 
+@dataclass
+class Condition:
+    """A pending alarm as an OPC UA condition (Part 9): the cell raises and clears it; a client may
+    acknowledge and then confirm it, which changes nothing in the cell."""
+
+    row: dict[str, Any]
+    acked: bool = False
+    confirmed: bool = False
+    comment: str = ""
+    event_ids: set[bytes] = field(default_factory=set)  # the events told of it: an Acknowledge names one
+
+
+def build_info() -> tuple[str, str, datetime]:
+    """The gateway's version, build number and build date: the gwc package's version, asyncua's,
+    and when this copy of the package was installed or checked out (its __init__'s time)."""
+    import gwc
+
+    try:
+        version = importlib.metadata.version("gwc")
+        asyncua_version = importlib.metadata.version("asyncua")
+    except importlib.metadata.PackageNotFoundError:
+        version, asyncua_version = "unknown", "unknown"
+    built = datetime.fromtimestamp(Path(gwc.__file__).stat().st_mtime, UTC)
+    return version, f"gwc {version} on asyncua {asyncua_version}", built
+
+
 class Gateway(Module):
     role = "opcua"
 
@@ -126,9 +125,12 @@ class Gateway(Module):
         super().__init__(cfg, name, log)
         self.settings = load_settings(cfg)
         self.machine_ids = [m.id for m in cfg.machines]
+        self.identification = {m.id: model.identification(cfg.cell_name, m) for m in cfg.machines}
         self.server: security.GatewayServer | None = None
         self.space: Space | None = None
-        self.alarms: dict[int, dict[str, Any]] = {}  # pending alarms, as raised to OPC UA clients
+        self.companion: model.Companion | None = None
+        self.types: model.CellTypes | None = None
+        self.alarms: dict[int, Condition] = {}  # pending alarms, as raised to OPC UA clients
         self.lots: set[int] = set()  # lots in the address space
         self.entities: dict[int, int] = {}  # entity -> lot, as in the address space
         self._alarm_events: EventGenerator | None = None
@@ -140,6 +142,7 @@ class Gateway(Module):
         self._heard: dict[str, int] = dict.fromkeys(self.machine_ids, 0)  # UPD_ME_ST heard per machine
         self._cleared = 0  # ALARM_CLE heard
         self._refresher: asyncio.Task[None] | None = None
+        self._reading: asyncio.Future[Any] | None = None  # the read of the tables in its thread, if any
 
     def handlers(self) -> dict[str, Handler]:
         return dict.fromkeys(LISTENS, self.heard)
@@ -147,19 +150,31 @@ class Gateway(Module):
     # ----------------------------------------------------------------- lifecycle
 
     async def on_startup(self) -> str:
+        began = time.monotonic()
         await self._open_server()
         await self._refresh({"machines", "alarms", "lots", "status_line"})
         self._refresher = asyncio.get_running_loop().create_task(self._refresh_loop())
-        assert self.server is not None
-        self.log.info("OPC UA server listening at %s", self.settings.endpoint)
+        assert self.server is not None and self.companion is not None
+        self.log.info(
+            "OPC UA server listening at %s (built in %.2f s, of which the companion nodesets %.2f s)",
+            self.settings.endpoint,
+            time.monotonic() - began,
+            self.companion.seconds,
+        )
         return AckCode.ACK_OK
 
     async def on_shutdown(self) -> str | None:
         if self._refresher is not None:
             self._refresher.cancel()
+        if self._reading is not None and not self._reading.done():
+            # The module closes its connection once this returns: not while a read still uses it in
+            # its thread (that held the process's exit for seconds past "Stopped").
+            await asyncio.wait({self._reading}, timeout=READ_DRAIN)
         if self.server is not None:
+            began = time.monotonic()
             await self.server.stop()
             self.server = None
+            self.log.info("OPC UA server stopped in %.2f s", time.monotonic() - began)
         return None
 
     async def on_idle(self) -> None:
@@ -178,8 +193,15 @@ class Gateway(Module):
         users = security.GatewayUsers(s, self.log)
         await users.load()
         server = security.GatewayServer(user_manager=users)  # type: ignore[arg-type]
+        server.iserver.bind_condition_methods = True  # ConditionRefresh replays the retained conditions
+        server.product_uri = security.PRODUCT_URI
+        server.manufacturer_name = "GWC (Generic WorkCell) project"
         await server.init()
         server.set_server_name(f"GWC cell {self.cfg.cell_name}")
+        version, build_number, built = build_info()
+        await server.set_build_info(
+            security.PRODUCT_URI, server.manufacturer_name, "GWC OPC UA gateway", version, build_number, built
+        )
         server.set_endpoint(s.endpoint)
         app_uri = f"urn:gwc:{self.cfg.cell_name}:opcua"
         await server.set_application_uri(app_uri)
@@ -188,37 +210,36 @@ class Gateway(Module):
         await server.load_private_key(str(key))
         server.set_security_policy(security.security_policies(s))
         server.set_identity_tokens(security.identity_tokens(s))
+        self.companion = await model.load_companion(server, self.log)
         ns = await server.register_namespace(s.namespace)
-        self.server, self.space = server, Space(server, ns)
-        await self._build(server.nodes.objects)
+        self.server, self.space = server, Space(server, ns, self.log)
+        self.types = await model.define_types(self.space)
+        await self._build()
         await server.start()
 
-    async def _build(self, objects: Node) -> None:
+    async def _build(self) -> None:
         """The fixed part of the address space (docs/opcua.md): the cell, its machines, the folders."""
-        sp = self.space
-        assert sp is not None and self.server is not None
-        cell = await sp.object(objects, "cell", "Cell", STATUS_LINE)
-        await self.server.write_attribute_value(
-            cell.nodeid,
-            ua.DataValue(ua.Variant(ua.LocalizedText(f"Cell {self.cfg.cell_name}"))),
-            ua.AttributeIds.DisplayName,
+        sp, companion, types = self.space, self.companion, self.types
+        assert sp is not None and self.server is not None and companion is not None and types is not None
+        objects = nid(ua.ObjectIds.ObjectsFolder)
+        cell = await sp.add_object(
+            objects, "cell", "Cell", types.cell, ua.ObjectIds.Organizes, f"Cell {self.cfg.cell_name}"
         )
-        machines = await sp.folder(cell, "machines", "Machines")
+        await sp.add_variables(cell, [(f"cell/{v}", v, t, ua.ObjectIds.HasComponent) for v, t in STATUS_LINE.items()])
         await sp.folder(cell, "lots", "Lots")
         await sp.folder(cell, "alarms", "Alarms")
+        machine_methods = [
+            model.MachineMethod("Start", self.start_machine, [], OUT),
+            model.MachineMethod("Stop", self.stop_machine, [], OUT),
+        ]
         for spec in self.cfg.machines:
-            path = f"machines/{spec.id}"
-            node = await sp.object(machines, path, spec.id, MACHINE)
-            ident = {"ComponentName": spec.id, "Model": spec.kind, "AssetId": spec.id, "Location": self.cfg.cell_name}
-            await sp.object(node, f"{path}/Identification", "Identification", IDENTIFICATION)
-            await sp.set_all(f"{path}/Identification", ident, IDENTIFICATION)
-            await sp.object(node, f"{path}/MachineryItemState", "MachineryItemState", STATE)
-            await sp.object(node, f"{path}/MachineryOperationMode", "MachineryOperationMode", STATE)
-            await sp.object(node, f"{path}/last_run", "last_run", LAST_RUN)
-            await sp.set(f"{path}/wc_on_bus", False)
+            methods = [
+                model.MachineMethod(m.name, functools.partial(m.callback, spec.id), m.inputs, m.outputs)
+                for m in machine_methods
+            ]
+            await model.build_machine(sp, companion, types, spec, self.identification[spec.id], methods)
+            await sp.set(f"machines/{spec.id}/wc_on_bus", False)
             await self._item_state(spec.id)
-            await sp.method(node, f"{path}/Start", "Start", self.start_machine, [], OUT)
-            await sp.method(node, f"{path}/Stop", "Stop", self.stop_machine, [], OUT)
         await sp.method(
             cell,
             "cell/EnterWorkOrder",
@@ -227,11 +248,11 @@ class Gateway(Module):
             [
                 ("customer", V.String, "customer id (gwc customer list)"),
                 ("items", V.String, "PRODUCT=QTY items, separated by spaces or commas"),
-                ("priority", V.Int32, "priority of its lots; 0 for the default"),
+                ("priority", V.Int32, f"priority of its lots, {PRIORITIES[0]}..{PRIORITIES[1]}; 0 for the default"),
             ],
             [*OUT, ("work_order_id", V.Int64, "the new work order")],
         )
-        entity = [("entity_id", V.Int64, "the lot entity")]
+        entity = [("entity_id", V.Int64, "the lot entity (1 or more)")]
         await sp.method(cell, "cell/ImportLot", "ImportLot", self.import_lot, entity, OUT)
         await sp.method(cell, "cell/ExportLot", "ExportLot", self.export_lot, entity, OUT)
         await sp.method(
@@ -239,19 +260,25 @@ class Gateway(Module):
             "cell/CancelRequest",
             "CancelRequest",
             self.cancel_request,
-            [("request_key", V.Int64, "the machine request (gwc requests)")],
+            [("request_key", V.Int64, "the machine request (gwc requests; 1 or more)")],
             OUT,
         )
         await sp.method(
-            cell, "cell/ClearAlarm", "ClearAlarm", self.clear_alarm, [("alarm_no", V.Int64, "the alarm")], OUT
+            cell,
+            "cell/ClearAlarm",
+            "ClearAlarm",
+            self.clear_alarm,
+            [("alarm_no", V.Int64, "the alarm (1 or more): clearing HOME_CMM homes and starts the CMM")],
+            OUT,
         )
         # Alarms are AlarmConditionType events emitted by the Server object (where clients subscribe
         # to events); each is a condition whose ConditionId is its node under Alarms.
         self._alarm_events = await self.server.get_event_generator(ua.ObjectIds.AlarmConditionType, ua.ObjectIds.Server)
         self._alarm_template = copy.copy(self._alarm_events.event)
-        self.server.link_method(
-            self.server.get_node(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge), self.acknowledge
-        )
+        self._alarm_template.add_property("ConfirmedState", None, V.LocalizedText)
+        self._alarm_template.add_property("ConfirmedState/Id", None, V.Boolean)
+        self.server.link_method(self.server.get_node(ACKNOWLEDGE), self.acknowledge)
+        self.server.link_method(self.server.get_node(CONFIRM), self.confirm)
 
     # ----------------------------------------------------------------- what the gateway hears
 
@@ -261,11 +288,12 @@ class Gateway(Module):
         if msg is None or self.space is None:
             return
         if conv.cls == Conv.UPD_ME_ST and msg.machine_id in self._heard:
+            at = datetime.now(UTC)  # the Machine Server broadcasts it as it commits the change
             self._heard[msg.machine_id] += 1
             path = f"machines/{msg.machine_id}"
-            await self.space.set(f"{path}/status", msg.status)
-            await self.space.set(f"{path}/machine_run_id", msg.machine_run_id)
-            await self._item_state(msg.machine_id)
+            await self.space.set(f"{path}/status", msg.status, at)
+            await self.space.set(f"{path}/machine_run_id", msg.machine_run_id, at)
+            await self._item_state(msg.machine_id, at)
             self._poke("machines", "status_line")
         elif conv.cls == Conv.ALARM_CLE:
             self._cleared += 1
@@ -305,7 +333,8 @@ class Gateway(Module):
         """One read of the tables, in a thread: the OPC UA server shares this event loop, and its
         notifications must not wait while PostgreSQL answers. Only the refresher reads, one read at a
         time, so the module's one connection is never used by two threads at once."""
-        return await asyncio.to_thread(self.transaction, fn)
+        self._reading = asyncio.get_running_loop().run_in_executor(None, self.transaction, fn)
+        return await asyncio.shield(self._reading)  # cancelled, the refresher leaves the read to end
 
     async def _refresh(self, what: set[str]) -> None:
         if "machines" in what:
@@ -323,9 +352,11 @@ class Gateway(Module):
         heard = dict(self._heard)
 
         def read(cur: Any) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
-            machines = _rows(cur, MACHINES_SQL, self.machine_ids)
-            last = _rows(cur, LAST_RUNS_SQL, self.machine_ids)
-            results = _rows(cur, RESULTS_SQL, [r["machine_run_id"] for r in last], [r["machine_id"] for r in last])
+            machines = store.rows(cur, store.MACHINES_SQL, self.machine_ids)
+            last = store.rows(cur, store.LAST_RUNS_SQL, self.machine_ids)
+            results = store.rows(
+                cur, store.RESULTS_SQL, [r["machine_run_id"] for r in last], [r["machine_id"] for r in last]
+            )
             return machines, last, results
 
         machines, last, results = await self._read(read)
@@ -334,31 +365,28 @@ class Gateway(Module):
             if self._heard[m] != heard[m]:  # a newer UPD_ME_ST came while we read: the next refresh
                 self._poke("machines")
                 continue
-            await sp.set_all(f"machines/{m}", row, MACHINE)
-            await self._item_state(m)
+            await sp.set_all(f"machines/{m}", row, MACHINE, row["updated_at"])
+            await self._item_state(m, row["updated_at"])
         for row in last:
             m = row["machine_id"]
             res = {r["param"]: r["value"] for r in results if r["machine_id"] == m}
-            await sp.set_all(f"machines/{m}/last_run", {**row, "results": json.dumps(res)}, LAST_RUN)
+            await sp.set_all(f"machines/{m}/last_run", {**row, "results": json.dumps(res)}, LAST_RUN, row["ended_at"])
 
-    async def _item_state(self, machine_id: str) -> None:
-        """The Machinery-style states of a machine, from its cell status and its WC's presence."""
-        sp = self.space
-        assert sp is not None
+    async def _item_state(self, machine_id: str, at: datetime | None = None) -> None:
+        """The Machinery states of a machine, from its cell status and its WC's presence."""
+        sp, companion = self.space, self.companion
+        assert sp is not None and companion is not None
         path = f"machines/{machine_id}"
         status = sp.value(f"{path}/status")
         state = machinery_state(status, bool(sp.value(f"{path}/wc_on_bus")))
-        mode = operation_mode(status)
-        await sp.set_all(
-            f"{path}/MachineryItemState", {"CurrentState": state, "CurrentStateNumber": ITEM_STATES[state]}, STATE
-        )
-        await sp.set_all(
-            f"{path}/MachineryOperationMode", {"CurrentState": mode, "CurrentStateNumber": OPERATION_MODES[mode]}, STATE
+        await model.set_state(sp, f"{path}/MachineryItemState", companion.item_state, state, at)
+        await model.set_state(
+            sp, f"{path}/MachineryOperationMode", companion.operation_mode, operation_mode(status), at
         )
 
     async def _refresh_alarms(self) -> None:
         cleared = self._cleared
-        rows = await self._read(lambda cur: _rows(cur, ALARMS_SQL))
+        rows = await self._read(lambda cur: store.rows(cur, store.ALARMS_SQL))
         if cleared != self._cleared:  # an ALARM_CLE came while we read
             self._poke("alarms")
             return
@@ -370,28 +398,33 @@ class Gateway(Module):
                 await self._alarm_raised(row)
 
     async def _alarm_raised(self, row: dict[str, Any]) -> None:
-        sp = self.space
-        assert sp is not None
+        sp, types = self.space, self.types
+        assert sp is not None and types is not None
         no = int(row["alarm_no"])
-        self.alarms[no] = row
-        await sp.object(sp.server.get_node(sp.nodeid("alarms")), f"alarms/{no}", f"alarm_{no}", ALARM)
-        await sp.set_all(f"alarms/{no}", row, ALARM)
-        await self._alarm_event(row, active=True, text=row["alarm_text"], at=row["raised_at"])
+        condition = self.alarms[no] = Condition(row)
+        await sp.object(sp.nodeid("alarms"), f"alarms/{no}", f"alarm_{no}", ALARM, types.alarm, ua.ObjectIds.Organizes)
+        await sp.set_all(f"alarms/{no}", row, ALARM, row["raised_at"])
+        await self._alarm_event(condition, active=True, text=row["alarm_text"], at=row["raised_at"])
         self.log.info("alarm %d %s raised to OPC UA clients", no, row["alarm_id"])
 
     async def _alarm_cleared(self, alarm_no: int, how: str) -> None:
-        row = self.alarms.pop(alarm_no, None)
-        if row is None or self.space is None:
+        condition = self.alarms.pop(alarm_no, None)
+        if condition is None or self.space is None:
             return
-        await self._alarm_event(row, active=False, text=f"{row['alarm_text']} ({how})", at=datetime.now(UTC))
+        row = condition.row
+        # The cell's clearing is the operator's act on the alarm itself: acknowledged and confirmed.
+        condition.acked = condition.confirmed = True
+        await self._alarm_event(condition, active=False, text=f"{row['alarm_text']} ({how})", at=datetime.now(UTC))
         await self.space.remove(f"alarms/{alarm_no}")
         self.log.info("alarm %d %s %s: told OPC UA clients", alarm_no, row["alarm_id"], how)
 
-    async def _alarm_event(self, row: dict[str, Any], active: bool, text: str, at: datetime) -> None:
-        """One AlarmConditionType event: raised = active and unacknowledged, retained (ConditionRefresh
-        sends it again); cleared = inactive and acknowledged (the cell clears and acknowledges at once)."""
+    async def _alarm_event(self, condition: Condition, active: bool, text: str, at: datetime) -> None:
+        """One AlarmConditionType event. Retained (ConditionRefresh sends it again) while the alarm is
+        active, or not yet acknowledged or confirmed; a cleared alarm is inactive, acknowledged and
+        confirmed (the cell clears it as one act) and no longer retained."""
         sp = self.space
         assert sp is not None and self._alarm_events is not None
+        row = condition.row
         machine = row["machine_id"]
         ev = copy.copy(self._alarm_template)
         ev.SourceNode = sp.nodeid(f"machines/{machine}" if machine in self._heard else "cell")
@@ -399,22 +432,25 @@ class Gateway(Module):
         ev.NodeId = sp.nodeid(f"alarms/{row['alarm_no']}")
         ev.ConditionName = row["alarm_id"] or "unknown"
         ev.Severity = SEVERITY.get(row["severity"], 500)
-        ev.Retain = active
+        ev.Retain = active or not condition.acked or not condition.confirmed
+        ev.Comment = ua.LocalizedText(condition.comment) if condition.comment else None
         for state, on, (yes, no) in (
             ("EnabledState", True, ("Enabled", "Disabled")),
             ("ActiveState", active, ("Active", "Inactive")),
-            ("AckedState", not active, ("Acknowledged", "Unacknowledged")),
+            ("AckedState", condition.acked, ("Acknowledged", "Unacknowledged")),
+            ("ConfirmedState", condition.confirmed, ("Confirmed", "Unconfirmed")),
         ):
             setattr(ev, state, ua.LocalizedText(yes if on else no))
             setattr(ev, f"{state}/Id", on)
         async with self._event_lock:  # the generator holds one event at a time
             self._alarm_events.event = ev
             await self._alarm_events.trigger(at, text)
+            condition.event_ids.add(ev.EventId.Value)
 
     async def _refresh_lots(self) -> None:
-        sp = self.space
-        assert sp is not None
-        rows = await self._read(lambda cur: _rows(cur, LOTS_SQL, self.settings.keep_done))
+        sp, types = self.space, self.types
+        assert sp is not None and types is not None
+        rows = await self._read(lambda cur: store.rows(cur, store.LOTS_SQL, self.settings.keep_done))
         now = {int(r["entity_id"]): r for r in rows}
         for entity, lot in list(self.entities.items()):
             if entity not in now or int(now[entity]["lot_id"]) != lot:
@@ -428,14 +464,14 @@ class Gateway(Module):
             lot = int(row["lot_id"])
             lot_path = f"lots/{lot}"
             if lot not in self.lots:
-                await sp.object(sp.server.get_node(sp.nodeid("lots")), lot_path, f"lot_{lot}", LOT)
+                await sp.object(sp.nodeid("lots"), lot_path, f"lot_{lot}", LOT, types.lot, ua.ObjectIds.Organizes)
                 self.lots.add(lot)
-            await sp.set_all(lot_path, row, LOT)
+            await sp.set_all(lot_path, row, LOT, row["updated_at"])
             path = f"{lot_path}/{entity}"
             if entity not in self.entities:
-                await sp.object(sp.server.get_node(sp.nodeid(lot_path)), path, f"entity_{entity}", ENTITY)
+                await sp.object(sp.nodeid(lot_path), path, f"entity_{entity}", ENTITY, types.entity)
                 self.entities[entity] = lot
-            await sp.set_all(path, row, ENTITY)
+            await sp.set_all(path, row, ENTITY, row["updated_at"])
 
     async def _refresh_status_line(self) -> None:
         sp = self.space
@@ -449,14 +485,10 @@ class Gateway(Module):
         except ConversationTimeout:
             return
         line = batch.first
+        # Every field of the line is written: one the server leaves out is Null, not the last value.
         await sp.set_all("cell", {k: line.fields.get(k) for k in STATUS_LINE}, STATUS_LINE)
 
     # ----------------------------------------------------------------- methods
-
-    def _machine_of(self, parent: ua.NodeId) -> str | None:
-        path = self.space.path_of(parent) if self.space else None
-        m = path.removeprefix("machines/") if path else None
-        return m if m in self._heard else None
 
     async def _converse(self, what: str, call: Callable[[], Awaitable[ua.CallMethodResult]]) -> ua.CallMethodResult:
         """Run one method's conversation; a silent module or a refusal becomes a status, logged."""
@@ -477,14 +509,11 @@ class Gateway(Module):
         return result(answer.ack_code, answer.fields.get("note") or "")
 
     async def _machine_conversation(
-        self, parent: ua.NodeId, cls: str, opener: str, done: tuple[str, ...]
+        self, machine: str, cls: str, opener: str, done: tuple[str, ...]
     ) -> ua.CallMethodResult:
         """ME_START / ME_SHUT with a machine's WC, as `gwc machine start|stop` holds it. A machine that
         takes longer than COMPLETE_WAIT (a CMM waiting to be homed, a run to finish first) answers
         GoodCompletesAsynchronously: the change will show in its status."""
-        machine = self._machine_of(parent)
-        if machine is None:
-            return result(AckCode.UNKNOWN, f"no machine at {parent.to_string()}")
         wc = module_name("wc", machine)
         if wc not in self.bus.peers():
             return result(AckCode.NOTNOW, f"{wc} is not on the bus: start its processes (gwc machine start {machine})")
@@ -494,6 +523,13 @@ class Gateway(Module):
         try:
             ack = batch.first
             if ack.ack_code == AckCode.NOTNOW:
+                if cls == Conv.ME_SHUT and self._homing(machine):
+                    # The WC is still starting: it waits for its homing alarm to be cleared.
+                    return result(
+                        AckCode.NOTNOW,
+                        f"{machine} is starting and waits to be homed (its alarm {self._homing(machine)}): "
+                        "it can be stopped once started",
+                    )
                 return result(AckCode.ACK_OK, ack.note or "nothing to do")
             if ack.ack_code != AckCode.ACK_OK:
                 return result(ack.ack_code, ack.note or "")
@@ -507,74 +543,135 @@ class Gateway(Module):
         finally:
             conv.end()
 
-    async def start_machine(self, parent: ua.NodeId) -> ua.CallMethodResult:
+    def _homing(self, machine: str) -> str | None:
+        """The alarm number of a homing alarm pending for this machine, if any."""
+        for no, c in self.alarms.items():
+            if c.row["machine_id"] == machine and str(c.row["alarm_id"]).startswith("HOME"):
+                return f"{no} {c.row['alarm_id']}"
+        return None
+
+    async def start_machine(self, machine: str) -> ua.CallMethodResult:
         return await self._converse(
-            "Start",
+            f"Start {machine}",
             lambda: self._machine_conversation(
-                parent, Conv.ME_START, Msg.STARTUP_REQUEST, (Msg.STARTUP_COMPLETE, Msg.ME_READY)
+                machine, Conv.ME_START, Msg.STARTUP_REQUEST, (Msg.STARTUP_COMPLETE, Msg.ME_READY)
             ),
         )
 
-    async def stop_machine(self, parent: ua.NodeId) -> ua.CallMethodResult:
+    async def stop_machine(self, machine: str) -> ua.CallMethodResult:
         return await self._converse(
-            "Stop",
+            f"Stop {machine}",
             lambda: self._machine_conversation(
-                parent, Conv.ME_SHUT, Msg.SHUTDOWN_REQUEST, (Msg.SHUTDOWN_COMPLETE, Msg.ME_STOPPED)
+                machine, Conv.ME_SHUT, Msg.SHUTDOWN_REQUEST, (Msg.SHUTDOWN_COMPLETE, Msg.ME_STOPPED)
             ),
         )
 
     def _by(self) -> str:
         return f"opcua:{self.cfg.cell_name}"
 
-    async def clear_alarm(self, parent: ua.NodeId, alarm_no: ua.Variant) -> ua.CallMethodResult:
+    async def clear_alarm(self, alarm_no: int) -> ua.CallMethodResult:
+        """The operator's explicit clearing of an alarm (`gwc alarm clear`): for HOME_CMM it homes and
+        starts the CMM. Never done by an Acknowledge."""
+        if alarm_no < 1:
+            return result(S.BadInvalidArgument, f"alarm_no {alarm_no}: alarm numbers are 1 or more")
         return await self._converse(
-            f"ClearAlarm({alarm_no.Value})",
+            f"ClearAlarm({alarm_no})",
             lambda: self._ask(
                 Conv.ALARM_CLR_REQ,
-                message(Msg.ALARM_CLEAR_REQUEST, alarm_no=int(alarm_no.Value), cleared_by=self._by()),
+                message(Msg.ALARM_CLEAR_REQUEST, alarm_no=alarm_no, cleared_by=self._by()),
                 "cas",
             ),
         )
 
-    async def acknowledge(self, condition: ua.NodeId, event_id: ua.Variant, comment: ua.Variant) -> ua.CallMethodResult:
-        """The standard Acknowledge of a condition: the cell's alarm is cleared (ALARM_CLR_REQ)."""
-        path = self.space.path_of(condition) if self.space else None
+    def _condition(self, object_id: ua.NodeId, given: tuple[ua.Variant, ...]) -> tuple[Condition | None, Any]:
+        """The condition an Acknowledge or Confirm names, or the refusal (a CallMethodResult)."""
+        refused = check_arguments(given, CONDITION_ARGS)
+        if refused is not None:
+            return None, refused
+        path = self.space.path_of(object_id) if self.space else None
         m = re.fullmatch(r"alarms/(\d+)", path or "")
-        if m is None:
-            return result(S.BadNodeIdUnknown, f"{condition.to_string()} is not one of the cell's alarms")
-        return await self.clear_alarm(condition, ua.Variant(int(m.group(1)), V.Int64))
+        condition = self.alarms.get(int(m.group(1))) if m else None
+        if condition is None:
+            return None, result(S.BadNodeIdUnknown, f"{object_id.to_string()} is not a pending alarm of the cell")
+        if given[0].Value not in condition.event_ids:
+            return None, result(S.BadEventIdUnknown, "no event of this condition has that EventId")
+        return condition, None
 
-    async def _decide(self, action: str, entity_id: ua.Variant) -> ua.CallMethodResult:
+    async def acknowledge(self, object_id: ua.NodeId, *given: ua.Variant) -> ua.CallMethodResult:
+        """Part 9 Acknowledge: the condition is acknowledged, nothing else. The cell's alarm stays
+        pending (clearing HOME_CMM would start the CMM: that is ClearAlarm's, an explicit act)."""
+        condition, refused = self._condition(object_id, given)
+        if condition is None:
+            self.log.warning("OPC UA Acknowledge of %s refused: %s", object_id.to_string(), refused.StatusCode.name)
+            out: ua.CallMethodResult = refused
+            return out
+        if condition.acked:
+            return result(S.BadConditionBranchAlreadyAcked, "the alarm is acknowledged already")
+        condition.acked = True
+        condition.comment = given[1].Value.Text or ""
+        no = condition.row["alarm_no"]
+        self.log.info(
+            "alarm %s %s acknowledged by an OPC UA client: %s", no, condition.row["alarm_id"], condition.comment
+        )
+        await self._alarm_event(condition, True, f"{condition.row['alarm_text']} (acknowledged)", datetime.now(UTC))
+        return result(AckCode.ACK_OK, f"alarm {no} acknowledged; it stays pending until cleared (ClearAlarm)")
+
+    async def confirm(self, object_id: ua.NodeId, *given: ua.Variant) -> ua.CallMethodResult:
+        """Part 9 Confirm: after an Acknowledge, the operator confirms the alarm was seen to."""
+        condition, refused = self._condition(object_id, given)
+        if condition is None:
+            out: ua.CallMethodResult = refused
+            return out
+        if not condition.acked:
+            return result(S.BadConditionBranchAlreadyConfirmed, "acknowledge the alarm before confirming it")
+        if condition.confirmed:
+            return result(S.BadConditionBranchAlreadyConfirmed, "the alarm is confirmed already")
+        condition.confirmed = True
+        condition.comment = given[1].Value.Text or ""
+        await self._alarm_event(condition, True, f"{condition.row['alarm_text']} (confirmed)", datetime.now(UTC))
+        return result(AckCode.ACK_OK, f"alarm {condition.row['alarm_no']} confirmed")
+
+    async def _decide(self, action: str, entity_id: int) -> ua.CallMethodResult:
+        if entity_id < 1:
+            return result(S.BadInvalidArgument, f"entity_id {entity_id}: entities are 1 or more")
         cls = Conv.IMPORT_LOT if action == "import" else Conv.EXPORT_LOT
-        first = message(Msg.LOT_DECISION, entity_id=int(entity_id.Value), action=action, by=self._by())
-        return await self._converse(f"{action} entity {entity_id.Value}", lambda: self._ask(cls, first, "ls"))
+        first = message(Msg.LOT_DECISION, entity_id=entity_id, action=action, by=self._by())
+        return await self._converse(f"{action} entity {entity_id}", lambda: self._ask(cls, first, "ls"))
 
-    async def import_lot(self, parent: ua.NodeId, entity_id: ua.Variant) -> ua.CallMethodResult:
+    async def import_lot(self, entity_id: int) -> ua.CallMethodResult:
         return await self._decide("import", entity_id)
 
-    async def export_lot(self, parent: ua.NodeId, entity_id: ua.Variant) -> ua.CallMethodResult:
+    async def export_lot(self, entity_id: int) -> ua.CallMethodResult:
         return await self._decide("export", entity_id)
 
-    async def cancel_request(self, parent: ua.NodeId, request_key: ua.Variant) -> ua.CallMethodResult:
-        first = message(Msg.CANCEL_REQUEST, request_key=int(request_key.Value), by=self._by())
-        return await self._converse(
-            f"CancelRequest({request_key.Value})", lambda: self._ask(Conv.CANCEL_RE, first, "msched")
-        )
+    async def cancel_request(self, request_key: int) -> ua.CallMethodResult:
+        if request_key < 1:
+            return result(S.BadInvalidArgument, f"request_key {request_key}: request keys are 1 or more")
+        first = message(Msg.CANCEL_REQUEST, request_key=request_key, by=self._by())
+        return await self._converse(f"CancelRequest({request_key})", lambda: self._ask(Conv.CANCEL_RE, first, "msched"))
 
-    async def enter_work_order(
-        self, parent: ua.NodeId, customer: ua.Variant, items: ua.Variant, priority: ua.Variant
-    ) -> ua.CallMethodResult:
+    async def enter_work_order(self, customer: str | None, items: str | None, priority: int) -> ua.CallMethodResult:
         """Work Order Entry by the HI's own code (it writes WORK_ORDERS as the HI, the table's owner,
-        asks the Lot Server for the lots and starts their lot scripts), in a thread: it is blocking."""
+        asks the Lot Server for the lots and starts their lot scripts), in a thread: it is blocking.
+        Everything that can be checked is checked before anything is written."""
         from gwc.client.orders import enter_order, parse_items
 
-        async def enter() -> ua.CallMethodResult:
-            parsed = parse_items(tuple(re.split(r"[\s,]+", str(items.Value or "").strip())))
-            prio = int(priority.Value) if priority.Value else None
+        if not (customer or "").strip():
+            return result(S.BadInvalidArgument, "customer: a customer id is needed (gwc customer list)")
+        if priority != 0 and not PRIORITIES[0] <= priority <= PRIORITIES[1]:
+            return result(
+                S.BadInvalidArgument, f"priority {priority}: 0 (the default) or {PRIORITIES[0]}..{PRIORITIES[1]}"
+            )
+        try:
+            parsed = parse_items(tuple(i for i in re.split(r"[\s,]+", (items or "").strip()) if i))
+        except GwcError as e:
+            return result(S.BadInvalidArgument, str(e))
+        cust = str(customer).strip()
 
+        async def enter() -> ua.CallMethodResult:
             def run() -> dict[str, Any]:
                 with hi_bus(self.cfg, self.log) as bus:
-                    return enter_order(self.cfg, self.log, bus, str(customer.Value), parsed, priority=prio)
+                    return enter_order(self.cfg, self.log, bus, cust, parsed, priority=priority or None)
 
             async with self._order_lock:  # one HI bus attachment (hi.<pid>) at a time
                 made = await asyncio.to_thread(run)
@@ -586,4 +683,4 @@ class Gateway(Module):
             )
             return result(AckCode.ACK_OK, note, ua.Variant(made["work_order_id"], V.Int64))
 
-        return await self._converse(f"EnterWorkOrder({customer.Value}, {items.Value})", enter)
+        return await self._converse(f"EnterWorkOrder({cust}, {items})", enter)

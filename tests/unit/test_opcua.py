@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
@@ -13,18 +14,22 @@ from asyncua.common.utils import Buffer
 from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.ua.ua_binary import struct_to_binary
 
+from gwc.config import MachineSpec
 from gwc.errors import ConfigError
+from gwc.opcua.model import NODESET_FILES, identification, published_nodeset
 from gwc.opcua.security import (
     CALL,
     WRITE,
     ClearText,
     GatewayRules,
     GatewayUsers,
+    certificate_names,
     hash_password,
     password_matches,
+    with_timestamps,
 )
 from gwc.opcua.settings import OpcuaSettings, load_settings
-from gwc.opcua.space import machinery_state, operation_mode
+from gwc.opcua.space import check_arguments, data_value, machinery_state, operation_mode
 from tests.conftest import make_config
 
 READ = ua.NodeId(ua.ObjectIds.ReadRequest_Encoding_DefaultBinary)
@@ -130,3 +135,73 @@ def test_bench_counts_two_changes_shown_as_one_without_losing_the_next() -> None
     seen = [(1.05, "machines/wc1/status", "Running"), (1.25, "machines/wc1/status", "Idle")]
     lat, missed = latencies(heard, seen)
     assert missed == 1 and [round(x, 3) for _, x in lat] == [0.049, 0.05]
+
+
+V = ua.VariantType
+S = ua.StatusCodes
+DECLARED = [("entity_id", V.Int64, "the lot entity"), ("note", V.String, "a note")]
+
+
+def test_method_arguments_are_checked_for_count_and_type_without_conversion() -> None:
+    good = [ua.Variant(5, V.Int64), ua.Variant("x", V.String)]
+    assert check_arguments(good, DECLARED) is None
+    assert check_arguments([ua.Variant(5, V.Int32), good[1]], DECLARED) is None  # an integer that fits
+    assert check_arguments(good[:1], DECLARED).StatusCode.value == S.BadArgumentsMissing
+    assert check_arguments([*good, good[1]], DECLARED).StatusCode.value == S.BadTooManyArguments
+    for wrong in (ua.Variant(1.5, V.Double), ua.Variant(True, V.Boolean), ua.Variant("1", V.String)):
+        refused = check_arguments([wrong, good[1]], DECLARED)
+        assert refused is not None and refused.StatusCode.value == S.BadInvalidArgument
+        assert [r.value for r in refused.InputArgumentResults] == [S.BadTypeMismatch, S.Good]
+    too_big = check_arguments([ua.Variant(2**40, V.Int64)], [("priority", V.Int32, "")])
+    assert too_big is not None and too_big.InputArgumentResults[0].value == S.BadTypeMismatch
+
+
+def test_a_null_is_a_value_less_data_value_with_both_timestamps() -> None:
+    at = datetime(2026, 1, 2, tzinfo=UTC)
+    null = data_value(None, V.String, at, at)
+    assert null.Value is None and null.SourceTimestamp == at and null.ServerTimestamp == at
+    text = data_value("Idle", V.String, at, at)
+    assert text.Value == ua.Variant("Idle", V.String)
+    assert data_value("x", V.LocalizedText, at, at).Value.Value == ua.LocalizedText("x")
+
+
+def test_read_returns_the_timestamps_asked_for() -> None:
+    at = datetime(2026, 1, 2, tzinfo=UTC)
+    stored = [
+        data_value("Idle", V.String, at, at),
+        ua.DataValue(ua.Variant(1, V.Int32)),
+        data_value(None, V.String, at, at),
+    ]
+    items = [ua.ReadValueId(NodeId=ua.NodeId(i), AttributeId=ua.AttributeIds.Value) for i in (1, 2, 3)]
+    both = with_timestamps(ua.ReadParameters(NodesToRead=items, TimestampsToReturn=ua.TimestampsToReturn.Both), stored)
+    assert both[0].SourceTimestamp == at and both[0].ServerTimestamp == at
+    assert both[1].SourceTimestamp is None and both[1].ServerTimestamp is not None  # the server's own: now
+    assert both[2].Value is None and both[2].ServerTimestamp == at
+    neither = with_timestamps(
+        ua.ReadParameters(NodesToRead=items, TimestampsToReturn=ua.TimestampsToReturn.Neither), stored
+    )
+    assert all(dv.SourceTimestamp is None and dv.ServerTimestamp is None for dv in neither)
+
+
+def test_identification_comes_from_cell_toml_checked_with_defaults_for_the_mandatory() -> None:
+    spec = MachineSpec(id="cmm_wc", kind="cmm", options={"identification": {"manufacturer": "Zeiss"}})
+    ident = identification("c1", spec)
+    assert ident["manufacturer"] == "Zeiss" and ident["serial_number"] == "cmm_wc"
+    assert ident["product_instance_uri"] == "urn:gwc:c1:machine:cmm_wc" and ident["model"] == "cmm"
+    for bad in ({"colour": "red"}, {"year_of_construction": 1e3}, {"serial_number": 7}):
+        with pytest.raises(ConfigError, match="cmm_wc"):
+            identification("c1", MachineSpec(id="cmm_wc", options={"identification": bad}))
+
+
+def test_the_published_nodesets_are_read_less_their_design_tool_only_nodes() -> None:
+    for name in NODESET_FILES:
+        text = published_nodeset(name)
+        assert "<UANodeSet" in text and 'DesignToolOnly="true"' not in text
+    assert "OPC Foundation MIT License" in published_nodeset("Opc.Ua.Machinery.NodeSet2.xml")
+
+
+def test_the_certificate_names_the_host_by_name_and_by_address() -> None:
+    dns, ips = certificate_names("opc.tcp://192.0.2.7:4840/gwc/")
+    assert "localhost" in dns and "127.0.0.1" in ips and "192.0.2.7" in ips
+    dns, ips = certificate_names("opc.tcp://cell.example:4840/gwc/")
+    assert "cell.example" in dns and "0.0.0.0" not in certificate_names("opc.tcp://0.0.0.0:4840/")[1]
