@@ -366,6 +366,8 @@ class EntityTalk(EntityCore):
             conv.end()
             m = conv.first.first
             with self._cond:
+                if m.name in (Msg.RUN_COMPLETE, Msg.UPDATE_ME_STATUS):
+                    self._heard_about[str(m.machine_id)] += 1
                 if m.name == Msg.RUN_COMPLETE and m.machine_run_id is not None:
                     key = (m.machine_id, int(m.machine_run_id))
                     self._runs[key] = m.ack_code
