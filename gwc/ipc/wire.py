@@ -238,8 +238,10 @@ def encode_parts(
     src = orig.src
     parts = [orig.prefix, b"", src, c, k, t, m, j]  # parts[1]: the rest of the fixed part, packed last
     acks = tuple(acks)
-    entries = [(cl, "") for cl in interest]
-    entries += subjects
+    entries: list[tuple[str, str]] = []
+    if interest or subjects:  # hellos only: a msg makes no list
+        entries += ((cl, "") for cl in interest)
+        entries += subjects
     try:
         if acks:
             if 0 in acks:
@@ -310,10 +312,29 @@ def decode(data: bytes) -> Envelope:
         raise MessageError(f"unknown wire version {data[3] if n > 3 else None}")
     names = _DECODED
     try:
-        (inc, src_tag, to_tag, cls_tag, subj_tag, kind, flags, seq, idx, more, part, base, to_inc, *lengths) = (
-            _FIXED.unpack_from(data, 4)
-        )
-        ls, lc, lk, lt, lm, lj, na, ni = lengths
+        (
+            inc,
+            src_tag,
+            to_tag,
+            cls_tag,
+            subj_tag,
+            kind,
+            flags,
+            seq,
+            idx,
+            more,
+            part,
+            base,
+            to_inc,
+            ls,
+            lc,
+            lk,
+            lt,
+            lm,
+            lj,
+            na,
+            ni,
+        ) = _FIXED.unpack_from(data, 4)
         if ls > MAX_NAME or lc > MAX_NAME or lk > MAX_NAME or lt > MAX_NAME or lm > MAX_NAME or lj > MAX_NAME:
             raise MessageError(f"a name is longer than {MAX_NAME} bytes")
         o = _BODY + ls
@@ -335,12 +356,15 @@ def decode(data: bytes) -> Envelope:
         o += lt
         if t1 != src_tag or t2 != cls_tag or t3 != to_tag:
             raise MessageError("a filter tag does not match its name")
-        b = data[o : e - lj]
+        o += lm
+        b = data[o - lm : o]
         msg = (names.get(b) or _decoded(b))[0]
-        b = data[e - lj : e]
-        subject, t4 = names.get(b) or _decoded(b)
-        if t4 != subj_tag:
-            raise MessageError("a filter tag does not match its name")
+        subject = ""
+        if lj or subj_tag:
+            b = data[o:e]
+            subject, t4 = names.get(b) or _decoded(b)
+            if t4 != subj_tag:
+                raise MessageError("a filter tag does not match its name")
         acks: tuple[int, ...] = ()
         if na:
             acks = _u64s(na).unpack_from(data, e)
