@@ -175,7 +175,8 @@ class EntityTalk(EntityCore):
         self._hear_now()
 
     def _unwatch(self, machine_id: str | None) -> None:
-        """Stop hearing a machine's news (None: every machine's): it is given back."""
+        """Stop hearing a machine's news (None: every machine's): it is given back. Not waited for: the
+        script goes on while the bus thread applies it (a late Run_Complete it still hears is harmless)."""
         with self._cond:
             if machine_id is None:
                 if not self._watching:
@@ -185,25 +186,29 @@ class EntityTalk(EntityCore):
                 self._watching.discard(machine_id)
             else:
                 return
-        self._hear_now()
+        self._hear_now(wait=False)
 
-    def _hear_now(self) -> None:
-        """Apply the entity's interest as it is now (on the bus thread; returns once applied)."""
+    def _hear_now(self, wait: bool = True) -> None:
+        """Apply the entity's interest as it is now, on the bus thread (returns once applied if `wait`)."""
         if self._bus is None:
             return
         if self._bus.in_bus_thread():
             self._set_interest()
-        else:
+        elif wait:
             self._bus.call(self._set_interest)
+        else:
+            self._bus.call_soon(self._set_interest)
 
     def _set_interest(self) -> None:
         """(bus thread) The interest from the entity's state, read at this moment: calls from either
         thread leave the last state applied whatever their order."""
-        assert self._bus is not None
+        blocking = self._bus
+        if blocking is None or blocking.bus.closed:
+            return
         with self._cond:
             classes = LISTENS if self._in_cell else WAITING_LISTENS
             machines = frozenset(self._watching)
-        self._bus.bus.set_interest(classes, subjects=dict.fromkeys(ABOUT_MACHINES, machines))
+        blocking.bus.set_interest(classes, subjects=dict.fromkeys(ABOUT_MACHINES, machines))
 
     # ----------------------------------------------------------------- conversations
 
@@ -484,8 +489,6 @@ class EntityTalk(EntityCore):
         """MSCHED's Machine_Req_Ack or Machine_Req_Comp for one alternative."""
         head = batch.first
         if head.name == Msg.MACHINE_REQ_COMP:
-            if head.ack_code == AckCode.ACK_OK:  # before the script hears of it and sets the machines up
-                self._watch([m.machine_id for m in batch.messages[1:] if m.name == Msg.RESERVED_MACHINE])
             await conv.send(message(Msg.REQUEST_COMP_ACK, entity_id=self.entity_id, ack_code=AckCode.ACK_OK))
         with self._cond:
             if head.name == Msg.MACHINE_REQ_ACK:
@@ -499,6 +502,10 @@ class EntityTalk(EntityCore):
             surplus = alt.group.surplus(alt) if taken and alt.group and head.name == Msg.MACHINE_REQ_COMP else []
             queued = taken and head.name == Msg.MACHINE_REQ_ACK
             self._cond.notify_all()
+        if head.name == Msg.MACHINE_REQ_COMP and head.ack_code == AckCode.ACK_OK:
+            # In this same turn of the bus's loop: whatever the script sends to the machines once woken is
+            # sent after it, so no news of a machine it sets up can come before its filter hears them.
+            self._watch([m.machine_id for m in batch.messages[1:] if m.name == Msg.RESERVED_MACHINE])
         for m in surplus:  # bound after the entity took another alternative: give it back
             self.log.warning("%s was bound after another alternative was taken: giving it back", m)
             self._unwatch(m)
