@@ -554,18 +554,24 @@ class Bus:
         """The datagram's envelope; None (counted, logged) if it is malformed."""
         try:
             return wire.decode(data)
-        except MessageError as e:  # only a key holder gets here: counted and summarised like the rest
-            self.stats["malformed"] += 1
-            self._guard.drops.drop("malformed", self._transport.source)
-            self.log.debug("dropped malformed %s (%d bytes): %s", what, len(data), e)
+        except MessageError as e:
+            self._malformed(data, what, e)
             return None
+
+    def _malformed(self, data: bytes, what: str, e: MessageError) -> None:
+        """Only a key holder gets here: counted and summarised like the rest."""
+        self.stats["malformed"] += 1
+        self._guard.drops.drop("malformed", self._transport.source)
+        self.log.debug("dropped malformed %s (%d bytes): %s", what, len(data), e)
 
     def _handle(self, data: bytes) -> None:
         opened = self._guard.open(data, False, self._transport.source)
         if opened is None:
             return
-        env = self._decode(opened[0], "datagram")
-        if env is None:
+        try:  # (not through _decode: one call less a datagram)
+            env = wire.decode(opened[0])
+        except MessageError as e:
+            self._malformed(opened[0], "datagram", e)
             return
         if env.inc == self.inc and env.src == self.name:
             return
