@@ -374,7 +374,9 @@ class Bus:
         if to is not None:
             waiting = {to}
         else:
-            waiting = {p.name for p in self._peers.values() if p.hears(cls, subject)}.union(also)
+            peers = self._peers.values()  # (Peer.hears, inline: this runs once a broadcast for every peer)
+            waiting = {p.name for p in peers if cls in p.interest or (subject in p.subjects.get(cls, ()))}
+            waiting.update(also)
         if waiting:
             batch = [start, n]
             if out.unsettled is None:
