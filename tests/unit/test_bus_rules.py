@@ -213,7 +213,7 @@ def test_a_module_hears_a_class_about_its_subjects_only_and_is_waited_for_only_t
         await known(ms, lot, whole)
         await until(lambda: ms.listeners_of("UPD_ME_ST", "wc1") == ["lot:1", "msched"], "ms to hear lot:1's subjects")
         assert ms.listeners_of("UPD_ME_ST", "wc2") == ["msched"] and ms.listeners_of("UPD_ME_ST") == ["msched"]
-        read = lot.stats["msg"]
+        read = lot.stats["msg"] - lot.stats["duplicates"]  # (a retransmission under load is read again)
         for m in ("wc1", "wc2", "wc3", "wc2"):
             sent = await ms.start("UPD_ME_ST", message("Update_ME_Status", machine_id=m, status="Idle"))
             assert set(ms._pending[max(ms._pending)].waiting) == ({"lot:1", "msched"} if m != "wc2" else {"msched"})
@@ -229,7 +229,7 @@ def test_a_module_hears_a_class_about_its_subjects_only_and_is_waited_for_only_t
         assert [c.first.first.machine_id for c in got if c and c.first] == ["wc1", "wc2", "wc3", "wc2"]
         await until(lambda: not ms._pending, "every ack")
         if TRANSPORT == "udp":  # the kernel kept wc2's news from the lot: it read two msgs, not four
-            assert lot.stats["msg"] - read == 2
+            assert lot.stats["msg"] - lot.stats["duplicates"] - read == 2
         await ms.start("UPD_ME_ST", message("Update_ME_Status", machine_id="wc3", status="Setup"))
         lot.set_interest(("MOD_DIED",), subjects={"UPD_ME_ST": ("wc1",)})  # before it could ack: its hello tells
         await until(lambda: not ms._pending, "ms to stop waiting for lot:1 about wc3")
