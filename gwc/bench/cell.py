@@ -1,8 +1,9 @@
 """`gwc bench cell`: the whole cell's cost per lot, its throughput, and how fast it routes around a death.
 
 A private cell (gwc.soak.cell) with N dummy machines whose runs take no time runs M lots of the
-soak's lot script, one lot at a time per machine (a lane each), so a lot never waits for a busy
-machine and everything it waits for is the cell itself:
+soak's lot script, one lot at a time per machine (a lane each; with `--at-once K`, K lanes, each
+lot on the next free machine in turn), so a lot never waits for a busy machine and everything it
+waits for is the cell itself:
 
 * overhead per lot: the lot script's own clock around its operation, from the machine request to
   the unreserve's answer (every conversation between: MACH_REQ, the Lot Server's state changes,
@@ -130,6 +131,7 @@ class CellBench:
         kernel_filter: bool = True,
         freezes: int = 0,
         idle_s: float = 60.0,
+        at_once: int = 0,
     ) -> None:
         self.var = var.resolve()
         self.n = machines
@@ -141,6 +143,7 @@ class CellBench:
         self.log = log
         self.say = say
         self.fast = [f"wc{i}" for i in range(1, machines + 1)]
+        self.at_once = min(at_once, machines) if at_once > 0 else machines  # lots at work at a time
         self.slow = ["slow1", "slow2"] if deaths or freezes else []
         specs = [{"id": m, "kind": "dummy", "run_time": 0.0} for m in self.fast]
         specs += [{"id": m, "kind": "dummy", "run_time": SLOW_RUN} for m in self.slow]
@@ -220,8 +223,11 @@ class CellBench:
         return states
 
     def _lots(self) -> dict[str, Any]:
-        self.say(f"running {self.m} lots, one at a time on each of {self.n} machines")
-        lane: dict[str, int | None] = {m: None for m in self.fast}
+        self.say(f"running {self.m} lots, {self.at_once} at a time, each on the next free of {self.n} machines")
+        # A lane holds one lot at a time; each new lot goes to the next machine no other lane uses, in turn,
+        # so that with fewer lanes than machines every machine works and the cell's size is what grows.
+        lane: dict[str, int | None] = {}
+        turn = itertools.cycle(self.fast)
         ordered = finished = 0
         failed: list[int] = []
         decided: set[tuple[int, str]] = set()
@@ -230,11 +236,11 @@ class CellBench:
         began = time.monotonic()
         last = began
         while finished < self.m:
-            for m, e in lane.items():
-                if e is None and ordered < self.m:
-                    lane[m] = self._order([[m]])
-                    entities.append(lane[m])  # type: ignore[arg-type]
-                    ordered += 1
+            while len(lane) < self.at_once and ordered < self.m:
+                m = next(x for x in turn if x not in lane)
+                lane[m] = self._order([[m]])
+                entities.append(lane[m])  # type: ignore[arg-type]
+                ordered += 1
             states = self._operator(decided, [e for e in lane.values() if e is not None])
             for m, e in lane.items():
                 if e is not None and states.get(e) in FINAL:
@@ -243,6 +249,7 @@ class CellBench:
                         failed.append(e)
                     lane[m] = None
                     last = time.monotonic()
+            lane = {m: e for m, e in lane.items() if e is not None}
             if time.monotonic() - last > LOT_TIMEOUT:
                 raise GwcError(f"no lot finished for {LOT_TIMEOUT:.0f}s: see {self.cell.cfg.log_dir}")
             time.sleep(POLL)
@@ -255,6 +262,7 @@ class CellBench:
             cpu["lot (its operation)"] = round(sum(lot_cpu) * 1000 / len(lot_cpu), 2)
         return {
             "machines": self.n,
+            "at_once": self.at_once,
             "lots": self.m,
             "failed": len(failed),
             "seconds": wall,
@@ -557,6 +565,13 @@ def _ms(s: dict[str, float]) -> str:
     show_default=True,
     help="Then seconds of rest: the CPU the resting cell uses (0: skip).",
 )
+@click.option(
+    "--at-once",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Lots at work at a time, each on the next free machine in turn (0: one per machine).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 def command(
     machines: int,
@@ -567,6 +582,7 @@ def command(
     kernel_filter: bool,
     freezes: int,
     idle_s: float,
+    at_once: int,
     as_json: bool,
 ) -> None:
     """Run lots through a private cell of N dummy machines: lots/s, the cell's overhead per lot
@@ -588,6 +604,7 @@ def command(
         kernel_filter,
         freezes,
         idle_s,
+        at_once,
     )
     result = bench.run()
     if as_json:
@@ -598,7 +615,7 @@ def command(
         f"{result['lots_per_s']:.2f} lots/s ({result['failed']} failed)"
     )
     click.echo(
-        f"  overhead per lot with {machines} lots at once, request to unreserve (ms): "
+        f"  overhead per lot with {result['at_once']} lots at once, request to unreserve (ms): "
         f"{_ms(result['loaded_overhead_ms'])}"
     )
     for k, v in result["loaded_phases_ms"].items():

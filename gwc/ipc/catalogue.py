@@ -413,6 +413,11 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
 
 # The conversation classes a lot entity starts or answers: all that receivers accept under the lot
 # key (docs/security.md). Everything else a lot script sends is refused Not_Auth.
+# Classes whose broadcasts are about one subject, named by a field of their first message: a module may hear
+# them about some subjects only (a lot, about its own machines). The bus puts the subject in the header, where
+# the kernel filter reads it (docs/protocol.md, "Subjects").
+SUBJECT_FIELDS: dict[str, str] = {"UPD_ME_ST": "machine_id", "RUN_COMPL": "machine_id"}
+
 LOT_CLASSES = frozenset({"MACH_REQ", "CANCEL_RE", "UNRESERVE", "SETUP_RUN", "START_RUN", "ENTITY_REQ"})
 
 

@@ -126,6 +126,7 @@ class EntityResume(EntityRuns):
             self.log.warning(
                 "operation %d (%s): run %d on %s is taken up where it is", step + 1, op_type, run, ", ".join(machines)
             )
+            self._watch(machines)
             return step, entry, Reservation(op_type, run, entry.get("request_key"), machines)
         if held:
             self.unreserve(within=self.timeouts.cleanup)

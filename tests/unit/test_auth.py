@@ -189,7 +189,7 @@ def test_the_wire_refuses_nul_and_over_long_names() -> None:
         wire.decode(wire.encode(wire.Envelope(kind="hello", src="w\0c", inc=1)))
     hello = wire.encode(wire.Envelope(kind="hello", src="wc", inc=1, interest=("X" * 200,)))
     with pytest.raises(MessageError, match="interest"):  # the encoder refuses it; a hostile sender need not
-        wire.decode(hello[:-201] + bytes([201]) + b"X" * 201)
+        wire.decode(hello[:-202] + bytes([201]) + b"X" * 201 + b"\0")  # (the entry's subject: none)
     with pytest.raises(MessageError, match="NUL"):
         catalogue.check("GET_STATUS", "Get_Status", {"machine_id": "wc1\0"})
     with pytest.raises(MessageError, match="over 200"):
