@@ -41,6 +41,7 @@ __all__ = [
     "rows_of",
     "script_alive",
     "spawn_lot_script",
+    "start_lot_scripts",
 ]
 
 
@@ -109,15 +110,21 @@ def enter_order(
             lot_id, entities = create_lot(bus, product, qty, work_order_id=wo, owner=customer, priority=priority)
         except GwcError as e:
             raise GwcError(f"work order {wo} was saved, but its lot of {product} was not created: {e}") from e
-        pids = {}
-        if start_scripts:
-            for entity in entities:
-                pids[entity] = spawn_lot_script(cfg, entity)
-                log.info("entity %d: lot script started (pid %d)", entity, pids[entity])
+        pids = start_lot_scripts(cfg, log, entities) if start_scripts else {}
         lots.append(
             {"lot_id": lot_id, "product_id": product, "quantity": qty, "entities": entities, "script_pids": pids}
         )
     return {"work_order_id": wo, "customer_id": customer, "lots": lots}
+
+
+def start_lot_scripts(cfg: Config, log: logging.Logger, entities: list[int]) -> dict[int, int]:
+    """Start the lot script process of each entity, as Work Order Entry does for an order's entities
+    (and a lot script for the children it starts: gwc.lot, start_child). Returns entity -> pid."""
+    pids = {}
+    for entity in entities:
+        pids[entity] = spawn_lot_script(cfg, entity)
+        log.info("entity %d: lot script started (pid %d)", entity, pids[entity])
+    return pids
 
 
 def decide(bus: BlockingBus, entity_id: int, action: str, by: str) -> int | None:
@@ -192,7 +199,8 @@ def list_orders(
 
 
 LOTS_SQL = """
-SELECT s.entity_id AS entity, s.lot_id AS lot, l.work_order_id AS work_order, l.product_id AS product,
+SELECT s.entity_id AS entity, s.lot_id AS lot, e.parent_entity_id AS parent, l.work_order_id AS work_order,
+       l.product_id AS product,
        l.owner, l.priority, s.state, s.reason AS result, s.script_pid,
        to_char(s.updated_at, 'HH24:MI:SS') AS since
   FROM lot_status s JOIN lots l USING (lot_id) JOIN lot_entities e USING (entity_id)

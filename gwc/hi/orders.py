@@ -124,7 +124,7 @@ def lots(entity: int | None, work_order: int | None, state: str | None, as_json:
     cfg, log = context()
     rows = list_lots(cfg, log, work_order, state, entity)
     if entity is None:
-        table(rows, ["entity", "lot", "work_order", "product", "state", "since", "script", "result"], as_json)
+        table(rows, ["entity", "lot", "parent", "work_order", "product", "state", "since", "script", "result"], as_json)
         return
     if not rows:
         raise GwcError(f"unknown lot entity {entity} (see `gwc lots`)")

@@ -412,8 +412,24 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
 
 
 # The conversation classes a lot entity starts or answers: all that receivers accept under the lot
-# key (docs/security.md). Everything else a lot script sends is refused Not_Auth.
-LOT_CLASSES = frozenset({"MACH_REQ", "CANCEL_RE", "UNRESERVE", "SETUP_RUN", "START_RUN", "ENTITY_REQ"})
+# key (docs/security.md). Everything else a lot script sends is refused Not_Auth. The server of each
+# checks that the asker lot:E holds what it asks about (Listing 1's calls, docs/lot-scripts.md): a WC
+# downloads to and uploads from a machine reserved to E; the ERS stores a proposed version only of a
+# recipe for a machine reserved to E, unapproved; the Lot Server makes a lot created by E E's child.
+LOT_CLASSES = frozenset(
+    {
+        "MACH_REQ",
+        "CANCEL_RE",
+        "UNRESERVE",
+        "SETUP_RUN",
+        "START_RUN",
+        "ENTITY_REQ",
+        "DNLD_ME",
+        "UPLD_ME",
+        "RECIPE_PUT",
+        "CREATE_LOT",
+    }
+)
 
 
 class Message:
