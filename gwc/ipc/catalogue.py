@@ -229,6 +229,16 @@ MESSAGE_CLASSES: dict[str, MessageClass] = {
         ),
         _msg("Alarm_Clear_Request", "the operator clears an alarm", alarm_no="int", cleared_by="str"),
         _msg("Alarm_Clear_Ack", **ACK),
+        _msg(
+            "Alarm_Describe",
+            "the operator describes an alarm: its text, severity and what the CAS does for it "
+            "(actions: shutdown, page); null fields are left as they are",
+            alarm_id="str",
+            alarm_text="str?",
+            severity="str?",
+            actions="list?",
+            by="str?",
+        ),
         # --- Machine Server ---
         _msg(
             "Change_Status",
@@ -374,6 +384,7 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
         _conv("ALARM_SEND", "raise an alarm", "cas", "Alarm_Send", "Alarm_Ack"),
         _conv("ALARM_CLE", "an alarm was cleared (broadcast by CAS)", "any", "Alarm_Clear"),
         _conv("ALARM_CLR_REQ", "the operator clears an alarm", "cas", "Alarm_Clear_Request", "Alarm_Clear_Ack"),
+        _conv("ALARM_DESC", "describe an alarm and its actions", "cas", "Alarm_Describe", "Alarm_Clear_Ack"),
         _conv("CHG_STATUS", "change a machine's status", "ms", "Change_Status", "Change_Status_Ack"),
         _conv("GET_STATUS", "read a machine's status", "ms", "Get_Status", "Status_Reply"),
         _conv("MAINT_DONE", "a machine was maintained", "ms", "Maint_Done", "Maint_Done_Ack"),
