@@ -31,7 +31,7 @@ from gwc.agent import control as agent_control
 from gwc.client.alarms import clear_alarm, read_status_line
 from gwc.client.machines import start_machine, stop_machine
 from gwc.client.orders import decide, enter_order
-from gwc.client.requests import cancel_request
+from gwc.client.requests import cancel_request, unreserve_machine
 from gwc.config import Config
 from gwc.errors import GwcError, Refused
 from gwc.hi.monitor import watch
@@ -334,6 +334,17 @@ class CellLink:
             return f"{in_words(ack.ack_code)}: {ack.cancelled} request(s) cancelled, the entity was told REQ_CANCEL"
 
         return self.act(f"cancel request {request_key}", go)
+
+    def unreserve_machine(self, machine_id: str) -> Answer:
+        """UNRESERVE of a machine a dead lot holds, as `gwc unreserve` (refused while its script runs)."""
+
+        def go() -> str:
+            assert self.bus is not None
+            self._need("msched")
+            entity = unreserve_machine(self.cfg, self.bus, machine_id)
+            return f"{in_words(AckCode.ACK_OK)}: {machine_id} freed (it was reserved to entity {entity})"
+
+        return self.act(f"unreserve {machine_id}", go)
 
     def enter_order(self, customer: str, items: list[tuple[str, int]]) -> Answer:
         """Work Order Entry, as `gwc order new`: the order, its lots, one lot script per entity."""

@@ -370,11 +370,14 @@ class OrdersView(View):
 
 class RequestsView(View):
     name_ = "requests"
-    columns = ("request_key", "entity_id", "op_type", "machines", "priority", "since")
-    reserved_columns = ("machine_id", "entity_id", "machine_run_id", "request_key", "since")
+    columns = ("request_key", "lot_id", "entity_id", "op_type", "machines", "priority", "since")
+    reserved_columns = ("machine_id", "lot_id", "entity_id", "entity_state", "machine_run_id", "request_key", "since")
     key = "request_key"
-    help = "MREQ: machine requests waiting (oldest first), then the reserved machines.  c cancel the request"
-    BINDINGS: ClassVar[list[BindingType]] = [("c", "cancel", "Cancel request")]
+    help = (
+        "MREQ: machine requests waiting (oldest first), then the reserved machines.  c cancel the request  "
+        "u unreserve the reserved machine (its lot script dead)"
+    )
+    BINDINGS: ClassVar[list[BindingType]] = [("c", "cancel", "Cancel request"), ("u", "unreserve", "Unreserve")]
 
     def compose(self) -> ComposeResult:
         yield from super().compose()
@@ -403,6 +406,17 @@ class RequestsView(View):
     def selected(self) -> dict[str, Any] | None:
         queue = [r for r in self.rows if "reserved" not in r]
         return selected_row(self.query_one(f"#table-{self.name_}", DataTable), queue, self.key)
+
+    def action_unreserve(self) -> None:
+        reserved = [r["reserved"] for r in self.rows if "reserved" in r]
+        row = selected_row(self.query_one("#table-reserved", DataTable), reserved, "machine_id")
+        if row:
+            machine = row["machine_id"]
+            self.console.confirm(
+                f"Unreserve {machine}, held by entity {row['entity_id']} ({row['entity_state']})? Only for an "
+                "entity whose lot script died: MSCHED may give the machine to the next request.",
+                lambda link: link.unreserve_machine(machine),
+            )
 
     def action_cancel(self) -> None:
         row = self.selected()

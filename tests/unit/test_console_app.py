@@ -130,16 +130,26 @@ def test_a_cell_not_running_and_its_database_down_are_said_and_every_action_answ
             _show(app, "alarms", [{"alarm_no": 5, "alarm_id": "HOME_CMM"}])
             await pilot.press("c")
             await pilot.press("5")
-            _show(app, "requests", [{"request_key": 17, "entity_id": 4, "op_type": "mill", "machines": "wc1"}])
+            held = {"machine_id": "wc1", "entity_id": 3, "entity_state": "failed"}
+            _show(
+                app,
+                "requests",
+                [{"request_key": 17, "entity_id": 4, "op_type": "mill", "machines": "wc1"}, {"reserved": held}],
+            )
             await pilot.press("c")
             await until(pilot.pause, lambda: isinstance(app.screen, Confirm), 5, "the question")
             await pilot.press("y")
+            await until(pilot.pause, lambda: not isinstance(app.screen, Confirm), 5, "the question answered")
+            await pilot.press("u")
+            await until(pilot.pause, lambda: isinstance(app.screen, Confirm), 5, "the unreserve question")
+            await pilot.press("y")
             said = lambda: [a.text for a in app.answers if a.text != "asking the cell ..."]
-            await until(pilot.pause, lambda: len(said()) == 3, 10, "three answers")
+            await until(pilot.pause, lambda: len(said()) == 4, 10, "four answers")
             assert sorted(said()) == [
                 "cancel request 17: msched is not on the bus: is the cell running?",
                 "clear alarm 5: cas is not on the bus: is the cell running?",
                 "import entity 4: ls is not on the bus: is the cell running?",
+                "unreserve wc1: msched is not on the bus: is the cell running?",
             ]
             assert not any(a.ok for a in app.answers if a.text in said())
             await pilot.press("q")
