@@ -14,3 +14,20 @@ insert into alarm_description (alarm_id, alarm_text, severity, actions) values
     ('MESTRT_FAIL', 'A machine refused to start (homing failed, the machine silent): see its error log',
      'error', '{page}')
 on conflict do nothing;
+
+-- 1.4.2: the Machine Server keeps track of scraps. A part is scrap by its lot's verdict (a lot script
+-- decides: mill_and_measure after three millings), not by a failed run: each report, once per
+-- (run, machine, entity), adds its parts to machine_status.scrap_count. Owned by the MS.
+create table if not exists scrap_reports (
+    machine_run_id bigint not null,
+    machine_id     text not null references me_config,
+    entity_id      bigint not null,
+    parts          int not null check (parts > 0),
+    reason         text,
+    reported_at    timestamptz not null default now(),
+    primary key (machine_run_id, machine_id, entity_id)
+);
+-- (030_roles.sql made the roles and granted reads of the tables it saw; this table is newer.)
+grant select on scrap_reports
+    to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot, gwc_opcua;
+grant insert, update, delete on scrap_reports to gwc_ms;

@@ -258,7 +258,20 @@ def selected_row(table: DataTable[Any], rows: list[dict[str, Any]], key: str) ->
 
 class MachinesView(View):
     name_ = "machines"
-    columns = ("machine_id", "kind", "status", "recipe_id", "machine_run_id", "start_time", "end_time", "accepts", "wc")
+    columns = (
+        "machine_id",
+        "kind",
+        "status",
+        "recipe_id",
+        "machine_run_id",
+        "start_time",
+        "end_time",
+        "accepts",
+        "wc",
+        "runs",
+        "maint_every",
+        "scrap",
+    )
     key = "machine_id"
     help = "MSTT: each machine's status, its current run and what it accepts.  s start  x stop"
     BINDINGS: ClassVar[list[BindingType]] = [("s", "start", "Start machine"), ("x", "stop", "Stop machine")]

@@ -257,6 +257,15 @@ MESSAGE_CLASSES: dict[str, MessageClass] = {
             "Maint_Done", "the operator maintained a machine: its run count starts again", machine_id="str", by="str?"
         ),
         _msg("Maint_Done_Ack", "runs = the count before the reset", runs="int?", **ACK),
+        _msg(
+            "Scrap_Report",
+            "a lot entity scrapped parts a machine's run made (its verdict): the machine's scrap count",
+            entity_id="int",
+            machine_id="str",
+            machine_run_id="int",
+            parts="int",
+            reason="str?",
+        ),
         # --- Lot Server ---
         _msg(
             "Create_Lot_Entity",
@@ -388,6 +397,7 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
         _conv("CHG_STATUS", "change a machine's status", "ms", "Change_Status", "Change_Status_Ack"),
         _conv("GET_STATUS", "read a machine's status", "ms", "Get_Status", "Status_Reply"),
         _conv("MAINT_DONE", "a machine was maintained", "ms", "Maint_Done", "Maint_Done_Ack"),
+        _conv("SCRAP_RPT", "a lot scrapped parts of a machine's run", "ms", "Scrap_Report", "Ack"),
         _conv("CREATE_LOT", "create a lot entity", "ls", "Create_Lot_Entity", "Create_Lot_Ack"),
         _conv(
             "ENTITY_REQ",
@@ -426,7 +436,8 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
 # key (docs/security.md). Everything else a lot script sends is refused Not_Auth. The server of each
 # checks that the asker lot:E holds what it asks about (Listing 1's calls, docs/lot-scripts.md): a WC
 # downloads to and uploads from a machine reserved to E; the ERS stores a proposed version only of a
-# recipe for a machine reserved to E, unapproved; the Lot Server makes a lot created by E E's child.
+# recipe for a machine reserved to E, unapproved; the Lot Server makes a lot created by E E's child;
+# the Machine Server takes E's scrap report in E's name only.
 LOT_CLASSES = frozenset(
     {
         "MACH_REQ",
@@ -439,6 +450,7 @@ LOT_CLASSES = frozenset(
         "UPLD_ME",
         "RECIPE_PUT",
         "CREATE_LOT",
+        "SCRAP_RPT",
     }
 )
 

@@ -73,6 +73,23 @@ class EntityHoldings(EntityRuns):
             raise StepRefused(cls, str(ack.ack_code), f"{cls} for {what} refused: {ack.ack_code} ({ack.note or '-'})")
         return ack
 
+    # ----------------------------------------------------------------- scrap
+
+    def scrap(self, machine_id: str, machine_run_id: int, parts: int = 1, reason: str | None = None) -> None:
+        """The lot's verdict: `parts` made by that run on that machine are scrap (1.4.2: the Machine
+        Server keeps track of scraps). SCRAP_RPT to the Machine Server, asked again while it is away (a
+        repeat is counted once)."""
+        msg = message(
+            Msg.SCRAP_REPORT,
+            entity_id=self.entity_id,
+            machine_id=machine_id,
+            machine_run_id=machine_run_id,
+            parts=parts,
+            reason=reason[:500] if reason else None,
+        )
+        self._checked(Conv.SCRAP_RPT, self._ask(Conv.SCRAP_RPT, msg, "ms"), f"run {machine_run_id} on {machine_id}")
+        self.log.info("scrap: %d part(s) of run %d on %s (%s)", parts, machine_run_id, machine_id, reason or "-")
+
     # ----------------------------------------------------------------- children
 
     def start_child(self, product_id: str, quantity: int = 1, script_id: str | None = None) -> list[int]:
