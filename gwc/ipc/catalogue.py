@@ -437,7 +437,8 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
 # checks that the asker lot:E holds what it asks about (Listing 1's calls, docs/lot-scripts.md): a WC
 # downloads to and uploads from a machine reserved to E; the ERS stores a proposed version only of a
 # recipe for a machine reserved to E, unapproved; the Lot Server makes a lot created by E E's child;
-# the Machine Server takes E's scrap report in E's name only.
+# the Machine Server takes E's scrap report in E's name only; the Lot Server lets E divide itself and
+# merge its own children into itself.
 LOT_CLASSES = frozenset(
     {
         "MACH_REQ",
@@ -451,6 +452,7 @@ LOT_CLASSES = frozenset(
         "RECIPE_PUT",
         "CREATE_LOT",
         "SCRAP_RPT",
+        "DIV_MERGE",
     }
 )
 

@@ -133,6 +133,37 @@ class EntityHoldings(EntityRuns):
         self._save()
         return children
 
+    def divide(self, quantity: int = 1, start_scripts: bool = True) -> list[int]:
+        """The Lot Server's division (1.4.4): `quantity` new entities split off this one, in its lot and
+        state (only while it is created or imported), each its child; their lot scripts started as
+        start_child's are, unless `start_scripts` is false. Returns the new entities."""
+        from gwc.client.lots import divide_entity
+        from gwc.client.orders import start_lot_scripts
+
+        if self._bus is None:
+            raise LotError(f"entity {self.entity_id} is not open")
+        try:
+            new = divide_entity(self._bus, self.entity_id, quantity, self.timeouts.answer)
+        except GwcError as e:
+            raise StepRefused(Conv.DIV_MERGE, str(getattr(e, "ack_code", AckCode.UNKNOWN)), str(e)) from e
+        self.log.info("divided: new entities %s", ", ".join(map(str, new)))
+        if start_scripts and new:
+            start_lot_scripts(self.cfg, self.log, new)
+        return new
+
+    def merge(self, child: int) -> None:
+        """The Lot Server's merger (1.4.4): a child of this entity (divided or started by it), of its lot
+        and state, folded into it (the child is destroyed; its script, if any, fails on its next step)."""
+        from gwc.client.lots import merge_entities
+
+        if self._bus is None:
+            raise LotError(f"entity {self.entity_id} is not open")
+        try:
+            merge_entities(self._bus, self.entity_id, child, self.timeouts.answer)
+        except GwcError as e:
+            raise StepRefused(Conv.DIV_MERGE, str(getattr(e, "ack_code", AckCode.UNKNOWN)), str(e)) from e
+        self.log.info("merged entity %d into this one", child)
+
     def wait_for_children(self, children: Sequence[int], timeout: float | None = None) -> dict[int, str]:
         """Wait until every child is done (completed, waiting for or past export, or failed), reading
         their states from the Lot Server (ENTITY_REQ state) every half second. Returns each one's state;

@@ -483,6 +483,9 @@ class LotServer(Server, Module):
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
         if req.action == "merge" and (req.other_entity_id is None or req.other_entity_id == req.entity_id):
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "merge needs another entity (other_entity_id)")
+        asker = lot_parent(conv.initiator)  # a lot script divides itself, merges its own children into itself
+        if asker is not None and req.entity_id != asker:
+            return await self.answer(conv, ack, AckCode.NOT_AUTH, f"{conv.initiator} divides and merges itself only")
 
         def lookup(cur: Any, eid: int) -> tuple[int, str] | None:
             return cur.execute(
@@ -497,6 +500,15 @@ class LotServer(Server, Module):
             if me is None or (req.action == "merge" and other is None):
                 missing = req.entity_id if me is None else req.other_entity_id
                 return AckCode.UNKNOWN, None, f"no entity {missing}"
+            if (
+                req.action == "merge"
+                and asker is not None
+                and not cur.execute(
+                    "select 1 from lot_entities where entity_id = %s and parent_entity_id = %s",
+                    (req.other_entity_id, asker),
+                ).fetchone()
+            ):
+                return AckCode.NOT_AUTH, None, f"entity {req.other_entity_id} is not a child of {conv.initiator}"
             for eid, (_lot, state) in ((req.entity_id, me), (req.other_entity_id, other or me)):
                 if state not in still:
                     return AckCode.NOTNOW, None, f"entity {eid} is {state}: only created or imported ones"
