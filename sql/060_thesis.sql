@@ -31,3 +31,11 @@ create table if not exists scrap_reports (
 grant select on scrap_reports
     to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot, gwc_opcua;
 grant insert, update, delete on scrap_reports to gwc_ms;
+
+-- Figures 6.2 and 6.3: a customer's address (Customer Entry) and a work order's due date (Work Order
+-- Entry), shown as the Due Time of Work Order Status (Figure 6.6). Owned by the HI.
+alter table customers add column if not exists address text;
+alter table customers add column if not exists city text;
+alter table customers add column if not exists state text;
+alter table customers add column if not exists zip text;
+alter table work_orders add column if not exists due_at timestamptz;

@@ -373,7 +373,7 @@ class LotsView(View):
 
 class OrdersView(View):
     name_ = "orders"
-    columns = ("work_order", "customer", "created", "items", "status", "lots")
+    columns = ("work_order", "customer", "customer_name", "due", "items", "status", "lots")
     key = "work_order"
     help = "WOSU: every work order, its items and where its lots are."
 
