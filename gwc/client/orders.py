@@ -21,7 +21,7 @@ from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.entity import create_lot, read_traveller
-from gwc.lot.run import load_script, spawn_lot_script
+from gwc.lot.run import load_script, spawn_lot_script, start_lot_scripts
 
 __all__ = [
     "add_customer",
@@ -136,16 +136,6 @@ def enter_order(
             {"lot_id": lot_id, "product_id": product, "quantity": qty, "entities": entities, "script_pids": pids}
         )
     return {"work_order_id": wo, "customer_id": customer, "lots": lots}
-
-
-def start_lot_scripts(cfg: Config, log: logging.Logger, entities: list[int]) -> dict[int, int]:
-    """Start the lot script process of each entity, as Work Order Entry does for an order's entities
-    (and a lot script for the children it starts: gwc.lot, start_child). Returns entity -> pid."""
-    pids = {}
-    for entity in entities:
-        pids[entity] = spawn_lot_script(cfg, entity)
-        log.info("entity %d: lot script started (pid %d)", entity, pids[entity])
-    return pids
 
 
 def decide(bus: BlockingBus, entity_id: int, action: str, by: str) -> int | None:

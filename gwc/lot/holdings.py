@@ -12,12 +12,14 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 
-from gwc.errors import GwcError
+from gwc.errors import GwcError, Refused
+from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import LotError, LotTimeout, StepRefused
 from gwc.lot.runs import EntityRuns
+from gwc.module import ask
 
 # A child entity is done when it is in one of these: it no longer works in the cell.
 CHILD_DONE = frozenset({LotState.COMPLETED, LotState.WAITING_EXPORT, LotState.EXPORTED, LotState.FAILED})
@@ -100,8 +102,8 @@ class EntityHoldings(EntityRuns):
         The n-th call of a script's run asks with the same request id every time, so a script its agent
         restarted gets the children its first run made, not new ones (and their scripts, running, are
         left as they are)."""
-        from gwc.client.orders import start_lot_scripts  # the HI's way: one path for every lot script
         from gwc.lot.entity import create_lot
+        from gwc.lot.run import start_lot_scripts  # the HI's way: one path for every lot script
 
         if self._bus is None:
             raise LotError(f"entity {self.entity_id} is not open")
@@ -137,8 +139,7 @@ class EntityHoldings(EntityRuns):
         """The Lot Server's division (1.4.4): `quantity` new entities split off this one, in its lot and
         state (only while it is created or imported), each its child; their lot scripts started as
         start_child's are, unless `start_scripts` is false. Returns the new entities."""
-        from gwc.client.lots import divide_entity
-        from gwc.client.orders import start_lot_scripts
+        from gwc.lot.run import start_lot_scripts  # the HI's way: one path for every lot script
 
         if self._bus is None:
             raise LotError(f"entity {self.entity_id} is not open")
@@ -154,8 +155,6 @@ class EntityHoldings(EntityRuns):
     def merge(self, child: int) -> None:
         """The Lot Server's merger (1.4.4): a child of this entity (divided or started by it), of its lot
         and state, folded into it (the child is destroyed; its script, if any, fails on its next step)."""
-        from gwc.client.lots import merge_entities
-
         if self._bus is None:
             raise LotError(f"entity {self.entity_id} is not open")
         try:
@@ -201,3 +200,38 @@ def _code_of(text: str) -> str:
         if f": {code.value}" in text:
             return code.value
     return AckCode.UNKNOWN.value
+
+
+# ----------------------------------------------------------------------------- the Lot Server's 1.4.4
+
+
+def _lot_server(bus: BlockingBus, first: Message, timeout: float, what: str) -> Message:
+    cls = Conv.DIV_MERGE if first.name == Msg.DIVIDE_MERGE else Conv.ENTITY_REQ
+    ack = bus.run(ask(bus.bus, cls, first, "ls", timeout))
+    if ack.ack_code == AckCode.UNKNOWN:
+        raise GwcError(f"{what}: {ack.note or 'unknown entity'} (see `gwc lots`)")
+    if ack.ack_code != AckCode.ACK_OK:
+        raise Refused(ack.ack_code, f"{what}: {ack.note or ack.ack_code}")
+    return ack
+
+
+def divide_entity(bus: BlockingBus, entity_id: int, quantity: int = 1, timeout: float = 10.0) -> list[int]:
+    """Divide (1.4.4): `quantity` new entities split off one that is created or imported, in its lot and
+    state, each its child. Returns the new entities (without the one divided)."""
+    msg = message(Msg.DIVIDE_MERGE, entity_id=entity_id, action="divide", quantity=quantity)
+    ack = _lot_server(bus, msg, timeout, f"divide entity {entity_id}")
+    return [int(e) for e in ack.entity_ids or [] if int(e) != entity_id]
+
+
+def merge_entities(bus: BlockingBus, entity_id: int, other_id: int, timeout: float = 10.0) -> None:
+    """Merge (1.4.4): `other_id` folded into `entity_id` (the other is destroyed); both created or
+    imported, of one lot and one state."""
+    msg = message(Msg.DIVIDE_MERGE, entity_id=entity_id, action="merge", other_entity_id=other_id)
+    _lot_server(bus, msg, timeout, f"merge entity {other_id} into {entity_id}")
+
+
+def destroy_entity(bus: BlockingBus, entity_id: int, timeout: float = 10.0) -> None:
+    """Destroy (1.4.4): an entity that is created (not started), exported or failed leaves the lists; its
+    rows stay, marked destroyed (the history keeps it)."""
+    msg = message(Msg.ENTITY_REQUEST, entity_id=entity_id, action="destroy")
+    _lot_server(bus, msg, timeout, f"destroy entity {entity_id}")

@@ -18,6 +18,7 @@ import ctypes
 import gc
 import importlib.util
 import json
+import logging
 import os
 import signal
 import sys
@@ -80,6 +81,17 @@ def spawn_lot_script(cfg: Config, entity_id: int) -> int:
     except agent_control.NoAgent:
         return spawn(cfg, lot_proc(entity_id))
     return int(answer["pids"][str(entity_id)])
+
+
+def start_lot_scripts(cfg: Config, log: logging.Logger, entities: list[int]) -> dict[int, int]:
+    """Start the lot script process of each entity: the one path for every lot script, whether Work
+    Order Entry starts an order's (gwc.client.orders) or a lot script its children (gwc.lot, start_child,
+    divide). Returns entity -> pid."""
+    pids = {}
+    for entity in entities:
+        pids[entity] = spawn_lot_script(cfg, entity)
+        log.info("entity %d: lot script started (pid %d)", entity, pids[entity])
+    return pids
 
 
 class Forked:
