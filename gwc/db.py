@@ -33,6 +33,7 @@ from urllib.parse import quote, urlsplit, urlunsplit
 import psycopg
 from psycopg import sql
 
+from gwc.budget import MAX_CONNECTIONS, plan
 from gwc.config import Config, HostSpec, shipped
 from gwc.errors import DatabaseError, DatabaseUnavailable
 from gwc.retry import Backoff
@@ -42,6 +43,7 @@ T = TypeVar("T")
 SQL_DIR = shipped("sql")
 DB_NAME = "gwc"
 SUPERUSER = "gwc"
+LOT_ROLE = "lot"  # lot scripts' role: logs in as itself, with a connection limit (_limit_lot_connections)
 PG_OS_USER = "postgres"  # who runs initdb/postgres when we are root: Debian's package creates it
 SOCKET_MAX = 107  # sun_path limit on Linux, including the terminating NUL
 INSTALL_HINT = "install the PostgreSQL server (Debian/Ubuntu: `apt-get install postgresql`)"
@@ -50,7 +52,7 @@ INSTALL_HINT = "install the PostgreSQL server (Debian/Ubuntu: `apt-get install p
 # module processes each hold a connection, hence max_connections. etc/cell.toml [database.settings]
 # adds to or overrides these (tests turn fsync off there).
 DEFAULT_SETTINGS: dict[str, Any] = {
-    "max_connections": 200,
+    "max_connections": MAX_CONNECTIONS,
     "shared_buffers": "64MB",
     "unix_socket_permissions": "0700",
 }
@@ -415,8 +417,14 @@ def database_url(cfg: Config, role: str | None = None) -> str:
         return cfg.database_url
     port = _port(cfg)
     host = cfg.database_host
-    if host is not None and host.name != cfg.host:
+    if (host is not None and host.name != cfg.host) or (role == LOT_ROLE and cfg.embedded):
+        # From another host every role logs in as itself; on the database's host lot scripts do too,
+        # so that their role's connection limit holds them to their share (_limit_lot_connections).
         user = f"gwc_{role or 'hi'}"
+        if host is None or host.name == cfg.host:
+            return f"postgresql://{user}@/{DB_NAME}?host={quote(str(cfg.run_dir), safe='')}" + (
+                f"&port={port}" if port != 5432 else ""
+            )
         password = role_passwords(cfg).get(user)
         if password is None:
             raise DatabaseError(f"no password for {user} in {_passwords_file(cfg)}: copy it from the database host")
@@ -655,9 +663,20 @@ def init_schema(cfg: Config, log: logging.Logger | None = None) -> None:
                 _register_machines(cur, cfg)
                 if cfg.database_host is not None:
                     _set_role_passwords(cur, cfg)
+                if cfg.embedded:
+                    _limit_lot_connections(cur, cfg, log)
         except psycopg.Error as e:
             raise DatabaseError(f"applying the schema failed: {_one_line(e)}") from e
     log.info("schema applied (%s)", ", ".join(p.name for p in files))
+
+
+def _limit_lot_connections(cur: psycopg.Cursor[Any], cfg: Config, log: logging.Logger) -> None:
+    """Lot scripts log in as gwc_lot, whose connection limit is their share of the budget
+    (gwc/budget.py): however many scripts run, on however many hosts, the modules and the operator
+    keep theirs. The cell's own cluster only: a plant's server is its DBA's to size (docs/operating.md)."""
+    budget = plan(cfg)
+    cur.execute(sql.SQL("alter role gwc_lot login connection limit {}").format(sql.Literal(budget.lots)))
+    log.info("database connections: %s", budget.describe())
 
 
 # What a machine of each kind can do out of the box, as the seed gives the NJIT cell's machines.

@@ -64,8 +64,10 @@ def write_cell_config(
     bus: dict[str, Any] | None = None,
     faults: dict[str, Any] | None = None,
     level: str = "note",
+    sections: dict[str, Any] | None = None,
 ) -> Config:
-    """Write var/etc/cell.toml for a private cell with a random multicast group and port."""
+    """Write var/etc/cell.toml for a private cell with a random multicast group and port (`sections`:
+    more tables, e.g. {"lots": {"max_running": 4}})."""
     bus_cfg = private_bus(peer_timeout=1.5, heartbeat=0.2, **(bus or {}))
     if faults:
         bus_cfg["faults"] = faults
@@ -78,6 +80,7 @@ def write_cell_config(
             "log": {"level": level},
             "module": [{"name": m} for m in modules],
             "machine": list(machines),
+            **(sections or {}),
         },
     )
 

@@ -38,6 +38,7 @@ from typing import Any
 from gwc.agent.child import Child, Process
 from gwc.agent.control import READY_FD, address
 from gwc.agent.states import LIVE, ProcessState
+from gwc.budget import plan
 from gwc.cell import cell_procs, hold_startup, lot_proc, pid_file, read_pid, spawn_process, write_pid_file
 from gwc.config import Config
 from gwc.errors import ConfigError, GwcError, ModuleError
@@ -46,12 +47,14 @@ from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.names import Conv, Msg
 from gwc.log import TRACE
+from gwc.lot.admission import LotQueue
 from gwc.lot.run import Forked, fork_lot_script
 from gwc.module import ask, module_name
 from gwc.servers.common import Server
 
 S = ProcessState
 OFF_BUS = ("me", "cmmsim")  # proven ready by staying alive; their WC proves the rest
+BLOCKED_SAY_S = 30.0  # s: how often the log says queued lot scripts wait for a place
 START_BOOST = 5  # a process starting is scheduled ahead of the cell (niceness this much lower) until ready
 
 
@@ -127,6 +130,9 @@ class Agent(Server):
         self.bus = Bus(self.name, cfg.bus, log)
         self._tasks: set[asyncio.Task[None]] = set()
         self.children = {p.name: Child(p, log) for p in cell_procs(cfg)}
+        self.budget = plan(cfg)
+        self.queue = LotQueue(cfg.run_dir)  # entities whose scripts wait for a place (_admit)
+        self._blocked_said = 0.0  # when the log last said the queue waits for a place
         self._stop = asyncio.Event()
         self._stopping = False
 
@@ -159,6 +165,7 @@ class Agent(Server):
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, lambda: self.spawn(self.stop_all(exit_after=True)))
             self.log.info("agent %s (pid %d) supervising %d modules", self.name, os.getpid(), len(self.children))
+            self.log.info("lot scripts: %s", self.budget.describe())
             self._adopt()
             self.spawn(self._start_all_logged())
             try:
@@ -222,6 +229,7 @@ class Agent(Server):
             await self.start_some(list(self.children), self.log.info)
         except GwcError as e:
             self.log.error("starting the host's modules: %s", e)
+        self._admit()  # the scripts an earlier agent left queued
 
     # ----------------------------------------------------------------- starting
 
@@ -308,22 +316,57 @@ class Agent(Server):
         say(f"{child.name}: {child.state} (pid {child.pid})")
 
     def spawn_lots(self, entities: list[int]) -> dict[str, int | None]:
-        """Start lot scripts (`gwc order new`, through gwc.lot.run.spawn_lot_script): watched and restarted
-        as modules are while they run, forgotten once they end of themselves. A script running already
-        is left as it is. Returns entity -> pid."""
+        """Queue lot scripts (`gwc order new`, through gwc.lot.run.spawn_lot_script) and start as many as
+        the budget has places for (_admit): watched and restarted as modules are while they run,
+        forgotten once they end of themselves. A script running already is left as it is. Returns
+        entity -> pid, None for a script that waits in the queue."""
+        for entity in entities:
+            child = self.children.get(lot_proc(entity).name)
+            if child is None or child.state not in LIVE:
+                self.queue.add(entity)
+        self._admit()
         pids: dict[str, int | None] = {}
         for entity in entities:
+            child = self.children.get(lot_proc(entity).name)
+            pids[str(entity)] = child.pid if child is not None and child.state in LIVE else None
+        return pids
+
+    def _lots_running(self) -> int:
+        """Lot scripts holding a place: running, starting, or waiting to be restarted (BACKOFF)."""
+        return sum(1 for c in self.children.values() if c.proc.kind == "lot" and c.state in (*LIVE, S.BACKOFF))
+
+    def _admit(self) -> None:
+        """Start queued lot scripts, oldest first, while fewer than the budget's run. A script that cannot be
+        started is logged and left queued (the next script's end tries again)."""
+        if self._stopping:
+            return
+        running = self._lots_running()
+        pending = self.queue.pending()
+        for entity in pending:
+            if running >= self.budget.running:
+                now = time.monotonic()
+                if now - self._blocked_said >= BLOCKED_SAY_S:
+                    self._blocked_said = now
+                    self.log.info(
+                        "lot scripts: %d running (the most at once), %d queued: the next starts when one ends",
+                        running,
+                        len(pending) - pending.index(entity),
+                    )
+                return
             proc = lot_proc(entity)
             child = self.children.setdefault(proc.name, Child(proc, self.log))
-            if child.state not in LIVE:
-                child.fails = 0
-                try:
-                    self._spawn(child, "started")
-                except OSError as e:
-                    self.children.pop(proc.name, None)
-                    raise ModuleError(f"could not start the lot script of entity {entity}: {e}") from e
-            pids[str(entity)] = child.pid
-        return pids
+            if child.state in LIVE:  # started by an earlier `gwc order new` or adopted
+                self.queue.remove(entity)
+                continue
+            child.fails = 0
+            try:
+                self._spawn(child, "started")
+            except OSError as e:
+                self.children.pop(proc.name, None)
+                self.log.error("could not start the lot script of entity %d (left queued): %s", entity, e)
+                return
+            self.queue.remove(entity)
+            running += 1
 
     async def start_some(self, names: list[str], say: Callable[[str], None]) -> None:
         """Bring modules up in cell.toml's order, each RUNNING before the next; every failure is reported."""
@@ -358,6 +401,7 @@ class Agent(Server):
             child.change_state(S.STOPPED, how if child.state == S.STOPPING else f"{how}: its work is done")
             if lot:
                 self.children.pop(child.name, None)
+                self._admit()  # its place goes to the next queued script
             return
         if child.state == S.RUNNING and time.monotonic() - child.running_at >= self.policy.start_secs:
             child.fails = 0
@@ -367,6 +411,8 @@ class Agent(Server):
             child.change_state(S.FATAL, f"{how}; {child.fails} failed starts in a row")
             text = f"{child.name} failed {child.fails} times in a row ({how}): left down"
             self.spawn(self.raise_alarm("MODULE_FATAL", text, child.proc.machine))
+            if lot:
+                self._admit()
         else:
             pause = self.policy.backoff * 2 ** (child.fails - 2)
             delay = 0.0 if child.fails == 1 else min(pause, self.policy.backoff_max)

@@ -20,8 +20,9 @@ from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv, Msg
+from gwc.lot.admission import LotQueue
 from gwc.lot.entity import create_lot, read_traveller
-from gwc.lot.run import load_script, spawn_lot_script, start_lot_scripts
+from gwc.lot.run import load_script, spawn_lot_script, spawn_lot_scripts
 
 __all__ = [
     "add_customer",
@@ -42,7 +43,7 @@ __all__ = [
     "rows_of",
     "script_alive",
     "spawn_lot_script",
-    "start_lot_scripts",
+    "spawn_lot_scripts",
 ]
 
 
@@ -131,7 +132,16 @@ def enter_order(
             lot_id, entities = create_lot(bus, product, qty, work_order_id=wo, owner=customer, priority=priority)
         except GwcError as e:
             raise GwcError(f"work order {wo} was saved, but its lot of {product} was not created: {e}") from e
-        pids = start_lot_scripts(cfg, log, entities) if start_scripts else {}
+        pids: dict[int, int | None] = {}
+        if start_scripts:
+            pids = spawn_lot_scripts(cfg, entities)
+            started = [e for e, pid in pids.items() if pid is not None]
+            log.info(
+                "lot %d: %d lot scripts started, %d queued (they start as others end)",
+                lot_id,
+                len(started),
+                len(entities) - len(started),
+            )
         lots.append(
             {"lot_id": lot_id, "product_id": product, "quantity": qty, "entities": entities, "script_pids": pids}
         )
@@ -223,7 +233,10 @@ SELECT s.entity_id AS entity, s.lot_id AS lot, e.parent_entity_id AS parent, l.w
 
 
 def script_alive(cfg: Config, entity_id: int, pid: int | None) -> str:
-    """The entity's lot script pid, and whether that process still runs."""
+    """The entity's lot script pid, and whether that process still runs; "queued" while it waits for a
+    place (gwc/lot/admission.py)."""
+    if entity_id in LotQueue(cfg.run_dir):
+        return "queued"
     if pid is None:
         return "-"
     st = read_pid(cfg, f"lot:{entity_id}")

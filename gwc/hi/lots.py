@@ -9,7 +9,7 @@ from typing import Any
 import click
 
 from gwc.client.lots import destroy_entity, divide_entity, merge_entities
-from gwc.client.orders import list_lots, start_lot_scripts
+from gwc.client.orders import list_lots, spawn_lot_scripts
 from gwc.client.session import hi_bus, need_server
 from gwc.hi import context
 from gwc.hi.orders import lots as dispatch_list
@@ -56,8 +56,8 @@ def lots_divide(entity: int, quantity: int, no_scripts: bool) -> None:
     click.echo(f"entity {entity} divided: new entities {', '.join(map(str, new))}")
     running = any(r["script"] not in ("-",) and "ended" not in r["script"] for r in list_lots(cfg, log, entity=entity))
     if new and running and not no_scripts:
-        pids: dict[int, Any] = start_lot_scripts(cfg, log, new)
-        click.echo("lot scripts started: " + ", ".join(f"{e} (pid {p})" for e, p in pids.items()))
+        pids: dict[int, Any] = spawn_lot_scripts(cfg, new)
+        click.echo("lot scripts started: " + ", ".join(f"{e} (pid {p or 'queued'})" for e, p in pids.items()))
 
 
 @lots.command("merge")

@@ -83,9 +83,18 @@ def order_new(
     for lot in result["lots"]:
         ents = ", ".join(str(e) for e in lot["entities"])
         click.echo(f"  lot {lot['lot_id']}: {lot['quantity']} x {lot['product_id']} (entities {ents})")
+        queued = [str(e) for e, pid in lot["script_pids"].items() if pid is None]
         for e, pid in lot["script_pids"].items():
-            click.echo(f"    entity {e}: lot script started (pid {pid})")
+            if pid is not None:
+                click.echo(f"    entity {e}: lot script started (pid {pid})")
+        if queued:
+            click.echo(f"    entities {_span(queued)}: lot scripts queued (each starts as another ends)")
     click.echo("the lots will ask to be imported: see `gwc lots`, then `gwc import ENTITY` (or --all)")
+
+
+def _span(ids: list[str]) -> str:
+    """A list of entity ids, shortened: 7, 8, 9 ... 200 (194 in all)."""
+    return ", ".join(ids) if len(ids) <= 6 else f"{', '.join(ids[:3])} ... {ids[-1]} ({len(ids)} in all)"
 
 
 @order.command("list")
@@ -166,6 +175,8 @@ def _decide_command(action: str, entities: tuple[int, ...], all_waiting: bool) -
     waiting = LotState.WAITING_IMPORT if action == "import" else LotState.WAITING_EXPORT
     if all_waiting:
         entities = tuple(r["entity"] for r in list_lots(cfg, log, state=waiting))
+        if action == "import":  # and those whose scripts have not asked yet (queued): imported ahead
+            entities += tuple(r["entity"] for r in list_lots(cfg, log, state=LotState.CREATED))
         if not entities:
             click.echo(f"no entity is {waiting}")
             return
@@ -180,9 +191,15 @@ def _decide_command(action: str, entities: tuple[int, ...], all_waiting: bool) -
 
 @click.command("import")
 @click.argument("entities", type=int, nargs=-1)
-@click.option("--all", "all_waiting", is_flag=True, help="Import every entity waiting to be imported.")
+@click.option(
+    "--all",
+    "all_waiting",
+    is_flag=True,
+    help="Import every entity waiting to be imported, and ahead every one whose script has not asked yet.",
+)
 def import_lot(entities: tuple[int, ...], all_waiting: bool) -> None:
-    """Import lot entities into the cell (IMPL): each must be waiting_import."""
+    """Import lot entities into the cell (IMPL): each waiting_import, or created (imported ahead of its
+    script's request: a queued script finds its entity imported when it starts)."""
     _decide_command("import", entities, all_waiting)
 
 

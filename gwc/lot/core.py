@@ -35,6 +35,11 @@ from gwc.lot.model import (
     save_traveller,
 )
 
+# PostgreSQL's refusal when a role's connection limit is reached (gwc_lot's: gwc/budget.py).
+OVER_BUDGET = "too many connections for role"
+BUDGET_PAUSE_S = 0.5  # s between tries while the lot scripts' connections are all taken
+BUDGET_SAY_S = 30.0  # s: how often the lot's log says it still waits for one
+
 
 class EntityCore:
     """What every step of an operation entity stands on: state, reads, record, waits."""
@@ -96,10 +101,17 @@ class EntityCore:
         """Read rows. A database away is read again after a pause, as a server away is asked again, for
         `within` seconds (Timeouts.retry by default; 0 for a read that is only a fallback)."""
         backoff = self.timeouts.asking(within)
+        said = 0.0
         while True:
             try:
                 return db.transaction(self._db, db.Statement(sql, params, "all"), log=self.log)
             except DatabaseUnavailable as e:
+                if OVER_BUDGET in str(e):  # lot scripts' share of the connections is taken: wait, never fail
+                    if time.monotonic() - said >= BUDGET_SAY_S:
+                        said = time.monotonic()
+                        self.log.warning("lot scripts hold every connection they may (gwc/budget.py): waiting")
+                    time.sleep(BUDGET_PAUSE_S)
+                    continue
                 pause = backoff.next()
                 if pause is None:
                     raise

@@ -188,9 +188,10 @@ class OperationEntity(EntityResume):
             self.log.info("entity %d already imported (%s)", self.entity_id, state)
         else:
             if state != S.WAITING_IMPORT:
-                self.entity_request("import")
-            self.log.info("entity %d waiting to be imported", self.entity_id)
-            self._wait_moved("import", IMPORTED, timeout or self.timeouts.import_)
+                self.entity_request("import")  # imported ahead by the operator meanwhile: ALREADY
+            if self.state not in IMPORTED:
+                self.log.info("entity %d waiting to be imported", self.entity_id)
+                self._wait_moved("import", IMPORTED, timeout or self.timeouts.import_)
             self._set_state(S.IMPORTED)
             self.log.info("entity %d imported (lot %s)", self.entity_id, self.lot_id)
         self._listen_in_cell()

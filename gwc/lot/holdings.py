@@ -103,7 +103,7 @@ class EntityHoldings(EntityRuns):
         restarted gets the children its first run made, not new ones (and their scripts, running, are
         left as they are)."""
         from gwc.lot.entity import create_lot
-        from gwc.lot.run import start_lot_scripts  # the HI's way: one path for every lot script
+        from gwc.lot.run import spawn_lot_scripts  # the HI's way: one path (and queue) for every lot script
 
         if self._bus is None:
             raise LotError(f"entity {self.entity_id} is not open")
@@ -122,14 +122,14 @@ class EntityHoldings(EntityRuns):
             )
         except LotError as e:
             raise StepRefused(Conv.CREATE_LOT, _code_of(str(e)), str(e)) from e
-        started = start_lot_scripts(self.cfg, self.log, children)
+        started = spawn_lot_scripts(self.cfg, children)
         self.log.info(
             "lot %d of %d %s started as children: entities %s (pids %s)",
             lot_id,
             quantity,
             product_id,
             ", ".join(map(str, children)),
-            ", ".join(str(started[c]) for c in children),
+            ", ".join(str(started[c] or "queued") for c in children),
         )
         self.traveller.setdefault("children", []).extend(children)
         self._save()
@@ -139,7 +139,7 @@ class EntityHoldings(EntityRuns):
         """The Lot Server's division (1.4.4): `quantity` new entities split off this one, in its lot and
         state (only while it is created or imported), each its child; their lot scripts started as
         start_child's are, unless `start_scripts` is false. Returns the new entities."""
-        from gwc.lot.run import start_lot_scripts  # the HI's way: one path for every lot script
+        from gwc.lot.run import spawn_lot_scripts  # the HI's way: one path (and queue) for every lot script
 
         if self._bus is None:
             raise LotError(f"entity {self.entity_id} is not open")
@@ -149,7 +149,7 @@ class EntityHoldings(EntityRuns):
             raise StepRefused(Conv.DIV_MERGE, str(getattr(e, "ack_code", AckCode.UNKNOWN)), str(e)) from e
         self.log.info("divided: new entities %s", ", ".join(map(str, new)))
         if start_scripts and new:
-            start_lot_scripts(self.cfg, self.log, new)
+            spawn_lot_scripts(self.cfg, new)
         return new
 
     def merge(self, child: int) -> None:

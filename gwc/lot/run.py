@@ -18,7 +18,6 @@ import ctypes
 import gc
 import importlib.util
 import json
-import logging
 import os
 import signal
 import sys
@@ -73,25 +72,21 @@ def load_script(path: Path) -> ModuleType:
     return module
 
 
-def spawn_lot_script(cfg: Config, entity_id: int) -> int:
+def spawn_lot_script(cfg: Config, entity_id: int) -> int | None:
     """Start the entity's lot script process with a pid file (so `gwc stop` stops it too): by this host's
-    agent when one runs, which restarts it if it is killed (docs/reliability.md); else detached."""
+    agent when one runs, which restarts it if it is killed (docs/reliability.md) and queues it while the
+    most scripts it runs at once are running (None: queued, gwc/lot/admission.py); else detached."""
+    return spawn_lot_scripts(cfg, [entity_id])[entity_id]
+
+
+def spawn_lot_scripts(cfg: Config, entities: list[int]) -> dict[int, int | None]:
+    """spawn_lot_script for many entities in one call to the agent: entity -> pid, None if queued."""
     try:
-        answer = agent_control.call(cfg, "lots", entities=[entity_id], timeout=30.0)
+        answer = agent_control.call(cfg, "lots", entities=entities, timeout=30.0)
     except agent_control.NoAgent:
-        return spawn(cfg, lot_proc(entity_id))
-    return int(answer["pids"][str(entity_id)])
-
-
-def start_lot_scripts(cfg: Config, log: logging.Logger, entities: list[int]) -> dict[int, int]:
-    """Start the lot script process of each entity: the one path for every lot script, whether Work
-    Order Entry starts an order's (gwc.client.orders) or a lot script its children (gwc.lot, start_child,
-    divide). Returns entity -> pid."""
-    pids = {}
-    for entity in entities:
-        pids[entity] = spawn_lot_script(cfg, entity)
-        log.info("entity %d: lot script started (pid %d)", entity, pids[entity])
-    return pids
+        return {e: spawn(cfg, lot_proc(e)) for e in entities}
+    pids = answer["pids"]
+    return {e: None if pids[str(e)] is None else int(pids[str(e)]) for e in entities}
 
 
 class Forked:

@@ -51,14 +51,16 @@ ACTIONS: dict[str, tuple[LotState | None, frozenset[LotState]]] = {
     "state": (None, frozenset(L)),
     "destroy": (None, frozenset({L.CREATED, L.EXPORTED, L.FAILED})),
 }
-# The operator's decisions: conversation -> action -> (the state it needs, the state it leaves, in words).
-DECISIONS: dict[str, dict[str, tuple[L, L, str]]] = {
-    Conv.IMPORT_LOT: {"import": (L.WAITING_IMPORT, L.IMPORTED, "imported")},
-    Conv.EXPORT_LOT: {"export": (L.WAITING_EXPORT, L.EXPORTED, "exported")},
+# The operator's decisions: conversation -> action -> (the states it needs, the state it leaves, in words).
+# An import may come before the entity's script asks for it (created: its script is queued, or has not
+# asked yet): the material is in the cell ahead, and the script finds itself imported when it starts.
+DECISIONS: dict[str, dict[str, tuple[frozenset[L], L, str]]] = {
+    Conv.IMPORT_LOT: {"import": (frozenset({L.WAITING_IMPORT, L.CREATED}), L.IMPORTED, "imported")},
+    Conv.EXPORT_LOT: {"export": (frozenset({L.WAITING_EXPORT}), L.EXPORTED, "exported")},
     Conv.RELEASE_LOT: {
-        "retry": (L.HELD, L.RUNNING, "released to retry"),
-        "reroute": (L.HELD, L.RUNNING, "released to reroute"),
-        "fail": (L.HELD, L.FAILED, "released as failed"),
+        "retry": (frozenset({L.HELD}), L.RUNNING, "released to retry"),
+        "reroute": (frozenset({L.HELD}), L.RUNNING, "released to reroute"),
+        "fail": (frozenset({L.HELD}), L.FAILED, "released as failed"),
     },
 }
 
@@ -435,11 +437,11 @@ class LotServer(Server, Module):
         action = req.action
         waiting, moved, done = DECISIONS[conv.cls][action]
         by = req.by or conv.peer
-        reason = f"held run {done} by {by}" if waiting == L.HELD else None
+        reason = f"held run {done} by {by}" if L.HELD in waiting else None
 
         # The move, or why not: each one statement, run alone (a refusal's read is a snapshot of its own,
         # as it was in one read-committed step).
-        row = self.transaction(_move(req.entity_id, moved, frozenset({waiting}), reason, keep=True))
+        row = self.transaction(_move(req.entity_id, moved, waiting, reason, keep=True))
         if row is not None:
             code, lot_id, note = AckCode.ACK_OK, row[0], None
         else:
@@ -453,7 +455,8 @@ class LotServer(Server, Module):
             if row is None:
                 code, lot_id, note = AckCode.UNKNOWN, None, f"no entity {req.entity_id}"
             else:
-                code, lot_id, note = AckCode.NOTNOW, row[0], f"entity {req.entity_id} is {row[1]}, not {waiting}"
+                need = " or ".join(sorted(waiting))
+                code, lot_id, note = AckCode.NOTNOW, row[0], f"entity {req.entity_id} is {row[1]}, not {need}"
         await self.answer(conv, ack, code, note, lot_id=lot_id)
         if code != AckCode.ACK_OK:
             return

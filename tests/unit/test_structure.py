@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ast
 import re
+import warnings
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -89,15 +90,19 @@ def test_the_checker_sees_relative_and_function_level_imports() -> None:
     assert [m for _, m in imports("from .. import db\n", "gwc.ipc", is_package=True)] == ["gwc.db"]
 
 
-def test_no_file_over_700_lines_and_no_class_over_40_methods() -> None:
-    big = []
+def test_no_class_over_40_methods_and_long_files_reported() -> None:
+    """A class's size is a design fact; a file's length is not (issue 37): files over 700 lines are
+    reported (a warning in the test summary), classes over 40 methods fail."""
+    big, long = [], []
     for path in sorted((ROOT / "gwc").rglob("*.py")):
         source = path.read_text()
         if (n := source.count("\n")) > MAX_LINES:
-            big.append(f"{path.relative_to(ROOT)}: {n} lines")
+            long.append(f"{path.relative_to(ROOT)}: {n} lines")
         for node in ast.walk(ast.parse(source)):
             if isinstance(node, ast.ClassDef):
                 methods = sum(isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef)) for f in node.body)
                 if methods > MAX_METHODS:
                     big.append(f"{path.relative_to(ROOT)}: class {node.name} has {methods} methods")
+    if long:
+        warnings.warn("files over 700 lines (split where a seam shows): " + "; ".join(long), stacklevel=1)
     assert not big, "split by concern (see docs/architecture.md):\n" + "\n".join(big)
