@@ -29,7 +29,7 @@ from psycopg.pq import TransactionStatus
 from gwc import cell, db
 from gwc.agent import control as agent_control
 from gwc.client.alarms import clear_alarm, read_status_line
-from gwc.client.machines import start_machine, stop_machine
+from gwc.client.machines import maintenance_done, start_machine, stop_machine
 from gwc.client.orders import decide, enter_order
 from gwc.client.requests import cancel_request, unreserve_machine
 from gwc.config import Config
@@ -253,6 +253,17 @@ class CellLink:
             return stop_machine(self.cfg, self.bus, machine_id, STOP_TIMEOUT)
 
         return self.act(f"stop machine {machine_id} (ME_SHUT)", go)
+
+    def maintenance_done(self, machine_id: str) -> Answer:
+        """MAINT_DONE, as `gwc machine maintenance-done`."""
+
+        def go() -> str:
+            assert self.bus is not None
+            self._need("ms")
+            runs = maintenance_done(self.bus, machine_id)
+            return f"{in_words(AckCode.ACK_OK)}: maintained after {runs} run(s), the count starts again"
+
+        return self.act(f"maintenance done on {machine_id}", go)
 
     def start_module(self, name: str) -> Answer:
         """A WC: ME_START. A server: through the agent where one runs (as `gwc start`), else its

@@ -273,8 +273,15 @@ class MachinesView(View):
         "scrap",
     )
     key = "machine_id"
-    help = "MSTT: each machine's status, its current run and what it accepts.  s start  x stop"
-    BINDINGS: ClassVar[list[BindingType]] = [("s", "start", "Start machine"), ("x", "stop", "Stop machine")]
+    help = (
+        "MSTT: each machine's status, its current run, what it accepts and its books.  s start  x stop  "
+        "m maintenance done"
+    )
+    BINDINGS: ClassVar[list[BindingType]] = [
+        ("s", "start", "Start machine"),
+        ("x", "stop", "Stop machine"),
+        ("m", "maintained", "Maintenance done"),
+    ]
 
     def fetch(self, link: CellLink) -> list[dict[str, Any]] | None:
         peers = set(link.peers())
@@ -300,6 +307,16 @@ class MachinesView(View):
         row = self.selected()
         if row:
             self.console.act(lambda link: link.start_machine(row["machine_id"]))
+
+    def action_maintained(self) -> None:
+        row = self.selected()
+        if row:
+            mid = row["machine_id"]
+            self.console.confirm(
+                f"Machine {mid} was maintained? Its count of runs since maintenance ({row.get('runs', '?')}) "
+                "starts again.",
+                lambda link: link.maintenance_done(mid),
+            )
 
     def action_stop(self) -> None:
         row = self.selected()

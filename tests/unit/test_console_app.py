@@ -49,6 +49,24 @@ def test_stopping_a_machine_in_a_run_asks_first_and_no_does_nothing(tmp_path: Pa
     asyncio.run(drive())
 
 
+def test_maintenance_done_asks_first_and_goes_to_the_machine_server(tmp_path: Path) -> None:
+    async def drive() -> None:
+        app = _app(tmp_path)
+        async with app.run_test(size=(140, 40)) as pilot:
+            await pilot.pause()
+            _show_machine(app, "Idle")
+            app.views()["machines"].focus_main()
+            await pilot.press("m")
+            await until(pilot.pause, lambda: isinstance(app.screen, Confirm), 5, "the question")
+            assert "wc1 was maintained" in app.screen.question  # type: ignore[attr-defined]
+            await pilot.press("y")
+            await until(pilot.pause, lambda: len(app.answers) >= 2, 10, "the answer")
+            assert app.answers[-1].text == "maintenance done on wc1: ms is not on the bus: is the cell running?"
+            await pilot.press("q")
+
+    asyncio.run(drive())
+
+
 def test_stopping_an_idle_machine_asks_nothing_and_says_why_it_cannot(tmp_path: Path) -> None:
     async def drive() -> None:
         app = _app(tmp_path)
