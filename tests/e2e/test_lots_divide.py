@@ -7,6 +7,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from gwc.client.orders import list_lots
 from tests.e2e.lotkit import gwc, import_export_all, ok, state, wait_state
 
@@ -37,6 +39,7 @@ def listed(cell: Any, state: str | None = None) -> dict[int, dict[str, Any]]:
         return {r["entity"]: r for r in list_lots(cell.cfg, cell.log, state=state, conn=conn)}
 
 
+@pytest.mark.soak  # ~45 s at load 10: a dozen `gwc` commands and a lot (suite budget)
 def test_the_operator_and_a_lot_script_divide_merge_and_destroy_entities(make_cell: Any, tmp_path: Path) -> None:
     cell = make_cell(machines=[])
     cell.start_servers()

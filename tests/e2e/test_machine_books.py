@@ -7,6 +7,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from gwc.client.machines import machine_rows
 from tests.e2e.lotkit import cell_with_machines, gwc, import_export_all, ok, order, state
 from tests.harness import wait_for
@@ -34,6 +36,7 @@ def books(cell: Any) -> dict[str, Any]:
         return next(r for r in machine_rows(conn, cell.cfg, set()) if r["machine_id"] == "wc1")
 
 
+@pytest.mark.soak  # ~40 s at load 10: a lot of two millings and six `gwc` commands (suite budget)
 def test_the_status_screen_shows_runs_and_the_lots_scrap_and_maintenance_done_restarts_the_count(
     lot_cell: Any, tmp_path: Path
 ) -> None:

@@ -6,9 +6,12 @@ from __future__ import annotations
 import json
 from typing import Any
 
+import pytest
+
 from tests.e2e.lotkit import gwc, ok
 
 
+@pytest.mark.soak  # ~45 s at load 10: nine `gwc` commands (suite budget)
 def test_a_customer_has_an_address_and_an_order_a_due_time_shown_late_when_past(make_cell: Any) -> None:
     cell = make_cell(machines=[])
     cell.start_servers("ls")
