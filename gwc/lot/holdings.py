@@ -1,10 +1,12 @@
 """The rest of Listing 1's calls: a recipe to and from a reserved machine (`ers_download`, `ers_upload`),
-a new recipe version proposed (6.1's "tweek a recipe"), and child operation entities (6.1: "an OE
-can actually start other OEs if it requires the operation of those OEs"); see docs/lot-scripts.md.
+a new recipe version proposed (6.1's "tweek a recipe"), child operation entities (6.1: "an OE can
+actually start other OEs if it requires the operation of those OEs"), the Lot Server's division and
+merger (1.4.4) and the lot's scrap for the machine's books (1.4.2); see docs/lot-scripts.md.
 
 Each is allowed under the lot key only for what the entity holds, and its server checks it: the WC
 for a machine RESERVED_MACHINES gives to the entity, the ERS for a recipe of such a machine (stored
-unapproved: the operator approves it), the Lot Server makes what the entity creates its children.
+unapproved: the operator approves it), the Lot Server makes what the entity creates its children and
+lets it divide itself and merge its own children, the Machine Server books scrap in its own name.
 """
 
 from __future__ import annotations
