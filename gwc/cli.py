@@ -21,6 +21,7 @@ COMMAND_MODULES = [
     "gwc.hi.machine",  # machine start/stop/status (MSTT)
     "gwc.hi.requests",  # machine requests and cancel (MREQ, Listing 8)
     "gwc.hi.orders",  # work orders (WOEN, WOSU), dispatch list, import/export (DISP, IMPL), lots
+    "gwc.hi.lots",  # lots divide/merge/destroy (1.4.4), around the dispatch list: after gwc.hi.orders
     "gwc.hi.alarm",  # alarms and their clearing, the status line
     "gwc.hi.recipe",  # the recipe library (ERS)
     "gwc.hi.monitor",  # the conversation monitor

@@ -30,15 +30,15 @@ from typing import Any
 
 from gwc.errors import GwcError
 from gwc.ipc.codes import MachineStatus
+from gwc.lot.holdings import EntityHoldings
 from gwc.lot.model import Operation, Reservation, Run, S, read_traveller
-from gwc.lot.runs import EntityRuns
 
 M = MachineStatus
 RUNNING = (M.RUNNING.value, M.RUN_SHUT.value)
 SET_UP = (M.SETUP.value, M.SETUP_SHUT.value)
 
 
-class EntityResume(EntityRuns):
+class EntityResume(EntityHoldings):
     """The operation steps' record, and taking a killed script's entity up again from it."""
 
     _step = 0  # the next operation step of this process

@@ -32,6 +32,7 @@ from gwc.servers.common import SERVER_TIMEOUT, Server
 
 L = LotState
 MAX_QUANTITY = 1000
+MAX_CHILDREN = 20  # entities one CREATE_LOT of a lot script may make (each is a process)
 RESTART_GRACE = 30.0  # s: a lot script its agent restarts attaches again within this (its start_timeout)
 IN_CELL = frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING, L.COMPLETED})
 # An entity in one of these needs no script any more: its death is no failure (CONTRACTS.md).
@@ -62,6 +63,12 @@ DECISIONS: dict[str, dict[str, tuple[frozenset[L], L, str]]] = {
         "fail": (frozenset({L.HELD}), L.FAILED, "released as failed"),
     },
 }
+
+
+def lot_parent(asker: str) -> int | None:
+    """The entity a conversation's asker is, when it is a lot script (lot:E): the parent of what it creates."""
+    kind, _, ent = asker.partition(":")
+    return int(ent) if kind == "lot" and ent.isdigit() else None
 
 
 def _new_lot_for(cur: Any, entity_id: int, old_lot: int) -> int:
@@ -226,6 +233,12 @@ class LotServer(Server, Module):
         if not 0 < req.quantity <= MAX_QUANTITY:
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
         params = [str(p) for p in req.result_params or []]
+        # A lot script creates its own children (6.1: "an OE can actually start other OEs"): new lots only,
+        # of its own order, each entity's parent the asker (docs/lot-scripts.md, *Child entities*).
+        parent = lot_parent(conv.initiator)
+        if parent is not None and (req.lot_id is not None or req.quantity > MAX_CHILDREN):
+            why = "a lot script creates a new lot of its own" if req.lot_id is not None else f"{MAX_CHILDREN} at most"
+            return await self.answer(conv, ack, AckCode.NOT_AUTH, why)
 
         def create(cur: Any) -> tuple[int, list[int], bool] | str:
             if req.request_id:  # asked again (the answer was lost, or we restarted): what the first one made
@@ -236,6 +249,17 @@ class LotServer(Server, Module):
                 ).fetchall()
                 if made:
                     return made[0][0], [e for _, e in made], False
+            work_order_id, owner = req.work_order_id, req.owner
+            if parent is not None:
+                of = cur.execute(
+                    "select s.state, l.work_order_id, l.owner from lot_status s join lot_entities e "
+                    "using (entity_id) join lots l on l.lot_id = s.lot_id "
+                    "where s.entity_id = %s and e.destroyed_at is null",
+                    (parent,),
+                ).fetchone()
+                if of is None or L(of[0]) not in IN_CELL:
+                    return f"entity {parent} is {of[0] if of else 'unknown'}: only an entity in the cell starts others"
+                work_order_id, owner = of[1], owner or of[2]
             product = cur.execute(
                 "select script_id, lot_type from products where product_id = %s", (req.product_id,)
             ).fetchone()
@@ -248,12 +272,10 @@ class LotServer(Server, Module):
             ):
                 return f"no lot script {req.script_id!r}"
             if (
-                req.work_order_id is not None
-                and not cur.execute(
-                    "select 1 from work_orders where work_order_id = %s", (req.work_order_id,)
-                ).fetchone()
+                work_order_id is not None
+                and not cur.execute("select 1 from work_orders where work_order_id = %s", (work_order_id,)).fetchone()
             ):
-                return f"no work order {req.work_order_id}"
+                return f"no work order {work_order_id}"
             if req.lot_id is not None:
                 lot = cur.execute("select lot_id from lots where lot_id = %s for update", (req.lot_id,)).fetchone()
                 if lot is None:
@@ -272,11 +294,11 @@ class LotServer(Server, Module):
                     (
                         lot_id,
                         req.lot_type or product[1],
-                        req.work_order_id,
+                        work_order_id,
                         req.product_id,
                         req.quantity,
                         req.priority,
-                        req.owner,
+                        owner,
                         script_id,
                         params,
                     ),
@@ -285,8 +307,9 @@ class LotServer(Server, Module):
             for unit in range(first, first + req.quantity):
                 eid = db.get_new_max_value(cur, "ENTITY_ID")
                 cur.execute(
-                    "insert into lot_entities (entity_id, lot_id, unit, create_request) values (%s, %s, %s, %s)",
-                    (eid, lot_id, unit, req.request_id),
+                    "insert into lot_entities (entity_id, lot_id, unit, create_request, parent_entity_id) "
+                    "values (%s, %s, %s, %s, %s)",
+                    (eid, lot_id, unit, req.request_id, parent),
                 )
                 cur.execute(
                     "insert into lot_status (entity_id, lot_id, state) values (%s, %s, 'created')", (eid, lot_id)
@@ -305,7 +328,7 @@ class LotServer(Server, Module):
                 len(ids),
                 "y" if len(ids) == 1 else "ies",
                 ", ".join(map(str, ids)),
-                req.owner or conv.peer,
+                str(req.owner or conv.peer) + (f", children of entity {parent}" if parent is not None else ""),
             )
         else:
             self.log.warning(
@@ -463,6 +486,9 @@ class LotServer(Server, Module):
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
         if req.action == "merge" and (req.other_entity_id is None or req.other_entity_id == req.entity_id):
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "merge needs another entity (other_entity_id)")
+        asker = lot_parent(conv.initiator)  # a lot script divides itself, merges its own children into itself
+        if asker is not None and req.entity_id != asker:
+            return await self.answer(conv, ack, AckCode.NOT_AUTH, f"{conv.initiator} divides and merges itself only")
 
         def lookup(cur: Any, eid: int) -> tuple[int, str] | None:
             return cur.execute(
@@ -477,6 +503,15 @@ class LotServer(Server, Module):
             if me is None or (req.action == "merge" and other is None):
                 missing = req.entity_id if me is None else req.other_entity_id
                 return AckCode.UNKNOWN, None, f"no entity {missing}"
+            if (
+                req.action == "merge"
+                and asker is not None
+                and not cur.execute(
+                    "select 1 from lot_entities where entity_id = %s and parent_entity_id = %s",
+                    (req.other_entity_id, asker),
+                ).fetchone()
+            ):
+                return AckCode.NOT_AUTH, None, f"entity {req.other_entity_id} is not a child of {conv.initiator}"
             for eid, (_lot, state) in ((req.entity_id, me), (req.other_entity_id, other or me)):
                 if state not in still:
                     return AckCode.NOTNOW, None, f"entity {eid} is {state}: only created or imported ones"

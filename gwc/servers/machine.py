@@ -13,10 +13,11 @@ broadcast (MSCHED then routes around it) and alarm WC_SILENT raised. Where an ag
 is known at once: an ME's death (MOD_DIED) shuts its machine down then and there. Only MSCHED
 touches reservations.
 
-And it keeps the machines' books (1.4.2): every Run_Complete counts a run since maintenance, a
-failed one a scrap too; when the runs reach the machine's maintenance_every (cell.toml
-`maintenance_every`), alarm MAINT_DUE. MAINT_DONE, the operator's word that the machine was
-maintained, starts the count again.
+And it keeps the machines' books (1.4.2): every Run_Complete counts a run since maintenance; a
+part a lot's verdict scraps (SCRAP_RPT, from the lot script) counts as the machine's scrap; when the
+runs reach the machine's maintenance_every (cell.toml `maintenance_every`), alarm MAINT_DUE. MAINT_DONE,
+the operator's word that the machine was maintained (`gwc machine maintenance-done`), starts the
+count again.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.names import Conv, Msg
-from gwc.module import Handler, Module
+from gwc.module import DATABASE_OUTAGE_S, Handler, Module
 from gwc.servers.common import Server
 
 S = MachineStatus
@@ -92,6 +93,7 @@ class MachineServer(Server, Module):
             Conv.GET_STATUS: self.get_status,
             Conv.RUN_COMPL: self.run_complete,
             Conv.MAINT_DONE: self.maintenance_done,
+            Conv.SCRAP_RPT: self.scrap,
             Conv.MOD_DIED: self.module_died,
         }
 
@@ -293,15 +295,14 @@ class MachineServer(Server, Module):
         )
 
     async def run_complete(self, conv: Conversation) -> None:
-        """RUN_COMPL (broadcast by a WC): count the run, a failed one as scrap; maintenance due?"""
+        """RUN_COMPL (broadcast by a WC): count the run; maintenance due?"""
         done = self.request(conv)
         failed = done.ack_code != AckCode.ACK_OK
 
-        count = Statement(
-            "update machine_status set runs_since_maintenance = runs_since_maintenance + 1, "
-            "scrap_count = scrap_count + %s where machine_id = %s "
+        count = Statement(  # (scrap is the lots' verdict: SCRAP_RPT, below)
+            "update machine_status set runs_since_maintenance = runs_since_maintenance + 1 where machine_id = %s "
             "returning runs_since_maintenance, maintenance_every",
-            (1 if failed else 0, done.machine_id),
+            (done.machine_id,),
         )
         row = await self.transaction_when_up(count)  # heard once: kept until the database is back
         if row is None:
@@ -312,7 +313,7 @@ class MachineServer(Server, Module):
             "%s: run %s %s; %d runs since maintenance",
             done.machine_id,
             done.machine_run_id,
-            "failed (scrap)" if failed else "complete",
+            "failed" if failed else "complete",
             runs,
         )
         if every is not None and runs == every:
@@ -321,6 +322,47 @@ class MachineServer(Server, Module):
                     "MAINT_DUE", f"{done.machine_id}: maintenance is due ({runs} runs since the last)", done.machine_id
                 )
             )
+
+    async def scrap(self, conv: Conversation) -> None:
+        """SCRAP_RPT: a lot entity's verdict scrapped parts a machine's run made; the machine's scrap count
+        grows by them, once per (run, machine, entity). A lot script reports in its own name only."""
+        req = self.request(conv)
+        if conv.initiator.startswith("lot:") and conv.initiator != f"lot:{req.entity_id}":
+            return await self.answer(conv, Msg.ACK, AckCode.NOT_AUTH, f"{conv.initiator} reports for itself only")
+        if req.parts <= 0:
+            return await self.answer(conv, Msg.ACK, AckCode.BAD_MESSAGE, "parts must be 1 or more")
+
+        def book(cur: Any) -> str | None:
+            if not cur.execute(
+                "select 1 from machine_run_outcome where machine_run_id = %s and machine_id = %s",
+                (req.machine_run_id, req.machine_id),
+            ).fetchone():
+                return f"no run {req.machine_run_id} on {req.machine_id}"
+            if cur.execute(
+                "insert into scrap_reports (machine_run_id, machine_id, entity_id, parts, reason) "
+                "values (%s, %s, %s, %s, %s) on conflict do nothing returning 1",
+                (req.machine_run_id, req.machine_id, req.entity_id, req.parts, req.reason),
+            ).fetchone():
+                cur.execute(
+                    "update machine_status set scrap_count = scrap_count + %s where machine_id = %s",
+                    (req.parts, req.machine_id),
+                )
+                return None
+            return "already reported"
+
+        why = await self.transaction_when_up(book, within=DATABASE_OUTAGE_S)
+        if why is not None and why != "already reported":
+            return await self.answer(conv, Msg.ACK, AckCode.UNKNOWN, why)
+        if why is None:
+            self.log.info(
+                "%s: %d part(s) of run %d scrapped by entity %d: %s",
+                req.machine_id,
+                req.parts,
+                req.machine_run_id,
+                req.entity_id,
+                req.reason or "-",
+            )
+        await self.answer(conv, Msg.ACK, AckCode.ACK_OK, why)
 
     async def maintenance_done(self, conv: Conversation) -> None:
         """MAINT_DONE: the operator maintained a machine; the run count starts again."""
