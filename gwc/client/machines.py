@@ -102,10 +102,12 @@ def machine_rows(conn: psycopg.Connection[Any], cfg: Config, peers: set[str]) ->
     return rows
 
 
-def maintenance_done(bus: BlockingBus, machine_id: str, timeout: float = ANSWER) -> int:
+def maintenance_done(bus: BlockingBus, machine_id: str, timeout: float = ANSWER, by: str | None = None) -> int:
     """MAINT_DONE to the Machine Server (1.4.2's maintenance schedule): the machine was maintained, its
-    run count starts again. Returns the count before; GwcError for an unknown machine."""
-    ack = ask(bus, Conv.MAINT_DONE, message(Msg.MAINT_DONE, machine_id=machine_id, by=operator()), "ms", timeout)
+    run count starts again. Returns the count before; GwcError for an unknown machine. `by`: who
+    acts, as recorded (the HI's operator unless said)."""
+    first = message(Msg.MAINT_DONE, machine_id=machine_id, by=by or operator())
+    ack = ask(bus, Conv.MAINT_DONE, first, "ms", timeout)
     if ack.ack_code == AckCode.UNKNOWN:
         raise GwcError(f"unknown machine {machine_id!r} (see `gwc machine status`)")
     if ack.ack_code != AckCode.ACK_OK:

@@ -147,12 +147,13 @@ def cancel_request(
 
 
 def unreserve_machine(
-    cfg: Config, bus: BlockingBus, machine_id: str, force: bool = False, timeout: float = ANSWER
+    cfg: Config, bus: BlockingBus, machine_id: str, force: bool = False, timeout: float = ANSWER, by: str | None = None
 ) -> int:
     """The operator's Unreserve_Machine (6.2.4.7): free a machine whose lot entity crashed, so that the
     scheduler does not keep it for an entity that no longer exists. UNRESERVE to MSCHED in the holder's
     name. Refused (GwcError) while the holder's lot script runs (on the bus, or its pid alive), unless
-    `force`: a live script would find its machine gone mid-run. Returns the entity that held it."""
+    `force`: a live script would find its machine gone mid-run. Returns the entity that held it.
+    `by`: who acts, as recorded (the HI's operator unless said: the OPC UA gateway says itself)."""
     with hi_conn(cfg, logging.getLogger("gwc.hi")) as conn:
         row = conn.execute("select entity_id from reserved_machines where machine_id = %s", (machine_id,)).fetchone()
         conn.rollback()
@@ -170,7 +171,7 @@ def unreserve_machine(
     ack = ask(
         bus,
         Conv.UNRESERVE,
-        message(Msg.UNRESERVE_ME, entity_id=entity, machine_id=machine_id, by=operator()),
+        message(Msg.UNRESERVE_ME, entity_id=entity, machine_id=machine_id, by=by or operator()),
         "msched",
         timeout,
     )

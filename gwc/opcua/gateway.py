@@ -6,8 +6,9 @@ it write at once what the broadcast says and re-read what it touches, and every 
 it re-reads everything, so a missed broadcast, or a gateway restarted mid-way, is put right.
 
 Methods hold the same conversations the `gwc` command holds (ME_START, ME_SHUT, ALARM_CLR_REQ,
-IMPORT_LOT, EXPORT_LOT, CANCEL_RE; a work order is entered by the HI's own code) and answer with the
-cell's ack code as an OPC UA status (docs/opcua.md, Methods).
+IMPORT_LOT, EXPORT_LOT, CANCEL_RE; a work order, a machine's unreserve (UNRESERVE) and its
+maintenance (MAINT_DONE) are done by the HI's own client code) and answer with the cell's ack code
+as an OPC UA status (docs/opcua.md, Methods).
 """
 
 from __future__ import annotations
@@ -30,8 +31,11 @@ from asyncua import ua
 from asyncua.server.event_generator import EventGenerator
 
 from gwc.cell import hi_bus
+from gwc.client.machines import maintenance_done
+from gwc.client.requests import unreserve_machine
 from gwc.config import Config
-from gwc.errors import ConversationTimeout, GwcError
+from gwc.errors import ConversationTimeout, GwcError, Refused
+from gwc.ipc.blocking import BlockingBus
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
@@ -80,6 +84,9 @@ PRIORITIES = (1, 1000)  # a work order's priority (0: the cell's default, 20)
 ACKNOWLEDGE = ua.ObjectIds.AcknowledgeableConditionType_Acknowledge
 CONFIRM = ua.ObjectIds.AcknowledgeableConditionType_Confirm
 CONDITION_ARGS = [("EventId", V.ByteString, "the event"), ("Comment", V.LocalizedText, "a comment")]
+UNRESERVE_ARGS = [("force", V.Boolean, "even while the holder's lot script runs (gwc unreserve --force)")]
+UNRESERVE_OUT = [*OUT, ("entity_id", V.Int64, "the lot entity that held the machine")]
+MAINTENANCE_OUT = [*OUT, ("runs", V.Int64, "the machine's runs since its last maintenance, before this one")]
 
 
 def result(code: str | int, note: str = "", *more: ua.Variant) -> ua.CallMethodResult:
@@ -231,6 +238,8 @@ class Gateway(Module):
         machine_methods = [
             model.MachineMethod("Start", self.start_machine, [], OUT),
             model.MachineMethod("Stop", self.stop_machine, [], OUT),
+            model.MachineMethod("Unreserve", self.unreserve, UNRESERVE_ARGS, UNRESERVE_OUT),
+            model.MachineMethod("MaintenanceDone", self.maintenance_done, [], MAINTENANCE_OUT),
         ]
         for spec in self.cfg.machines:
             methods = [
@@ -684,3 +693,49 @@ class Gateway(Module):
             return result(AckCode.ACK_OK, note, ua.Variant(made["work_order_id"], V.Int64))
 
         return await self._converse(f"EnterWorkOrder({cust}, {items})", enter)
+
+    async def _hi_call(
+        self, what: str, act: Callable[[BlockingBus], ua.CallMethodResult], refused: str
+    ) -> ua.CallMethodResult:
+        """A method done by the client code the `gwc` command uses, on an HI bus attachment of its
+        own, in a thread (it is blocking). A Refused answers its ack code; another refusal of the
+        client code (GwcError: it says why) answers `refused`."""
+
+        async def call() -> ua.CallMethodResult:
+            def run() -> ua.CallMethodResult:
+                with hi_bus(self.cfg, self.log) as bus:
+                    return act(bus)
+
+            try:
+                async with self._order_lock:  # one HI bus attachment (hi.<pid>) at a time
+                    return await asyncio.to_thread(run)
+            except ConversationTimeout:
+                raise
+            except Refused as e:
+                return result(e.ack_code, str(e))
+            except GwcError as e:
+                return result(refused, str(e))
+
+        return await self._converse(what, call)
+
+    async def unreserve(self, machine: str, force: bool) -> ua.CallMethodResult:
+        """The operator's unreserve of a machine held by a dead lot (6.2.4.7, `gwc unreserve`):
+        refused (BadInvalidState, saying why) when nobody holds it or its holder's script runs."""
+
+        def act(bus: BlockingBus) -> ua.CallMethodResult:
+            entity = unreserve_machine(self.cfg, bus, machine, force, by=self._by())
+            return result(
+                AckCode.ACK_OK, f"{machine} freed (it was reserved to entity {entity})", ua.Variant(entity, V.Int64)
+            )
+
+        return await self._hi_call(f"Unreserve({machine}, force={force})", act, AckCode.NOTNOW)
+
+    async def maintenance_done(self, machine: str) -> ua.CallMethodResult:
+        """The machine was maintained (1.4.2, `gwc machine maintenance-done`): MAINT_DONE to the
+        Machine Server, its count of runs since maintenance starts again."""
+
+        def act(bus: BlockingBus) -> ua.CallMethodResult:
+            runs = maintenance_done(bus, machine, by=self._by())
+            return result(AckCode.ACK_OK, f"{machine} maintained after {runs} run(s)", ua.Variant(runs, V.Int64))
+
+        return await self._hi_call(f"MaintenanceDone({machine})", act, AckCode.UNKNOWN)

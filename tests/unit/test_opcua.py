@@ -7,6 +7,7 @@ import hashlib
 import logging
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import pytest
 from asyncua import ua
@@ -205,3 +206,102 @@ def test_the_certificate_names_the_host_by_name_and_by_address() -> None:
     assert "localhost" in dns and "127.0.0.1" in ips and "192.0.2.7" in ips
     dns, ips = certificate_names("opc.tcp://cell.example:4840/gwc/")
     assert "cell.example" in dns and "0.0.0.0" not in certificate_names("opc.tcp://0.0.0.0:4840/")[1]
+
+
+class FakeHiBus:
+    """hi_bus's context manager, attaching to nothing."""
+
+    def __enter__(self) -> FakeHiBus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+
+def gateway_with(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, **client: Any) -> Any:
+    """A gateway (not started: nothing listens, nothing attaches) whose HI client calls are `client`."""
+    from gwc.opcua import gateway
+
+    monkeypatch.setattr(gateway, "hi_bus", lambda cfg, log: FakeHiBus())
+    for name, fake in client.items():
+        monkeypatch.setattr(gateway, name, fake)
+    cfg = make_config(tmp_path, None, machine=[{"id": "wc1", "kind": "dummy"}])
+    return gateway.Gateway(cfg, "opcua", logging.getLogger("t"))
+
+
+def test_unreserve_and_maintenance_done_declare_their_arguments_and_are_checked() -> None:
+    from gwc.opcua.gateway import MAINTENANCE_OUT, UNRESERVE_ARGS, UNRESERVE_OUT
+
+    assert [(n, t) for n, t, _ in UNRESERVE_ARGS] == [("force", V.Boolean)]
+    assert [n for n, _, _ in UNRESERVE_OUT] == ["ack_code", "note", "entity_id"]
+    assert [n for n, _, _ in MAINTENANCE_OUT] == ["ack_code", "note", "runs"]
+    assert check_arguments([ua.Variant(False, V.Boolean)], UNRESERVE_ARGS) is None
+    assert check_arguments([], UNRESERVE_ARGS).StatusCode.value == S.BadArgumentsMissing
+    for wrong in (ua.Variant(1, V.Int64), ua.Variant("true", V.String)):  # not converted to a Boolean
+        refused = check_arguments([wrong], UNRESERVE_ARGS)
+        assert refused is not None and refused.StatusCode.value == S.BadInvalidArgument
+        assert [r.value for r in refused.InputArgumentResults] == [S.BadTypeMismatch]
+    assert check_arguments([ua.Variant(1, V.Int64)], []).StatusCode.value == S.BadTooManyArguments  # MaintenanceDone
+
+
+def test_unreserve_goes_through_the_clis_client_call_and_maps_its_answers(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import asyncio
+
+    from gwc.errors import ConversationTimeout, GwcError, Refused
+
+    asked: list[tuple[Any, ...]] = []
+    answers: list[Any] = [
+        17,
+        GwcError("wc1 is held by entity 17, whose lot script runs (pid 4): it frees it itself"),
+        GwcError("wc1 is not reserved (see `gwc requests`)"),
+        Refused("Unknown", "MSCHED did not free wc1"),
+        ConversationTimeout("msched did not answer"),
+    ]
+
+    def unreserve_machine(cfg: Any, bus: Any, machine: str, force: bool, by: str | None = None) -> int:
+        asked.append((machine, force, by))
+        answer = answers.pop(0)
+        if isinstance(answer, Exception):
+            raise answer
+        return int(answer)
+
+    gw = gateway_with(tmp_path, monkeypatch, unreserve_machine=unreserve_machine)
+    freed = asyncio.run(gw.unreserve("wc1", True))
+    assert freed.StatusCode.is_good()
+    assert [v.Value for v in freed.OutputArguments] == ["ACK_OK", "wc1 freed (it was reserved to entity 17)", 17]
+    assert asked == [("wc1", True, "opcua:test")]
+    expected = [
+        (S.BadInvalidState, "lot script runs"),  # refused while the script runs: nothing was sent
+        (S.BadInvalidState, "not reserved"),
+        (S.BadNotFound, "MSCHED did not free wc1"),
+        (S.BadTimeout, "did not answer"),
+    ]
+    for status_code, why in expected:
+        out = asyncio.run(gw.unreserve("wc1", False))
+        assert out.StatusCode.value == status_code and why in out.OutputArguments[1].Value
+
+
+def test_maintenance_done_goes_through_the_clis_client_call_and_maps_its_answers(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import asyncio
+
+    from gwc.errors import GwcError
+
+    answers: list[Any] = [6, GwcError("unknown machine 'wc1' (see `gwc machine status`)")]
+
+    def maintenance_done(bus: Any, machine: str, by: str | None = None) -> int:
+        assert machine == "wc1" and by == "opcua:test"
+        answer = answers.pop(0)
+        if isinstance(answer, Exception):
+            raise answer
+        return int(answer)
+
+    gw = gateway_with(tmp_path, monkeypatch, maintenance_done=maintenance_done)
+    done = asyncio.run(gw.maintenance_done("wc1"))
+    assert done.StatusCode.is_good() and done.OutputArguments[2] == ua.Variant(6, V.Int64)
+    assert "after 6 run(s)" in done.OutputArguments[1].Value
+    unknown = asyncio.run(gw.maintenance_done("wc1"))
+    assert unknown.StatusCode.value == S.BadNotFound and "unknown machine" in unknown.OutputArguments[1].Value
