@@ -368,8 +368,9 @@ def test_two_independent_clients_see_machinery_timestamps_alarms_and_checked_met
 
             # Without a user, or without an encrypted channel, a method is refused.
             for refused in (anonymous, unencrypted):
-                with pytest.raises(ua.UaStatusCodeError, match="BadUserAccessDenied"):
-                    await call(refused, "machines/wc1", "Start")
+                for method in ("Start", "MaintenanceDone"):
+                    with pytest.raises(ua.UaStatusCodeError, match="BadUserAccessDenied"):
+                        await call(refused, "machines/wc1", method)
             await unencrypted.disconnect()
 
             # ---- Alarms and conditions (Part 9). The CMM's start raises HOME_CMM and waits to be homed.
@@ -482,6 +483,13 @@ def test_two_independent_clients_see_machinery_timestamps_alarms_and_checked_met
                 ("machines/wc1", "Start", (int64(1),), "BadTooManyArguments"),
                 ("machines/wc1", "machines/cmm_wc/Stop", (), "BadMethodInvalid"),  # another machine's Stop
                 ("cell", "machines/wc1/Start", (), "BadMethodInvalid"),
+                ("machines/wc1", "Unreserve", (), "BadArgumentsMissing"),
+                ("machines/wc1", "Unreserve", (int64(1),), "BadInvalidArgument"),  # not a Boolean
+                ("machines/wc1", "machines/cmm_wc/Unreserve", (boolean,), "BadMethodInvalid"),
+                ("machines/wc1", "MaintenanceDone", (int64(1),), "BadTooManyArguments"),
+                ("cell", "machines/wc1/MaintenanceDone", (), "BadMethodInvalid"),
+                # Nobody holds wc1: the cell refuses its unreserve (even forced), saying why.
+                ("machines/wc1", "Unreserve", (boolean,), "BadInvalidState"),
             ]
             for obj, method, args, want in refusals:
                 with pytest.raises(ua.UaStatusCodeError, match=want):
@@ -541,6 +549,17 @@ def test_two_independent_clients_see_machinery_timestamps_alarms_and_checked_met
             assert code == "ACK_OK"
             last = json.loads(await node_of("machines/cmm_wc/last_run/results").read_value())
             assert last.get("RESULT") == "PASS", last
+
+            # ---- The Machine Server's books (1.4.2): MaintenanceDone restarts the CMM's count of runs.
+            cmm_runs = lambda: cell.query(
+                "select runs_since_maintenance from machine_status where machine_id = 'cmm_wc'"
+            )[0][0]
+            runs = cmm_runs()
+            assert runs >= 1
+            code, why, before_count = await call(operator, "machines/cmm_wc", "MaintenanceDone")
+            assert code == "ACK_OK" and before_count == runs, why
+            assert cmm_runs() == 0
+            await read_until(node_of("machines/cmm_wc/runs_since_maintenance"), 0)
         finally:
             for client in (late, operator, unencrypted, anonymous):
                 if client is not None:
