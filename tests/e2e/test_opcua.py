@@ -15,6 +15,7 @@ import json
 import os
 import queue
 import shutil
+import signal
 import socket
 import subprocess
 import threading
@@ -34,7 +35,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from gwc.config import write_config
 from gwc.ipc.bus import BlockingBus
 from gwc.opcua.security import hash_password
-from tests.e2e.lotkit import cell_with_machines, order, stop_lot_scripts
+from tests.e2e.lotkit import cell_with_machines, gwc, ok, order, script_pid, stop_lot_scripts, wait_state
 from tests.e2e.test_cell import gwc as gwc_env
 from tests.harness import SERVERS, CellHarness, wait_for, write_cell_config
 
@@ -45,6 +46,18 @@ DI = "http://opcfoundation.org/UA/DI/"
 MACHINERY = "http://opcfoundation.org/UA/Machinery/"
 USER, PASSWORD = "operator", "cell-secret"
 IDENT = {"manufacturer": "Brown & Sharpe", "serial_number": "BS-1991-0042", "product_instance_uri": "urn:njit:cmm:42"}
+HOLD = '''"""Take wc1 and keep it (a lot that will die while holding it)."""
+
+import time
+
+from gwc.lot import OperationEntity
+
+
+def main(entity: OperationEntity) -> None:
+    entity.wait_for_import()
+    entity.wait_for_machines(entity.request_machines("mill_chess", [["wc1"]]))
+    time.sleep(600)
+'''
 CMM = {
     "id": "cmm_wc",
     "kind": "cmm",
@@ -560,6 +573,31 @@ def test_two_independent_clients_see_machinery_timestamps_alarms_and_checked_met
             assert code == "ACK_OK" and before_count == runs, why
             assert cmm_runs() == 0
             await read_until(node_of("machines/cmm_wc/runs_since_maintenance"), 0)
+
+            # ---- The operator's unreserve (6.2.4.7): refused while the holder's script runs; once it is
+            # dead (killed while the Lot Server, whose reaper would free it, is down), wc1 is freed.
+            (tmp_path / "hold.py").write_text(HOLD)
+            await asyncio.to_thread(
+                lambda: ok(gwc(cell, "script", "register", "hold", str(tmp_path / "hold.py"), "--product", "holder"))
+            )
+            (holder,) = await asyncio.to_thread(order, cell, "holder=1")
+            await asyncio.to_thread(wait_state, cell, holder, "waiting_import")
+            assert (await call(operator, "cell", "ImportLot", int64(holder)))[0] == "ACK_OK"
+            held = lambda: [
+                r[0] for r in cell.query("select entity_id from reserved_machines where machine_id = 'wc1'")
+            ]
+            await until(lambda: held() == [holder], 20, "the holder to reserve wc1")
+            with pytest.raises(ua.UaStatusCodeError, match="BadInvalidState"):
+                await call(operator, "machines/wc1", "Unreserve", ua.Variant(False, ua.VariantType.Boolean))
+            assert held() == [holder]
+            await asyncio.to_thread(cell.kill, "ls")
+            os.killpg(script_pid(cell, holder), signal.SIGKILL)
+            await until(lambda: f"lot:{holder}" not in cell.bus.peers(), 10, "the killed script to leave the bus")
+            code, why, entity = await call(
+                operator, "machines/wc1", "Unreserve", ua.Variant(False, ua.VariantType.Boolean)
+            )
+            assert code == "ACK_OK" and entity == holder, why
+            assert held() == []
         finally:
             for client in (late, operator, unencrypted, anonymous):
                 if client is not None:
