@@ -8,5 +8,7 @@ browse, subscribe to and command. docs/opcua.md describes the address space, the
   values with their timestamps, methods with their arguments checked.
 * model.py: the DI, IA and Machinery nodesets (nodesets/, as published), the cell's own types, and
   one machine's node tree (build_machine).
+* answers.py: how a method answers: the cell's ack code as its status, the code and note as outputs.
+* hi_methods.py: the methods done by the `gwc` command's own client code (Unreserve, MaintenanceDone).
 * gateway.py: the cell module: what it hears on the bus and reads in the tables, and the methods.
 """

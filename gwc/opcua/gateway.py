@@ -31,17 +31,16 @@ from asyncua import ua
 from asyncua.server.event_generator import EventGenerator
 
 from gwc.cell import hi_bus
-from gwc.client.machines import maintenance_done
-from gwc.client.requests import unreserve_machine
 from gwc.config import Config
-from gwc.errors import ConversationTimeout, GwcError, Refused
-from gwc.ipc.blocking import BlockingBus
+from gwc.errors import ConversationTimeout, GwcError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module, module_name
 from gwc.opcua import model, security, store
+from gwc.opcua.answers import OUT, result
+from gwc.opcua.hi_methods import MAINTENANCE_OUT, UNRESERVE_ARGS, UNRESERVE_OUT, HiMethods
 from gwc.opcua.settings import load_settings
 from gwc.opcua.space import (
     ALARM,
@@ -60,23 +59,11 @@ from gwc.opcua.space import (
 V = ua.VariantType
 S = ua.StatusCodes
 LISTENS = (Conv.UPD_ME_ST, Conv.RUN_COMPL, Conv.ALARM_CLE, Conv.CELL_EVENT, Conv.LOT_MOVED)
-# The cell's ack codes as OPC UA statuses (docs/opcua.md, Methods).
-STATUS_OF: dict[str, int] = {
-    AckCode.ACK_OK: S.Good,
-    AckCode.NOTNOW: S.BadInvalidState,
-    AckCode.UNKNOWN: S.BadNotFound,
-    AckCode.REQ_KEY_U: S.BadNotFound,
-    AckCode.BAD_MESSAGE: S.BadInvalidArgument,
-    AckCode.DB_BADREA: S.BadResourceUnavailable,
-    AckCode.DB_BADUPD: S.BadResourceUnavailable,
-    AckCode.TIMEOUT: S.BadTimeout,
-}
 SEVERITY = {"note": 200, "warning": 500, "error": 800}  # OPC UA event severity, 1..1000
 # asyncua serves one client connection's requests one after the other, and asyncua's client gives up
 # a connection whose server does not answer its probe within 1 s: a method must not hold its client
 # longer than this for a machine to finish starting or stopping (a CMM waits to be homed).
 COMPLETE_WAIT = 0.5
-OUT = [("ack_code", V.String, "the cell's ack code"), ("note", V.String, "what the cell said")]
 MethodResult = Awaitable[ua.CallMethodResult]
 READ_DRAIN = 5.0  # s the shutdown waits for a read of the tables in progress
 PRIORITIES = (1, 1000)  # a work order's priority (0: the cell's default, 20)
@@ -84,19 +71,6 @@ PRIORITIES = (1, 1000)  # a work order's priority (0: the cell's default, 20)
 ACKNOWLEDGE = ua.ObjectIds.AcknowledgeableConditionType_Acknowledge
 CONFIRM = ua.ObjectIds.AcknowledgeableConditionType_Confirm
 CONDITION_ARGS = [("EventId", V.ByteString, "the event"), ("Comment", V.LocalizedText, "a comment")]
-UNRESERVE_ARGS = [("force", V.Boolean, "even while the holder's lot script runs (gwc unreserve --force)")]
-UNRESERVE_OUT = [*OUT, ("entity_id", V.Int64, "the lot entity that held the machine")]
-MAINTENANCE_OUT = [*OUT, ("runs", V.Int64, "the machine's runs since its last maintenance, before this one")]
-
-
-def result(code: str | int, note: str = "", *more: ua.Variant) -> ua.CallMethodResult:
-    """A method's answer: the ack code as a status, the code and the note as outputs."""
-    status = code if isinstance(code, int) else STATUS_OF.get(code, S.BadUnexpectedError)
-    name = code if isinstance(code, str) else ua.StatusCode(ua.UInt32(code)).name
-    return ua.CallMethodResult(
-        StatusCode=ua.StatusCode(ua.UInt32(status)),
-        OutputArguments=[ua.Variant(name, V.String), ua.Variant(note[:500], V.String), *more],
-    )
 
 
 @dataclass
@@ -143,7 +117,7 @@ class Gateway(Module):
         self._alarm_events: EventGenerator | None = None
         self._alarm_template: Any = None
         self._event_lock = asyncio.Lock()
-        self._order_lock = asyncio.Lock()
+        self.hi = HiMethods(cfg, log, self._converse, self._by())
         self._dirty: set[str] = set()
         self._wake = asyncio.Event()
         self._heard: dict[str, int] = dict.fromkeys(self.machine_ids, 0)  # UPD_ME_ST heard per machine
@@ -238,8 +212,8 @@ class Gateway(Module):
         machine_methods = [
             model.MachineMethod("Start", self.start_machine, [], OUT),
             model.MachineMethod("Stop", self.stop_machine, [], OUT),
-            model.MachineMethod("Unreserve", self.unreserve, UNRESERVE_ARGS, UNRESERVE_OUT),
-            model.MachineMethod("MaintenanceDone", self.maintenance_done, [], MAINTENANCE_OUT),
+            model.MachineMethod("Unreserve", self.hi.unreserve, UNRESERVE_ARGS, UNRESERVE_OUT),
+            model.MachineMethod("MaintenanceDone", self.hi.maintenance_done, [], MAINTENANCE_OUT),
         ]
         for spec in self.cfg.machines:
             methods = [
@@ -682,7 +656,7 @@ class Gateway(Module):
                 with hi_bus(self.cfg, self.log) as bus:
                     return enter_order(self.cfg, self.log, bus, cust, parsed, priority=priority or None)
 
-            async with self._order_lock:  # one HI bus attachment (hi.<pid>) at a time
+            async with self.hi.lock:  # one HI bus attachment (hi.<pid>) at a time
                 made = await asyncio.to_thread(run)
             note = "; ".join(
                 f"lot {lot['lot_id']}: {lot['quantity']} x {lot['product_id']} (entities "
@@ -693,49 +667,3 @@ class Gateway(Module):
             return result(AckCode.ACK_OK, note, ua.Variant(made["work_order_id"], V.Int64))
 
         return await self._converse(f"EnterWorkOrder({cust}, {items})", enter)
-
-    async def _hi_call(
-        self, what: str, act: Callable[[BlockingBus], ua.CallMethodResult], refused: str
-    ) -> ua.CallMethodResult:
-        """A method done by the client code the `gwc` command uses, on an HI bus attachment of its
-        own, in a thread (it is blocking). A Refused answers its ack code; another refusal of the
-        client code (GwcError: it says why) answers `refused`."""
-
-        async def call() -> ua.CallMethodResult:
-            def run() -> ua.CallMethodResult:
-                with hi_bus(self.cfg, self.log) as bus:
-                    return act(bus)
-
-            try:
-                async with self._order_lock:  # one HI bus attachment (hi.<pid>) at a time
-                    return await asyncio.to_thread(run)
-            except ConversationTimeout:
-                raise
-            except Refused as e:
-                return result(e.ack_code, str(e))
-            except GwcError as e:
-                return result(refused, str(e))
-
-        return await self._converse(what, call)
-
-    async def unreserve(self, machine: str, force: bool) -> ua.CallMethodResult:
-        """The operator's unreserve of a machine held by a dead lot (6.2.4.7, `gwc unreserve`):
-        refused (BadInvalidState, saying why) when nobody holds it or its holder's script runs."""
-
-        def act(bus: BlockingBus) -> ua.CallMethodResult:
-            entity = unreserve_machine(self.cfg, bus, machine, force, by=self._by())
-            return result(
-                AckCode.ACK_OK, f"{machine} freed (it was reserved to entity {entity})", ua.Variant(entity, V.Int64)
-            )
-
-        return await self._hi_call(f"Unreserve({machine}, force={force})", act, AckCode.NOTNOW)
-
-    async def maintenance_done(self, machine: str) -> ua.CallMethodResult:
-        """The machine was maintained (1.4.2, `gwc machine maintenance-done`): MAINT_DONE to the
-        Machine Server, its count of runs since maintenance starts again."""
-
-        def act(bus: BlockingBus) -> ua.CallMethodResult:
-            runs = maintenance_done(bus, machine, by=self._by())
-            return result(AckCode.ACK_OK, f"{machine} maintained after {runs} run(s)", ua.Variant(runs, V.Int64))
-
-        return await self._hi_call(f"MaintenanceDone({machine})", act, AckCode.UNKNOWN)

@@ -220,17 +220,17 @@ class FakeHiBus:
 
 def gateway_with(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, **client: Any) -> Any:
     """A gateway (not started: nothing listens, nothing attaches) whose HI client calls are `client`."""
-    from gwc.opcua import gateway
+    from gwc.opcua import gateway, hi_methods
 
-    monkeypatch.setattr(gateway, "hi_bus", lambda cfg, log: FakeHiBus())
+    monkeypatch.setattr(hi_methods, "hi_bus", lambda cfg, log: FakeHiBus())
     for name, fake in client.items():
-        monkeypatch.setattr(gateway, name, fake)
+        monkeypatch.setattr(hi_methods, name, fake)
     cfg = make_config(tmp_path, None, machine=[{"id": "wc1", "kind": "dummy"}])
     return gateway.Gateway(cfg, "opcua", logging.getLogger("t"))
 
 
 def test_unreserve_and_maintenance_done_declare_their_arguments_and_are_checked() -> None:
-    from gwc.opcua.gateway import MAINTENANCE_OUT, UNRESERVE_ARGS, UNRESERVE_OUT
+    from gwc.opcua.hi_methods import MAINTENANCE_OUT, UNRESERVE_ARGS, UNRESERVE_OUT
 
     assert [(n, t) for n, t, _ in UNRESERVE_ARGS] == [("force", V.Boolean)]
     assert [n for n, _, _ in UNRESERVE_OUT] == ["ack_code", "note", "entity_id"]
@@ -268,7 +268,7 @@ def test_unreserve_goes_through_the_clis_client_call_and_maps_its_answers(
         return int(answer)
 
     gw = gateway_with(tmp_path, monkeypatch, unreserve_machine=unreserve_machine)
-    freed = asyncio.run(gw.unreserve("wc1", True))
+    freed = asyncio.run(gw.hi.unreserve("wc1", True))
     assert freed.StatusCode.is_good()
     assert [v.Value for v in freed.OutputArguments] == ["ACK_OK", "wc1 freed (it was reserved to entity 17)", 17]
     assert asked == [("wc1", True, "opcua:test")]
@@ -279,7 +279,7 @@ def test_unreserve_goes_through_the_clis_client_call_and_maps_its_answers(
         (S.BadTimeout, "did not answer"),
     ]
     for status_code, why in expected:
-        out = asyncio.run(gw.unreserve("wc1", False))
+        out = asyncio.run(gw.hi.unreserve("wc1", False))
         assert out.StatusCode.value == status_code and why in out.OutputArguments[1].Value
 
 
@@ -300,8 +300,8 @@ def test_maintenance_done_goes_through_the_clis_client_call_and_maps_its_answers
         return int(answer)
 
     gw = gateway_with(tmp_path, monkeypatch, maintenance_done=maintenance_done)
-    done = asyncio.run(gw.maintenance_done("wc1"))
+    done = asyncio.run(gw.hi.maintenance_done("wc1"))
     assert done.StatusCode.is_good() and done.OutputArguments[2] == ua.Variant(6, V.Int64)
     assert "after 6 run(s)" in done.OutputArguments[1].Value
-    unknown = asyncio.run(gw.maintenance_done("wc1"))
+    unknown = asyncio.run(gw.hi.maintenance_done("wc1"))
     assert unknown.StatusCode.value == S.BadNotFound and "unknown machine" in unknown.OutputArguments[1].Value
