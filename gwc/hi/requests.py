@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import click
 
-from gwc.client.requests import cancel_request, request_tables
 from gwc.client.record import record_action
+from gwc.client.requests import cancel_request, request_tables
 from gwc.client.session import hi_bus, hi_conn, operator
 from gwc.errors import GwcError
 from gwc.hi import context, table
