@@ -64,6 +64,7 @@ def write_cell_config(
     bus: dict[str, Any] | None = None,
     faults: dict[str, Any] | None = None,
     level: str = "note",
+    record: dict[str, Any] | None = None,
 ) -> Config:
     """Write var/etc/cell.toml for a private cell with a random multicast group and port."""
     bus_cfg = private_bus(peer_timeout=1.5, heartbeat=0.2, **(bus or {}))
@@ -78,6 +79,7 @@ def write_cell_config(
             "log": {"level": level},
             "module": [{"name": m} for m in modules],
             "machine": list(machines),
+            **({"record": record} if record else {}),
         },
     )
 

@@ -72,7 +72,7 @@ class Run:
     ended_at: datetime
     ack_code: str
     results: dict[str, str] = field(default_factory=dict)
-    remade: bool = False  # the entity ran this recipe again later (re-milled)
+    remade: bool = False  # scrapped, or made again after it measured out of tolerance
 
     @property
     def good(self) -> bool:
@@ -198,16 +198,25 @@ def runs(conn: psycopg.Connection[Any], machine_id: str | None, since: datetime,
         "select o.machine_id, o.machine_run_id, h.recipe_id, h.entity_id, h.at, o.ended_at, o.ack_code, "
         "  coalesce((select jsonb_object_agg(r.param, r.value) from machine_run_result r "
         "            where r.machine_run_id = o.machine_run_id and r.machine_id = o.machine_id), '{}'::jsonb), "
-        "  exists (select 1 from machine_state_history l where h.entity_id is not null "
-        "          and l.entity_id = h.entity_id and l.recipe_id = h.recipe_id and l.status = 'Running' "
-        "          and l.at > h.at and l.machine_run_id <> h.machine_run_id) "
+        # not good though the run went well: the entity was scrapped (or failed), or the part was
+        # re-made: the entity ran this recipe again after its next run (the measuring) found it bad
+        "  h.entity_id is not null and (exists (select 1 from lot_status s where s.entity_id = h.entity_id "
+        "      and (s.state = 'failed' or s.reason like 'SCRAP%%')) "
+        "    or (exists (select 1 from machine_state_history l where l.entity_id = h.entity_id "
+        "          and l.recipe_id = h.recipe_id and l.status = 'Running' and l.at > h.at) "
+        "        and exists (select 1 from machine_run_outcome o2 left join machine_run_result r2 "
+        "          on r2.machine_run_id = o2.machine_run_id and r2.machine_id = o2.machine_id "
+        "          where o2.machine_run_id = nx.machine_run_id and o2.machine_id = nx.machine_id "
+        "          and (o2.ack_code <> 'ACK_OK' or upper(r2.value) = any(%(bad)s))))) "
         "from machine_run_outcome o "
         "left join lateral (select recipe_id, entity_id, at from machine_state_history x "
         "   where x.machine_id = o.machine_id and x.machine_run_id = o.machine_run_id and x.status = 'Running' "
         "   order by at limit 1) h on true "
+        "left join lateral (select n.machine_id, n.machine_run_id from machine_state_history n "
+        "   where n.entity_id = h.entity_id and n.status = 'Running' and n.at > h.at order by n.at limit 1) nx on true "
         "where (%(m)s::text is null or o.machine_id = %(m)s) and o.ended_at >= %(since)s and o.ended_at < %(until)s "
         "order by o.ended_at",
-        {"m": machine_id, "since": since, "until": until},
+        {"m": machine_id, "since": since, "until": until, "bad": list(BAD_RESULTS)},
     ).fetchall()
     return [
         Run(r[0], r[1], r[2], r[3], r[4], r[5], r[6], {str(k): str(v) for k, v in (r[7] or {}).items()}, bool(r[8]))
@@ -231,15 +240,16 @@ def _figures(
     good: int,
     downtime: dict[str | None, list[float]],
 ) -> dict[str, Any]:
+    planned, run, down = round(planned, 3), round(run, 3), round(down, 3)  # the ratios are those of the figures shown
     availability = _ratio(run, planned)
     performance = _ratio(ideal, run)
     quality = _ratio(good, parts)
     oee = None if None in (availability, performance, quality) else availability * performance * quality  # type: ignore[operator]
     pareto = sorted(downtime.items(), key=lambda kv: (-kv[1][0], str(kv[0])))
     return {
-        "planned_s": round(planned, 3),
-        "run_s": round(run, 3),
-        "down_s": round(down, 3),
+        "planned_s": planned,
+        "run_s": run,
+        "down_s": down,
         "availability": availability,
         "performance": performance,
         "quality": quality,
