@@ -130,8 +130,10 @@ class CellBench:
         kernel_filter: bool = True,
         freezes: int = 0,
         idle_s: float = 60.0,
+        history: bool = True,
     ) -> None:
         self.var = var.resolve()
+        self.history = history
         self.n = machines
         self.m = lots
         self.solo = solo
@@ -147,7 +149,15 @@ class CellBench:
         if self.var.exists():
             shutil.rmtree(self.var)
         # With the host's agent, as `gwc start` runs a cell: it announces a death the moment it happens.
-        self.cell = PrivateCell(self.var, specs, log, database_url, bus={"kernel_filter": kernel_filter}, agent=True)
+        self.cell = PrivateCell(
+            self.var,
+            specs,
+            log,
+            database_url,
+            bus={"kernel_filter": kernel_filter},
+            agent=True,
+            record={"history": history},  # the production record written, or not ([record] history)
+        )
         self.conn: psycopg.Connection[Any] | None = None
         self.reads = 0  # the operator's reads of lot_status, to tell the cell's own commits from them
 
@@ -557,6 +567,19 @@ def _ms(s: dict[str, float]) -> str:
     show_default=True,
     help="Then seconds of rest: the CPU the resting cell uses (0: skip).",
 )
+@click.option(
+    "--history/--no-history",
+    default=True,
+    show_default=True,
+    help="The production record ([record] history, docs/record.md): off shows what writing it costs.",
+)
+@click.option(
+    "--compare-history",
+    "compare",
+    type=int,
+    default=0,
+    help="Instead: N pairs of lot runs, history off then on (then on, off: the order alternates), side by side.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 def command(
     machines: int,
@@ -567,6 +590,8 @@ def command(
     kernel_filter: bool,
     freezes: int,
     idle_s: float,
+    history: bool,
+    compare: int,
     as_json: bool,
 ) -> None:
     """Run lots through a private cell of N dummy machines: lots/s, the cell's overhead per lot
@@ -576,6 +601,8 @@ def command(
     if machines < 1 or lots < 1 or solo < 0 or deaths < 0 or freezes < 0:
         raise click.BadParameter("--machines and --lots must be at least 1, --solo and --deaths at least 0")
     cfg, log = context()
+    if compare > 0:
+        return compare_history(cfg.var / "bench-cell" if where is None else where, machines, lots, compare, as_json)
     bench = CellBench(
         where or cfg.var / "bench-cell",
         machines,
@@ -588,6 +615,7 @@ def command(
         kernel_filter,
         freezes,
         idle_s,
+        history,
     )
     result = bench.run()
     if as_json:
@@ -634,3 +662,52 @@ def command(
         "gwc check at the end: "
         + ("held" if result["check_held"] else "BROKEN: " + "; ".join(result["check_breaches"]))
     )
+
+
+def compare_history(where: Path, machines: int, lots: int, pairs: int, as_json: bool) -> None:
+    """`--compare-history N`: the lots phase with the production record off and on, N pairs in one
+    sitting (off-on, then on-off, ...), each run a fresh private cell: lots/s and the overhead per lot
+    with `machines` lots at once, side by side (docs/record.md, What it costs)."""
+    _, log = context()
+    say = (lambda s: None) if as_json else click.echo
+    runs: dict[str, list[dict[str, Any]]] = {"off": [], "on": []}
+    for i in range(pairs):
+        for history in (False, True) if i % 2 == 0 else (True, False):
+            label = "on" if history else "off"
+            say(f"pair {i + 1}: history {label}")
+            bench = CellBench(
+                where, machines, lots, 0, 0, os.environ.get("GWC_DATABASE_URL"), log, say, idle_s=0, history=history
+            )
+            r = bench.run()
+            runs[label].append(
+                {
+                    "lots_per_s": r["lots_per_s"],
+                    "failed": r["failed"],
+                    "loaded_overhead_ms": r["loaded_overhead_ms"],
+                    "check_held": r["check_held"],
+                }
+            )
+    result: dict[str, Any] = {"machines": machines, "lots": lots, "pairs": pairs, "runs": runs}
+    for label in ("off", "on"):
+        rs = runs[label]
+        result[label] = {
+            "lots_per_s": sum(r["lots_per_s"] for r in rs) / len(rs),
+            "overhead_median_ms": sum(r["loaded_overhead_ms"]["median"] for r in rs) / len(rs),
+            "overhead_p99_ms": sum(r["loaded_overhead_ms"]["p99"] for r in rs) / len(rs),
+        }
+    off, on = result["off"], result["on"]
+    result["on_vs_off"] = {k: on[k] / off[k] if off[k] else None for k in off}
+    if as_json:
+        click.echo(json.dumps(result, indent=1))
+        return
+    click.echo(f"{lots} lots on {machines} machines, {pairs} pair(s), history off | on (mean of the runs):")
+    click.echo(f"  lots/s:                           {off['lots_per_s']:8.2f} | {on['lots_per_s']:8.2f}")
+    for k, what in (("overhead_median_ms", "median"), ("overhead_p99_ms", "p99")):
+        click.echo(f"  {machines} at once, overhead {what} (ms): {off[k]:8.2f} | {on[k]:8.2f}")
+    for label in ("off", "on"):
+        each = [
+            f"{r['lots_per_s']:.2f} lots/s, {_ms(r['loaded_overhead_ms'])} ms, check "
+            + ("held" if r["check_held"] else "BROKEN")
+            for r in runs[label]
+        ]
+        click.echo(f"  runs with history {label}: " + "; ".join(each))
