@@ -33,7 +33,7 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module, module_name
-from gwc.opcua import security
+from gwc.opcua import record, security
 from gwc.opcua.settings import load_settings
 from gwc.opcua.space import (
     ALARM,
@@ -219,6 +219,7 @@ class Gateway(Module):
             await self._item_state(spec.id)
             await sp.method(node, f"{path}/Start", "Start", self.start_machine, [], OUT)
             await sp.method(node, f"{path}/Stop", "Stop", self.stop_machine, [], OUT)
+            await record.build(self, node, spec.id, OUT)  # OEE and open downtime (docs/record.md)
         await sp.method(
             cell,
             "cell/EnterWorkOrder",
@@ -310,6 +311,7 @@ class Gateway(Module):
     async def _refresh(self, what: set[str]) -> None:
         if "machines" in what:
             await self._refresh_machines()
+            await record.refresh(self)
         if "alarms" in what:
             await self._refresh_alarms()
         if "lots" in what:

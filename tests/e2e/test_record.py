@@ -9,8 +9,10 @@ liveness) and wc2, whose calendar plans no time at all, is stopped by the operat
 
 from __future__ import annotations
 
+import asyncio
 import json
 import shutil
+import socket
 import subprocess
 import time
 from datetime import UTC, datetime
@@ -18,10 +20,18 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from asyncua import Client, ua
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from cryptography.x509.oid import ExtendedKeyUsageOID
+from textual.widgets import DataTable, OptionList
 
 from gwc.cell import shutdown, startup
+from gwc.config import write_config
+from gwc.console.app import ConsoleApp
+from gwc.log import open_log
 from tests.e2e.lotkit import gwc, import_export_all, ok, order, start_machine, steps
-from tests.harness import CellHarness, wait_for
+from tests.harness import CellHarness, until, wait_for
 
 RUN_TIME = 0.5
 DOWN_FOR = 20.0
@@ -64,6 +74,10 @@ def test_record_books_oee_downtime_and_genealogy_against_a_known_truth(lot_cell:
         # a calendar that plans no time at all, for wc2; the dummy recipe's ideal cycle
         record={"ideal_cycle_s": {"dummy_recipe": 0.4}, "calendars": {"never": {"shifts": []}}},
     )
+    endpoint = f"opc.tcp://127.0.0.1:{_free_port()}/gwc/"
+    cell.cfg = write_config(
+        cell.cfg.path, {**cell.cfg.raw, "opcua": {"endpoint": endpoint, "users": {"operator": "cell-secret"}}}
+    )
     script = tmp_path / "pawn.py"
     script.write_text(PAWN)
     cell.start_servers()
@@ -97,6 +111,16 @@ def test_record_books_oee_downtime_and_genealogy_against_a_known_truth(lot_cell:
     assert silent[0]["e10_state"] == "unscheduled_downtime" and silent[0]["reason"] == "WC_SILENT", silent
     (off,) = _json(cell, "downtime", "list", "--machine", "wc2")
     assert off["cause"] == "operator_stop" and off["e10_state"] == "non_scheduled", off
+
+    # while wc1 is down: the OPC UA gateway shows wc3's open downtime and takes its reason
+    cell.start("opcua", timeout=60)
+    asyncio.run(_reason_through_opcua(endpoint, tmp_path, "wc3", "electrical"))
+    (silent,) = _json(cell, "downtime", "list", "--machine", "wc3", "--open")
+    assert silent["reason"] == "electrical" and silent["e10_state"] == "unscheduled_downtime", silent
+    # and the console's Record screen gives wc2's stop its reason (DOWNTIME_RSN)
+    asyncio.run(_reason_from_the_console(cell, int(off["event_id"]), "cleaning"))
+    (off,) = _json(cell, "downtime", "list", "--machine", "wc2")
+    assert off["reason"] == "cleaning" and off["e10_state"] == "non_scheduled", off  # outside planned time still
 
     time.sleep(max(0.0, stopped + DOWN_FOR - time.time()))  # the downtime the test drives: 20 s, no condition
     t2 = time.time()
@@ -148,6 +172,70 @@ def test_record_books_oee_downtime_and_genealogy_against_a_known_truth(lot_cell:
     page = tmp_path / "report.html"
     ok(gwc(cell, "report", "html", "--out", str(page), "--since", _iso(since - 5), "--until", _iso(until)))
     _check_page_in_chromium(page, tmp_path, ["wc1", "wc2", "wc3"])
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+async def _reason_through_opcua(endpoint: str, certs: Path, machine: str, reason: str) -> None:
+    """As an MES would: read the machine's Monitoring (OEE figures, open downtime), then SetDowntimeReason
+    on a signed and encrypted channel as a user."""
+    cert, key = certs / "client-cert.der", certs / "client-key.pem"
+    await setup_self_signed_certificate(
+        key, cert, "urn:gwc:test:client", "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "test"}
+    )
+    client = Client(endpoint, timeout=30, watchdog_intervall=5.0)
+    client.application_uri = "urn:gwc:test:client"
+    await client.set_security(
+        SecurityPolicyBasic256Sha256, str(cert), str(key), mode=ua.MessageSecurityMode.SignAndEncrypt
+    )
+    client.set_user("operator")
+    client.set_password("cell-secret")
+    await client.connect()
+    try:
+        ns = await client.get_namespace_index("urn:gwc:cell")
+
+        def node(path: str) -> Any:
+            return client.get_node(ua.NodeId(path, ns))
+
+        mon = f"machines/{machine}/Monitoring"
+        deadline = time.monotonic() + 15
+        while not await node(f"{mon}/DowntimeOpen").read_value():
+            assert time.monotonic() < deadline, f"{mon}/DowntimeOpen never true"
+            await asyncio.sleep(0.2)
+        assert await node(f"{mon}/DowntimeReason").read_value() == "WC_SILENT"
+        assert await node(f"{mon}/DowntimeCause").read_value() == "liveness"
+        oee = await node("machines/wc1/Monitoring/OEE").read_value()
+        assert isinstance(oee, float) and 0 < oee <= 1, oee
+        out = await node(f"machines/{machine}").call_method(ua.QualifiedName("SetDowntimeReason", ns), reason)
+        assert out[0] == "ACK_OK", out
+        deadline = time.monotonic() + 10
+        while await node(f"{mon}/DowntimeReason").read_value() != reason:
+            assert time.monotonic() < deadline, f"{mon}/DowntimeReason never {reason!r}"
+            await asyncio.sleep(0.2)
+    finally:
+        await client.disconnect()
+
+
+async def _reason_from_the_console(cell: CellHarness, event_id: int, reason: str) -> None:
+    app = ConsoleApp(cell.cfg, open_log("console", cell.cfg.log_dir, "note"))
+    async with app.run_test(size=(160, 45)) as pilot:
+        await pilot.press("0")  # the Record screen
+        table = app._views["record"].query_one("#table-record", DataTable)
+        await until(pilot.pause, lambda: str(event_id) in [str(k.value) for k in table.rows], 15, "the event listed")
+        oee = app._views["record"].query_one("#table-oee", DataTable)
+        assert {"wc1", "wc2", "wc3", "(cell)"} <= {str(k.value) for k in oee.rows}
+        table.move_cursor(row=table.get_row_index(str(event_id)))
+        await pilot.press("r")
+        picker = app.screen.query_one("#reasons", OptionList)
+        picker.highlighted = app.screen.reasons.index(reason)  # type: ignore[attr-defined]
+        await pilot.press("enter")
+        await until(pilot.pause, lambda: [a for a in app.answers if f"downtime {event_id}" in a.text], 15, "the answer")
+        assert app.answers[-1].ok, app.answers[-1].text
+        await pilot.press("q")
 
 
 def _check_page_in_chromium(page: Path, tmp_path: Path, machines: list[str]) -> None:
