@@ -123,6 +123,7 @@ def trace_entity(entity_id: int, as_json: bool) -> None:
     cfg, log = context()
     with hi_conn(cfg, log) as conn:
         tr = store.trace_entity(conn, entity_id)
+        states = store.entity_states(conn, entity_id) if tr is not None and not as_json else []
     if tr is None:
         raise GwcError(f"unknown lot entity {entity_id} (see `gwc lots`)")
     checksums = [s.pop("_checksum") for s in tr["steps"]]
@@ -142,6 +143,8 @@ def trace_entity(entity_id: int, as_json: bool) -> None:
     table(rows, ["machine_id", "recipe", "checksum", "machine_run_id", "started_at", "ended_at", "verdict", "results"])
     click.echo("\nOperator actions:")
     table(tr["actions"], ["at", "action", "by"])
+    click.echo("\nStates:")
+    table(states, ["at", "state", "lot_id", "reason"])
 
 
 @trace_group.command("where")

@@ -387,6 +387,15 @@ def trace_entity(conn: psycopg.Connection[Any], entity_id: int) -> dict[str, Any
     }
 
 
+def entity_states(conn: psycopg.Connection[Any], entity_id: int) -> list[dict[str, Any]]:
+    """The entity's states in order (entity_state_history): state, reason, lot, when."""
+    rows = conn.execute(
+        "select state, reason, lot_id, at from entity_state_history where entity_id = %s order by at, id",
+        (entity_id,),
+    ).fetchall()
+    return [{"state": s, "reason": r, "lot_id": lot, "at": _iso(t)} for s, r, lot, t in rows]
+
+
 def trace_where(
     conn: psycopg.Connection[Any],
     machine_id: str | None = None,

@@ -164,6 +164,11 @@ def test_record_books_oee_downtime_and_genealogy_against_a_known_truth(lot_cell:
         assert all(s["machine_id"] == "wc1" and s["recipe_id"] == "dummy_recipe" for s in tr["steps"]), tr
         assert [a["action"] for a in tr["actions"]] == ["import", "export"], tr
         assert all("@hi." in a["by"] for a in tr["actions"]), tr
+        states = [
+            s for (s,) in cell.query("select state from entity_state_history where entity_id = %s order by id", entity)
+        ]
+        assert states[:3] == ["created", "waiting_import", "imported"] and states[-2:] == ["waiting_export", "exported"]
+    assert "States:" in ok(gwc(cell, "trace", "entity", str(first[0])))
     where = _json(cell, "trace", "where", "--machine", "wc1", "--recipe", "dummy_recipe@1")
     assert sorted({w["entity_id"] for w in where}) == sorted(first + second)
     assert len(where) == parts
