@@ -153,6 +153,11 @@ def test_record_books_oee_downtime_and_genealogy_against_a_known_truth(lot_cell:
     assert wc1["performance"] == pytest.approx(0.4 * parts / wc1["run_s"])
     assert wc1["quality"] == pytest.approx(good / parts)
     assert wc1["oee"] == pytest.approx(wc1["availability"] * wc1["performance"] * wc1["quality"])
+    # wc3's silent WC counts as down time (unscheduled); wc2's stop, outside any planned time, does not
+    others = _json(cell, "report", "oee", "--machine", "wc2", "--machine", "wc3", "--since", _iso(since))
+    wc2, wc3 = others["machines"]
+    assert wc2["planned_s"] == 0 and wc2["down_s"] == 0 and wc2["availability"] is None, wc2
+    assert wc3["down_s"] > 5 and [d["reason"] for d in wc3["downtime"]] == ["electrical"], wc3
     (tool,) = [e for e in _json(cell, "downtime", "list", "--machine", "wc1") if e["reason"] == "tool change"]
     assert tool["cause"] == "operator_stop" and tool["e10_state"] == "scheduled_downtime" and tool["ended_at"]
 
