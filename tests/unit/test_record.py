@@ -125,3 +125,34 @@ def test_oee_of_the_worked_example_in_docs_record(db_conn: psycopg.Connection[An
         "unscheduled_downtime": 40 * 60,
         "standby": 60 * 60,
     }
+
+
+def test_pruning_keeps_the_last_state_before_the_cut_and_open_downtime(db_conn: psycopg.Connection[Any]) -> None:
+    now = datetime.now(UTC)
+    cur = db_conn.cursor()
+    for days, status in ((40, "Idle"), (35, "Shutdown"), (1, "Idle")):
+        cur.execute(
+            "insert into machine_state_history (at, machine_id, status, cause) values (%s, 'wc1', %s, 'start')",
+            (now - timedelta(days=days), status),
+        )
+    cur.execute(
+        "insert into downtime_events (machine_id, started_at, ended_at, cause, e10_state) values "
+        "('wc1', %(a)s, %(b)s, 'alarm', 'unscheduled_downtime'), ('wc2', %(a)s, null, 'alarm', 'unscheduled_downtime')",
+        {"a": now - timedelta(days=40), "b": now - timedelta(days=39)},
+    )
+    for days, state in ((40, "created"), (1, "imported")):
+        cur.execute(
+            "insert into entity_state_history (at, entity_id, lot_id, state) values (%s, 1, 1, %s)",
+            (now - timedelta(days=days), state),
+        )
+    cur.execute("set role gwc_ms")
+    assert cur.execute("select prune_record('ms', 30)").fetchone() == (2,)  # the Idle of day 40, the closed event
+    cur.execute("reset role; set role gwc_ls")
+    assert cur.execute("select prune_record('ls', 30)").fetchone() == (1,)
+    cur.execute("reset role")
+    kept = cur.execute("select status from machine_state_history where machine_id = 'wc1' order by at").fetchall()
+    assert kept == [("Shutdown",), ("Idle",)]  # the state wc1 was in when the kept time begins, and after
+    assert cur.execute("select machine_id from downtime_events").fetchall() == [("wc2",)]
+    with pytest.raises(psycopg.errors.InvalidParameterValue):
+        cur.execute("select prune_record('cas', 30)")
+    db_conn.rollback()
