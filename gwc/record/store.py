@@ -271,14 +271,18 @@ def oee(
 
     availability = run time / planned time; performance = sum of the runs' ideal cycle times / run time
     (a recipe without record.ideal_cycle_s: its fastest run on that machine in the window); quality =
-    good parts / parts. Run and down time count only inside planned time."""
+    good parts / parts. Run and down time count only inside planned time; time before a machine's first
+    record (a cell just installed, history pruned) is unknown and counts as nothing."""
     ids = machines if machines else machine_ids(conn)
     out = []
     cell = {"planned": 0.0, "run": 0.0, "down": 0.0, "ideal": 0.0, "parts": 0, "good": 0}
     cell_down: dict[str | None, list[float]] = {}
     all_runs = runs(conn, None, since, until)
     for mid in ids:
-        planned = planned_intervals(rec.calendar_of(mid), since, until, rec.timezone)
+        # time before the machine's first record is unknown: not planned, not counted
+        first = conn.execute("select min(at) from machine_state_history where machine_id = %s", (mid,)).fetchone()
+        known = max(since, first[0]) if first and first[0] is not None else until
+        planned = planned_intervals(rec.calendar_of(mid), known, until, rec.timezone)
         planned_s = sum((b - a).total_seconds() for a, b in planned)
         events = downtime_events(conn, mid, since=since, until=until)
         segs = timeline(conn, rec, mid, since, until, events)
