@@ -22,11 +22,11 @@ create table if not exists machine_state_history (
     at              timestamptz not null default clock_timestamp()
 );
 create index if not exists machine_state_history_machine_at on machine_state_history (machine_id, at);
-create index if not exists machine_state_history_at on machine_state_history (at);
+-- Each index is paid by every status change: only those a reader needs. Time ranges (pruning, reports)
+-- use a BRIN index (rows come in time order), tiny and nearly free to keep; `trace where --recipe` scans.
+create index if not exists machine_state_history_at_brin on machine_state_history using brin (at);
 create index if not exists machine_state_history_entity on machine_state_history (entity_id)
     where entity_id is not null;
-create index if not exists machine_state_history_recipe on machine_state_history (recipe_id, at)
-    where status = 'Running';
 
 -- Machine Server: a stop that was not planned (the machine went Shutdown). Open while ended_at is
 -- null: at most one per machine. reason: the alarm that caused it, or the one the operator gave from
@@ -52,7 +52,7 @@ create index if not exists downtime_events_ended on downtime_events (ended_at);
 -- Lot Server: every change of an entity's state (a trigger on lot_status, so no path that moves an
 -- entity can forget it: it runs in the Lot Server's own transaction, as its role).
 create table if not exists entity_state_history (
-    id        bigserial primary key,
+    id        bigserial,  -- the order of changes within one instant; no key: nothing refers to a row
     entity_id bigint not null,
     lot_id    bigint not null,
     state     text not null,
@@ -60,7 +60,7 @@ create table if not exists entity_state_history (
     at        timestamptz not null default clock_timestamp()
 );
 create index if not exists entity_state_history_entity on entity_state_history (entity_id, at);
-create index if not exists entity_state_history_at on entity_state_history (at);
+create index if not exists entity_state_history_at_brin on entity_state_history using brin (at);
 
 -- Lot Server: the operator's actions on an entity (import, export, release, cancel) and who did it
 -- (today the unix user of the HI: user@hi.pid).
