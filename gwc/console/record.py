@@ -80,7 +80,7 @@ class RecordView(View):
 
         def read(conn: psycopg.Connection[Any]) -> list[dict[str, Any]]:
             events = store.downtime_events(conn)[-200:]
-            rep = store.oee(conn, rec, since, until)
+            rep = store.oee(conn, rec, since, until, [m.id for m in link.cfg.machines] or None)
             rows: list[dict[str, Any]] = sorted(
                 (e.as_json() for e in events), key=lambda e: (e["ended_at"] is not None, -e["event_id"])
             )

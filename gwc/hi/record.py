@@ -59,7 +59,7 @@ def report_oee(machines: tuple[str, ...], since: str, until: str, as_json: bool,
         cfg.machine(m)
     a, b = _window(since, until, cfg.record.timezone)
     with hi_conn(cfg, log) as conn:
-        rep = store.oee(conn, cfg.record, a, b, list(machines) or None)
+        rep = store.oee(conn, cfg.record, a, b, list(machines) or [m.id for m in cfg.machines] or None)
     if as_json:
         click.echo(json.dumps(rep, indent=1))
         return
@@ -98,7 +98,7 @@ def report_html(out: Path, machines: tuple[str, ...], since: str, until: str) ->
         cfg.machine(m)
     a, b = _window(since, until, cfg.record.timezone)
     with hi_conn(cfg, log) as conn:
-        page = render(conn, cfg.record, cfg.cell_name, a, b, list(machines) or None)
+        page = render(conn, cfg.record, cfg.cell_name, a, b, list(machines) or [m.id for m in cfg.machines] or None)
     try:
         out.write_text(page, encoding="utf-8")
     except OSError as e:

@@ -46,7 +46,15 @@ def _pct(x: float | None) -> str:
 def _timeline_svg(machine_id: str, segs: list[store.Segment], since: datetime, until: datetime) -> str:
     span = (until - since).total_seconds() or 1.0
     rects = []
-    for s in segs:
+    merged: list[store.Segment] = []
+    for s in segs:  # one rect per run of the same state, and none narrower than a tenth of a pixel
+        if merged and merged[-1].e10 == s.e10 and merged[-1].end == s.start:
+            merged[-1] = store.Segment(merged[-1].start, s.end, merged[-1].status, merged[-1].cause, s.e10)
+        elif s.seconds / span * WIDTH >= 0.1 or not merged:
+            merged.append(s)
+        else:
+            merged[-1] = store.Segment(merged[-1].start, s.end, merged[-1].status, merged[-1].cause, merged[-1].e10)
+    for s in merged:
         x = (s.start - since).total_seconds() / span * WIDTH
         w = max(0.5, s.seconds / span * WIDTH)
         tip = f"{s.status} ({s.e10}, {s.cause}) {s.start:%H:%M:%S}-{s.end:%H:%M:%S} {s.seconds:.0f}s"
