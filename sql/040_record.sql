@@ -78,16 +78,17 @@ create index if not exists operator_actions_at on operator_actions (at);
 
 -- The trigger: a state that changed (or a new row) is one insert more in the same transaction.
 -- gwc.record_entities = 'off' (set by a Lot Server whose cell.toml turns the history off) skips it.
+-- No SET clause (search_path): a function with one saves and restores the setting at every call, on
+-- the Lot Server's hot path; the table is named with its schema instead.
 create or replace function record_entity_state() returns trigger
 language plpgsql
-set search_path = public, pg_temp
 as $$
 begin
     if coalesce(current_setting('gwc.record_entities', true), '') = 'off' then
         return null;
     end if;
     if tg_op = 'INSERT' or new.state is distinct from old.state then
-        insert into entity_state_history (entity_id, lot_id, state, reason) values
+        insert into public.entity_state_history (entity_id, lot_id, state, reason) values
             (new.entity_id, new.lot_id, new.state, new.reason);
     end if;
     return null;
