@@ -31,6 +31,7 @@ COMMAND_MODULES = [
     "gwc.hi.soak",  # the chaos soak
     "gwc.hi.demo",  # section 7's demonstration
     "gwc.hi.bench",  # benchmarks
+    "gwc.hi.record",  # the production record: report oee/html, trace, downtime
 ]
 
 

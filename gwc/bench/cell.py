@@ -132,8 +132,10 @@ class CellBench:
         freezes: int = 0,
         idle_s: float = 60.0,
         at_once: int = 0,
+        history: bool = True,
     ) -> None:
         self.var = var.resolve()
+        self.history = history
         self.n = machines
         self.m = lots
         self.solo = solo
@@ -150,7 +152,15 @@ class CellBench:
         if self.var.exists():
             shutil.rmtree(self.var)
         # With the host's agent, as `gwc start` runs a cell: it announces a death the moment it happens.
-        self.cell = PrivateCell(self.var, specs, log, database_url, bus={"kernel_filter": kernel_filter}, agent=True)
+        self.cell = PrivateCell(
+            self.var,
+            specs,
+            log,
+            database_url,
+            bus={"kernel_filter": kernel_filter},
+            agent=True,
+            record={"history": history},  # the production record written, or not ([record] history)
+        )
         self.conn: psycopg.Connection[Any] | None = None
         self.reads = 0  # the operator's reads of lot_status, to tell the cell's own commits from them
 
@@ -572,6 +582,19 @@ def _ms(s: dict[str, float]) -> str:
     show_default=True,
     help="Lots at work at a time, each on the next free machine in turn (0: one per machine).",
 )
+@click.option(
+    "--history/--no-history",
+    default=True,
+    show_default=True,
+    help="The production record ([record] history, docs/record.md): off shows what writing it costs.",
+)
+@click.option(
+    "--compare-history",
+    "compare",
+    type=int,
+    default=0,
+    help="Instead: N pairs of lot runs, history off then on (then on, off: the order alternates), side by side.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 def command(
     machines: int,
@@ -583,6 +606,8 @@ def command(
     freezes: int,
     idle_s: float,
     at_once: int,
+    history: bool,
+    compare: int,
     as_json: bool,
 ) -> None:
     """Run lots through a private cell of N dummy machines: lots/s, the cell's overhead per lot
@@ -592,6 +617,10 @@ def command(
     if machines < 1 or lots < 1 or solo < 0 or deaths < 0 or freezes < 0:
         raise click.BadParameter("--machines and --lots must be at least 1, --solo and --deaths at least 0")
     cfg, log = context()
+    if compare > 0:
+        from gwc.bench.history import compare_history
+
+        return compare_history(cfg.var / "bench-cell" if where is None else where, machines, lots, compare, as_json)
     bench = CellBench(
         where or cfg.var / "bench-cell",
         machines,
@@ -605,6 +634,7 @@ def command(
         freezes,
         idle_s,
         at_once,
+        history,
     )
     result = bench.run()
     if as_json:

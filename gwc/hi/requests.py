@@ -12,8 +12,9 @@ from typing import Any
 
 import click
 
+from gwc.client.record import record_action
 from gwc.client.requests import RequestFilter, cancel_request, request_tables, unreserve_machine, zoom_request
-from gwc.client.session import hi_bus, hi_conn
+from gwc.client.session import hi_bus, hi_conn, operator
 from gwc.errors import GwcError
 from gwc.hi import context, table
 
@@ -84,8 +85,20 @@ def cancel(request_key: int | None, entity_id: int | None) -> None:
         raise click.UsageError("give a REQUEST_KEY or --entity ENTITY_ID (one of them)")
     cfg, log = context()
     what = f"request {request_key}" if request_key is not None else f"the requests of entity {entity_id}"
+    whose = entity_id
+    if whose is None:  # the entity whose request it is: its history records the cancel
+        with hi_conn(cfg, log) as conn:
+            row = conn.execute(
+                "select entity_id from request_machines where request_key = %s", (request_key,)
+            ).fetchone()
+        whose = row[0] if row else None
     with hi_bus(cfg, log) as bus:
-        ack = cancel_request(bus, request_key, entity_id, by=f"hi.{cfg.cell_name}")
+        ack = cancel_request(bus, request_key, entity_id, by=operator())
+        if whose is not None and cfg.record.history:
+            try:
+                record_action(bus, whose, "cancel", operator(), f"{ack.cancelled} request(s): {what}")
+            except GwcError as e:
+                click.echo(f"gwc: the cancel is not in entity {whose}'s history: {e}", err=True)
     click.echo(f"cancelled {ack.cancelled} request(s) ({what}); the entity was told REQ_CANCEL")
 
 

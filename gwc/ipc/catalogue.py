@@ -266,7 +266,26 @@ MESSAGE_CLASSES: dict[str, MessageClass] = {
             parts="int",
             reason="str?",
         ),
+        _msg(
+            "Downtime_Reason",
+            "the operator gives a downtime event its reason (one of cell.toml's reason tree): the event "
+            "event_id, or the open one of machine_id",
+            event_id="int?",
+            machine_id="str?",
+            reason="str",
+            by="str?",
+        ),
+        _msg("Downtime_Reason_Ack", "event_id and e10_state as recorded", event_id="int?", e10_state="str?", **ACK),
         # --- Lot Server ---
+        _msg(
+            "Lot_Action",
+            "an operator action on an entity done elsewhere (a cancel, told MSCHED): kept in its history",
+            entity_id="int",
+            action="str",
+            by="str",
+            note="str?",
+        ),
+        _msg("Lot_Action_Ack", lot_id="int?", **ACK),
         _msg(
             "Create_Lot_Entity",
             "request_id: the asker's id for this creation; a repeat gets what the first made",
@@ -398,6 +417,10 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
         _conv("GET_STATUS", "read a machine's status", "ms", "Get_Status", "Status_Reply"),
         _conv("MAINT_DONE", "a machine was maintained", "ms", "Maint_Done", "Maint_Done_Ack"),
         _conv("SCRAP_RPT", "a lot scrapped parts of a machine's run", "ms", "Scrap_Report", "Ack"),
+        _conv(
+            "DOWNTIME_RSN", "the operator gives a downtime its reason", "ms", "Downtime_Reason", "Downtime_Reason_Ack"
+        ),
+        _conv("LOT_ACTION", "record an operator action on an entity", "ls", "Lot_Action", "Lot_Action_Ack"),
         _conv("CREATE_LOT", "create a lot entity", "ls", "Create_Lot_Entity", "Create_Lot_Ack"),
         _conv(
             "ENTITY_REQ",

@@ -92,17 +92,32 @@ def _new_lot_for(cur: Any, entity_id: int, old_lot: int) -> int:
     return lot_id
 
 
-def _move(entity_id: int, to: LotState, came_from: frozenset[LotState], reason: str | None, keep: bool) -> db.Statement:
+def _move(
+    entity_id: int,
+    to: LotState,
+    came_from: frozenset[LotState],
+    reason: str | None,
+    keep: bool,
+    action: tuple[str, str] | None = None,
+) -> db.Statement:
     """An entity (not destroyed) in one of `came_from` moves to `to`, in one statement: the row of its
     lot_id, or None if it was not in one of them (the caller reads why). `reason` replaces the old one,
-    or only fills it when `keep`."""
-    return db.Statement(
+    or only fills it when `keep`. An operator's `action` (what, by whom) is kept in operator_actions by
+    the same statement (the entity's new state goes to entity_state_history by lot_status's trigger)."""
+    move = (
         "update lot_status s set state = %(to)s, updated_at = now(), "
         + ("reason = coalesce(%(reason)s, s.reason) " if keep else "reason = %(reason)s ")
         + "from (select s2.state from lot_status s2 join lot_entities e using (entity_id) "
         "where s2.entity_id = %(e)s and e.destroyed_at is null for update of s2) old "
-        "where s.entity_id = %(e)s and old.state = any(%(from)s) returning s.lot_id",
-        {"to": to.value, "reason": reason, "e": entity_id, "from": [str(x) for x in came_from]},
+        "where s.entity_id = %(e)s and old.state = any(%(from)s) returning s.lot_id"
+    )
+    params = {"to": to.value, "reason": reason, "e": entity_id, "from": [str(x) for x in came_from]}
+    if action is None:
+        return db.Statement(move, params)
+    return db.Statement(
+        f"with moved as ({move}), act as (insert into operator_actions (entity_id, lot_id, action, by) "
+        "select %(e)s, lot_id, %(action)s, %(by)s from moved) select lot_id from moved",
+        params | {"action": action[0], "by": action[1]},
     )
 
 
@@ -114,6 +129,7 @@ class LotServer(Server, Module):
         self.watched: dict[int, float] = {}  # entity -> when its script was last seen on the bus
         self.restarting: dict[int, float] = {}  # entity -> until when its script's restart is waited for
         self.grace = max(3.0, 2 * cfg.bus.peer_timeout)
+        self.pruned = 0.0  # monotonic time the history was last pruned (0: at the first idle)
 
     def handlers(self) -> dict[str, Handler]:
         return {
@@ -124,12 +140,57 @@ class LotServer(Server, Module):
             Conv.RELEASE_LOT: self.decision,
             Conv.DIV_MERGE: self.divide_merge,
             Conv.MOD_DIED: self.module_died,
+            Conv.LOT_ACTION: self.lot_action,
         }
 
     # ----------------------------------------------------------------- lifecycle and the reaper
 
     async def on_bus(self) -> None:
         self.bus.peer_listeners.append(self._peer_changed)
+
+    def on_connect(self, conn: Any) -> None:
+        """A cell without history ([record] history = false): lot_status's trigger records nothing."""
+        if not self.cfg.record.history:
+            conn.execute("select set_config('gwc.record_entities', 'off', false)")
+            conn.commit()
+
+    async def on_idle(self) -> None:
+        if not self.started:
+            return
+        now = time.monotonic()
+        if self.cfg.record.history and (not self.pruned or now - self.pruned > self.cfg.record.prune_every_s):
+            self.pruned = now
+            self.prune()
+        self.reap_silent(now)
+
+    def prune(self) -> None:
+        """Entity history and operator actions older than [record] keep_days go (docs/record.md)."""
+        try:
+            row = self.transaction(db.Statement("select prune_record('ls', %s)", (self.cfg.record.keep_days,)))
+        except GwcError as e:
+            self.log.error("pruning the entity history failed: %s", e)
+            return
+        if row and row[0]:
+            self.log.info("pruned %d rows of entity history older than %g days", row[0], self.cfg.record.keep_days)
+
+    async def lot_action(self, conv: Conversation) -> None:
+        """LOT_ACTION: an operator's action on an entity done through another module (a cancel, told
+        MSCHED), kept in the entity's history with who did it."""
+        req = self.request(conv)
+        ack = Msg.LOT_ACTION_ACK
+        if not str(req.action).strip() or not str(req.by).strip():
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "a lot action needs an action and who did it")
+        row = self.transaction(
+            db.Statement(
+                "insert into operator_actions (entity_id, lot_id, action, by, note) "
+                "select entity_id, lot_id, %s, %s, %s from lot_status where entity_id = %s returning lot_id",
+                (req.action[:100], req.by[:200], req.note, req.entity_id),
+            )
+        )
+        if row is None:
+            return await self.answer(conv, ack, AckCode.UNKNOWN, f"no entity {req.entity_id}")
+        self.log.info("entity %d: %s by %s", req.entity_id, req.action, req.by)
+        await self.answer(conv, ack, AckCode.ACK_OK, lot_id=row[0])
 
     async def on_startup(self) -> str:
         """Watch the scripts of entities at work (they had a script when we were last up)."""
@@ -180,10 +241,8 @@ class LotServer(Server, Module):
         self.restarting[entity] = time.monotonic() + float(died.restart_in) + RESTART_GRACE
         self.log.info("%s died (%s); %s restarts it: its entity waits for it", died.module, died.how, died.host)
 
-    async def on_idle(self) -> None:
-        if not self.started:
-            return
-        now = time.monotonic()
+    def reap_silent(self, now: float) -> None:
+        """Reap the scripts of watched entities not seen on the bus for longer than the grace."""
         peers = self.bus.peers()
         for ent, seen in list(self.watched.items()):
             if f"lot:{ent}" in peers:
@@ -441,7 +500,9 @@ class LotServer(Server, Module):
 
         # The move, or why not: each one statement, run alone (a refusal's read is a snapshot of its own,
         # as it was in one read-committed step).
-        row = self.transaction(_move(req.entity_id, moved, waiting, reason, keep=True))
+        what = action if conv.cls in (Conv.IMPORT_LOT, Conv.EXPORT_LOT) else f"release {action}"
+        record = (str(what), str(by)) if self.cfg.record.history else None
+        row = self.transaction(_move(req.entity_id, moved, waiting, reason, keep=True, action=record))
         if row is not None:
             code, lot_id, note = AckCode.ACK_OK, row[0], None
         else:
