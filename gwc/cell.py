@@ -236,7 +236,8 @@ def shutdown(bus: BlockingBus, name: str, cls: str = Conv.SHUTDOWN, timeout: flo
         while True:
             done = conv.next_message(timeout).first
             if done.name in (Msg.SHUTDOWN_COMPLETE, Msg.ME_STOPPED):
-                return "shut down" if done.ack_code == AckCode.ACK_OK else f"shut down with {done.ack_code}"
+                said = "shut down" if done.ack_code == AckCode.ACK_OK else f"shut down with {done.ack_code}"
+                return f"{said} ({done.note})" if done.fields.get("note") else said
     finally:
         conv.end()
 
