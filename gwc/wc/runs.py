@@ -128,7 +128,11 @@ class WCRuns(WCBase):
             self.log.info("the ME raises alarm %s", alarm_id)
             text = self._alarm_text(alarm_id)
             starting = self._starting is not None
-            no = await self.raise_alarm(alarm_id, text, wait=False, retry=True)
+            no = None
+            if starting and self._start_cancelled is not None:  # the stop came first: not raised at all
+                self.log.info("alarm %s not raised: the start it belongs to was cancelled", alarm_id)
+            else:
+                no = await self.raise_alarm(alarm_id, text, wait=False, retry=True)
             if no is not None:
                 if starting:
                     self._start_alarms.add(no)
@@ -151,6 +155,8 @@ class WCRuns(WCBase):
         """ME_START to the ME: its answer comes once the machine is homed (its homing alarm cleared by
         the operator). StartCancelled when a stop came meanwhile (cancel_start), whatever the ME said:
         an ME that started all the same (the operator cleared the alarm as the stop came) is shut again."""
+        if self._starting is not None:  # one ME_START at a time: a second would home the machine twice
+            raise StartCancelled("another start is in progress (waiting for homing): this one is not sent")
         starting = self._starting = self._loop.create_future()
         self._start_cancelled, self._start_alarms = None, set()
         try:
