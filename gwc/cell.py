@@ -236,8 +236,7 @@ def shutdown(bus: BlockingBus, name: str, cls: str = Conv.SHUTDOWN, timeout: flo
         while True:
             done = conv.next_message(timeout).first
             if done.name in (Msg.SHUTDOWN_COMPLETE, Msg.ME_STOPPED):
-                said = "shut down" if done.ack_code == AckCode.ACK_OK else f"shut down with {done.ack_code}"
-                return f"{said} ({done.note})" if done.fields.get("note") else said
+                return "shut down" if done.ack_code == AckCode.ACK_OK else f"shut down with {done.ack_code}"
     finally:
         conv.end()
 

@@ -326,7 +326,7 @@ def test_a_stop_while_the_cmm_waits_to_be_homed_cancels_the_start_and_a_later_st
             start.kill()
             start.wait()
     assert stopped.returncode == 0, stopped.stderr
-    assert "shut down (start cancelled" in stopped.stdout, stopped.stdout
+    assert "wc:cmm_wc: shut down" in stopped.stdout, stopped.stdout
     # The start's conversation ends, failed, saying why.
     assert start.returncode != 0, out
     assert "REQ_CANCEL start cancelled" in err, err
