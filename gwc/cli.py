@@ -21,6 +21,7 @@ COMMAND_MODULES = [
     "gwc.hi.machine",  # machine start/stop/status (MSTT)
     "gwc.hi.requests",  # machine requests and cancel (MREQ, Listing 8)
     "gwc.hi.orders",  # work orders (WOEN, WOSU), dispatch list, import/export (DISP, IMPL), lots
+    "gwc.hi.lots",  # lots divide/merge/destroy (1.4.4), around the dispatch list: after gwc.hi.orders
     "gwc.hi.alarm",  # alarms and their clearing, the status line
     "gwc.hi.recipe",  # the recipe library (ERS)
     "gwc.hi.monitor",  # the conversation monitor
@@ -30,6 +31,7 @@ COMMAND_MODULES = [
     "gwc.hi.soak",  # the chaos soak
     "gwc.hi.demo",  # section 7's demonstration
     "gwc.hi.bench",  # benchmarks
+    "gwc.hi.record",  # the production record: report oee/html, trace, downtime
 ]
 
 

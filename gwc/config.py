@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import os
 import random
+import re
 import socket
 import tomllib
 from dataclasses import dataclass, field
@@ -116,6 +117,7 @@ class Config:
     hosts: tuple[HostSpec, ...] = ()
     host: str | None = None  # which of `hosts` this process runs on (None in a one-host cell)
     database_host: HostSpec | None = None  # where the embedded cluster runs, in a cell over several hosts
+    record: RecordConfig = field(default_factory=lambda: RecordConfig())  # [record]: the production record
 
     @property
     def log_dir(self) -> Path:
@@ -286,6 +288,183 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
         hosts=hosts,
         host=host,
         database_host=_database_host(raw.get("database", {}).get("host"), hosts, url),
+        record=parse_record(raw.get("record", {}), machines),
+    )
+
+
+# ----------------------------------------------------------------------------- [record]
+
+DAYS = ("mon", "tue", "wed", "thu", "fri", "sat", "sun")
+E10_STATES = ("productive", "standby", "engineering", "scheduled_downtime", "unscheduled_downtime", "non_scheduled")
+DOWN_STATES = ("scheduled_downtime", "unscheduled_downtime", "engineering")  # what a downtime reason may be
+ALWAYS = "always"  # the built-in calendar: every hour of every day planned
+
+
+@dataclass(frozen=True)
+class Shift:
+    """Planned production time on some weekdays, start..end local time in minutes (end <= start: overnight)."""
+
+    days: tuple[int, ...]  # 0 = Monday
+    start: int
+    end: int
+
+
+@dataclass(frozen=True)
+class Calendar:
+    """A shift calendar: planned time is the union of its shifts; none at all: never planned."""
+
+    name: str
+    shifts: tuple[Shift, ...]
+    always: bool = False
+
+
+DEFAULT_REASONS: dict[str, dict[str, Any]] = {
+    "planned": {"e10": "scheduled_downtime", "reasons": ["tool change", "preventive maintenance", "cleaning"]},
+    "breakdown": {"e10": "unscheduled_downtime", "reasons": ["mechanical", "electrical", "controller", "tool broken"]},
+    "material": {"e10": "unscheduled_downtime", "reasons": ["no material", "wrong material"]},
+    "engineering": {"e10": "engineering", "reasons": ["trial run", "process engineering"]},
+}
+DEFAULT_REASON_INDEX = {r: (c, str(v["e10"])) for c, v in DEFAULT_REASONS.items() for r in v["reasons"]}
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    """cell.toml [record] (docs/record.md): history on or off, retention, calendars, reason tree, cycles."""
+
+    history: bool = True
+    keep_days: float = 90.0
+    prune_every_s: float = 3600.0
+    timezone: str = "UTC"
+    calendar: str = ALWAYS  # the cell's; a machine's `calendar` option names another
+    calendars: dict[str, Calendar] = field(default_factory=lambda: {ALWAYS: Calendar(ALWAYS, (), always=True)})
+    # reason -> (category, E10 state); the tree's categories in order, each with its reasons
+    reasons: dict[str, tuple[str, str]] = field(default_factory=lambda: dict(DEFAULT_REASON_INDEX))
+    ideal_cycle_s: dict[str, float] = field(default_factory=dict)  # recipe_id -> ideal seconds per part
+    machine_calendars: dict[str, str] = field(default_factory=dict)  # machine_id -> calendar name
+
+    def calendar_of(self, machine_id: str) -> Calendar:
+        return self.calendars[self.machine_calendars.get(machine_id, self.calendar)]
+
+    def tree(self) -> dict[str, list[str]]:
+        """The reason tree: category -> its reasons."""
+        out: dict[str, list[str]] = {}
+        for reason, (category, _) in self.reasons.items():
+            out.setdefault(category, []).append(reason)
+        return out
+
+
+def _hhmm(value: Any, where: str) -> int:
+    if not isinstance(value, str) or not re.fullmatch(r"\d{1,2}:\d{2}", value):
+        raise ValueError(f"{where}: {value!r} is not a time of day HH:MM")
+    h, m = (int(x) for x in value.split(":"))
+    if not (0 <= h <= 24 and 0 <= m < 60) or (h == 24 and m):
+        raise ValueError(f"{where}: {value!r} is not a time of day 00:00..24:00")
+    return h * 60 + m
+
+
+def _calendar(name: str, entry: Any) -> Calendar:
+    where = f"record.calendars.{name}"
+    if not isinstance(entry, dict) or set(entry) - {"shifts"}:
+        raise ValueError(f"{where} must be a table with one key, shifts = [{{days, start, end}}, ...]")
+    shifts = entry.get("shifts", [])
+    if not isinstance(shifts, list):
+        raise ValueError(f'{where}.shifts must be a list of {{days = [...], start = "HH:MM", end = "HH:MM"}}')
+    out = []
+    for i, s in enumerate(shifts):
+        w = f"{where}.shifts[{i}]"
+        if not isinstance(s, dict) or set(s) != {"days", "start", "end"}:
+            raise ValueError(f"{w} must have exactly days, start and end")
+        days = s["days"]
+        if days == "all":
+            days = list(DAYS)
+        if not isinstance(days, list) or not days or any(d not in DAYS for d in days):
+            raise ValueError(f'{w}.days must be "all" or a list of {", ".join(DAYS)}; got {s["days"]!r}')
+        start, end = _hhmm(s["start"], f"{w}.start"), _hhmm(s["end"], f"{w}.end")
+        if start == end:
+            raise ValueError(f"{w}: start and end are both {s['start']} (use 00:00 to 24:00 for a whole day)")
+        out.append(Shift(tuple(sorted({DAYS.index(d) for d in days})), start, end))
+    return Calendar(name, tuple(out))
+
+
+def parse_record(raw: Any, machines: list[MachineSpec]) -> RecordConfig:
+    """[record], checked: every error names its key and what it should be."""
+    if not isinstance(raw, dict):
+        raise ValueError("[record] must be a table")
+    known = {"history", "keep_days", "prune_every_s", "timezone", "calendar", "calendars", "reasons", "ideal_cycle_s"}
+    if set(raw) - known:
+        unknown = ", ".join(sorted(set(raw) - known))
+        raise ValueError(f"[record]: unknown key(s) {unknown} (known: {', '.join(sorted(known))})")
+    history = raw.get("history", True)
+    if not isinstance(history, bool):
+        raise ValueError(f"record.history must be true or false, not {history!r}")
+    numbers = {}
+    for key, default in (("keep_days", 90.0), ("prune_every_s", 3600.0)):
+        v = raw.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0:
+            raise ValueError(f"record.{key} must be a positive number, not {v!r}")
+        numbers[key] = float(v)
+    tz = raw.get("timezone", "UTC")
+    try:
+        from zoneinfo import ZoneInfo
+
+        ZoneInfo(str(tz))
+    except (KeyError, ValueError, OSError):
+        raise ValueError(f'record.timezone {tz!r} is not a time zone (e.g. "UTC", "Europe/Berlin")') from None
+    calendars = {ALWAYS: Calendar(ALWAYS, (), always=True)}
+    cal_raw = raw.get("calendars", {})
+    if not isinstance(cal_raw, dict):
+        raise ValueError("record.calendars must be a table of calendars, each shifts = [...]")
+    for name, entry in cal_raw.items():
+        if name == ALWAYS:
+            raise ValueError(f"record.calendars.{ALWAYS} is built in (every hour planned): name yours otherwise")
+        calendars[name] = _calendar(name, entry)
+    default = raw.get("calendar", ALWAYS)
+    if default not in calendars:
+        raise ValueError(f"record.calendar {default!r} is not a calendar (known: {', '.join(calendars)})")
+    per_machine = {}
+    for m in machines:
+        name = m.options.get("calendar")
+        if name is not None:
+            if name not in calendars:
+                names = ", ".join(calendars)
+                raise ValueError(f"machine {m.id}: calendar {name!r} is not in record.calendars ({names})")
+            per_machine[m.id] = str(name)
+    reasons: dict[str, tuple[str, str]] = {}
+    tree = raw.get("reasons", DEFAULT_REASONS)
+    if not isinstance(tree, dict) or not tree:
+        raise ValueError('record.reasons must be a table: category = {e10 = "...", reasons = ["...", ...]}')
+    for category, entry in tree.items():
+        where = f"record.reasons.{category}"
+        if not isinstance(entry, dict) or set(entry) != {"e10", "reasons"}:
+            raise ValueError(f'{where} must be {{e10 = "<state>", reasons = ["..."]}}')
+        if entry["e10"] not in DOWN_STATES:
+            raise ValueError(f"{where}.e10 {entry['e10']!r} is not one of {', '.join(DOWN_STATES)}")
+        if not isinstance(entry["reasons"], list) or not entry["reasons"]:
+            raise ValueError(f"{where}.reasons must be a list of reasons (text)")
+        for r in entry["reasons"]:
+            if not isinstance(r, str) or not r.strip():
+                raise ValueError(f"{where}.reasons: {r!r} is not a reason (non-empty text)")
+            if r in reasons:
+                raise ValueError(f"{where}: reason {r!r} is also under {reasons[r][0]}: a reason has one place")
+            reasons[r] = (str(category), str(entry["e10"]))
+    cycles_raw = raw.get("ideal_cycle_s", {})
+    if not isinstance(cycles_raw, dict):
+        raise ValueError("record.ideal_cycle_s must be a table: recipe_id = seconds")
+    cycles = {}
+    for recipe, v in cycles_raw.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0:
+            raise ValueError(f"record.ideal_cycle_s.{recipe} must be a positive number of seconds, not {v!r}")
+        cycles[str(recipe)] = float(v)
+    return RecordConfig(
+        history=history,
+        keep_days=numbers["keep_days"],
+        prune_every_s=numbers["prune_every_s"],
+        timezone=str(tz),
+        calendar=str(default),
+        calendars=calendars,
+        reasons=reasons,
+        ideal_cycle_s=cycles,
+        machine_calendars=per_machine,
     )
 
 

@@ -65,6 +65,7 @@ def write_cell_config(
     faults: dict[str, Any] | None = None,
     level: str = "note",
     sections: dict[str, Any] | None = None,
+    record: dict[str, Any] | None = None,
 ) -> Config:
     """Write var/etc/cell.toml for a private cell with a random multicast group and port (`sections`:
     more tables, e.g. {"lots": {"max_running": 4}})."""
@@ -81,6 +82,7 @@ def write_cell_config(
             "module": [{"name": m} for m in modules],
             "machine": list(machines),
             **(sections or {}),
+            **({"record": record} if record else {}),
         },
     )
 

@@ -1,8 +1,9 @@
 """`gwc bench cell`: the whole cell's cost per lot, its throughput, and how fast it routes around a death.
 
 A private cell (gwc.soak.cell) with N dummy machines whose runs take no time runs M lots of the
-soak's lot script, one lot at a time per machine (a lane each), so a lot never waits for a busy
-machine and everything it waits for is the cell itself:
+soak's lot script, one lot at a time per machine (a lane each; with `--at-once K`, K lanes, each
+lot on the next free machine in turn), so a lot never waits for a busy machine and everything it
+waits for is the cell itself:
 
 * overhead per lot: the lot script's own clock around its operation, from the machine request to
   the unreserve's answer (every conversation between: MACH_REQ, the Lot Server's state changes,
@@ -130,8 +131,11 @@ class CellBench:
         kernel_filter: bool = True,
         freezes: int = 0,
         idle_s: float = 60.0,
+        at_once: int = 0,
+        history: bool = True,
     ) -> None:
         self.var = var.resolve()
+        self.history = history
         self.n = machines
         self.m = lots
         self.solo = solo
@@ -141,13 +145,22 @@ class CellBench:
         self.log = log
         self.say = say
         self.fast = [f"wc{i}" for i in range(1, machines + 1)]
+        self.at_once = min(at_once, machines) if at_once > 0 else machines  # lots at work at a time
         self.slow = ["slow1", "slow2"] if deaths or freezes else []
         specs = [{"id": m, "kind": "dummy", "run_time": 0.0} for m in self.fast]
         specs += [{"id": m, "kind": "dummy", "run_time": SLOW_RUN} for m in self.slow]
         if self.var.exists():
             shutil.rmtree(self.var)
         # With the host's agent, as `gwc start` runs a cell: it announces a death the moment it happens.
-        self.cell = PrivateCell(self.var, specs, log, database_url, bus={"kernel_filter": kernel_filter}, agent=True)
+        self.cell = PrivateCell(
+            self.var,
+            specs,
+            log,
+            database_url,
+            bus={"kernel_filter": kernel_filter},
+            agent=True,
+            record={"history": history},  # the production record written, or not ([record] history)
+        )
         self.conn: psycopg.Connection[Any] | None = None
         self.reads = 0  # the operator's reads of lot_status, to tell the cell's own commits from them
 
@@ -220,8 +233,11 @@ class CellBench:
         return states
 
     def _lots(self) -> dict[str, Any]:
-        self.say(f"running {self.m} lots, one at a time on each of {self.n} machines")
-        lane: dict[str, int | None] = {m: None for m in self.fast}
+        self.say(f"running {self.m} lots, {self.at_once} at a time, each on the next free of {self.n} machines")
+        # A lane holds one lot at a time; each new lot goes to the next machine no other lane uses, in turn,
+        # so that with fewer lanes than machines every machine works and the cell's size is what grows.
+        lane: dict[str, int | None] = {}
+        turn = itertools.cycle(self.fast)
         ordered = finished = 0
         failed: list[int] = []
         decided: set[tuple[int, str]] = set()
@@ -230,11 +246,11 @@ class CellBench:
         began = time.monotonic()
         last = began
         while finished < self.m:
-            for m, e in lane.items():
-                if e is None and ordered < self.m:
-                    lane[m] = self._order([[m]])
-                    entities.append(lane[m])  # type: ignore[arg-type]
-                    ordered += 1
+            while len(lane) < self.at_once and ordered < self.m:
+                m = next(x for x in turn if x not in lane)
+                lane[m] = self._order([[m]])
+                entities.append(lane[m])  # type: ignore[arg-type]
+                ordered += 1
             states = self._operator(decided, [e for e in lane.values() if e is not None])
             for m, e in lane.items():
                 if e is not None and states.get(e) in FINAL:
@@ -243,6 +259,7 @@ class CellBench:
                         failed.append(e)
                     lane[m] = None
                     last = time.monotonic()
+            lane = {m: e for m, e in lane.items() if e is not None}
             if time.monotonic() - last > LOT_TIMEOUT:
                 raise GwcError(f"no lot finished for {LOT_TIMEOUT:.0f}s: see {self.cell.cfg.log_dir}")
             time.sleep(POLL)
@@ -255,6 +272,7 @@ class CellBench:
             cpu["lot (its operation)"] = round(sum(lot_cpu) * 1000 / len(lot_cpu), 2)
         return {
             "machines": self.n,
+            "at_once": self.at_once,
             "lots": self.m,
             "failed": len(failed),
             "seconds": wall,
@@ -557,6 +575,26 @@ def _ms(s: dict[str, float]) -> str:
     show_default=True,
     help="Then seconds of rest: the CPU the resting cell uses (0: skip).",
 )
+@click.option(
+    "--at-once",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Lots at work at a time, each on the next free machine in turn (0: one per machine).",
+)
+@click.option(
+    "--history/--no-history",
+    default=True,
+    show_default=True,
+    help="The production record ([record] history, docs/record.md): off shows what writing it costs.",
+)
+@click.option(
+    "--compare-history",
+    "compare",
+    type=int,
+    default=0,
+    help="Instead: N pairs of lot runs, history off then on (then on, off: the order alternates), side by side.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 def command(
     machines: int,
@@ -567,6 +605,9 @@ def command(
     kernel_filter: bool,
     freezes: int,
     idle_s: float,
+    at_once: int,
+    history: bool,
+    compare: int,
     as_json: bool,
 ) -> None:
     """Run lots through a private cell of N dummy machines: lots/s, the cell's overhead per lot
@@ -576,6 +617,10 @@ def command(
     if machines < 1 or lots < 1 or solo < 0 or deaths < 0 or freezes < 0:
         raise click.BadParameter("--machines and --lots must be at least 1, --solo and --deaths at least 0")
     cfg, log = context()
+    if compare > 0:
+        from gwc.bench.history import compare_history
+
+        return compare_history(cfg.var / "bench-cell" if where is None else where, machines, lots, compare, as_json)
     bench = CellBench(
         where or cfg.var / "bench-cell",
         machines,
@@ -588,6 +633,8 @@ def command(
         kernel_filter,
         freezes,
         idle_s,
+        at_once,
+        history,
     )
     result = bench.run()
     if as_json:
@@ -598,7 +645,7 @@ def command(
         f"{result['lots_per_s']:.2f} lots/s ({result['failed']} failed)"
     )
     click.echo(
-        f"  overhead per lot with {machines} lots at once, request to unreserve (ms): "
+        f"  overhead per lot with {result['at_once']} lots at once, request to unreserve (ms): "
         f"{_ms(result['loaded_overhead_ms'])}"
     )
     for k, v in result["loaded_phases_ms"].items():

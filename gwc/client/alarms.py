@@ -17,14 +17,15 @@ from gwc.ipc.names import Conv, Msg
 
 STATUS_LINE_FIELDS = ("text", "imports", "exports", "alarms", "last_event")
 
-__all__ = ["STATUS_LINE_FIELDS", "alarm_rows", "clear_alarm", "read_status_line"]
+__all__ = ["STATUS_LINE_FIELDS", "alarm_rows", "clear_alarm", "describe_alarm", "description_rows", "read_status_line"]
 
 
 def alarm_rows(conn: psycopg.Connection[Any], show_all: bool = False) -> list[dict[str, Any]]:
     """Pending alarms (oldest first), or the whole history, times as text; an alarm_id not in
     ALARM_DESCRIPTION is marked "(unknown)". On the caller's connection (a screen keeps one open)."""
     cur = conn.execute(
-        "select alarm_no, alarm_id, known, machine_id, alarm_text, raised_by, raised_at, cleared_by, cleared_at "
+        "select alarm_no, alarm_id, known, machine_id, alarm_text, raised_by, raised_at, cleared_by, cleared_at, "
+        "actions_taken "
         "from alarms" + ("" if show_all else " where cleared_at is null") + " order by alarm_no"
     )
     names = [d.name for d in cur.description or []]
@@ -50,6 +51,42 @@ def clear_alarm(bus: BlockingBus, alarm_no: int, by: str | None = None, timeout:
     if ack.ack_code != AckCode.ACK_OK:
         raise Refused(ack.ack_code, ack.note or "")
     return ack
+
+
+def describe_alarm(
+    bus: BlockingBus,
+    alarm_id: str,
+    text: str | None = None,
+    severity: str | None = None,
+    actions: list[str] | None = None,
+    timeout: float = ANSWER,
+) -> str:
+    """ALARM_DESC to the Cell Alarm Server (the table's one writer): add or change an alarm's description
+    and what the CAS does for it (actions: shutdown, page; [] for none; None leaves them). Returns the
+    description as it is now; Refused if the CAS says no."""
+    ack = ask(
+        bus,
+        Conv.ALARM_DESC,
+        message(
+            Msg.ALARM_DESCRIBE, alarm_id=alarm_id, alarm_text=text, severity=severity, actions=actions, by=operator()
+        ),
+        "cas",
+        timeout,
+    )
+    if ack.ack_code != AckCode.ACK_OK:
+        raise Refused(ack.ack_code, ack.note or "")
+    return str(ack.note or "")
+
+
+def description_rows(conn: psycopg.Connection[Any]) -> list[dict[str, Any]]:
+    """ALARM_DESCRIPTION: every alarm the cell knows, its severity and the CAS's actions for it."""
+    cur = conn.execute("select alarm_id, severity, actions, alarm_text from alarm_description order by alarm_id")
+    rows = [
+        {"alarm_id": a, "severity": sev, "actions": ",".join(act) or "-", "alarm_text": t}
+        for a, sev, act, t in cur.fetchall()
+    ]
+    conn.rollback()
+    return rows
 
 
 def read_status_line(bus: BlockingBus, timeout: float = ANSWER) -> Message:

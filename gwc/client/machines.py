@@ -10,11 +10,13 @@ from typing import Any
 import psycopg
 
 from gwc import cell
-from gwc.client.session import on_bus
+from gwc.client.session import ANSWER, ask, on_bus, operator
 from gwc.config import Config
-from gwc.errors import ConfigError, ModuleError
+from gwc.errors import ConfigError, GwcError, ModuleError, Refused
 from gwc.ipc.bus import BlockingBus
-from gwc.ipc.names import Conv
+from gwc.ipc.catalogue import message
+from gwc.ipc.codes import AckCode
+from gwc.ipc.names import Conv, Msg
 from gwc.module import module_name
 
 SEE_WC = 2.0  # how long to look for a WC on the bus before deciding its processes must be started
@@ -22,7 +24,7 @@ HEAR_REMOTE_WC = 30.0  # s: a WC on another host is waited for this long (its ho
 START_TIMEOUT = 600.0  # a homing alarm waits for the operator
 STOP_TIMEOUT = 60.0
 
-__all__ = ["heard_peers", "machine_rows", "machines_on", "start_machine", "stop_machine"]
+__all__ = ["heard_peers", "machine_rows", "machines_on", "maintenance_done", "start_machine", "stop_machine"]
 
 
 def start_machine(
@@ -84,7 +86,8 @@ def machine_rows(conn: psycopg.Connection[Any], cfg: Config, peers: set[str]) ->
     cur = conn.execute(
         "select s.machine_id, c.kind, s.status, s.recipe_id, s.machine_run_id, s.start_time, s.end_time, "
         "coalesce((select string_agg(a.op_type, ',' order by a.op_type) from accept_types a "
-        "          where a.machine_id = s.machine_id), '') as accepts, s.note "
+        "          where a.machine_id = s.machine_id), '') as accepts, s.note, "
+        "s.runs_since_maintenance as runs, s.maintenance_every as maint_every, s.scrap_count as scrap "
         "from machine_status s join me_config c using (machine_id) order by s.machine_id"
     )
     names = [d.name for d in cur.description or []]
@@ -97,3 +100,14 @@ def machine_rows(conn: psycopg.Connection[Any], cfg: Config, peers: set[str]) ->
         for k in ("start_time", "end_time"):
             r[k] = r[k].strftime("%Y-%m-%d %H:%M:%S") if r[k] else None
     return rows
+
+
+def maintenance_done(bus: BlockingBus, machine_id: str, timeout: float = ANSWER) -> int:
+    """MAINT_DONE to the Machine Server (1.4.2's maintenance schedule): the machine was maintained, its
+    run count starts again. Returns the count before; GwcError for an unknown machine."""
+    ack = ask(bus, Conv.MAINT_DONE, message(Msg.MAINT_DONE, machine_id=machine_id, by=operator()), "ms", timeout)
+    if ack.ack_code == AckCode.UNKNOWN:
+        raise GwcError(f"unknown machine {machine_id!r} (see `gwc machine status`)")
+    if ack.ack_code != AckCode.ACK_OK:
+        raise Refused(ack.ack_code, ack.note or f"the Machine Server did not take the maintenance of {machine_id}")
+    return int(ack.runs or 0)

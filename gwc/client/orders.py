@@ -5,7 +5,7 @@ List; the customers, products and lot scripts an order names."""
 from __future__ import annotations
 
 import logging
-from datetime import datetime
+from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,7 @@ __all__ = [
     "list_products",
     "list_scripts",
     "order_status",
+    "parse_due",
     "parse_items",
     "read_rows",
     "read_traveller",
@@ -45,6 +46,24 @@ __all__ = [
     "spawn_lot_script",
     "spawn_lot_scripts",
 ]
+
+
+def parse_due(text: str | None, now: datetime | None = None) -> datetime | None:
+    """A work order's due date (Figure 6.3's Date Due): `YYYY-MM-DD`, `YYYY-MM-DD HH:MM`, `now`, or from
+    now: `+3d`, `+12h`, `+30m`; local time. None for None."""
+    if text is None:
+        return None
+    now = now or datetime.now().astimezone()
+    t = text.strip()
+    if t == "now":
+        return now
+    if t.startswith("+") and t[1:-1].isdigit() and t[-1] in "dhm":
+        return now + timedelta(**{{"d": "days", "h": "hours", "m": "minutes"}[t[-1]]: int(t[1:-1])})
+    try:
+        due = datetime.fromisoformat(t)
+    except ValueError:
+        raise GwcError(f"bad due date {text!r}: write YYYY-MM-DD, 'YYYY-MM-DD HH:MM', now, or +3d / +12h") from None
+    return due if due.tzinfo else due.astimezone()
 
 
 def parse_items(items: tuple[str, ...]) -> list[tuple[str, int]]:
@@ -94,6 +113,7 @@ def enter_order(
     note: str | None = None,
     priority: int | None = None,
     start_scripts: bool = True,
+    due: datetime | None = None,
 ) -> dict[str, Any]:
     """Work Order Entry: checks the customer and products, writes the order (as gwc_hi, the owner of
     WORK_ORDERS), asks the Lot Server for each product's lot (CREATE_LOT, asked again while it is away),
@@ -117,7 +137,8 @@ def enter_order(
         def write(cur: psycopg.Cursor[Any]) -> int:
             wo = db.get_new_max_value(cur, "WORK_ORDER")
             cur.execute(
-                "INSERT INTO work_orders (work_order_id, customer_id, note) VALUES (%s, %s, %s)", (wo, customer, note)
+                "INSERT INTO work_orders (work_order_id, customer_id, note, due_at) VALUES (%s, %s, %s, %s)",
+                (wo, customer, note, due),
             )
             for product, qty in items:
                 cur.execute(
@@ -166,6 +187,7 @@ def decide(bus: BlockingBus, entity_id: int, action: str, by: str) -> int | None
 ORDER_STATUS_SQL = """
 SELECT w.work_order_id AS work_order, w.customer_id AS customer, c.name AS customer_name,
        to_char(w.created_at, 'YYYY-MM-DD HH24:MI:SS') AS created,
+       to_char(w.due_at, 'YYYY-MM-DD HH24:MI:SS') AS due, w.due_at < now() AS overdue,
        (SELECT string_agg(i.quantity || ' x ' || i.product_id, ', ' ORDER BY i.product_id)
           FROM work_order_items i WHERE i.work_order_id = w.work_order_id) AS items,
        (SELECT json_object_agg(state, n) FROM (
@@ -217,12 +239,15 @@ def list_orders(
     )
     for r in rows:
         r["status"] = order_status(r["states"])
+        if r.pop("overdue") and not r["status"].startswith("DONE"):
+            r["status"] += " (LATE)"
         r["lots"] = ", ".join(f"{n} {s}" for s, n in sorted((r.pop("states") or {}).items()))
     return rows
 
 
 LOTS_SQL = """
-SELECT s.entity_id AS entity, s.lot_id AS lot, l.work_order_id AS work_order, l.product_id AS product,
+SELECT s.entity_id AS entity, s.lot_id AS lot, e.parent_entity_id AS parent, l.work_order_id AS work_order,
+       l.product_id AS product,
        l.owner, l.priority, s.state, s.reason AS result, s.script_pid,
        to_char(s.updated_at, 'HH24:MI:SS') AS since
   FROM lot_status s JOIN lots l USING (lot_id) JOIN lot_entities e USING (entity_id)
@@ -269,24 +294,36 @@ def list_lots(
     return rows
 
 
-def add_customer(cfg: Config, log: logging.Logger, customer_id: str, name: str | None) -> None:
-    """Add a customer, or rename one (CUSTOMERS, owned by the HI)."""
+CUSTOMER_FIELDS = ("name", "address", "city", "state", "zip")  # Figures 6.2, 6.3
+
+
+def add_customer(cfg: Config, log: logging.Logger, customer_id: str, name: str | None, **address: str | None) -> None:
+    """Add a customer, or change one (CUSTOMERS, owned by the HI): its name and address (address, city,
+    state, zip: Figure 6.3); a field not given is left as it is."""
+    unknown = set(address) - set(CUSTOMER_FIELDS)
+    if unknown:
+        raise GwcError(f"unknown customer field(s): {', '.join(sorted(unknown))}")
+    values = {"name": name, **{f: address.get(f) for f in CUSTOMER_FIELDS[1:]}}
+    cols = ", ".join(values)
     with hi_conn(cfg, log) as conn:
         db.transaction(
             conn,
             lambda cur: cur.execute(
-                "INSERT INTO customers (customer_id, name) VALUES (%s, %s) "
-                "ON CONFLICT (customer_id) DO UPDATE SET name = coalesce(excluded.name, customers.name)",
-                (customer_id, name),
+                f"INSERT INTO customers (customer_id, {cols}) VALUES (%s, {', '.join(['%s'] * len(values))}) "
+                "ON CONFLICT (customer_id) DO UPDATE SET "
+                + ", ".join(f"{c} = coalesce(excluded.{c}, customers.{c})" for c in values),
+                (customer_id, *values.values()),
             ),
             log=log,
         )
 
 
 def list_customers(cfg: Config, log: logging.Logger) -> list[dict[str, Any]]:
-    """Every customer."""
+    """Every customer, with its address."""
     with hi_conn(cfg, log) as conn:
-        return rows_of(conn, "SELECT customer_id AS customer, name FROM customers ORDER BY 1")
+        return rows_of(
+            conn, "SELECT customer_id AS customer, name, address, city, state, zip FROM customers ORDER BY 1"
+        )
 
 
 def list_products(cfg: Config, log: logging.Logger) -> list[dict[str, Any]]:

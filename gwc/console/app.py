@@ -27,6 +27,7 @@ from textual.widgets import Footer, Header, RichLog, Static, TabbedContent, TabP
 
 from gwc.config import Config
 from gwc.console.link import VIEWS_OF, Answer, CellLink, console_log
+from gwc.console.record import RecordView
 from gwc.console.views import (
     MONITOR_LINES,
     RELOAD_EVERY,
@@ -76,12 +77,13 @@ class ConsoleApp(App[None]):
         ("alarms", "6 Alarms"),
         ("modules", "7 Modules"),
         ("monitor", "8 Monitor"),
+        ("record", "0 Record"),
     ]
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("q", "quit", "Quit"),
         Binding("r", "reload", "Refresh"),
         Binding("escape", "focus_view", "Leave field", show=False),
-        *(Binding(str(i), f"show('{name}')", title, show=False) for i, (name, title) in enumerate(VIEWS, 1)),
+        *(Binding(title.split()[0], f"show('{name}')", title, show=False) for name, title in VIEWS),
     ]
 
     def __init__(self, cfg: Config, log: logging.Logger, narration: bool = False) -> None:
@@ -115,6 +117,7 @@ class ConsoleApp(App[None]):
                 "alarms": AlarmsView(),
                 "modules": ModulesView(),
                 "monitor": MonitorView(),
+                "record": RecordView(),
             }
             for name, title in self.VIEWS:
                 with TabPane(title, id=name):

@@ -29,9 +29,9 @@ from psycopg.pq import TransactionStatus
 from gwc import cell, db
 from gwc.agent import control as agent_control
 from gwc.client.alarms import clear_alarm, read_status_line
-from gwc.client.machines import start_machine, stop_machine
+from gwc.client.machines import maintenance_done, start_machine, stop_machine
 from gwc.client.orders import decide, enter_order
-from gwc.client.requests import cancel_request
+from gwc.client.requests import cancel_request, unreserve_machine
 from gwc.config import Config
 from gwc.errors import GwcError, Refused
 from gwc.hi.monitor import watch
@@ -55,13 +55,14 @@ VIEWS_OF: dict[str, tuple[str, ...]] = {
     Conv.SHUTDOWN: ("modules",),
     Conv.ME_START: ("machines", "modules"),
     Conv.ME_SHUT: ("machines", "modules", "requests"),
-    Conv.UPD_ME_ST: ("machines", "requests"),
+    Conv.UPD_ME_ST: ("machines", "requests", "record"),
+    Conv.DOWNTIME_RSN: ("record",),
     Conv.CHG_STATUS: ("machines",),
     Conv.ACC_TYP_C: ("machines",),
     Conv.MAINT_DONE: ("machines",),
     Conv.SETUP_RUN: ("machines",),
     Conv.START_RUN: ("machines",),
-    Conv.RUN_COMPL: ("machines", "lots"),
+    Conv.RUN_COMPL: ("machines", "lots", "record"),
     Conv.MACH_REQ: ("requests", "lots"),
     Conv.CANCEL_RE: ("requests", "lots"),
     Conv.UNRESERVE: ("requests", "lots"),
@@ -254,6 +255,17 @@ class CellLink:
 
         return self.act(f"stop machine {machine_id} (ME_SHUT)", go)
 
+    def maintenance_done(self, machine_id: str) -> Answer:
+        """MAINT_DONE, as `gwc machine maintenance-done`."""
+
+        def go() -> str:
+            assert self.bus is not None
+            self._need("ms")
+            runs = maintenance_done(self.bus, machine_id)
+            return f"{in_words(AckCode.ACK_OK)}: maintained after {runs} run(s), the count starts again"
+
+        return self.act(f"maintenance done on {machine_id}", go)
+
     def start_module(self, name: str) -> Answer:
         """A WC: ME_START. A server: through the agent where one runs (as `gwc start`), else its
         process if it is not running, then STARTUP."""
@@ -334,6 +346,17 @@ class CellLink:
             return f"{in_words(ack.ack_code)}: {ack.cancelled} request(s) cancelled, the entity was told REQ_CANCEL"
 
         return self.act(f"cancel request {request_key}", go)
+
+    def unreserve_machine(self, machine_id: str) -> Answer:
+        """UNRESERVE of a machine a dead lot holds, as `gwc unreserve` (refused while its script runs)."""
+
+        def go() -> str:
+            assert self.bus is not None
+            self._need("msched")
+            entity = unreserve_machine(self.cfg, self.bus, machine_id)
+            return f"{in_words(AckCode.ACK_OK)}: {machine_id} freed (it was reserved to entity {entity})"
+
+        return self.act(f"unreserve {machine_id}", go)
 
     def enter_order(self, customer: str, items: list[tuple[str, int]]) -> Answer:
         """Work Order Entry, as `gwc order new`: the order, its lots, one lot script per entity."""

@@ -258,10 +258,30 @@ def selected_row(table: DataTable[Any], rows: list[dict[str, Any]], key: str) ->
 
 class MachinesView(View):
     name_ = "machines"
-    columns = ("machine_id", "kind", "status", "recipe_id", "machine_run_id", "start_time", "end_time", "accepts", "wc")
+    columns = (
+        "machine_id",
+        "kind",
+        "status",
+        "recipe_id",
+        "machine_run_id",
+        "start_time",
+        "end_time",
+        "accepts",
+        "wc",
+        "runs",
+        "maint_every",
+        "scrap",
+    )
     key = "machine_id"
-    help = "MSTT: each machine's status, its current run and what it accepts.  s start  x stop"
-    BINDINGS: ClassVar[list[BindingType]] = [("s", "start", "Start machine"), ("x", "stop", "Stop machine")]
+    help = (
+        "MSTT: each machine's status, its current run, what it accepts and its books.  s start  x stop  "
+        "m maintenance done"
+    )
+    BINDINGS: ClassVar[list[BindingType]] = [
+        ("s", "start", "Start machine"),
+        ("x", "stop", "Stop machine"),
+        ("m", "maintained", "Maintenance done"),
+    ]
 
     def fetch(self, link: CellLink) -> list[dict[str, Any]] | None:
         peers = set(link.peers())
@@ -287,6 +307,16 @@ class MachinesView(View):
         row = self.selected()
         if row:
             self.console.act(lambda link: link.start_machine(row["machine_id"]))
+
+    def action_maintained(self) -> None:
+        row = self.selected()
+        if row:
+            mid = row["machine_id"]
+            self.console.confirm(
+                f"Machine {mid} was maintained? Its count of runs since maintenance ({row.get('runs', '?')}) "
+                "starts again.",
+                lambda link: link.maintenance_done(mid),
+            )
 
     def action_stop(self) -> None:
         row = self.selected()
@@ -360,7 +390,7 @@ class LotsView(View):
 
 class OrdersView(View):
     name_ = "orders"
-    columns = ("work_order", "customer", "created", "items", "status", "lots")
+    columns = ("work_order", "customer", "customer_name", "due", "items", "status", "lots")
     key = "work_order"
     help = "WOSU: every work order, its items and where its lots are."
 
@@ -370,11 +400,14 @@ class OrdersView(View):
 
 class RequestsView(View):
     name_ = "requests"
-    columns = ("request_key", "entity_id", "op_type", "machines", "priority", "since")
-    reserved_columns = ("machine_id", "entity_id", "machine_run_id", "request_key", "since")
+    columns = ("request_key", "lot_id", "entity_id", "op_type", "machines", "priority", "since")
+    reserved_columns = ("machine_id", "lot_id", "entity_id", "entity_state", "machine_run_id", "request_key", "since")
     key = "request_key"
-    help = "MREQ: machine requests waiting (oldest first), then the reserved machines.  c cancel the request"
-    BINDINGS: ClassVar[list[BindingType]] = [("c", "cancel", "Cancel request")]
+    help = (
+        "MREQ: machine requests waiting (oldest first), then the reserved machines.  c cancel the request  "
+        "u unreserve the reserved machine (its lot script dead)"
+    )
+    BINDINGS: ClassVar[list[BindingType]] = [("c", "cancel", "Cancel request"), ("u", "unreserve", "Unreserve")]
 
     def compose(self) -> ComposeResult:
         yield from super().compose()
@@ -403,6 +436,17 @@ class RequestsView(View):
     def selected(self) -> dict[str, Any] | None:
         queue = [r for r in self.rows if "reserved" not in r]
         return selected_row(self.query_one(f"#table-{self.name_}", DataTable), queue, self.key)
+
+    def action_unreserve(self) -> None:
+        reserved = [r["reserved"] for r in self.rows if "reserved" in r]
+        row = selected_row(self.query_one("#table-reserved", DataTable), reserved, "machine_id")
+        if row:
+            machine = row["machine_id"]
+            self.console.confirm(
+                f"Unreserve {machine}, held by entity {row['entity_id']} ({row['entity_state']})? Only for an "
+                "entity whose lot script died: MSCHED may give the machine to the next request.",
+                lambda link: link.unreserve_machine(machine),
+            )
 
     def action_cancel(self) -> None:
         row = self.selected()

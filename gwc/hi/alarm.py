@@ -12,7 +12,14 @@ import json
 
 import click
 
-from gwc.client.alarms import STATUS_LINE_FIELDS, alarm_rows, clear_alarm, read_status_line
+from gwc.client.alarms import (
+    STATUS_LINE_FIELDS,
+    alarm_rows,
+    clear_alarm,
+    describe_alarm,
+    description_rows,
+    read_status_line,
+)
 from gwc.client.session import hi_bus, hi_conn
 from gwc.hi import context, json_option, table
 
@@ -31,7 +38,7 @@ def alarm_list(show_all: bool, as_json: bool) -> None:
     columns = ["alarm_no", "alarm_id", "machine_id", "alarm_text", "raised_by", "raised_at"]
     with hi_conn(cfg, log) as conn:
         rows = alarm_rows(conn, show_all)
-    table(rows, columns + (["cleared_by", "cleared_at"] if show_all else []), as_json)
+    table(rows, columns + (["cleared_by", "cleared_at"] if show_all else []) + ["actions_taken"], as_json)
 
 
 @alarm_group.command("clear")
@@ -43,6 +50,34 @@ def alarm_clear(alarm_no: int, by: str | None) -> None:
     with hi_bus(cfg, log) as bus:
         clear_alarm(bus, alarm_no, by)
     click.echo(f"alarm {alarm_no} cleared")
+
+
+@alarm_group.command("describe")
+@click.argument("alarm_id")
+@click.option("--text", default=None, help="What the alarm means, for the operator.")
+@click.option("--severity", type=click.Choice(["note", "warning", "error"]), default=None)
+@click.option(
+    "--actions",
+    default=None,
+    help="What the Cell Alarm Server does when it is raised: shutdown, page, comma-separated; 'none' for nothing.",
+)
+def alarm_describe(alarm_id: str, text: str | None, severity: str | None, actions: str | None) -> None:
+    """Add or change an alarm's description and its actions (1.4.5): `--actions shutdown,page`."""
+    cfg, log = context()
+    acts = None if actions is None else [a.strip() for a in actions.split(",") if a.strip() not in ("", "none")]
+    with hi_bus(cfg, log) as bus:
+        now = describe_alarm(bus, alarm_id, text, severity, acts)
+    click.echo(f"alarm {alarm_id}: {now}")
+
+
+@alarm_group.command("descriptions")
+@json_option
+def alarm_descriptions(as_json: bool) -> None:
+    """The alarm description table: every alarm, its severity and what the Cell Alarm Server does for it."""
+    cfg, log = context()
+    with hi_conn(cfg, log) as conn:
+        rows = description_rows(conn)
+    table(rows, ["alarm_id", "severity", "actions", "alarm_text"], as_json)
 
 
 @click.command("status-line")

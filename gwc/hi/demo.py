@@ -37,6 +37,7 @@ from gwc.ipc import keys
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.codes import LotState
 from gwc.log import open_log
+from gwc.record import store
 
 DEMO_CONFIG = shipped("etc") / "demo.toml"
 BY = "demo operator"
@@ -235,6 +236,17 @@ class Demo:
             ).fetchone()
         return int(row[0]) if row else 0
 
+    def _traced(self, entity: int, trav: dict[str, Any], traced: dict[str, Any] | None) -> list[str]:
+        """The production record's genealogy of the entity (`gwc trace entity`) against its traveller:
+        the same runs, on the same machines, in the same order."""
+        want = [(m, s["machine_run_id"]) for s in trav.get("steps", []) for m in sorted(s["machines"])]
+        got = [(s["machine_id"], s["machine_run_id"]) for s in (traced or {}).get("steps", [])]
+        # one run on several machines: their Running rows may come in either order
+        if sorted(got) == sorted(want) and [r for _, r in got] == [r for _, r in want]:
+            self.say(f"      trace: {len(got)} runs, as the traveller says")
+            return []
+        return [f"entity {entity}: gwc trace entity lists {got}, its traveller {want}"]
+
     def _report(self, entities: list[int]) -> bool:
         problems: list[str] = []
         with db.connect(self.cfg, role="hi", log=self.log) as conn:
@@ -249,6 +261,8 @@ class Demo:
                 "GROUP BY machine_run_id, machine_id ORDER BY 1"
             ).fetchall()
             breaches = check_database(conn)
+            traces = {e: store.trace_entity(conn, e) for e, *_ in lots}
+            on_wc2 = {w["entity_id"] for w in store.trace_where(conn, machine_id="wc2")}
         self.say("results of each lot:")
         for entity, product, state, reason in lots:
             trav = read_traveller(self.cfg, entity) or {}
@@ -258,10 +272,18 @@ class Demo:
             self.say(f"  entity {entity:>3} {product:<15} {state:<9} {reason or ''}")
             if path:
                 self.say(f"      runs: {path}")
+            problems += self._traced(entity, trav, traces.get(entity))
             if state != LotState.EXPORTED:
                 problems.append(f"entity {entity} is {state}: {reason}")
             elif not reason or reason.split(":")[0].split()[0] not in ("PASS", "FAIL", "SCRAP"):
                 problems.append(f"entity {entity} has no result")
+        travelled = {
+            e for e, *_ in lots for s in (read_traveller(self.cfg, e) or {}).get("steps", []) if "wc2" in s["machines"]
+        }
+        if on_wc2 == travelled:
+            self.say(f"trace where --machine wc2: entities {sorted(on_wc2)}, as their travellers say")
+        else:
+            problems.append(f"trace where --machine wc2 lists {sorted(on_wc2)}, travellers say {sorted(travelled)}")
         self.say("machine run results (MACHINE_RUN_RESULT):")
         for run_id, mid, results, _ in runs:
             self.say(f"  run {run_id:>3} on {mid:<7} {results}")

@@ -4,7 +4,9 @@ Starting and stopping a machine are the ME_START and ME_SHUT conversations with 
 so a machine joins or leaves the running cell without anything else being restarted. `start` also
 brings up the machine's processes (simulator, ME, WC) if they are not running, which is how a pair
 that died rejoins the cell. The status screen reads MACHINE_STATUS (reads are free) and shows
-whether each machine's WC is on the bus. The conversations are gwc.client.machines'.
+whether each machine's WC is on the bus, and its books (1.4.2): runs since maintenance, the
+maintenance interval, parts scrapped; `maintenance-done` restarts the count (MAINT_DONE).
+The conversations are gwc.client.machines'.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from gwc.client.machines import (
     heard_peers,
     machine_rows,
     machines_on,
+    maintenance_done,
     start_machine,
     stop_machine,
 )
@@ -35,6 +38,9 @@ STATUS_COLUMNS = [
     "end_time",
     "accepts",
     "wc",
+    "runs",
+    "maint_every",
+    "scrap",
     "note",
 ]
 
@@ -97,6 +103,16 @@ def machine_status_command(as_json: bool) -> None:
     with hi_conn(cfg, log) as conn:
         rows = machine_rows(conn, cfg, peers)
     table(rows, STATUS_COLUMNS, as_json)
+
+
+@machine_group.command("maintenance-done")
+@click.argument("machine_id")
+def machine_maintenance_done(machine_id: str) -> None:
+    """The machine was maintained: its count of runs since maintenance starts again (MAINT_DONE)."""
+    cfg, log = context()
+    with hi_bus(cfg, log) as bus:
+        runs = maintenance_done(bus, machine_id)
+    click.echo(f"{machine_id} maintained after {runs} run(s): its count starts again")
 
 
 commands = [machine_group]

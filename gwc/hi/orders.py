@@ -26,6 +26,7 @@ from gwc.client.orders import (
     list_orders,
     list_products,
     list_scripts,
+    parse_due,
     parse_items,
     read_traveller,
     register_script,
@@ -53,10 +54,17 @@ def order() -> None:
     is_flag=True,
     help="Create the lots but start no lot scripts (start them by hand with `python -m gwc.lot.run --entity E`).",
 )
+@click.option("--due", help="Date due (Fig. 6.3): YYYY-MM-DD, 'YYYY-MM-DD HH:MM', now, +3d, +12h.")
 @click.argument("items", nargs=-1, required=True, metavar="PRODUCT=QTY...")
 @json_option
 def order_new(
-    customer: str, note: str | None, priority: int | None, no_scripts: bool, items: tuple[str, ...], as_json: bool
+    customer: str,
+    note: str | None,
+    priority: int | None,
+    no_scripts: bool,
+    due: str | None,
+    items: tuple[str, ...],
+    as_json: bool,
 ) -> None:
     """Enter a work order: one lot per product, one entity (and lot script process) per unit.
 
@@ -65,7 +73,9 @@ def order_new(
     cfg, log = context()
     parsed = parse_items(items)
     with hi_bus(cfg, log) as bus:
-        result = enter_order(cfg, log, bus, customer, parsed, note, priority, start_scripts=not no_scripts)
+        result = enter_order(
+            cfg, log, bus, customer, parsed, note, priority, start_scripts=not no_scripts, due=parse_due(due)
+        )
     if as_json:
         click.echo(json.dumps(result, indent=1))
         return
@@ -92,7 +102,8 @@ def _span(ids: list[str]) -> str:
 def order_list(as_json: bool) -> None:
     """Work Order Status (WOSU): every order, its customer, items and where its lots are."""
     cfg, log = context()
-    table(list_orders(cfg, log), ["work_order", "customer", "created", "items", "status", "lots"], as_json)
+    columns = ["work_order", "customer", "customer_name", "created", "due", "items", "status", "lots"]
+    table(list_orders(cfg, log), columns, as_json)
 
 
 @order.command("show")
@@ -111,7 +122,7 @@ def order_show(work_order: int, as_json: bool) -> None:
     o = orders[0]
     click.echo(
         f"work order {o['work_order']} for {o['customer']} ({o['customer_name'] or '-'}), "
-        f"entered {o['created']}: {o['status']}"
+        f"entered {o['created']}, due {o['due'] or '-'}: {o['status']}"
     )
     click.echo(f"items: {o['items']}" + (f"; note: {o['note']}" if o["note"] else ""))
     table(entities, ["entity", "lot", "product", "state", "script", "result"])
@@ -133,7 +144,7 @@ def lots(entity: int | None, work_order: int | None, state: str | None, as_json:
     cfg, log = context()
     rows = list_lots(cfg, log, work_order, state, entity)
     if entity is None:
-        table(rows, ["entity", "lot", "work_order", "product", "state", "since", "script", "result"], as_json)
+        table(rows, ["entity", "lot", "parent", "work_order", "product", "state", "since", "script", "result"], as_json)
         return
     if not rows:
         raise GwcError(f"unknown lot entity {entity} (see `gwc lots`)")
@@ -231,10 +242,16 @@ def customer() -> None:
 @customer.command("add")
 @click.argument("customer_id")
 @click.option("--name", help="The customer's name.")
-def customer_add(customer_id: str, name: str | None) -> None:
-    """Add a customer, or rename one."""
+@click.option("--address", help="Street address (Fig. 6.3).")
+@click.option("--city")
+@click.option("--state")
+@click.option("--zip", "zip_code")
+def customer_add(
+    customer_id: str, name: str | None, address: str | None, city: str | None, state: str | None, zip_code: str | None
+) -> None:
+    """Add a customer, or change its name or address (fields not given stay as they are)."""
     cfg, log = context()
-    add_customer(cfg, log, customer_id, name)
+    add_customer(cfg, log, customer_id, name, address=address, city=city, state=state, zip=zip_code)
     click.echo(f"customer {customer_id} saved")
 
 
@@ -243,7 +260,7 @@ def customer_add(customer_id: str, name: str | None) -> None:
 def customer_list(as_json: bool) -> None:
     """Every customer."""
     cfg, log = context()
-    table(list_customers(cfg, log), ["customer", "name"], as_json)
+    table(list_customers(cfg, log), ["customer", "name", "address", "city", "state", "zip"], as_json)
 
 
 @click.group("product")

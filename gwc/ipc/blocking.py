@@ -7,7 +7,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
-from collections.abc import Callable, Coroutine, Iterable
+from collections.abc import Callable, Coroutine, Iterable, Mapping
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from gwc.config import BusConfig
@@ -104,11 +104,24 @@ class BlockingBus:
         conv = self.run(self.bus.first_message(timeout))
         return BlockingConversation(self, conv) if conv else None
 
-    def set_interest(self, classes: Iterable[str]) -> None:
+    def in_bus_thread(self) -> bool:
+        """Whether the caller runs on the bus's own thread (where `run` would wait for itself forever)."""
+        return threading.current_thread() is self._thread
+
+    def call(self, fn: Callable[[], T]) -> T:
+        """fn() on the bus thread (where the Bus may be used directly); returns its result."""
+
+        async def _call() -> T:
+            return fn()
+
+        return self.run(_call())
+
+    def set_interest(self, classes: Iterable[str], subjects: Mapping[str, Iterable[str]] | None = None) -> None:
         """Change the interest filter; returns once it applies (unknown classes raise here)."""
+        classes = list(classes)
 
         async def _set() -> None:
-            self.bus.set_interest(list(classes))
+            self.bus.set_interest(classes, subjects=subjects)
 
         self.run(_set())
 

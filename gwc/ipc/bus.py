@@ -28,12 +28,11 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import functools
 import heapq
 import logging
 import random
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import replace
 
 from gwc.config import BusConfig
@@ -64,7 +63,6 @@ __all__ = ["Batch", "BlockingBus", "BlockingConversation", "Bus", "Conversation"
 
 MAX_RTO = 0.5  # retransmission backoff stops growing here
 MAX_PIGGYBACK = 32  # acks riding on a msg at most; the rest go in ack datagrams
-FLOOD_BEATS = 50  # beats refused in one heartbeat that make a flood
 MAX_REMEMBERED = 65_536  # ended conversations (and our idx counters) remembered, newest first
 
 
@@ -87,16 +85,16 @@ class Bus:
         self.log = log
         self.inc = random.SystemRandom().randrange(1, 2**31)
         self._interest: set[str] = set()
-        self._beat_body: bytes | None = None  # our beat's body, encoded (_send_beat)
+        self._subjects: dict[str, frozenset[str]] = {}  # class -> the only subjects heard of it (set_interest)
         self.stats = collections.Counter[str]()
         self._transport = UdpTransport(cfg, log) if transport is None else transport
         self._open = False  # the transport is open (signed on, not yet closed)
-        self.set_interest(interest, announce=False)
         self._seq = self._conv_n = 0  # the last msg seq and conversation number used
         self._loop: asyncio.AbstractEventLoop | None = None
         self.ignored_peers = ignored_peers  # prefixes of the names of peers not tracked (docs/protocol.md)
         self._members = Membership(self)
         self._peers = self._members.peers  # the same dict: read on the hot paths
+        self.set_interest(interest, announce=False)
         self._pending: dict[int, Pending] = {}
         # Retransmission: one timer for all pending msgs. First sends are due in send order (a deque);
         # retransmissions, with their backoff, in a heap. Entries of msgs acked since are skipped.
@@ -118,7 +116,6 @@ class Bus:
         self._faults = FaultInjector(cfg.faults, name, self.stats)
         self._guard = Guard(cfg, name, log, self.stats)  # signs what we send, checks what we receive
         self.faults = FaultLog(log, self.stats)  # a step that failed: counted, logged once per kind
-        self._following_beats = False  # reading beats as they come (under a flood), not once a heartbeat
         self._origin = wire.origin(name, self.inc)
         self._mine = f"{name}."  # how the ids of conversations this module opened begin
         self._conv_prefix = f"{name}.{self.inc:x}."  # ... in this incarnation
@@ -139,9 +136,9 @@ class Bus:
         except BaseException:
             self._open = False
             raise
-        self._transport.set_filter(self.name, self.inc, self._interest, self.ignored_peers)
+        self._transport.set_filter(self.name, self.inc, self._interest, self.ignored_peers, self._subjects)
         self._transport.ignore_beats_from(self.ignored_peers)
-        self._hello(query=True)
+        self._members.hello(query=True)
         self._heartbeat = loop.create_task(self._beat())
         self.log.info("signed on to bus %s as %s (incarnation %x)", self.cfg.name, self.name, self.inc)
         if settle:
@@ -179,30 +176,43 @@ class Bus:
     def interests(self) -> frozenset[str]:
         return frozenset(self._interest)
 
-    def set_interest(self, classes: Iterable[str], announce: bool = True) -> None:
-        """Listen to exactly these conversation classes from now on (thesis: interest/no_interest)."""
+    def set_interest(
+        self, classes: Iterable[str], announce: bool = True, subjects: Mapping[str, Iterable[str]] | None = None
+    ) -> None:
+        """Listen to exactly these conversation classes from now on (thesis: interest/no_interest), and to
+        the classes of `subjects` about the subjects named there only (a lot, about its own machines:
+        docs/protocol.md, "Subjects"). A class in both is heard whole."""
         new = set(classes)
-        unknown = new - set(catalogue.CONVERSATION_CLASSES)
+        about = {c: frozenset(s) for c, s in (subjects or {}).items() if c not in new}
+        about = {c: s for c, s in about.items() if s}
+        unknown = (new | set(about)) - set(catalogue.CONVERSATION_CLASSES)
         if unknown:
             raise MessageError(f"unknown conversation class(es): {', '.join(sorted(unknown))}")
+        not_about = set(about) - set(catalogue.SUBJECT_FIELDS)
+        if not_about:
+            raise MessageError(f"class(es) {', '.join(sorted(not_about))} name no subject: listen to them whole")
+        if new == self._interest and about == self._subjects:
+            return
         self._interest = new
-        self._beat_body = None
+        self._subjects = about
+        self._members.beat_body = None
         if self._open:
-            self._transport.set_filter(self.name, self.inc, new, self.ignored_peers)
+            self._transport.set_filter(self.name, self.inc, new, self.ignored_peers, about)
             if announce:
-                self._hello()
+                self._members.hello()
 
     def interest(self, *classes: str) -> None:
-        self.set_interest(self._interest | set(classes))
+        self.set_interest(self._interest | set(classes), subjects=self._subjects)
 
     def no_interest(self, *classes: str) -> None:
-        self.set_interest(self._interest - set(classes))
+        self.set_interest(self._interest - set(classes), subjects=self._subjects)
 
     def peers(self) -> dict[str, Peer]:
         return dict(self._peers)
 
-    def listeners_of(self, cls: str) -> list[str]:
-        return sorted(p.name for p in self._peers.values() if cls in p.interest)
+    def listeners_of(self, cls: str, subject: str = "") -> list[str]:
+        """Who hears broadcasts of `cls` (about `subject`: those who hear the class about it too)."""
+        return sorted(p.name for p in self._peers.values() if p.hears(cls, subject))
 
     # ----------------------------------------------------------------- conversations
 
@@ -338,15 +348,22 @@ class Bus:
         n = len(messages)
         seq = self._seq
         own, encode = self._origin, wire.encode_parts
+        subject = j = ""  # what the batch is about, where the kernel filter reads it (a class may name one)
+        about = catalogue.SUBJECT_FIELDS.get(cls)
+        if about is not None:
+            subject = j = str(messages[0].fields.get(about) or "")
+        ti = to_inc
         # Encode everything before sending anything: an oversize batch fails whole, at the sender.
         try:
             m = messages[0]  # the first message carries the batch's size and the acks
             datas = [
-                encode(own, "msg", seq + 1, conv_id, cls, start, n - 1, 0, base, to, m.name, m.fields, acks, to_inc)
+                encode(own, "msg", seq + 1, conv_id, cls, start, n - 1, 0, base, to, m.name, m.fields, j, acks, ti)
             ]
             for i in range(1, n):
                 m = messages[i]
-                datas.append(encode(own, "msg", seq + 1 + i, conv_id, cls, start + i, 0, i, base, to, m.name, m.fields))
+                datas.append(
+                    encode(own, "msg", seq + 1 + i, conv_id, cls, start + i, 0, i, base, to, m.name, m.fields, j)
+                )
         except MessageError:
             if acks:
                 self._acks_due.setdefault((to, to_inc), []).extend(acks)  # type: ignore[arg-type]
@@ -355,7 +372,12 @@ class Bus:
         out.next_idx = start + n
         for data in datas:  # first on the wire; the bookkeeping below can wait that long
             self._transmit(data)
-        waiting = {to} if to is not None else {p.name for p in self._peers.values() if cls in p.interest}.union(also)
+        if to is not None:
+            waiting = {to}
+        else:
+            peers = self._peers.values()  # (Peer.hears, inline: this runs once a broadcast for every peer)
+            waiting = {p.name for p in peers if cls in p.interest or (subject in p.subjects.get(cls, ()))}
+            waiting.update(also)
         if waiting:
             batch = [start, n]
             if out.unsettled is None:
@@ -367,9 +389,8 @@ class Bus:
             pending, first_due = self._pending, self._due_first
             for i, data in enumerate(datas):
                 seq += 1
-                pending[seq] = Pending(
-                    data, set(waiting) if i else waiting, now, rto, batch, conv_id, cls, messages[i].name, to, base
-                )
+                w = set(waiting) if i else waiting
+                pending[seq] = Pending(data, w, now, rto, batch, conv_id, cls, messages[i].name, to, base, subject)
                 first_due.append((now + rto, seq))
             if self._rtx_timer is None or now + rto < self._rtx_at:
                 self._arm_retransmit(now + rto)
@@ -499,10 +520,6 @@ class Bus:
                     )
                 )
 
-    def _hello(self, query: bool = False, to: str | None = None) -> None:
-        interest = tuple(sorted(self._interest))
-        self._raw_send(Envelope(kind="hello", src=self.name, inc=self.inc, interest=interest, query=query, to=to))
-
     async def _beat(self) -> None:
         """Every heartbeat: read the beats that came, send ours, then look for who went silent."""
         while True:  # at the ticks of the host's clock: the host's modules wake together (membership.tick)
@@ -510,53 +527,25 @@ class Bus:
             # Each step apart: whatever one of them meets (a bug, a datagram no check foresaw) must
             # not cost the others their turn, least of all our beat and the expiry of silent peers.
             run = self.faults.run
-            run("reading beats", lambda: self._read_beats(heartbeat=True))
-            run("sending our beat", self._send_beat)
+            run("reading beats", lambda: self._members.take_beats(heartbeat=True))
+            run("sending our beat", self._members.send_beat)
             run("expiring peers", self._expire)
             run("refreshing keys", self._guard.refresh)
             for listener in self.beat_listeners:
                 run("heartbeat listener", listener)
-
-    def _read_beats(self, heartbeat: bool = False) -> None:
-        """The beats that came, checked. A heartbeat that finds many refused (a flood on the beat port)
-        switches to reading them as they come, so that the flood cannot fill the socket's buffer and
-        push real beats out before they are read; a heartbeat without flood switches back."""
-        self._members.read_beats(self._guard.beats(self._transport))
-        if not heartbeat:
-            return  # called by the transport as beats come: the heartbeat decides
-        flood = self._guard.beat_drops > FLOOD_BEATS
-        self._guard.beat_drops = 0
-        if flood != self._following_beats:
-            self._following_beats = flood
-            follow = functools.partial(self.faults.run, "reading beats", self._read_beats)
-            self._transport.follow_beats(follow if flood else None)
-            self.log.warning("beat port %s", "flooded: beats read as they come" if flood else "quiet again")
-
-    def _send_beat(self) -> None:
-        """Our hello, to the beat port: a change of interest or a query goes to the bus port instead."""
-        if not self._open:
-            return
-        beat = self._beat_body
-        if beat is None:  # the same body every heartbeat until our interest changes: encoded once
-            interest = tuple(sorted(self._interest))
-            beat = self._beat_body = wire.encode(Envelope(kind="hello", src=self.name, inc=self.inc, interest=interest))
-        try:
-            self._transport.send_beat(self._guard.seal(beat, beat=True))
-        except OSError as e:  # lost like a dropped datagram: the next beat makes up for it
-            self.stats["send_lost"] += 1
-            self.log.debug("beat not sent: %s", e)
 
     def _expire(self) -> None:
         now = time.monotonic()
         self._members.expire(now)
         self._inbound.housekeep(now, self._convs)
 
-    def _forget_waiting(self, name: str, directed_too: bool, unless_cls: frozenset[str] | None = None) -> None:
-        """Stop waiting for acks from `name` (broadcasts; directed sends too when it left for good)."""
+    def _forget_waiting(self, name: str, directed_too: bool, unless: Peer | None = None) -> None:
+        """Stop waiting for acks from `name` (broadcasts; directed sends too when it left for good), or,
+        given `unless` (its new interest), for its acks of the broadcasts it no longer hears."""
         for seq, p in list(self._pending.items()):
             if name not in p.waiting or (p.to is not None and not directed_too):
                 continue
-            if unless_cls is not None and (p.to is not None or p.cls in unless_cls):
+            if unless is not None and (p.to is not None or unless.hears(p.cls, p.subject)):
                 continue
             p.waiting.discard(name)
             if not p.waiting:
@@ -568,17 +557,27 @@ class Bus:
         """The datagram's envelope; None (counted, logged) if it is malformed."""
         try:
             return wire.decode(data)
-        except MessageError as e:  # only a key holder gets here: counted and summarised like the rest
-            self.stats["malformed"] += 1
-            self._guard.drops.drop("malformed", self._transport.source)
-            self.log.debug("dropped malformed %s (%d bytes): %s", what, len(data), e)
+        except MessageError as e:
+            self._malformed(data, what, e)
             return None
+
+    def _malformed(self, data: bytes, what: str, e: MessageError) -> None:
+        """Only a key holder gets here: counted and summarised like the rest."""
+        self.stats["malformed"] += 1
+        self._guard.drops.drop("malformed", self._transport.source)
+        self.log.debug("dropped malformed %s (%d bytes): %s", what, len(data), e)
 
     def _handle(self, data: bytes) -> None:
         try:  # no datagram, and no bug, takes the receive path down, nor writes a traceback per datagram
             opened = self._guard.open(data, False, self._transport.source)
-            env = None if opened is None else self._decode(opened[0], "datagram")
-            if opened is None or env is None or (env.inc == self.inc and env.src == self.name):
+            if opened is None:
+                return
+            try:  # (not through _decode: one call less a datagram)
+                env = wire.decode(opened[0])
+            except MessageError as e:
+                self._malformed(opened[0], "datagram", e)
+                return
+            if env.inc == self.inc and env.src == self.name:
                 return
             if opened[1] and env.kind == "msg" and env.cls not in catalogue.LOT_CLASSES:
                 self._refuse(env)
@@ -604,7 +603,9 @@ class Bus:
         """A msg a lot script may not send: acknowledged (so it is not sent again), answered Not_Auth
         by the module it was for, counted, and logged once per source and interval."""
         to = env.to
-        if (to is not None and to != self.name) or (to is None and env.cls not in self._interest):
+        if to is not None and to != self.name:
+            return
+        if to is None and env.cls not in self._interest and env.subject not in self._subjects.get(env.cls, ()):
             return
         self._guard.drops.drop("not_authorized", f"{env.src} ({env.cls})")
         key = (env.src, env.inc)
@@ -639,8 +640,9 @@ class Bus:
             self._acked(src, env.acks)
         conv_id = env.conv
         conv = self._convs.get(conv_id)
-        if to is None and conv is None and env.cls not in self._interest:
-            return  # not for us: no ack, the sender does not count us
+        cls = env.cls
+        if to is None and conv is None and cls not in self._interest and env.subject not in self._subjects.get(cls, ()):
+            return  # not for us (nor about a subject we hear it about): no ack, the sender does not count us
         seq = env.seq
         key = (src, inc)
         self._ack(key, seq)
@@ -678,7 +680,7 @@ class Bus:
         if conv is not None:
             conv._put(batch)
             return
-        if head.to is None and head.cls not in self._interest:
+        if head.to is None and head.cls not in self._interest and head.subject not in self._subjects.get(head.cls, ()):
             return
         if head.msg != catalogue.CONVERSATION_CLASSES[head.cls].messages[0]:
             self.stats["stray"] += 1

@@ -229,6 +229,16 @@ MESSAGE_CLASSES: dict[str, MessageClass] = {
         ),
         _msg("Alarm_Clear_Request", "the operator clears an alarm", alarm_no="int", cleared_by="str"),
         _msg("Alarm_Clear_Ack", **ACK),
+        _msg(
+            "Alarm_Describe",
+            "the operator describes an alarm: its text, severity and what the CAS does for it "
+            "(actions: shutdown, page); null fields are left as they are",
+            alarm_id="str",
+            alarm_text="str?",
+            severity="str?",
+            actions="list?",
+            by="str?",
+        ),
         # --- Machine Server ---
         _msg(
             "Change_Status",
@@ -247,7 +257,35 @@ MESSAGE_CLASSES: dict[str, MessageClass] = {
             "Maint_Done", "the operator maintained a machine: its run count starts again", machine_id="str", by="str?"
         ),
         _msg("Maint_Done_Ack", "runs = the count before the reset", runs="int?", **ACK),
+        _msg(
+            "Scrap_Report",
+            "a lot entity scrapped parts a machine's run made (its verdict): the machine's scrap count",
+            entity_id="int",
+            machine_id="str",
+            machine_run_id="int",
+            parts="int",
+            reason="str?",
+        ),
+        _msg(
+            "Downtime_Reason",
+            "the operator gives a downtime event its reason (one of cell.toml's reason tree): the event "
+            "event_id, or the open one of machine_id",
+            event_id="int?",
+            machine_id="str?",
+            reason="str",
+            by="str?",
+        ),
+        _msg("Downtime_Reason_Ack", "event_id and e10_state as recorded", event_id="int?", e10_state="str?", **ACK),
         # --- Lot Server ---
+        _msg(
+            "Lot_Action",
+            "an operator action on an entity done elsewhere (a cancel, told MSCHED): kept in its history",
+            entity_id="int",
+            action="str",
+            by="str",
+            note="str?",
+        ),
+        _msg("Lot_Action_Ack", lot_id="int?", **ACK),
         _msg(
             "Create_Lot_Entity",
             "request_id: the asker's id for this creation; a repeat gets what the first made",
@@ -374,9 +412,15 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
         _conv("ALARM_SEND", "raise an alarm", "cas", "Alarm_Send", "Alarm_Ack"),
         _conv("ALARM_CLE", "an alarm was cleared (broadcast by CAS)", "any", "Alarm_Clear"),
         _conv("ALARM_CLR_REQ", "the operator clears an alarm", "cas", "Alarm_Clear_Request", "Alarm_Clear_Ack"),
+        _conv("ALARM_DESC", "describe an alarm and its actions", "cas", "Alarm_Describe", "Alarm_Clear_Ack"),
         _conv("CHG_STATUS", "change a machine's status", "ms", "Change_Status", "Change_Status_Ack"),
         _conv("GET_STATUS", "read a machine's status", "ms", "Get_Status", "Status_Reply"),
         _conv("MAINT_DONE", "a machine was maintained", "ms", "Maint_Done", "Maint_Done_Ack"),
+        _conv("SCRAP_RPT", "a lot scrapped parts of a machine's run", "ms", "Scrap_Report", "Ack"),
+        _conv(
+            "DOWNTIME_RSN", "the operator gives a downtime its reason", "ms", "Downtime_Reason", "Downtime_Reason_Ack"
+        ),
+        _conv("LOT_ACTION", "record an operator action on an entity", "ls", "Lot_Action", "Lot_Action_Ack"),
         _conv("CREATE_LOT", "create a lot entity", "ls", "Create_Lot_Entity", "Create_Lot_Ack"),
         _conv(
             "ENTITY_REQ",
@@ -412,8 +456,33 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
 
 
 # The conversation classes a lot entity starts or answers: all that receivers accept under the lot
-# key (docs/security.md). Everything else a lot script sends is refused Not_Auth.
-LOT_CLASSES = frozenset({"MACH_REQ", "CANCEL_RE", "UNRESERVE", "SETUP_RUN", "START_RUN", "ENTITY_REQ"})
+# key (docs/security.md). Everything else a lot script sends is refused Not_Auth. The server of each
+# checks that the asker lot:E holds what it asks about (Listing 1's calls, docs/lot-scripts.md): a WC
+# downloads to and uploads from a machine reserved to E; the ERS stores a proposed version only of a
+# recipe for a machine reserved to E, unapproved; the Lot Server makes a lot created by E E's child;
+# the Machine Server takes E's scrap report in E's name only; the Lot Server lets E divide itself and
+# merge its own children into itself.
+LOT_CLASSES = frozenset(
+    {
+        "MACH_REQ",
+        "CANCEL_RE",
+        "UNRESERVE",
+        "SETUP_RUN",
+        "START_RUN",
+        "ENTITY_REQ",
+        "DNLD_ME",
+        "UPLD_ME",
+        "RECIPE_PUT",
+        "CREATE_LOT",
+        "SCRAP_RPT",
+        "DIV_MERGE",
+    }
+)
+
+# Classes whose broadcasts are about one subject, named by a field of their first message: a module may hear
+# them about some subjects only (a lot, about its own machines). The bus puts the subject in the header, where
+# the kernel filter reads it (docs/protocol.md, "Subjects").
+SUBJECT_FIELDS: dict[str, str] = {"UPD_ME_ST": "machine_id", "RUN_COMPL": "machine_id"}
 
 
 class Message:

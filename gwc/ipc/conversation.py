@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from gwc.errors import BusError, ConversationTimeout, MessageError
@@ -30,14 +30,19 @@ class Peer:
 
     name: str
     inc: int
-    interest: frozenset[str]
+    interest: frozenset[str]  # classes it hears whole
     last_seen: float
+    subjects: dict[str, frozenset[str]] = field(default_factory=dict)  # class -> the only subjects it hears of it
+
+    def hears(self, cls: str, subject: str) -> bool:
+        """Whether it listens to broadcasts of `cls` about `subject` (docs/protocol.md, "Subjects")."""
+        return cls in self.interest or (subject in self.subjects.get(cls, ()) if subject else False)
 
 
 class Pending:
     """A msg datagram not yet acknowledged by every module it is meant for."""
 
-    __slots__ = ("base", "batch", "cls", "conv", "data", "first_sent", "msg", "rto", "to", "waiting")
+    __slots__ = ("base", "batch", "cls", "conv", "data", "first_sent", "msg", "rto", "subject", "to", "waiting")
 
     def __init__(
         self,
@@ -51,6 +56,7 @@ class Pending:
         msg: str,
         to: str | None,
         base: int,
+        subject: str = "",
     ) -> None:
         self.data = data
         self.waiting = waiting
@@ -62,6 +68,7 @@ class Pending:
         self.msg = msg
         self.to = to
         self.base = base  # the base this datagram was encoded with
+        self.subject = subject  # what a broadcast is about ("" if its class names no subject)
 
 
 class Outgoing:

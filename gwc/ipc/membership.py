@@ -4,11 +4,13 @@ port at sign-on and on a change, on the beat port every heartbeat) and lost by b
 from __future__ import annotations
 
 import collections
+import functools
 import logging
 import time
 from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
+from gwc.ipc import wire
 from gwc.ipc.conversation import Peer
 from gwc.ipc.wire import Envelope
 from gwc.log import TRACE
@@ -17,6 +19,7 @@ if TYPE_CHECKING:
     from gwc.ipc.bus import Bus
 
 MAX_GONE = 1024  # incarnations that said bye, remembered so that their late beats are ignored
+FLOOD_BEATS = 50  # beats refused in one heartbeat that make a flood
 LOT = "lot:"  # lot scripts' bus names
 
 
@@ -45,6 +48,59 @@ class Membership:
         self.beats: dict[bytes, tuple[str, int]] = {}  # each peer's last beat, as sent -> (name, inc)
         # Incarnations that said bye, newest last: a beat they sent before it, read after, is stale.
         self.gone: collections.OrderedDict[tuple[str, int], None] = collections.OrderedDict()
+        self.beat_body: bytes | None = None  # our beat, encoded (send_beat); None after a change of interest
+        self.following = False  # reading beats as they come (under a flood), not once a heartbeat
+
+    def hello(self, query: bool = False, to: str | None = None) -> None:
+        """Our hello on the bus port: at sign-on (a query), on a change of interest, to a querier."""
+        bus = self.bus
+        self.bus._raw_send(
+            Envelope(
+                kind="hello",
+                src=bus.name,
+                inc=bus.inc,
+                interest=tuple(sorted(bus._interest)),
+                query=query,
+                to=to,
+                subjects=self.subject_entries(),
+            )
+        )
+
+    def subject_entries(self) -> tuple[tuple[str, str], ...]:
+        return tuple(sorted((c, s) for c, about in self.bus._subjects.items() for s in about))
+
+    def take_beats(self, heartbeat: bool = False) -> None:
+        """The beats that came, checked. A heartbeat that finds many refused (a flood on the beat port)
+        switches to reading them as they come, so that the flood cannot fill the socket's buffer and
+        push real beats out before they are read; a heartbeat without flood switches back."""
+        bus = self.bus
+        self.read_beats(bus._guard.beats(bus._transport))
+        if not heartbeat:
+            return  # called by the transport as beats come: the heartbeat decides
+        flood = bus._guard.beat_drops > FLOOD_BEATS
+        bus._guard.beat_drops = 0
+        if flood != self.following:
+            self.following = flood
+            follow = functools.partial(bus.faults.run, "reading beats", self.take_beats)
+            bus._transport.follow_beats(follow if flood else None)
+            bus.log.warning("beat port %s", "flooded: beats read as they come" if flood else "quiet again")
+
+    def send_beat(self) -> None:
+        """Our hello, to the beat port: a change of interest or a query goes to the bus port instead."""
+        bus = self.bus
+        if not bus._open:
+            return
+        beat = self.beat_body
+        if beat is None:  # the same body every heartbeat until our interest changes: encoded once
+            interest = tuple(sorted(bus._interest))
+            beat = self.beat_body = wire.encode(
+                Envelope(kind="hello", src=bus.name, inc=bus.inc, interest=interest, subjects=self.subject_entries())
+            )
+        try:
+            bus._transport.send_beat(bus._guard.seal(beat, beat=True))
+        except OSError as e:  # lost like a dropped datagram: the next beat makes up for it
+            bus.stats["send_lost"] += 1
+            bus.log.debug("beat not sent: %s", e)
 
     def expire(self, now: float) -> None:
         for name, peer in list(self.peers.items()):
@@ -88,6 +144,12 @@ class Membership:
             return  # not tracked, and it does not track us: no answer to its query either
         now = time.monotonic()
         interest = frozenset(env.interest)
+        subjects: dict[str, frozenset[str]] = {}
+        if env.subjects:
+            about: dict[str, set[str]] = {}
+            for cls, subject in env.subjects:
+                about.setdefault(cls, set()).add(subject)
+            subjects = {cls: frozenset(s) for cls, s in about.items()}
         if peer is None or peer.inc != env.inc:
             if peer is not None:
                 # The old process is gone. Listeners get the new Peer (its inc differs from the one they
@@ -95,18 +157,18 @@ class Membership:
                 bus.log.log(_level(bus, env.src), "%s restarted (incarnation %x -> %x)", env.src, peer.inc, env.inc)
             else:
                 bus.log.log(_level(bus, env.src), "%s joined the bus", env.src)
-            peer = Peer(env.src, env.inc, interest, now)
+            peer = Peer(env.src, env.inc, interest, now, subjects)
             self.peers[env.src] = peer
             for cb in self.bus.peer_listeners:
                 cb(env.src, peer)
         else:
-            if interest != peer.interest:
-                peer.interest = interest
-                # It no longer listens to some classes: it will not ack broadcasts of them.
-                self.bus._forget_waiting(env.src, directed_too=False, unless_cls=interest)
+            if interest != peer.interest or subjects != peer.subjects:
+                peer.interest, peer.subjects = interest, subjects
+                # It no longer listens to some classes (or subjects): it will not ack broadcasts of them.
+                self.bus._forget_waiting(env.src, directed_too=False, unless=peer)
             peer.last_seen = now
         if env.query:
-            bus._hello(to=env.src)  # addressed to the newcomer: N answers to one module, not N x N receptions
+            self.hello(to=env.src)  # addressed to the newcomer: N answers to one module, not N x N receptions
 
     def left(self, name: str, why: str, clean: bool = False) -> None:
         peer = self.peers.pop(name, None)

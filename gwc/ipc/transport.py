@@ -20,7 +20,7 @@ import socket
 import struct
 import sys
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import Any
 
 from gwc.config import BusConfig, Faults
@@ -58,10 +58,16 @@ class Transport(ABC):
         """The beat-channel datagrams that came since the last call, our own skipped."""
 
     def set_filter(  # noqa: B027
-        self, src: str, inc: int, interest: Iterable[str], ignored: tuple[str, ...] = ()
+        self,
+        src: str,
+        inc: int,
+        interest: Iterable[str],
+        ignored: tuple[str, ...] = (),
+        subjects: Mapping[str, Iterable[str]] | None = None,
     ) -> None:
         """Drop before the module wakes what module `src` would drop unread, the hellos and byes of modules
-        whose names begin with one of `ignored` among them (a hint; none by default)."""
+        whose names begin with one of `ignored` among them, and the broadcasts of a class in `subjects`
+        about other subjects (a hint; none by default)."""
 
     def ignore_beats_from(self, prefixes: tuple[str, ...]) -> None:  # noqa: B027  (optional)
         """Drop before the module reads them the beats of modules whose names begin with one of
@@ -138,10 +144,17 @@ class UdpTransport(Transport):
             self.close()
             raise
 
-    def set_filter(self, src: str, inc: int, interest: Iterable[str], ignored: tuple[str, ...] = ()) -> None:
+    def set_filter(
+        self,
+        src: str,
+        inc: int,
+        interest: Iterable[str],
+        ignored: tuple[str, ...] = (),
+        subjects: Mapping[str, Iterable[str]] | None = None,
+    ) -> None:
         """Have the kernel drop what this module would drop unread (wire.kernel_filter), where it can."""
         if self._sock is not None:
-            self._attach(self._sock, wire.kernel_filter(src, inc, interest, ignored))
+            self._attach(self._sock, wire.kernel_filter(src, inc, interest, ignored, subjects))
 
     def ignore_beats_from(self, prefixes: tuple[str, ...]) -> None:
         if self._beat_sock is not None and prefixes:

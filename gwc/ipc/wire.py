@@ -18,14 +18,14 @@ from __future__ import annotations
 import json
 import struct
 import zlib
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from gwc.errors import MessageError
 
 MAGIC = b"GWC"
-VERSION = 3
+VERSION = 4
 HEADER = MAGIC + bytes([VERSION])
 MAX_DATAGRAM = 60_000  # below the 65,507-byte UDP limit, with room for IP options
 MAX_NAME = 200  # bytes: module names, conversation ids and class names are short; longer is hostile
@@ -60,17 +60,20 @@ class Envelope:
     to_inc: int = 0  # ack (or msg carrying acks): the incarnation of the addressee
     interest: tuple[str, ...] = ()  # hello: classes src listens to now
     query: bool = False  # hello: "tell me who you are" (peers answer with their own hello)
+    subject: str = ""  # msg: what it is about, for a class that names one (UPD_ME_ST, RUN_COMPL: the machine)
+    subjects: tuple[tuple[str, str], ...] = ()  # hello: (class, subject): src hears that class about these only
 
 
-# After HEADER, the fixed part: inc, the tags of src, to and cls, kind, flags, seq, idx, more, part, base,
-# to_inc, the lengths of src, conv, cls, to and msg, the number of acks and of interest entries. Network order.
-_FIXED = struct.Struct("!QIIIBBQIIIIQBBBBBHH")
+# After HEADER, the fixed part: inc, the tags of src, to, cls and subject, kind, flags, seq, idx, more, part,
+# base, to_inc, the lengths of src, conv, cls, to, msg and subject, the number of acks and of interest
+# entries. Network order.
+_FIXED = struct.Struct("!QIIIIBBQIIIIQBBBBBBHH")
 _AFTER_PREFIX = struct.Struct("!" + _FIXED.format[3:])  # the fixed part after inc and src tag (Origin.prefix)
 _BODY = len(HEADER) + _FIXED.size  # where the strings begin
 BODY_OFFSET = _BODY
-SRC_LEN_OFFSET = len(HEADER) + struct.calcsize("!QIIIBBQIIIIQ")  # the byte giving the length of src
+SRC_LEN_OFFSET = len(HEADER) + struct.calcsize("!QIIIIBBQIIIIQ")  # the byte giving the length of src
 # Offsets in the datagram of what the kernel filter reads (docs/protocol.md, "Kernel filtering").
-OFF_INC, OFF_SRC_TAG, OFF_TO_TAG, OFF_CLS_TAG, OFF_KIND, OFF_IDX, OFF_PART = 4, 12, 16, 20, 24, 34, 42
+OFF_INC, OFF_SRC_TAG, OFF_TO_TAG, OFF_CLS_TAG, OFF_SUBJ_TAG, OFF_KIND, OFF_IDX, OFF_PART = 4, 12, 16, 20, 24, 28, 38, 46
 
 
 def tag(name: str | bytes) -> int:
@@ -187,10 +190,12 @@ def encode(env: Envelope) -> bytes:
         env.to,
         env.msg,
         env.fields,
+        env.subject,
         env.acks,
         env.to_inc,
         env.interest,
         env.query,
+        env.subjects,
     )
 
 
@@ -207,10 +212,12 @@ def encode_parts(
     to: str | None,
     msg: str,
     fields: dict[str, Any],
+    subject: str = "",
     acks: Iterable[int] = (),
     to_inc: int = 0,
     interest: Iterable[str] = (),
     query: bool = False,
+    subjects: Iterable[tuple[str, str]] = (),
 ) -> bytes:
     """encode() from the parts, for the bus's hot path (no Envelope made just to be read).
 
@@ -225,27 +232,34 @@ def encode_parts(
         t, ttag = _ENCODED.get(to) or _encoded(to)
         if not t:
             raise MessageError("the addressee of a datagram cannot be empty (None: everyone)")
-    if len(c) > MAX_NAME or len(k) > MAX_NAME or len(t) > MAX_NAME or len(m) > MAX_NAME:
+    j, jtag = _ENCODED.get(subject) or _encoded(subject) if subject else (b"", 0)
+    if len(c) > MAX_NAME or len(k) > MAX_NAME or len(t) > MAX_NAME or len(m) > MAX_NAME or len(j) > MAX_NAME:
         raise MessageError(f"{msg or kind} in {conv or '-'}: a name is over {MAX_NAME} bytes")
     src = orig.src
-    parts = [orig.prefix, b"", src, c, k, t, m]  # parts[1]: the rest of the fixed part, packed last
-    acks, interest = tuple(acks), tuple(interest)
+    parts = [orig.prefix, b"", src, c, k, t, m, j]  # parts[1]: the rest of the fixed part, packed last
+    acks = tuple(acks)
+    entries: list[tuple[str, str]] = []
+    if interest or subjects:  # hellos only: a msg makes no list
+        entries += ((cl, "") for cl in interest)
+        entries += subjects
     try:
         if acks:
             if 0 in acks:
                 raise MessageError("acks must be positive integers")
             parts.append(_u64s(len(acks)).pack(*acks))
-        if interest:
-            for cl in interest:
-                name = cl.encode()
-                if len(name) > MAX_NAME:
-                    raise MessageError(f"class name {cl[:40]!r} is over {MAX_NAME} bytes")
-                parts += (bytes([len(name)]), name)
+        for cl, about in entries:
+            name, sub = cl.encode(), about.encode()
+            if not 0 < len(name) <= MAX_NAME or len(sub) > MAX_NAME:
+                raise MessageError(
+                    f"interest entry {cl[:40]!r} {about[:40]!r}: a name is empty or over {MAX_NAME} bytes"
+                )
+            parts += (bytes([len(name)]), name, bytes([len(sub)]), sub)
         if fields:
             parts.append(_json(fields).encode())
         parts[1] = _AFTER_PREFIX.pack(
             ttag,
             ktag if k else 0,
+            jtag,
             _KIND_CODE[kind],
             QUERY if query else 0,
             seq,
@@ -259,8 +273,9 @@ def encode_parts(
             len(k),
             len(t),
             len(m),
+            len(j),
             len(acks),
-            len(interest),
+            len(entries),
         )
     except MessageError:
         raise
@@ -297,13 +312,33 @@ def decode(data: bytes) -> Envelope:
         raise MessageError(f"unknown wire version {data[3] if n > 3 else None}")
     names = _DECODED
     try:
-        (inc, src_tag, to_tag, cls_tag, kind, flags, seq, idx, more, part, base, to_inc, ls, lc, lk, lt, lm, na, ni) = (
-            _FIXED.unpack_from(data, 4)
-        )
-        if ls > MAX_NAME or lc > MAX_NAME or lk > MAX_NAME or lt > MAX_NAME or lm > MAX_NAME:
+        (
+            inc,
+            src_tag,
+            to_tag,
+            cls_tag,
+            subj_tag,
+            kind,
+            flags,
+            seq,
+            idx,
+            more,
+            part,
+            base,
+            to_inc,
+            ls,
+            lc,
+            lk,
+            lt,
+            lm,
+            lj,
+            na,
+            ni,
+        ) = _FIXED.unpack_from(data, 4)
+        if ls > MAX_NAME or lc > MAX_NAME or lk > MAX_NAME or lt > MAX_NAME or lm > MAX_NAME or lj > MAX_NAME:
             raise MessageError(f"a name is longer than {MAX_NAME} bytes")
         o = _BODY + ls
-        e = o + lc + lk + lt + lm
+        e = o + lc + lk + lt + lm + lj
         if e > n:
             raise MessageError("truncated datagram")
         if b"\0" in data[_BODY:e]:
@@ -321,8 +356,15 @@ def decode(data: bytes) -> Envelope:
         o += lt
         if t1 != src_tag or t2 != cls_tag or t3 != to_tag:
             raise MessageError("a filter tag does not match its name")
-        b = data[o:e]
+        o += lm
+        b = data[o - lm : o]
         msg = (names.get(b) or _decoded(b))[0]
+        subject = ""
+        if lj or subj_tag:
+            b = data[o:e]
+            subject, t4 = names.get(b) or _decoded(b)
+            if t4 != subj_tag:
+                raise MessageError("a filter tag does not match its name")
         acks: tuple[int, ...] = ()
         if na:
             acks = _u64s(na).unpack_from(data, e)
@@ -330,16 +372,26 @@ def decode(data: bytes) -> Envelope:
             if 0 in acks:
                 raise MessageError("acks must be positive integers")
         interest: tuple[str, ...] = ()
+        subjects: tuple[tuple[str, str], ...] = ()
         if ni:
-            got = []
+            whole, narrow = [], []
             for _ in range(ni):
                 o, e = e + 1, e + 1 + data[e]
-                if e > n:
+                if e >= n:
                     raise MessageError("truncated datagram")
                 if not 0 < e - o <= MAX_NAME or b"\0" in data[o:e]:
                     raise MessageError(f"an interest entry is empty, over {MAX_NAME} bytes or holds a NUL byte")
-                got.append(data[o:e].decode())
-            interest = tuple(got)
+                cl = data[o:e].decode()
+                o, e = e + 1, e + 1 + data[e]
+                if e > n:
+                    raise MessageError("truncated datagram")
+                if b"\0" in data[o:e]:
+                    raise MessageError("an interest entry's subject holds a NUL byte")
+                if e > o:
+                    narrow.append((cl, data[o:e].decode()))
+                else:
+                    whole.append(cl)
+            interest, subjects = tuple(whole), tuple(narrow)
         fields = {}
         if e < n:
             fields = _loads(data[e:].decode())
@@ -382,6 +434,8 @@ def decode(data: bytes) -> Envelope:
         to_inc,
         interest,
         bool(flags),
+        subject,
+        subjects,
     )
 
 
@@ -389,10 +443,15 @@ def decode(data: bytes) -> Envelope:
 _LD_W, _LD_B, _LD_LEN, _TAX, _SUB_X, _JEQ, _JGE, _RET = 0x20, 0x30, 0x80, 0x07, 0x1C, 0x15, 0x35, 0x06
 UDP_HEADER = 8  # Linux runs a UDP socket's filter on the datagram from its UDP header: payload offsets + 8
 _WHOLE = 0xFFFF_FFFF  # a filter's "keep the whole datagram"
+MAX_FILTERED_SUBJECTS = 64  # more subjects than this, and the kernel keeps their classes whole (jumps are 8 bits)
 
 
 def kernel_filter(
-    src: str, inc: int, interest: Iterable[str], ignored: tuple[str, ...] = ()
+    src: str,
+    inc: int,
+    interest: Iterable[str],
+    ignored: tuple[str, ...] = (),
+    subjects: Mapping[str, Iterable[str]] | None = None,
 ) -> list[tuple[int, int, int, int]]:
     """The socket filter for module `src` (incarnation `inc`) listening to `interest`.
 
@@ -400,13 +459,31 @@ def kernel_filter(
     this version (so the bus logs it), hellos and byes for everyone, acks, msgs and hellos (answers
     to its query) addressed to `src`, and broadcast msgs of a class in `interest` or of a
     conversation's later batches (a conversation the module holds is received whatever its
-    interest). It drops the module's own datagrams, and the hellos and byes of the modules it does not
-    track (names beginning with one of `ignored`: the bus would drop them unread); their acks to it are
-    kept. Tags can collide, so it may keep a little more than needed, never less: the bus checks every
-    datagram it reads again.
+    interest), or of a class in `subjects` about one of its subjects there. It drops the module's own
+    datagrams, and the hellos and byes of the modules it does not track (names beginning with one of
+    `ignored`: the bus would drop them unread); their acks to it are kept. Tags can
+    collide, so it may keep a little more than needed, never less: the bus checks every datagram it
+    reads again.
     """
     own, hi, lo = tag(src), inc >> 32, inc & 0xFFFF_FFFF
     u = UDP_HEADER
+    whole = {tag(c) for c in interest}
+    # A class heard about some subjects only: its tag, then theirs (a class heard whole needs no more).
+    narrow: dict[int, set[int]] = {}
+    for c, about in (subjects or {}).items():
+        if tag(c) not in whole:
+            narrow.setdefault(tag(c), set()).update(tag(a) for a in about)
+    if sum(len(t) for t in narrow.values()) > MAX_FILTERED_SUBJECTS:  # jumps are 8 bits: kept whole, the bus sorts
+        whole.update(narrow)
+        narrow = {}
+    about_prog: list[Any] = []
+    for n, (_cls_tag, stags) in enumerate(sorted(narrow.items())):
+        about_prog += [
+            f"about_{n}",
+            ((_LD_W, u + OFF_SUBJ_TAG), None, None),
+            *(((_JEQ, t), "keep", None) for t in sorted(stags)),
+            ((_JEQ, 0), "drop", "drop"),
+        ]
     # (instruction, label to jump to when true, when false); None falls through.
     prog: list[tuple[tuple[int, int], str | None, str | None] | str] = [
         ((_LD_LEN, 0), None, None),
@@ -439,7 +516,10 @@ def kernel_filter(
         ((_SUB_X, 0), None, None),
         ((_JEQ, 0), None, "keep"),  # idx - part > 0: a later batch of a conversation begun before
         ((_LD_W, u + OFF_CLS_TAG), None, None),
-        *(((_JEQ, t), "keep", None) for t in sorted({tag(c) for c in interest})),
+        *(((_JEQ, t), "keep", None) for t in sorted(whole)),
+        *(((_JEQ, t), f"about_{n}", None) for n, t in enumerate(sorted(narrow))),
+        ((_JEQ, 0), "drop", "drop"),
+        *about_prog,
         "drop",
         ((_RET, 0), None, None),
         "keep",
@@ -495,5 +575,8 @@ def _assemble(prog: list[Any]) -> list[tuple[int, int, int, int]]:
             continue
         (op, k), yes, no = item
         here = len(code) + 1
-        code.append((op, where[yes] - here if yes else 0, where[no] - here if no else 0, k))
+        jt, jf = where[yes] - here if yes else 0, where[no] - here if no else 0
+        if not (0 <= jt <= 255 and 0 <= jf <= 255):
+            raise ValueError(f"socket filter jump of {max(jt, jf)} instructions: too far for classic BPF")
+        code.append((op, jt, jf, k))
     return code

@@ -22,6 +22,7 @@ from gwc.lot.errors import (
     RunFailed,
     RunInDoubt,
     ScriptStopped,
+    StepRefused,
 )
 
 __all__ = [
@@ -39,6 +40,7 @@ __all__ = [
     "RunFailed",
     "RunInDoubt",
     "ScriptStopped",
+    "StepRefused",
     "Timeouts",
     "create_lot",
     "read_traveller",

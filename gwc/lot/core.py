@@ -4,6 +4,7 @@ machines it works with, and the waits its steps are made of (see gwc/lot/entity.
 from __future__ import annotations
 
 import asyncio
+import collections
 import concurrent.futures
 import contextlib
 import logging
@@ -77,6 +78,10 @@ class EntityCore:
         self._peer_inc: dict[str, int] = {}  # bus peers present now -> incarnation
         self._peer_left: dict[str, float] = {}  # bus peers that left -> when
         self._began: dict[tuple[str, int], tuple[float, int | None]] = {}  # (machine, run) -> when, its WC's inc
+        # The machines whose news (UPD_ME_ST, RUN_COMPL) the entity hears: bound to it and not given back.
+        self._watching: set[str] = set()
+        self._in_cell = False  # its lot is imported: it hears MOD_DIED
+        self._heard_about: collections.Counter[str] = collections.Counter()  # machine -> its news heard
         self._requests: list[MachineRequest] = []  # asked for and not yet waited for
         self._asked: list[MachineRequest] = []  # every request this process made
         self._groups = 0

@@ -21,15 +21,16 @@ failing script leaves nothing the cell cannot clean (thesis 3.2 warns a failing 
 corrupt the tables: this one asks the owners instead of writing them). A script killed with kill -9
 cannot clean up; the Lot Server's reaper does the same for it when `lot:E` leaves the bus.
 
-The entity listens to RUN_COMPL (its runs finish), UPD_ME_ST (a reserved machine shut down mid-run:
-the step is retried, after a pause, on whatever machine is up, a bounded number of times) and
-MOD_DIED, only once its lot is in the cell (imported), so that lots waiting to be imported are not
-woken by every run. The operator's import and export of it (LOT_MOVED) the Lot Server sends to it
-alone. It remembers every status change of the machines it works with, so a machine that went
-Shutdown and came up again while the entity waited is still known to have lost the run. Servers
-come and go too: a conversation with the Lot Server or MSCHED that finds it away, restarting or not
-yet started is asked again with a backoff for a bounded time (Timeouts.retry); every request the
-entity repeats that way is safe to repeat.
+The entity listens to RUN_COMPL (its runs finish) and UPD_ME_ST (a reserved machine shut down mid-run:
+the step is retried, after a pause, on whatever machine is up, a bounded number of times) about the
+machines bound to it only, from the binding until it gives them back (docs/protocol.md, *Subjects*),
+and to MOD_DIED once its lot is in the cell (imported), so that lots are not woken by other lots'
+runs. The operator's import and export of it (LOT_MOVED) the Lot Server sends to it alone. It
+remembers every status change of the machines it works with, so a machine that went Shutdown and came
+up again while the entity waited is still known to have lost the run. Servers come and go too: a
+conversation with the Lot Server or MSCHED that finds it away, restarting or not yet started is asked
+again with a backoff for a bounded time (Timeouts.retry); every request the entity repeats that way is
+safe to repeat.
 
 It reads the tables (as role gwc_lot) and writes none. Besides its log it keeps a traveller,
 var/lots/entity-E.json: what it ran where and what it decided, for the operator (`gwc lots show E`)
@@ -144,6 +145,9 @@ class OperationEntity(EntityResume):
             self._reporter = None
         if self._bus is not None:
             bus, self._bus = self._bus, None
+            if self._heard_about:  # its own machines' only (docs/protocol.md, "Subjects")
+                heard = ", ".join(f"{m} {n}" for m, n in sorted(self._heard_about.items()))
+                self.log.info("machine news heard (UPD_ME_ST, RUN_COMPL): %s", heard)
             bus.call_soon(self._cancel_tasks)
             with contextlib.suppress(Exception):
                 bus.close()

@@ -45,3 +45,12 @@ class RunFailed(LotError):
 
 class ScriptStopped(LotError):
     """The lot script was asked to stop (SIGTERM, e.g. by `gwc stop`)."""
+
+
+class StepRefused(LotError):
+    """A server refused a step of the entity's: `ack_code` says why (Not_Auth: the entity does not hold
+    the machine or recipe it asked about)."""
+
+    def __init__(self, cls: str, ack_code: str, text: str) -> None:
+        super().__init__(text)
+        self.cls, self.ack_code = cls, ack_code

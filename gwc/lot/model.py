@@ -21,7 +21,12 @@ from gwc.retry import Backoff
 
 T = TypeVar("T")
 S = LotState
-LISTENS = (Conv.RUN_COMPL, Conv.UPD_ME_ST, Conv.MOD_DIED)
+# In the cell an entity hears every module's death (MOD_DIED), and the machines' news (UPD_ME_ST, RUN_COMPL)
+# about the machines it is bound to only (ABOUT_MACHINES, narrowed to them at each binding and unreserve:
+# docs/protocol.md, "Subjects"): another machine's run is no business of this lot, and with 50 machines
+# at work every lot woke, checked and acknowledged every one of them.
+LISTENS = (Conv.MOD_DIED,)
+ABOUT_MACHINES = (Conv.RUN_COMPL, Conv.UPD_ME_ST)
 # Until its lot is imported an entity listens to no broadcast: the cell's machine traffic is no
 # business of a lot waiting at the door, and in a busy cell many wait there. Its own moves
 # (LOT_MOVED) come addressed to it, not broadcast to every lot (gwc/servers/lot.py).

@@ -144,6 +144,7 @@ class EntityReserve(EntityTalk):
         )
         if rows:
             found = Reservation(request.op_type, int(rows[0][1]), int(rows[0][2]), [str(r[0]) for r in rows])
+            self._watch(found.machines)
             self.log.warning("request %s was bound unheard (its conversation given up): %s", found.request_key, found)
             with self._cond:
                 request.found = found
@@ -208,6 +209,7 @@ class EntityReserve(EntityTalk):
     ) -> Callable[[], int]:
         """unreserve() sent now; the function returned waits for MSCHED's answer (how many were freed),
         so that the script can work while MSCHED frees the machines. Call it."""
+        self._unwatch(machine_id)  # its news is no business of the entity's any more
         asked = self._ask_soon(
             Conv.UNRESERVE,
             message(Msg.UNRESERVE_ME, entity_id=self.entity_id, machine_id=machine_id, by=self.name),

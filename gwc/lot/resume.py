@@ -30,15 +30,15 @@ from typing import Any
 
 from gwc.errors import GwcError
 from gwc.ipc.codes import MachineStatus
+from gwc.lot.holdings import EntityHoldings
 from gwc.lot.model import Operation, Reservation, Run, S, read_traveller
-from gwc.lot.runs import EntityRuns
 
 M = MachineStatus
 RUNNING = (M.RUNNING.value, M.RUN_SHUT.value)
 SET_UP = (M.SETUP.value, M.SETUP_SHUT.value)
 
 
-class EntityResume(EntityRuns):
+class EntityResume(EntityHoldings):
     """The operation steps' record, and taking a killed script's entity up again from it."""
 
     _step = 0  # the next operation step of this process
@@ -126,6 +126,7 @@ class EntityResume(EntityRuns):
             self.log.warning(
                 "operation %d (%s): run %d on %s is taken up where it is", step + 1, op_type, run, ", ".join(machines)
             )
+            self._watch(machines)
             return step, entry, Reservation(op_type, run, entry.get("request_key"), machines)
         if held:
             self.unreserve(within=self.timeouts.cleanup)

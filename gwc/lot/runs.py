@@ -98,6 +98,7 @@ class EntityRuns(EntityReserve):
     def _begin(self, machine_id: str, machine_run_id: int, anew: bool) -> float:
         """The run's life on the machine begins now (anew: with this setup; else unless its setup began
         it): what happens to the machine from then on counts for the run. Returns now."""
+        self._watch([machine_id])  # (bound, so heard since the binding: unless resumed, or bound unheard)
         now = time.monotonic()
         with self._cond:
             key, since = (machine_id, machine_run_id), (now, self._peer_inc.get(f"wc:{machine_id}"))

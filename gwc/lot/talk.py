@@ -7,7 +7,7 @@ from __future__ import annotations
 import asyncio
 import os
 import time
-from collections.abc import Callable, Coroutine, Sequence
+from collections.abc import Callable, Coroutine, Iterable, Sequence
 from typing import Any
 
 from gwc.errors import ConversationTimeout, GwcError
@@ -17,7 +17,19 @@ from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.core import EntityCore
 from gwc.lot.errors import LotError, LotTimeout, MachineLost
-from gwc.lot.model import ALREADY, FOREVER, HISTORY, LISTENS, POLL, SHUT, Alternative, S, WcCall
+from gwc.lot.model import (
+    ABOUT_MACHINES,
+    ALREADY,
+    FOREVER,
+    HISTORY,
+    LISTENS,
+    POLL,
+    SHUT,
+    WAITING_LISTENS,
+    Alternative,
+    S,
+    WcCall,
+)
 from gwc.module import ask_again
 
 
@@ -146,9 +158,57 @@ class EntityTalk(EntityCore):
         return ack
 
     def _listen_in_cell(self) -> None:
-        """From now on hear the machines' news too (RUN_COMPL, UPD_ME_ST): the lot is in the cell."""
-        if self._bus is not None and self._bus.bus.interests != frozenset(LISTENS):
-            self._bus.set_interest(LISTENS)
+        """From now on hear the cell's news (MOD_DIED): the lot is in the cell."""
+        with self._cond:
+            if self._in_cell:
+                return
+            self._in_cell = True
+        self._hear_now()
+
+    def _watch(self, machines: Iterable[str]) -> None:
+        """Hear the news (UPD_ME_ST, RUN_COMPL) of these machines from now on: they are bound to the entity.
+        Called at the binding, on the bus thread, so the filter is in place before any setup is sent."""
+        with self._cond:
+            if self._watching.issuperset(machines):
+                return
+            self._watching.update(machines)
+        self._hear_now()
+
+    def _unwatch(self, machine_id: str | None) -> None:
+        """Stop hearing a machine's news (None: every machine's): it is given back. Not waited for: the
+        script goes on while the bus thread applies it (a late Run_Complete it still hears is harmless)."""
+        with self._cond:
+            if machine_id is None:
+                if not self._watching:
+                    return
+                self._watching.clear()
+            elif machine_id in self._watching:
+                self._watching.discard(machine_id)
+            else:
+                return
+        self._hear_now(wait=False)
+
+    def _hear_now(self, wait: bool = True) -> None:
+        """Apply the entity's interest as it is now, on the bus thread (returns once applied if `wait`)."""
+        if self._bus is None:
+            return
+        if self._bus.in_bus_thread():
+            self._set_interest()
+        elif wait:
+            self._bus.call(self._set_interest)
+        else:
+            self._bus.call_soon(self._set_interest)
+
+    def _set_interest(self) -> None:
+        """(bus thread) The interest from the entity's state, read at this moment: calls from either
+        thread leave the last state applied whatever their order."""
+        blocking = self._bus
+        if blocking is None or blocking.bus.closed:
+            return
+        with self._cond:
+            classes = LISTENS if self._in_cell else WAITING_LISTENS
+            machines = frozenset(self._watching)
+        blocking.bus.set_interest(classes, subjects=dict.fromkeys(ABOUT_MACHINES, machines))
 
     # ----------------------------------------------------------------- conversations
 
@@ -311,6 +371,8 @@ class EntityTalk(EntityCore):
             conv.end()
             m = conv.first.first
             with self._cond:
+                if m.name in (Msg.RUN_COMPLETE, Msg.UPDATE_ME_STATUS):
+                    self._heard_about[str(m.machine_id)] += 1
                 if m.name == Msg.RUN_COMPLETE and m.machine_run_id is not None:
                     key = (m.machine_id, int(m.machine_run_id))
                     self._runs[key] = m.ack_code
@@ -440,8 +502,13 @@ class EntityTalk(EntityCore):
             surplus = alt.group.surplus(alt) if taken and alt.group and head.name == Msg.MACHINE_REQ_COMP else []
             queued = taken and head.name == Msg.MACHINE_REQ_ACK
             self._cond.notify_all()
+        if head.name == Msg.MACHINE_REQ_COMP and head.ack_code == AckCode.ACK_OK:
+            # In this same turn of the bus's loop: whatever the script sends to the machines once woken is
+            # sent after it, so no news of a machine it sets up can come before its filter hears them.
+            self._watch([m.machine_id for m in batch.messages[1:] if m.name == Msg.RESERVED_MACHINE])
         for m in surplus:  # bound after the entity took another alternative: give it back
             self.log.warning("%s was bound after another alternative was taken: giving it back", m)
+            self._unwatch(m)
             await self._tell(
                 Conv.UNRESERVE, message(Msg.UNRESERVE_ME, entity_id=self.entity_id, machine_id=m, by=self.name)
             )

@@ -12,7 +12,8 @@ section 6 has the grammar, both transfers and every timeout):
     `STATUS <n>!`                                              are you there? -> `READY <n>!` (transfer "line")
 
 The program moves as the machine's `transfer` says: "line" (ours: `<part>!` `<n>!` + n bytes,
-answered `OK!`) or "kermit" (Listing 9's own: G-Kermit on both ends).
+answered `OK!`) or "kermit" (Listing 9's own: G-Kermit on both ends, the part directory as
+`<part>.tar` both ways, a plain file still taken back: gwc/me/parts.py).
 
 The line is the ME's from ME_START to ME_SHUT. Before each exchange it is resynchronised (STATUS <n>
 answered READY <n>, everything before it logged and dropped; with Kermit, drained until quiet), so
@@ -58,6 +59,7 @@ from gwc.me.line import (
     serial_stream,
 )
 from gwc.me.machine import MachineSide, Refusal, RunOutcome
+from gwc.me.parts import PartError, part_tar, program_from
 
 T = TypeVar("T")
 VERDICTS = ("PASS!", "FAIL!")
@@ -178,8 +180,12 @@ class CmmMachine(MachineSide):
         self._ser = ser
         self._line = serial_stream(ser, f"CMM line {port}")
         self.log.info(
-            "serial line to the CMM open: %s (%s)",
+            "serial line to the CMM open: %s at %s %s%s%s (%s)",
             port,
+            ser.baudrate,
+            ser.bytesize,
+            ser.parity,
+            ser.stopbits,
             ", ".join(f"{k}={v}" for k, v in self.settings.items() if k != "port"),
         )
 
@@ -249,12 +255,12 @@ class CmmMachine(MachineSide):
     def _send_recipe(self, line: RecordStream, part: str, path: Path) -> None:
         line.write_record(" DOWNLD !")
         if self.transfer == "kermit":
-            # The file goes under the part's name, as Listing 9 found it in /usr/avail/part.
+            # The part directory as a tar, as Listing 9 extracts it into /usr/avail/part (gwc/me/parts.py).
             spool = self.memory / "kermit"
             shutil.rmtree(spool, ignore_errors=True)
             spool.mkdir(parents=True)
-            shutil.copyfile(path, spool / part)
-            kermit(line, ["-s", part], spool, self.kermit_timeout)
+            (spool / f"{part}.tar").write_bytes(part_tar(part, path.read_bytes()))
+            kermit(line, ["-s", f"{part}.tar"], spool, self.kermit_timeout)
             return
         content = path.read_bytes()
         line.write_record(f"{part}!")
@@ -298,9 +304,16 @@ class CmmMachine(MachineSide):
             line.write_record(" UPLD !")
             line.write_record(f"{part}!")
             if self.transfer == "kermit":
-                (target / part).unlink(missing_ok=True)
-                kermit(line, ["-r"], target, self.kermit_timeout)
-                return (target / part).read_bytes() if (target / part).exists() else None
+                # Received under a name the ME chooses (-a), in a folder of its own, emptied first: the far
+                # end never chooses where a file lands (`../../x`, `/etc/x`: docs/security.md).
+                inbox = self.memory / "kermit-in"
+                shutil.rmtree(inbox, ignore_errors=True)
+                inbox.mkdir(parents=True)
+                kermit(line, ["-r", "-a", "upload"], inbox, self.kermit_timeout)
+                landed = sorted(p.name for p in inbox.iterdir())
+                if landed not in ([], ["upload"]):  # -a holds for every file gkermit writes: never seen
+                    raise Garbage(f"the Kermit transfer left {landed} in {inbox}, not one file 'upload'")
+                return (inbox / "upload").read_bytes() if landed else None
             first = line.read_record(self.answer_timeout)
             if first == "NONE!":
                 return None
@@ -309,6 +322,11 @@ class CmmMachine(MachineSide):
         content = self._exchange(f"upload of {recipe_id}", fetch)
         if content is None:
             raise Refusal(AckCode.REC_INVAL, f"the CMM holds no part program {recipe_id}")
+        try:
+            content = program_from(part, content)  # <part>.tar of the part directory, or the program alone
+        except PartError as e:
+            self.log.error("upload of %s refused: %s", recipe_id, e)
+            raise Refusal(AckCode.REC_INVAL, str(e)) from e
         path = target / part
         path.write_bytes(content)
         return path

@@ -53,6 +53,7 @@ from gwc.agent.control import notify_ready
 from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError, LineError
 from gwc.me.line import LineLost, RecordStream, escaped, kermit, open_serial, serial_stream
+from gwc.me.parts import PartError, is_tar, part_tar, program_from
 
 ANSWER_TIMEOUT = 5.0  # longest wait for the rest of a multi-record command
 IDLE_WAIT = 0.2
@@ -413,8 +414,17 @@ class CmmSimulator:
                 self.store.iterdir(), key=lambda p: p.stat().st_mtime
             )[-1:]
             for path in got:
-                self.programs[path.name] = path.read_bytes()
-                self.log.info("part program %s received by Kermit (%d bytes)", path.name, path.stat().st_size)
+                # Listing 9 untars the part directory; a plain file (an older ME's) is the program itself.
+                data, name = path.read_bytes(), path.name
+                if name.endswith(".tar") and is_tar(data):
+                    name = name[: -len(".tar")]
+                    try:
+                        data = program_from(name, data)
+                    except PartError as e:
+                        self.log.error("part directory %s refused: %s", path.name, e)
+                        continue
+                self.programs[name] = data
+                self.log.info("part program %s received by Kermit (%d bytes, as %s)", name, len(data), path.name)
             return
         name = line.read_record(ANSWER_TIMEOUT)[:-1]
         content = line.read_bytes(line.read_length(ANSWER_TIMEOUT), ANSWER_TIMEOUT)
@@ -429,8 +439,8 @@ class CmmSimulator:
             if content is None:
                 self.log.warning("upload of unknown part program %s: nothing sent", name)
                 return
-            (self.store / name).write_bytes(content)
-            kermit(line, ["-s", name], self.store, KERMIT_TIMEOUT)
+            (self.store / f"{name}.tar").write_bytes(part_tar(name, content))
+            kermit(line, ["-s", f"{name}.tar"], self.store, KERMIT_TIMEOUT)
             return
         if content is None:
             self.log.warning("upload of unknown part program %s", name)

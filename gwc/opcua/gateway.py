@@ -37,7 +37,7 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module, module_name
-from gwc.opcua import model, security, store
+from gwc.opcua import model, record, security, store
 from gwc.opcua.settings import load_settings
 from gwc.opcua.space import (
     ALARM,
@@ -240,6 +240,8 @@ class Gateway(Module):
             await model.build_machine(sp, companion, types, spec, self.identification[spec.id], methods)
             await sp.set(f"machines/{spec.id}/wc_on_bus", False)
             await self._item_state(spec.id)
+            # OEE and open downtime (docs/record.md), in the machine's Monitoring object
+            await record.build(self, sp.nodeid(f"machines/{spec.id}"), spec.id, OUT)
         await sp.method(
             cell,
             "cell/EnterWorkOrder",
@@ -339,6 +341,7 @@ class Gateway(Module):
     async def _refresh(self, what: set[str]) -> None:
         if "machines" in what:
             await self._refresh_machines()
+            await record.refresh(self)
         if "alarms" in what:
             await self._refresh_alarms()
         if "lots" in what:

@@ -8,6 +8,12 @@ was misspelt would be worse. Every new alarm is handed to the Status Line Server
 The operator clears one (ALARM_CLR_REQ): the history gets who and when, and ALARM_CLEAR is
 broadcast so the WC that waits on it (6.3.2.8) continues.
 
+1.4.5's last function, "taking the appropriate actions necessary for the given alarm": each alarm's
+description (ALARM_DESCRIPTION.actions, set with `gwc alarm describe`) says what the CAS does as it
+records one: `shutdown` (ME_SHUT to the alarm's machine: a machine in a run shuts down when the run
+is over) and `page` (the operator paged: a cell event, and `[alarms] page_command` run with the
+alarm's text when cell.toml names one). What was done is logged and kept in ALARMS.actions_taken.
+
 The CAS also watches the database itself (every module notices an outage within a second): one
 that lasts longer than `[database] outage_alarm_s` is told as a cell event while it lasts, and
 recorded as alarm DB_DOWN as soon as the database is back, since an alarm cannot be written before.
@@ -15,19 +21,26 @@ recorded as alarm DB_DOWN as soon as the database is back, since an alarm cannot
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
+import os
 import time
 from typing import Any
 
 from gwc import db
 from gwc.config import Config
+from gwc.errors import GwcError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
-from gwc.module import Handler, Module
-from gwc.servers.common import NOT_LOTS, Server
+from gwc.module import DATABASE_OUTAGE_S, Handler, Module
+from gwc.servers.common import NOT_LOTS, SERVER_TIMEOUT, Server
 
+ACTIONS = ("shutdown", "page")  # what an alarm's description may ask of the CAS (060_thesis.sql)
+SEVERITIES = ("note", "warning", "error")
+PAGE_TIMEOUT = 10.0  # s: the longest a page command may take before it is killed
 OUTAGE_ALARM = "DB_DOWN"
 OUTAGE_ALARM_S = 10.0  # a database away longer than this is an alarm ([database] outage_alarm_s)
 
@@ -40,9 +53,15 @@ class AlarmServer(Server, Module):
         super().__init__(cfg, name, log)
         self.outage_alarm_s = float(cfg.raw.get("database", {}).get("outage_alarm_s", OUTAGE_ALARM_S))
         self._outage_told = False
+        page = cfg.raw.get("alarms", {}).get("page_command")
+        self.page_command: list[str] = [page] if isinstance(page, str) else [str(a) for a in page or []]
 
     def handlers(self) -> dict[str, Handler]:
-        return {Conv.ALARM_SEND: self.alarm_send, Conv.ALARM_CLR_REQ: self.alarm_clear}
+        return {
+            Conv.ALARM_SEND: self.alarm_send,
+            Conv.ALARM_CLR_REQ: self.alarm_clear,
+            Conv.ALARM_DESC: self.alarm_describe,
+        }
 
     async def on_startup(self) -> str:
         def pending(cur: Any) -> int:
@@ -64,8 +83,10 @@ class AlarmServer(Server, Module):
     async def record(self, alarm_id: str, text: str | None, machine_id: str | None, raised_by: str) -> tuple[int, bool]:
         """Record an alarm (known or not) and tell the status line; its number, and whether it is known."""
 
-        def insert(cur: Any) -> tuple[int, bool, str]:
-            row = cur.execute("select alarm_text from alarm_description where alarm_id = %s", (alarm_id,)).fetchone()
+        def insert(cur: Any) -> tuple[int, bool, str, list[str]]:
+            row = cur.execute(
+                "select alarm_text, actions from alarm_description where alarm_id = %s", (alarm_id,)
+            ).fetchone()
             known = row is not None
             full = text or (row[0] if known else f"unknown alarm {alarm_id}")
             no = db.get_new_max_value(cur, "ALARM_NO")
@@ -74,15 +95,117 @@ class AlarmServer(Server, Module):
                 "values (%s, %s, %s, %s, %s, %s)",
                 (no, alarm_id, known, machine_id, full, raised_by),
             )
-            return no, known, full
+            return no, known, full, list(row[1]) if known else []
 
-        no, known, full = self.transaction(insert)
+        no, known, full, actions = self.transaction(insert)
         if known:
             self.log.info("alarm %d %s from %s pending: %s", no, alarm_id, raised_by, full)
         else:
             self.log.warning("alarm %d %s from %s is not in ALARM_DESCRIPTION: %s", no, alarm_id, raised_by, full)
         await self.event(f"alarm {no} {alarm_id}{'' if known else ' (unknown)'}: {full}")
+        if actions:  # after the answer: the raiser (a WC in a step) is not held up by a shutdown
+            self.spawn(self.act(no, alarm_id, machine_id, full, actions))
         return no, known
+
+    # ----------------------------------------------------------------- the alarm's actions (1.4.5)
+
+    async def act(self, no: int, alarm_id: str, machine_id: str | None, text: str, actions: list[str]) -> None:
+        """Do what the alarm's description asks, in its order; each outcome logged, all kept in ALARMS."""
+        done = []
+        for action in actions:
+            if action == "shutdown":
+                outcome = await self._shut_down(machine_id)
+            elif action == "page":
+                outcome = await self._page(no, alarm_id, machine_id, text)
+            else:  # the table's check allows no other; a newer schema might
+                outcome = f"{action}: not an action this CAS knows"
+            self.log.warning("alarm %d %s: %s", no, alarm_id, outcome)
+            done.append(outcome)
+        taken = "; ".join(done)
+        await self.transaction_when_up(
+            db.Statement("update alarms set actions_taken = %s where alarm_no = %s", (taken, no), None),
+            within=DATABASE_OUTAGE_S,
+        )
+
+    async def _shut_down(self, machine_id: str | None) -> str:
+        """ME_SHUT to the machine's WC, as `gwc machine stop` does."""
+        if not machine_id:
+            return "shutdown: the alarm names no machine"
+        wc = f"wc:{machine_id}"
+        try:
+            conv, batch = await self.bus.request(
+                Conv.ME_SHUT, message(Msg.SHUTDOWN_REQUEST, module=wc), to=wc, timeout=SERVER_TIMEOUT
+            )
+        except GwcError as e:
+            return f"shutdown of {machine_id} not done: {e}"
+        try:
+            ack = batch.first
+            if ack.ack_code == AckCode.NOTNOW:
+                return f"shutdown of {machine_id}: it is shut down already"
+            if ack.ack_code != AckCode.ACK_OK:
+                return f"shutdown of {machine_id} refused: {ack.ack_code} {ack.note or ''}".strip()
+            with contextlib.suppress(GwcError):  # pending: the run ends first (its note says so)
+                done = (await conv.expect(Msg.SHUTDOWN_COMPLETE, Msg.ME_STOPPED, timeout=SERVER_TIMEOUT)).first
+                return f"machine {machine_id} shut down" + (f" ({done.note})" if done.note else "")
+            return f"machine {machine_id} shutting down" + (f" ({ack.note})" if ack.note else "")
+        finally:
+            conv.end()
+
+    async def _page(self, no: int, alarm_id: str, machine_id: str | None, text: str) -> str:
+        """Page the operator: a cell event on every screen, and the page command if cell.toml names one."""
+        await self.event(f"PAGE: alarm {no} {alarm_id}" + (f" on {machine_id}" if machine_id else "") + f": {text}")
+        if not self.page_command:
+            return "paged on the status line"
+        env = {
+            **os.environ,
+            "GWC_ALARM_NO": str(no),
+            "GWC_ALARM_ID": alarm_id,
+            "GWC_MACHINE": machine_id or "",
+        }
+        try:
+            proc = await asyncio.create_subprocess_exec(
+                *self.page_command, text, env=env, stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE
+            )
+        except OSError as e:
+            return f"paged on the status line; page command {self.page_command[0]} not run: {e}"
+        try:
+            _, err = await asyncio.wait_for(proc.communicate(), PAGE_TIMEOUT)
+        except TimeoutError:
+            proc.kill()
+            await proc.wait()
+            return f"paged on the status line; page command killed after {PAGE_TIMEOUT:g}s"
+        if proc.returncode != 0:
+            why = err.decode(errors="replace").strip()[-200:]
+            return f"paged on the status line; page command exit {proc.returncode}: {why}"
+        return "paged (status line and page command)"
+
+    async def alarm_describe(self, conv: Conversation) -> None:
+        """ALARM_DESC: the operator adds or changes an alarm's description: text, severity, actions."""
+        req = self.request(conv)
+        ack = Msg.ALARM_CLEAR_ACK
+        actions = None if req.actions is None else [str(a) for a in req.actions]
+        wrong = [a for a in actions or [] if a not in ACTIONS]
+        if not req.alarm_id.strip() or wrong or (req.severity is not None and req.severity not in SEVERITIES):
+            why = f"unknown action(s) {', '.join(wrong)} (known: {', '.join(ACTIONS)})" if wrong else ""
+            why = why or f"an alarm id, and a severity of {', '.join(SEVERITIES)}"
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, why)
+
+        def describe(cur: Any) -> str | None:
+            row = cur.execute(
+                "insert into alarm_description (alarm_id, alarm_text, severity, actions) "
+                "values (%(id)s, coalesce(%(text)s, %(id)s), coalesce(%(sev)s, 'warning'), "
+                "coalesce(%(act)s, '{}'::text[])) on conflict (alarm_id) do update set "
+                "alarm_text = coalesce(%(text)s, alarm_description.alarm_text), "
+                "severity = coalesce(%(sev)s, alarm_description.severity), "
+                "actions = coalesce(%(act)s, alarm_description.actions) "
+                "returning alarm_text, severity, actions",
+                {"id": req.alarm_id, "text": req.alarm_text, "sev": req.severity, "act": actions},
+            ).fetchone()
+            return f"{row[0]!r}, {row[1]}, actions {','.join(row[2]) or 'none'}"
+
+        now = self.transaction(describe)
+        self.log.info("alarm %s described by %s: %s", req.alarm_id, req.by or conv.peer, now)
+        await self.answer(conv, ack, AckCode.ACK_OK, now)
 
     # ----------------------------------------------------------------- the database's own outages
 

@@ -32,6 +32,7 @@ from gwc.servers.common import SERVER_TIMEOUT, Server
 
 L = LotState
 MAX_QUANTITY = 1000
+MAX_CHILDREN = 20  # entities one CREATE_LOT of a lot script may make (each is a process)
 RESTART_GRACE = 30.0  # s: a lot script its agent restarts attaches again within this (its start_timeout)
 IN_CELL = frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING, L.COMPLETED})
 # An entity in one of these needs no script any more: its death is no failure (CONTRACTS.md).
@@ -64,6 +65,12 @@ DECISIONS: dict[str, dict[str, tuple[frozenset[L], L, str]]] = {
 }
 
 
+def lot_parent(asker: str) -> int | None:
+    """The entity a conversation's asker is, when it is a lot script (lot:E): the parent of what it creates."""
+    kind, _, ent = asker.partition(":")
+    return int(ent) if kind == "lot" and ent.isdigit() else None
+
+
 def _new_lot_for(cur: Any, entity_id: int, old_lot: int) -> int:
     """Move an entity into a new lot, a copy of its old one (6.1.1: re-imported, a new lot_id)."""
     lot_id = db.get_new_max_value(cur, "LOT_ID")
@@ -85,17 +92,32 @@ def _new_lot_for(cur: Any, entity_id: int, old_lot: int) -> int:
     return lot_id
 
 
-def _move(entity_id: int, to: LotState, came_from: frozenset[LotState], reason: str | None, keep: bool) -> db.Statement:
+def _move(
+    entity_id: int,
+    to: LotState,
+    came_from: frozenset[LotState],
+    reason: str | None,
+    keep: bool,
+    action: tuple[str, str] | None = None,
+) -> db.Statement:
     """An entity (not destroyed) in one of `came_from` moves to `to`, in one statement: the row of its
     lot_id, or None if it was not in one of them (the caller reads why). `reason` replaces the old one,
-    or only fills it when `keep`."""
-    return db.Statement(
+    or only fills it when `keep`. An operator's `action` (what, by whom) is kept in operator_actions by
+    the same statement (the entity's new state goes to entity_state_history by lot_status's trigger)."""
+    move = (
         "update lot_status s set state = %(to)s, updated_at = now(), "
         + ("reason = coalesce(%(reason)s, s.reason) " if keep else "reason = %(reason)s ")
         + "from (select s2.state from lot_status s2 join lot_entities e using (entity_id) "
         "where s2.entity_id = %(e)s and e.destroyed_at is null for update of s2) old "
-        "where s.entity_id = %(e)s and old.state = any(%(from)s) returning s.lot_id",
-        {"to": to.value, "reason": reason, "e": entity_id, "from": [str(x) for x in came_from]},
+        "where s.entity_id = %(e)s and old.state = any(%(from)s) returning s.lot_id"
+    )
+    params = {"to": to.value, "reason": reason, "e": entity_id, "from": [str(x) for x in came_from]}
+    if action is None:
+        return db.Statement(move, params)
+    return db.Statement(
+        f"with moved as ({move}), act as (insert into operator_actions (entity_id, lot_id, action, by) "
+        "select %(e)s, lot_id, %(action)s, %(by)s from moved) select lot_id from moved",
+        params | {"action": action[0], "by": action[1]},
     )
 
 
@@ -107,6 +129,7 @@ class LotServer(Server, Module):
         self.watched: dict[int, float] = {}  # entity -> when its script was last seen on the bus
         self.restarting: dict[int, float] = {}  # entity -> until when its script's restart is waited for
         self.grace = max(3.0, 2 * cfg.bus.peer_timeout)
+        self.pruned = 0.0  # monotonic time the history was last pruned (0: at the first idle)
 
     def handlers(self) -> dict[str, Handler]:
         return {
@@ -117,12 +140,57 @@ class LotServer(Server, Module):
             Conv.RELEASE_LOT: self.decision,
             Conv.DIV_MERGE: self.divide_merge,
             Conv.MOD_DIED: self.module_died,
+            Conv.LOT_ACTION: self.lot_action,
         }
 
     # ----------------------------------------------------------------- lifecycle and the reaper
 
     async def on_bus(self) -> None:
         self.bus.peer_listeners.append(self._peer_changed)
+
+    def on_connect(self, conn: Any) -> None:
+        """A cell without history ([record] history = false): lot_status's trigger records nothing."""
+        if not self.cfg.record.history:
+            conn.execute("select set_config('gwc.record_entities', 'off', false)")
+            conn.commit()
+
+    async def on_idle(self) -> None:
+        if not self.started:
+            return
+        now = time.monotonic()
+        if self.cfg.record.history and (not self.pruned or now - self.pruned > self.cfg.record.prune_every_s):
+            self.pruned = now
+            self.prune()
+        self.reap_silent(now)
+
+    def prune(self) -> None:
+        """Entity history and operator actions older than [record] keep_days go (docs/record.md)."""
+        try:
+            row = self.transaction(db.Statement("select prune_record('ls', %s)", (self.cfg.record.keep_days,)))
+        except GwcError as e:
+            self.log.error("pruning the entity history failed: %s", e)
+            return
+        if row and row[0]:
+            self.log.info("pruned %d rows of entity history older than %g days", row[0], self.cfg.record.keep_days)
+
+    async def lot_action(self, conv: Conversation) -> None:
+        """LOT_ACTION: an operator's action on an entity done through another module (a cancel, told
+        MSCHED), kept in the entity's history with who did it."""
+        req = self.request(conv)
+        ack = Msg.LOT_ACTION_ACK
+        if not str(req.action).strip() or not str(req.by).strip():
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "a lot action needs an action and who did it")
+        row = self.transaction(
+            db.Statement(
+                "insert into operator_actions (entity_id, lot_id, action, by, note) "
+                "select entity_id, lot_id, %s, %s, %s from lot_status where entity_id = %s returning lot_id",
+                (req.action[:100], req.by[:200], req.note, req.entity_id),
+            )
+        )
+        if row is None:
+            return await self.answer(conv, ack, AckCode.UNKNOWN, f"no entity {req.entity_id}")
+        self.log.info("entity %d: %s by %s", req.entity_id, req.action, req.by)
+        await self.answer(conv, ack, AckCode.ACK_OK, lot_id=row[0])
 
     async def on_startup(self) -> str:
         """Watch the scripts of entities at work (they had a script when we were last up)."""
@@ -173,10 +241,8 @@ class LotServer(Server, Module):
         self.restarting[entity] = time.monotonic() + float(died.restart_in) + RESTART_GRACE
         self.log.info("%s died (%s); %s restarts it: its entity waits for it", died.module, died.how, died.host)
 
-    async def on_idle(self) -> None:
-        if not self.started:
-            return
-        now = time.monotonic()
+    def reap_silent(self, now: float) -> None:
+        """Reap the scripts of watched entities not seen on the bus for longer than the grace."""
         peers = self.bus.peers()
         for ent, seen in list(self.watched.items()):
             if f"lot:{ent}" in peers:
@@ -226,6 +292,12 @@ class LotServer(Server, Module):
         if not 0 < req.quantity <= MAX_QUANTITY:
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
         params = [str(p) for p in req.result_params or []]
+        # A lot script creates its own children (6.1: "an OE can actually start other OEs"): new lots only,
+        # of its own order, each entity's parent the asker (docs/lot-scripts.md, *Child entities*).
+        parent = lot_parent(conv.initiator)
+        if parent is not None and (req.lot_id is not None or req.quantity > MAX_CHILDREN):
+            why = "a lot script creates a new lot of its own" if req.lot_id is not None else f"{MAX_CHILDREN} at most"
+            return await self.answer(conv, ack, AckCode.NOT_AUTH, why)
 
         def create(cur: Any) -> tuple[int, list[int], bool] | str:
             if req.request_id:  # asked again (the answer was lost, or we restarted): what the first one made
@@ -236,6 +308,17 @@ class LotServer(Server, Module):
                 ).fetchall()
                 if made:
                     return made[0][0], [e for _, e in made], False
+            work_order_id, owner = req.work_order_id, req.owner
+            if parent is not None:
+                of = cur.execute(
+                    "select s.state, l.work_order_id, l.owner from lot_status s join lot_entities e "
+                    "using (entity_id) join lots l on l.lot_id = s.lot_id "
+                    "where s.entity_id = %s and e.destroyed_at is null",
+                    (parent,),
+                ).fetchone()
+                if of is None or L(of[0]) not in IN_CELL:
+                    return f"entity {parent} is {of[0] if of else 'unknown'}: only an entity in the cell starts others"
+                work_order_id, owner = of[1], owner or of[2]
             product = cur.execute(
                 "select script_id, lot_type from products where product_id = %s", (req.product_id,)
             ).fetchone()
@@ -248,12 +331,10 @@ class LotServer(Server, Module):
             ):
                 return f"no lot script {req.script_id!r}"
             if (
-                req.work_order_id is not None
-                and not cur.execute(
-                    "select 1 from work_orders where work_order_id = %s", (req.work_order_id,)
-                ).fetchone()
+                work_order_id is not None
+                and not cur.execute("select 1 from work_orders where work_order_id = %s", (work_order_id,)).fetchone()
             ):
-                return f"no work order {req.work_order_id}"
+                return f"no work order {work_order_id}"
             if req.lot_id is not None:
                 lot = cur.execute("select lot_id from lots where lot_id = %s for update", (req.lot_id,)).fetchone()
                 if lot is None:
@@ -272,11 +353,11 @@ class LotServer(Server, Module):
                     (
                         lot_id,
                         req.lot_type or product[1],
-                        req.work_order_id,
+                        work_order_id,
                         req.product_id,
                         req.quantity,
                         req.priority,
-                        req.owner,
+                        owner,
                         script_id,
                         params,
                     ),
@@ -285,8 +366,9 @@ class LotServer(Server, Module):
             for unit in range(first, first + req.quantity):
                 eid = db.get_new_max_value(cur, "ENTITY_ID")
                 cur.execute(
-                    "insert into lot_entities (entity_id, lot_id, unit, create_request) values (%s, %s, %s, %s)",
-                    (eid, lot_id, unit, req.request_id),
+                    "insert into lot_entities (entity_id, lot_id, unit, create_request, parent_entity_id) "
+                    "values (%s, %s, %s, %s, %s)",
+                    (eid, lot_id, unit, req.request_id, parent),
                 )
                 cur.execute(
                     "insert into lot_status (entity_id, lot_id, state) values (%s, %s, 'created')", (eid, lot_id)
@@ -305,7 +387,7 @@ class LotServer(Server, Module):
                 len(ids),
                 "y" if len(ids) == 1 else "ies",
                 ", ".join(map(str, ids)),
-                req.owner or conv.peer,
+                str(req.owner or conv.peer) + (f", children of entity {parent}" if parent is not None else ""),
             )
         else:
             self.log.warning(
@@ -418,7 +500,9 @@ class LotServer(Server, Module):
 
         # The move, or why not: each one statement, run alone (a refusal's read is a snapshot of its own,
         # as it was in one read-committed step).
-        row = self.transaction(_move(req.entity_id, moved, waiting, reason, keep=True))
+        what = action if conv.cls in (Conv.IMPORT_LOT, Conv.EXPORT_LOT) else f"release {action}"
+        record = (str(what), str(by)) if self.cfg.record.history else None
+        row = self.transaction(_move(req.entity_id, moved, waiting, reason, keep=True, action=record))
         if row is not None:
             code, lot_id, note = AckCode.ACK_OK, row[0], None
         else:
@@ -463,6 +547,9 @@ class LotServer(Server, Module):
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
         if req.action == "merge" and (req.other_entity_id is None or req.other_entity_id == req.entity_id):
             return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "merge needs another entity (other_entity_id)")
+        asker = lot_parent(conv.initiator)  # a lot script divides itself, merges its own children into itself
+        if asker is not None and req.entity_id != asker:
+            return await self.answer(conv, ack, AckCode.NOT_AUTH, f"{conv.initiator} divides and merges itself only")
 
         def lookup(cur: Any, eid: int) -> tuple[int, str] | None:
             return cur.execute(
@@ -477,6 +564,15 @@ class LotServer(Server, Module):
             if me is None or (req.action == "merge" and other is None):
                 missing = req.entity_id if me is None else req.other_entity_id
                 return AckCode.UNKNOWN, None, f"no entity {missing}"
+            if (
+                req.action == "merge"
+                and asker is not None
+                and not cur.execute(
+                    "select 1 from lot_entities where entity_id = %s and parent_entity_id = %s",
+                    (req.other_entity_id, asker),
+                ).fetchone()
+            ):
+                return AckCode.NOT_AUTH, None, f"entity {req.other_entity_id} is not a child of {conv.initiator}"
             for eid, (_lot, state) in ((req.entity_id, me), (req.other_entity_id, other or me)):
                 if state not in still:
                     return AckCode.NOTNOW, None, f"entity {eid} is {state}: only created or imported ones"

@@ -13,10 +13,11 @@ broadcast (MSCHED then routes around it) and alarm WC_SILENT raised. Where an ag
 is known at once: an ME's death (MOD_DIED) shuts its machine down then and there. Only MSCHED
 touches reservations.
 
-And it keeps the machines' books (1.4.2): every Run_Complete counts a run since maintenance, a
-failed one a scrap too; when the runs reach the machine's maintenance_every (cell.toml
-`maintenance_every`), alarm MAINT_DUE. MAINT_DONE, the operator's word that the machine was
-maintained, starts the count again.
+And it keeps the machines' books (1.4.2): every Run_Complete counts a run since maintenance; a
+part a lot's verdict scraps (SCRAP_RPT, from the lot script) counts as the machine's scrap; when the
+runs reach the machine's maintenance_every (cell.toml `maintenance_every`), alarm MAINT_DUE. MAINT_DONE,
+the operator's word that the machine was maintained (`gwc machine maintenance-done`), starts the
+count again.
 """
 
 from __future__ import annotations
@@ -24,15 +25,18 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from typing import Any
 
 from gwc.config import Config
 from gwc.db import Statement
+from gwc.errors import GwcError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.names import Conv, Msg
-from gwc.module import Handler, Module
+from gwc.module import DATABASE_OUTAGE_S, Handler, Module
+from gwc.record.calendar import is_planned
 from gwc.servers.common import Server
 
 S = MachineStatus
@@ -47,9 +51,54 @@ TRANSITIONS: dict[MachineStatus, frozenset[MachineStatus]] = {
 }
 RUNNING = (S.RUNNING, S.RUN_SHUT)
 
+# The production record (docs/record.md), in the same statement as the change it records: a row of
+# machine_state_history for a status that changed, with its cause (given, or told by the transition);
+# a downtime event opened when the machine goes Shutdown, closed when it leaves it. %(record)s false
+# (cell.toml [record] history = false) writes none of it.
+RECORD = """,
+hist as (
+insert into machine_state_history (machine_id, status, previous, cause, recipe_id, recipe_version, recipe_checksum,
+                                   machine_run_id, entity_id, note)
+select %(machine_id)s, u.status, u.previous,
+       coalesce(%(cause)s, case when u.status = 'Setup' then 'setup'
+                                when u.status = 'Running' then 'run'
+                                when u.status in ('Setup_Shut', 'Run_Shut') then 'operator_stop'
+                                when u.status = 'Idle' and u.previous in ('Running', 'Run_Shut') then 'run_end'
+                                when u.status = 'Idle' and u.previous in ('Setup', 'Setup_Shut') then 'setup_end'
+                                when u.status = 'Idle' then 'start'
+                                when u.previous in ('Setup_Shut', 'Run_Shut') then 'operator_stop'
+                                else 'alarm' end),
+       case when u.status in ('Setup', 'Running') then u.recipe_id end, v.version, v.checksum,
+       case when u.status in ('Setup', 'Running', 'Setup_Shut', 'Run_Shut') then u.machine_run_id end,
+       case when u.status in ('Setup', 'Running') then
+           (select r.entity_id from reserved_machines r
+            where r.machine_id = %(machine_id)s and r.machine_run_id = u.machine_run_id) end,
+       %(note)s
+from upd u left join recipe_versions v on u.status in ('Setup', 'Running') and v.recipe_id = u.recipe_id and v.approved
+where %(record)s and u.status <> u.previous
+),
+opened as (
+insert into downtime_events (machine_id, cause, reason, e10_state, note)
+select %(machine_id)s, coalesce(%(cause)s, case when u.previous in ('Setup_Shut', 'Run_Shut') then 'operator_stop'
+                                                else 'alarm' end),
+       coalesce(%(reason)s, (select a.alarm_id from alarms a where a.machine_id = %(machine_id)s
+                             and a.cleared_at is null and a.raised_at > now() - interval '30 seconds'
+                             and coalesce(%(cause)s, 'alarm') = 'alarm' order by a.alarm_no desc limit 1)),
+       %(e10)s, %(note)s
+from upd u where %(record)s and u.status = 'Shutdown' and u.previous <> 'Shutdown'
+on conflict do nothing
+),
+closed as (
+update downtime_events d set ended_at = clock_timestamp() from upd u
+where %(record)s and d.machine_id = %(machine_id)s and d.ended_at is null and u.status <> 'Shutdown'
+)"""
+
 # One checked change, one statement: the row is locked and changed only if its status is one of %(from)s;
 # no row back: the status forbids it (or there is no such machine), which a second read tells.
-_UPDATE = """
+_UPDATE = (
+    """
+with old as (select status from machine_status where machine_id = %(machine_id)s for update),
+upd as (
 update machine_status s set
     status = %(status)s,
     recipe_id = coalesce(%(recipe_id)s, s.recipe_id),
@@ -64,10 +113,15 @@ update machine_status s set
                     else s.end_time end,
     note = %(note)s,
     updated_at = now()
-from (select status from machine_status where machine_id = %(machine_id)s for update) old
+from old
 where s.machine_id = %(machine_id)s and old.status = any(%(from)s)
-returning old.status, s.machine_run_id
+returning old.status as previous, s.status, s.machine_run_id, s.recipe_id
+)"""
+    + RECORD
+    + """
+select previous, machine_run_id from upd
 """
+)
 
 
 @dataclass
@@ -85,6 +139,7 @@ class MachineServer(Server, Module):
     def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
         super().__init__(cfg, name, log)
         self.machines: dict[str, _Watch] = {}
+        self.pruned = 0.0  # monotonic time the history was last pruned (0: at the first idle)
 
     def handlers(self) -> dict[str, Handler]:
         return {
@@ -92,7 +147,9 @@ class MachineServer(Server, Module):
             Conv.GET_STATUS: self.get_status,
             Conv.RUN_COMPL: self.run_complete,
             Conv.MAINT_DONE: self.maintenance_done,
+            Conv.SCRAP_RPT: self.scrap,
             Conv.MOD_DIED: self.module_died,
+            Conv.DOWNTIME_RSN: self.downtime_reason,
         }
 
     def refusal(self, cls: str, req: Message, code: str, note: str) -> Message | None:
@@ -135,6 +192,9 @@ class MachineServer(Server, Module):
         if not self.started:
             return
         now = time.monotonic()
+        if self.cfg.record.history and (not self.pruned or now - self.pruned > self.cfg.record.prune_every_s):
+            self.pruned = now
+            self.prune()
         peers = self.bus.peers()
         for mid, w in list(self.machines.items()):
             peer = peers.get(f"wc:{mid}")
@@ -148,7 +208,7 @@ class MachineServer(Server, Module):
         """The WC of a machine that is up fell silent: the machine is Shutdown; tell the cell."""
         w = self.machines[machine_id]
         note = f"WC wc:{machine_id} silent for {silent:.1f}s (liveness {w.liveness:g}s): machine Shutdown"
-        await self.shut_down(machine_id, note, "WC_SILENT")
+        await self.shut_down(machine_id, note, "WC_SILENT", "liveness")
 
     async def module_died(self, conv: Conversation) -> None:
         """MOD_DIED (broadcast by a host's agent): a machine whose ME died has lost its state and its run
@@ -164,15 +224,15 @@ class MachineServer(Server, Module):
             return
         what = "ME" if kind == "me" else "WC, given up by its agent,"
         note = f"{what} {died.module} died ({died.how}, told by {died.host}): machine Shutdown"
-        await self.shut_down(machine_id, note, None)
+        await self.shut_down(machine_id, note, None, "agent_death")
 
-    async def shut_down(self, machine_id: str, note: str, alarm_id: str | None) -> None:
+    async def shut_down(self, machine_id: str, note: str, alarm_id: str | None, cause: str) -> None:
         """A machine the cell cannot use any more goes Shutdown at once, broadcast (MSCHED then routes
         around it, lots on it hear of it), with an alarm if one is named."""
         w = self.machines[machine_id]
         self.log.error("%s", note)
 
-        changed = self._change(machine_id, S.SHUTDOWN, set(S) - {S.SHUTDOWN}, note=note)
+        changed = self._change(machine_id, S.SHUTDOWN, set(S) - {S.SHUTDOWN}, note=note, cause=cause, reason=alarm_id)
         w.status = S.SHUTDOWN
         if changed is None or not changed[2]:  # no such machine, or Shutdown already
             return
@@ -201,14 +261,17 @@ class MachineServer(Server, Module):
         `status`; else (its status, None, False), or None (no such machine). Two single statements, each
         run alone: the second, only after a refusal, reads a snapshot of its own, as it did in one
         read-committed step."""
-        row = self.transaction(
-            Statement(
-                _UPDATE,
-                {"recipe_id": None, "run": None, "note": None}
-                | fields
-                | {"status": status.value, "machine_id": machine_id, "from": [s.value for s in allowed]},
-            )
-        )
+        params = {"recipe_id": None, "run": None, "note": None, "cause": None, "reason": None} | fields
+        if status == S.SHUTDOWN and params["cause"] is None and str(params["note"] or "").startswith("operator"):
+            params["cause"] = "operator_stop"  # the WC's ME_SHUT (gwc/wc/wc.py)
+        params |= {
+            "status": status.value,
+            "machine_id": machine_id,
+            "from": [s.value for s in allowed],
+            "record": self.cfg.record.history,
+            "e10": self._e10(machine_id, params["reason"]) if status == S.SHUTDOWN else "unscheduled_downtime",
+        }
+        row = self.transaction(Statement(_UPDATE, params))
         if row is not None:
             return S(row[0]), row[1], True
         now = self.transaction(Statement("select status from machine_status where machine_id = %s", (machine_id,)))
@@ -264,6 +327,60 @@ class MachineServer(Server, Module):
                 ),
             )
 
+    def _e10(self, machine_id: str, reason: str | None) -> str:
+        """SEMI E10 state of a stop beginning now: non-scheduled outside planned time, else its reason's."""
+        rec = self.cfg.record
+        if not is_planned(rec.calendar_of(machine_id), datetime.now(UTC), rec.timezone):
+            return "non_scheduled"
+        return rec.reasons[reason][1] if reason in rec.reasons else "unscheduled_downtime"
+
+    def prune(self) -> None:
+        """History older than [record] keep_days goes (docs/record.md, Retention)."""
+        try:
+            row = self.transaction(Statement("select prune_record('ms', %s)", (self.cfg.record.keep_days,)))
+        except GwcError as e:
+            self.log.error("pruning the machine history failed: %s", e)
+            return
+        if row and row[0]:
+            self.log.info("pruned %d rows of machine history older than %g days", row[0], self.cfg.record.keep_days)
+
+    async def downtime_reason(self, conv: Conversation) -> None:
+        """DOWNTIME_RSN: the operator's reason for a downtime event (the open one of a machine, or by
+        number), one of the reason tree's; its E10 state follows the reason's category (a stop outside
+        planned time stays non-scheduled)."""
+        req = self.request(conv)
+        ack = Msg.DOWNTIME_REASON_ACK
+        rec = self.cfg.record
+        if req.reason not in rec.reasons:
+            known = "; ".join(f"{c}: {', '.join(rs)}" for c, rs in rec.tree().items())
+            return await self.answer(
+                conv, ack, AckCode.BAD_MESSAGE, f"{req.reason!r} is not in the reason tree ({known})"
+            )
+        if (req.event_id is None) == (req.machine_id is None):
+            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "name the event_id or the machine_id (one)")
+        row = self.transaction(
+            Statement(
+                "update downtime_events set reason = %(reason)s, reason_by = %(by)s, reason_at = clock_timestamp(), "
+                "e10_state = case when e10_state = 'non_scheduled' then e10_state else %(e10)s end "
+                "where case when %(event)s::bigint is not null then event_id = %(event)s "
+                "else machine_id = %(machine)s and ended_at is null end returning event_id, e10_state, machine_id",
+                {
+                    "reason": req.reason,
+                    "by": req.by or conv.peer,
+                    "e10": rec.reasons[req.reason][1],
+                    "event": req.event_id,
+                    "machine": req.machine_id,
+                },
+            )
+        )
+        if row is None:
+            what = f"event {req.event_id}" if req.event_id is not None else f"open downtime of {req.machine_id}"
+            return await self.answer(conv, ack, AckCode.UNKNOWN, f"no {what}")
+        by = req.by or conv.peer
+        self.log.info("downtime %d of %s: reason %r (%s) by %s", row[0], row[2], req.reason, row[1], by)
+        await self.answer(conv, ack, AckCode.ACK_OK, event_id=row[0], e10_state=row[1])
+        await self.event(f"{row[2]}: downtime {row[0]} reason {req.reason} ({req.by or conv.peer})")
+
     def _liveness(self, machine_id: str) -> float:
         row = self.transaction(Statement("select liveness_s from me_config where machine_id = %s", (machine_id,)))
         return float(row[0]) if row else 3.0
@@ -293,15 +410,14 @@ class MachineServer(Server, Module):
         )
 
     async def run_complete(self, conv: Conversation) -> None:
-        """RUN_COMPL (broadcast by a WC): count the run, a failed one as scrap; maintenance due?"""
+        """RUN_COMPL (broadcast by a WC): count the run; maintenance due?"""
         done = self.request(conv)
         failed = done.ack_code != AckCode.ACK_OK
 
-        count = Statement(
-            "update machine_status set runs_since_maintenance = runs_since_maintenance + 1, "
-            "scrap_count = scrap_count + %s where machine_id = %s "
+        count = Statement(  # (scrap is the lots' verdict: SCRAP_RPT, below)
+            "update machine_status set runs_since_maintenance = runs_since_maintenance + 1 where machine_id = %s "
             "returning runs_since_maintenance, maintenance_every",
-            (1 if failed else 0, done.machine_id),
+            (done.machine_id,),
         )
         row = await self.transaction_when_up(count)  # heard once: kept until the database is back
         if row is None:
@@ -312,7 +428,7 @@ class MachineServer(Server, Module):
             "%s: run %s %s; %d runs since maintenance",
             done.machine_id,
             done.machine_run_id,
-            "failed (scrap)" if failed else "complete",
+            "failed" if failed else "complete",
             runs,
         )
         if every is not None and runs == every:
@@ -322,16 +438,60 @@ class MachineServer(Server, Module):
                 )
             )
 
+    async def scrap(self, conv: Conversation) -> None:
+        """SCRAP_RPT: a lot entity's verdict scrapped parts a machine's run made; the machine's scrap count
+        grows by them, once per (run, machine, entity). A lot script reports in its own name only."""
+        req = self.request(conv)
+        if conv.initiator.startswith("lot:") and conv.initiator != f"lot:{req.entity_id}":
+            return await self.answer(conv, Msg.ACK, AckCode.NOT_AUTH, f"{conv.initiator} reports for itself only")
+        if req.parts <= 0:
+            return await self.answer(conv, Msg.ACK, AckCode.BAD_MESSAGE, "parts must be 1 or more")
+
+        def book(cur: Any) -> str | None:
+            if not cur.execute(
+                "select 1 from machine_run_outcome where machine_run_id = %s and machine_id = %s",
+                (req.machine_run_id, req.machine_id),
+            ).fetchone():
+                return f"no run {req.machine_run_id} on {req.machine_id}"
+            if cur.execute(
+                "insert into scrap_reports (machine_run_id, machine_id, entity_id, parts, reason) "
+                "values (%s, %s, %s, %s, %s) on conflict do nothing returning 1",
+                (req.machine_run_id, req.machine_id, req.entity_id, req.parts, req.reason),
+            ).fetchone():
+                cur.execute(
+                    "update machine_status set scrap_count = scrap_count + %s where machine_id = %s",
+                    (req.parts, req.machine_id),
+                )
+                return None
+            return "already reported"
+
+        why = await self.transaction_when_up(book, within=DATABASE_OUTAGE_S)
+        if why is not None and why != "already reported":
+            return await self.answer(conv, Msg.ACK, AckCode.UNKNOWN, why)
+        if why is None:
+            self.log.info(
+                "%s: %d part(s) of run %d scrapped by entity %d: %s",
+                req.machine_id,
+                req.parts,
+                req.machine_run_id,
+                req.entity_id,
+                req.reason or "-",
+            )
+        await self.answer(conv, Msg.ACK, AckCode.ACK_OK, why)
+
     async def maintenance_done(self, conv: Conversation) -> None:
         """MAINT_DONE: the operator maintained a machine; the run count starts again."""
         req = self.request(conv)
 
         row = self.transaction(
             Statement(
-                "update machine_status m set runs_since_maintenance = 0, updated_at = now() "
-                "from machine_status old where m.machine_id = %s and old.machine_id = m.machine_id "
-                "returning old.runs_since_maintenance",
-                (req.machine_id,),
+                "with m as (update machine_status m set runs_since_maintenance = 0, updated_at = now() "
+                "from machine_status old where m.machine_id = %(m)s and old.machine_id = m.machine_id "
+                "returning old.runs_since_maintenance, m.status), "
+                "h as (insert into machine_state_history (machine_id, status, previous, cause, note) "
+                "select %(m)s, status, status, 'maintenance', %(note)s from m where %(record)s) "
+                "select runs_since_maintenance from m",
+                {"m": req.machine_id, "note": f"maintained by {req.by or '?'}", "record": self.cfg.record.history},
             )
         )
         if row is None:

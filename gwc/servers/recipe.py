@@ -64,6 +64,24 @@ def _read(path: Path) -> bytes | None:
         return None
 
 
+def lot_may_propose(asker: str, recipe_id: str) -> Statement:
+    """Why lot script `asker` (lot:E) may not propose a version of this recipe, or None: it may for a
+    recipe that exists and is for a machine RESERVED_MACHINES gives to E (one statement, run alone)."""
+    entity = asker[4:]
+    return Statement(
+        "select case when not exists (select 1 from recipes where recipe_id = %(r)s) then %(unknown)s "
+        "when not exists (select 1 from op_machine_recipe o join reserved_machines m using (machine_id) "
+        "where o.recipe_id = %(r)s and m.entity_id = %(e)s) then %(unheld)s end",
+        {
+            "r": recipe_id,
+            "e": int(entity) if entity.isdigit() else -1,
+            "unknown": f"no recipe {recipe_id!r}: a lot script proposes versions of known recipes only",
+            "unheld": f"recipe {recipe_id} is for no machine reserved to {asker}",
+        },
+        "one",
+    )
+
+
 class RecipeServer(Server, Module):
     role = "ers"
     ignored_peers = NOT_LOTS
@@ -161,6 +179,13 @@ class RecipeServer(Server, Module):
                 conv, ack, AckCode.BAD_MESSAGE, f"recipe is {len(content)} bytes, over the limit of {MAX_RECIPE}"
             )
         checksum = sha256(content)
+        by = req.by
+        lot = conv.initiator.startswith("lot:")
+        if lot:  # a lot script proposes (Listing 1, 6.1's recipe tweak): only for a machine it holds
+            by = conv.initiator
+            refusal = self.transaction(lot_may_propose(conv.initiator, req.recipe_id))[0]
+            if refusal is not None:
+                return await self.answer(conv, ack, AckCode.NOT_AUTH, refusal)
 
         def put(cur: Any) -> tuple[int, bool]:
             cur.execute(
@@ -168,7 +193,7 @@ class RecipeServer(Server, Module):
                 (req.recipe_id, req.description),
             )
             cur.execute("select 1 from recipes where recipe_id = %s for update", (req.recipe_id,))
-            if req.description:
+            if req.description and not lot:
                 cur.execute(
                     "update recipes set description = %s where recipe_id = %s", (req.description, req.recipe_id)
                 )
@@ -182,14 +207,22 @@ class RecipeServer(Server, Module):
             cur.execute(
                 "insert into recipe_versions (recipe_id, version, content, checksum, created_by) "
                 "values (%s, %s, %s, %s, %s)",
-                (req.recipe_id, version, content, checksum, req.by),
+                (req.recipe_id, version, content, checksum, by),
             )
             return version, True
 
         version, new = self.transaction(put)
         if new:
             _write(version_path(self.cfg, req.recipe_id, version), content)
-            self.log.info("recipe %s v%d stored (from %s)", req.recipe_id, version, req.by or conv.peer)
+            self.log.info(
+                "recipe %s v%d stored (from %s)%s",
+                req.recipe_id,
+                version,
+                by or conv.peer,
+                ", proposed by a lot: unapproved until the operator approves it" if lot else "",
+            )
+            if lot:
+                await self.event(f"recipe {req.recipe_id} v{version} proposed by {by}: `gwc recipe approve`")
         await self.answer(
             conv,
             ack,

@@ -56,6 +56,7 @@ def config_doc(
     bus: dict[str, Any],
     faults: dict[str, Any] | None = None,
     db_settings: dict[str, Any] | None = None,
+    record: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """cell.toml of a private cell; the same document with `faults` is the fault-injected variant."""
     database: dict[str, Any] = {"url": database_url or ""}
@@ -75,6 +76,7 @@ def config_doc(
         "log": {"level": "note"},
         "module": [{"name": m} for m in SERVER_MODULES],
         "machine": machines,
+        **({"record": record} if record else {}),
     }
 
 
@@ -95,6 +97,7 @@ class PrivateCell:
         db_settings: dict[str, Any] | None = None,
         bus: dict[str, Any] | None = None,
         agent: bool = False,
+        record: dict[str, Any] | None = None,
     ) -> None:
         self.var = var.resolve()
         self.agent = agent
@@ -104,7 +107,12 @@ class PrivateCell:
         # peer_timeout): soaks and `bench cell` measure the cell as it is run.
         self._bus_cfg = private_bus(**(bus or {}))
         self._text_args: dict[str, Any] = dict(
-            var=self.var, database_url=database_url, machines=machines, policy=policy, db_settings=db_settings
+            var=self.var,
+            database_url=database_url,
+            machines=machines,
+            policy=policy,
+            db_settings=db_settings,
+            record=record,
         )
         written = write_config(self.var / "etc" / "cell.toml", config_doc(bus=self._bus_cfg, **self._text_args))
         # Its own var/, whatever GWC_VAR says: that names the operator's cell, whose pid files this one's would

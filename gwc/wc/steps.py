@@ -15,6 +15,7 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.mq import MeMessage, MessageId
 from gwc.ipc.names import Conv, Msg
+from gwc.servers.recipe import RECIPE_ID
 from gwc.wc.base import ALL_OPERATIONS, SERVER_RESTART, SERVER_TIMEOUT, S
 from gwc.wc.device import WCDevice
 from gwc.wc.link import MeDied
@@ -285,10 +286,35 @@ class WCSteps(WCDevice):
 
     # ----------------------------------------------------------------- DNLD_ME, UPLD_ME
 
+    async def _not_held(self, conv: Conversation) -> tuple[str, str] | None:
+        """DNLD_ME and UPLD_ME's check (Listing 1's ers_download / ers_upload from a lot script): a lot
+        entity lot:E may download to and upload from only a machine RESERVED_MACHINES gives to E (any
+        of its runs), else Not_Auth; a recipe id must be a recipe id (it names the machine's file)."""
+        assert conv.first is not None
+        req = conv.first.first
+        if not RECIPE_ID.match(req.recipe_id):
+            return AckCode.BAD_MESSAGE, f"recipe id {req.recipe_id!r}: letters, digits, _ . - only (64 at most)"
+        entity, refusal = self._asking_entity(conv)
+        if entity is None:
+            return refusal
+        try:
+            row = await self._read_when_up(
+                "SELECT 1 FROM reserved_machines WHERE machine_id = %s AND entity_id = %s LIMIT 1",
+                (self.machine_id, entity),
+            )
+        except DatabaseError as e:
+            return AckCode.DB_BADREA, str(e)
+        if row is None:
+            return AckCode.NOT_AUTH, f"{self.machine_id} is not reserved to lot:{entity}"
+        return None
+
     async def download(self, conv: Conversation) -> None:
         """DNLD_ME (5.1.3): a recipe from the cell to the machine. Idle only."""
         assert conv.first is not None
         req = conv.first.first
+        refusal = await self._not_held(conv)
+        if refusal is not None:
+            return await self._refuse_now(conv, Msg.DOWNLOAD_ACK, *refusal)
         if not await self._serve_step(conv, Msg.DOWNLOAD_ACK, (S.IDLE,), self._download):
             return
         self.log.info("recipe %s downloaded to %s", req.recipe_id, self.machine_id)
@@ -309,6 +335,9 @@ class WCSteps(WCDevice):
         """UPLD_ME (5.1.3): the machine's recipe back to the cell, stored by the ERS as a new version."""
         assert conv.first is not None
         req = conv.first.first
+        refusal = await self._not_held(conv)
+        if refusal is not None:
+            return await self._refuse_now(conv, Msg.UPLOAD_ACK, *refusal)
         async with self._state_lock:
             refusal = self._check(req, (S.IDLE,))
             content: str | None = None
@@ -320,7 +349,13 @@ class WCSteps(WCDevice):
         try:
             stored = await self.ask(
                 Conv.RECIPE_PUT,
-                message(Msg.RECIPE_STORE, recipe_id=req.recipe_id, content=content, by=self.name),
+                message(
+                    Msg.RECIPE_STORE,
+                    recipe_id=req.recipe_id,
+                    content=content,
+                    by=conv.initiator if conv.initiator.startswith("lot:") else self.name,
+                    description=None,
+                ),
                 "ers",
                 SERVER_TIMEOUT,
             )

@@ -272,7 +272,11 @@ class WC(WCSteps):
             )
             return AckCode.START_FAIL, f"the ME did not start: {e}"
         if answer.ack_code != AckCode.ACK_OK:
-            return AckCode.START_FAIL, f"the ME refused ME_START: {answer.ack_code} {answer.alarm_text}"
+            # Listing 3's MESTRT_FAIL ("See Error Log"), 3.2.2's alarm to turn the machine on: the operator
+            # learns that the machine did not start, and why, where every alarm goes.
+            why = f"{answer.ack_code} {answer.alarm_text or ''}".strip()
+            await self.raise_alarm("MESTRT_FAIL", f"{self.machine_id} refused to start: {why}", wait=False)
+            return AckCode.START_FAIL, f"the ME refused ME_START: {why}"
         if not await self.change_status(S.IDLE, expect=[S.SHUTDOWN]):
             return AckCode.START_FAIL, "the Machine Server refused the change to Idle"
         if not await self.set_accept_types(ALL_OPERATIONS):

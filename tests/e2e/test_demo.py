@@ -69,10 +69,13 @@ def test_demo_runs_section_7_from_fresh_state_and_exits_0(demo_env: tuple[Path, 
         "results of each lot:",
         "machine run results",
         "RESULT=PASS",
+        "trace where --machine wc2: entities",
         "demonstration succeeded",
         "stop: database: stopped",
     ):
         assert told in out, f"the demonstration does not say {told!r}:\n{out[-4000:]}"
     lots = re.findall(r"entity +\d+ (alum_chess_set|milled_pawn) +exported +(PASS|FAIL|SCRAP)", out)
     assert len(lots) == 5, out[-4000:]
+    # the production record's genealogy: every entity's runs as its traveller has them (gwc trace entity)
+    assert out.count("runs, as the traveller says") == 5, out[-4000:]
     assert not list((Path(env["GWC_VAR"]) / "run").glob("*.pid")), "the demonstration left processes behind"

@@ -147,7 +147,9 @@ def test_machine_server_lets_one_of_two_racing_changes_win(servers: Any, ears: A
     assert q1(cell, "select status, machine_run_id from machine_status where machine_id = 'wc2'") == ("Setup", winner)
 
 
-def test_machine_server_counts_runs_and_scrap_and_says_when_maintenance_is_due(servers: Any, ears: Any) -> None:
+def test_machine_server_counts_runs_and_the_lots_scrap_and_says_when_maintenance_is_due(
+    servers: Any, ears: Any
+) -> None:
     cell = servers("ms", "cas")
     wc = ears(cell, "wc:wc1")
     for n, code in ((1, OK), (2, AckCode.RUN_FAIL)):
@@ -160,11 +162,19 @@ def test_machine_server_counts_runs_and_scrap_and_says_when_maintenance_is_due(s
                 "select runs_since_maintenance, scrap_count, maintenance_every from machine_status "
                 "where machine_id = 'wc1'",
             )
-            == (2, 1, 2)
+            == (2, 0, 2)
         ),
         10,
-        "2 runs, 1 scrap counted",
+        "2 runs counted (a failed run is no scrap: the lot's verdict says what is)",
     )
+    with cell.db() as conn:  # run 2's outcome, as its WC stores it
+        conn.execute("insert into machine_run_outcome (machine_run_id, machine_id, ack_code) values (2, 'wc1', 'OK')")
+    report = message("Scrap_Report", entity_id=9, machine_id="wc1", machine_run_id=2, parts=2, reason="test")
+    assert ask(cell.bus, "SCRAP_RPT", report, "ms").ack_code == OK
+    assert ask(cell.bus, "SCRAP_RPT", report, "ms").note == "already reported"  # counted once
+    unknown = message("Scrap_Report", entity_id=9, machine_id="wc1", machine_run_id=77, parts=1)
+    assert ask(cell.bus, "SCRAP_RPT", unknown, "ms").ack_code == AckCode.UNKNOWN
+    assert q1(cell, "select scrap_count from machine_status where machine_id = 'wc1'") == (2,)
     wait_for(
         lambda: q1(cell, "select machine_id from alarms where alarm_id = 'MAINT_DUE' and cleared_at is null"),
         10,

@@ -201,6 +201,43 @@ def test_a_module_that_drops_an_interest_is_not_waited_for() -> None:
     run(t)
 
 
+def test_a_module_hears_a_class_about_its_subjects_only_and_is_waited_for_only_there() -> None:
+    """A lot hears UPD_ME_ST and RUN_COMPL about its own machines (docs/protocol.md, "Subjects"): the
+    others never reach its application (over UDP the kernel drops them unread), the sender waits for its
+    ack only for what it hears, and a subject it drops is no longer waited for."""
+
+    async def t(make: Make, cfg: BusConfig) -> None:
+        ms, lot = await make("ms", ()), await make("lot:1", ("MOD_DIED",))
+        whole = await make("msched", ("UPD_ME_ST",))
+        lot.set_interest(("MOD_DIED",), subjects={"UPD_ME_ST": ("wc1", "wc3")})
+        await known(ms, lot, whole)
+        await until(lambda: ms.listeners_of("UPD_ME_ST", "wc1") == ["lot:1", "msched"], "ms to hear lot:1's subjects")
+        assert ms.listeners_of("UPD_ME_ST", "wc2") == ["msched"] and ms.listeners_of("UPD_ME_ST") == ["msched"]
+        read = lot.stats["msg"] - lot.stats["duplicates"]  # (a retransmission under load is read again)
+        for m in ("wc1", "wc2", "wc3", "wc2"):
+            sent = await ms.start("UPD_ME_ST", message("Update_ME_Status", machine_id=m, status="Idle"))
+            assert set(ms._pending[max(ms._pending)].waiting) == ({"lot:1", "msched"} if m != "wc2" else {"msched"})
+            sent.end()
+        heard = []
+        for _ in range(2):
+            conv = await lot.first_message(5)
+            assert conv is not None and conv.first is not None
+            heard.append(conv.first.first.machine_id)
+            conv.end()
+        assert heard == ["wc1", "wc3"] and await lot.first_message(0.2) is None
+        got = [(await whole.first_message(5)) for _ in range(4)]
+        assert [c.first.first.machine_id for c in got if c and c.first] == ["wc1", "wc2", "wc3", "wc2"]
+        await until(lambda: not ms._pending, "every ack")
+        if TRANSPORT == "udp":  # the kernel kept wc2's news from the lot: it read two msgs, not four
+            assert lot.stats["msg"] - lot.stats["duplicates"] - read == 2
+        await ms.start("UPD_ME_ST", message("Update_ME_Status", machine_id="wc3", status="Setup"))
+        lot.set_interest(("MOD_DIED",), subjects={"UPD_ME_ST": ("wc1",)})  # before it could ack: its hello tells
+        await until(lambda: not ms._pending, "ms to stop waiting for lot:1 about wc3")
+        assert ms.stats["gave_up"] == 0
+
+    run(t)
+
+
 def test_a_repeated_datagram_is_acknowledged_again_but_delivered_once() -> None:
     async def t(make: Make, cfg: BusConfig) -> None:
         a, b = await make("a", ()), await make("b")
@@ -285,7 +322,7 @@ def test_liveness_survives_lost_hellos_when_other_traffic_flows() -> None:
         await known(a, b)
         left: list[str] = []
         a.peer_listeners.append(lambda name, peer: peer is None and left.append(name))
-        b._hello = lambda query=False: None  # type: ignore[method-assign]  # b's hellos never arrive
+        b._members.hello = lambda query=False, to=None: None  # type: ignore[method-assign]  # b's hellos never arrive
         loop = asyncio.get_running_loop()
         end = loop.time() + 2 * cfg.peer_timeout
         n = 0

@@ -49,6 +49,24 @@ def test_stopping_a_machine_in_a_run_asks_first_and_no_does_nothing(tmp_path: Pa
     asyncio.run(drive())
 
 
+def test_maintenance_done_asks_first_and_goes_to_the_machine_server(tmp_path: Path) -> None:
+    async def drive() -> None:
+        app = _app(tmp_path)
+        async with app.run_test(size=(140, 40)) as pilot:
+            await pilot.pause()
+            _show_machine(app, "Idle")
+            app.views()["machines"].focus_main()
+            await pilot.press("m")
+            await until(pilot.pause, lambda: isinstance(app.screen, Confirm), 5, "the question")
+            assert "wc1 was maintained" in app.screen.question  # type: ignore[attr-defined]
+            await pilot.press("y")
+            await until(pilot.pause, lambda: len(app.answers) >= 2, 10, "the answer")
+            assert app.answers[-1].text == "maintenance done on wc1: ms is not on the bus: is the cell running?"
+            await pilot.press("q")
+
+    asyncio.run(drive())
+
+
 def test_stopping_an_idle_machine_asks_nothing_and_says_why_it_cannot(tmp_path: Path) -> None:
     async def drive() -> None:
         app = _app(tmp_path)
@@ -130,16 +148,26 @@ def test_a_cell_not_running_and_its_database_down_are_said_and_every_action_answ
             _show(app, "alarms", [{"alarm_no": 5, "alarm_id": "HOME_CMM"}])
             await pilot.press("c")
             await pilot.press("5")
-            _show(app, "requests", [{"request_key": 17, "entity_id": 4, "op_type": "mill", "machines": "wc1"}])
+            held = {"machine_id": "wc1", "entity_id": 3, "entity_state": "failed"}
+            _show(
+                app,
+                "requests",
+                [{"request_key": 17, "entity_id": 4, "op_type": "mill", "machines": "wc1"}, {"reserved": held}],
+            )
             await pilot.press("c")
             await until(pilot.pause, lambda: isinstance(app.screen, Confirm), 5, "the question")
             await pilot.press("y")
+            await until(pilot.pause, lambda: not isinstance(app.screen, Confirm), 5, "the question answered")
+            await pilot.press("u")
+            await until(pilot.pause, lambda: isinstance(app.screen, Confirm), 5, "the unreserve question")
+            await pilot.press("y")
             said = lambda: [a.text for a in app.answers if a.text != "asking the cell ..."]
-            await until(pilot.pause, lambda: len(said()) == 3, 10, "three answers")
+            await until(pilot.pause, lambda: len(said()) == 4, 10, "four answers")
             assert sorted(said()) == [
                 "cancel request 17: msched is not on the bus: is the cell running?",
                 "clear alarm 5: cas is not on the bus: is the cell running?",
                 "import entity 4: ls is not on the bus: is the cell running?",
+                "unreserve wc1: msched is not on the bus: is the cell running?",
             ]
             assert not any(a.ok for a in app.answers if a.text in said())
             await pilot.press("q")

@@ -103,11 +103,14 @@ def test_status_line_describes_what_it_hears() -> None:
     assert d("CELL_EVENT", message("Cell_Event", text="hello")) == "hello"
 
 
-def test_the_servers_that_ignore_lot_scripts_serve_no_class_a_lot_may_open() -> None:
+def test_the_servers_that_ignore_lot_scripts_only_answer_a_class_a_lot_may_open() -> None:
     """A lot opens only LOT_CLASSES (its key allows no other): a server that serves none of them never
-    hears from a lot, so it need not track lots (docs/protocol.md, *Peers a module ignores*)."""
+    hears from a lot, and one that only answers a lot (the ERS a proposal) starts nothing a lot hears, so
+    neither need track lots (docs/protocol.md, *Peers a module ignores*)."""
     for server in (AlarmServer, RecipeServer, StatusLineServer):
         assert "lot:7".startswith(server.ignored_peers) and server.ignored_peers, server
-        assert not set(server.handlers(server.__new__(server))) & LOT_CLASSES, server
+        # The ERS answers a lot's recipe proposal as a WC answers it: addressed, and it starts nothing a lot hears.
+        answered = {"RECIPE_PUT"} if server is RecipeServer else set()
+        assert set(server.handlers(server.__new__(server))) & LOT_CLASSES == answered, server
     for server in (LotServer, MachineServer):  # a lot asks the first; the second broadcasts to lots
         assert not server.ignored_peers, server

@@ -17,8 +17,8 @@ from gwc.module import BUS_MODULES
 # The servers' tables (GUIDE 4, docs/servers.md). me_config and op_types are configuration the
 # seed writes; the Machine Server and the ERS keep them as well.
 OWNED = {
-    "ms": {"machine_status", "me_config"},
-    "ls": {"lots", "lot_entities", "lot_status"},
+    "ms": {"machine_status", "me_config", "scrap_reports", "machine_state_history", "downtime_events"},
+    "ls": {"lots", "lot_entities", "lot_status", "entity_state_history", "operator_actions"},
     "cas": {"alarms", "alarm_description"},
     "ers": {"recipes", "recipe_versions", "op_machine_recipe", "op_types"},
     "sls": set(),

@@ -53,9 +53,17 @@ SAMPLES = [
         base=7,
         msg="Run_Complete",
         fields={"machine_id": "wc1", "ack_code": "ACK_OK", "note": "é ✓"},
+        subject="wc1",
     ),
     Envelope(kind="ack", src="msched", inc=5, to="lot:17", to_inc=99, acks=(3, 4)),
     Envelope(kind="hello", src="msched", inc=5, interest=("MACH_REQ", "STARTUP"), query=True),
+    Envelope(
+        kind="hello",
+        src="lot:17",
+        inc=99,
+        interest=("MOD_DIED",),
+        subjects=(("RUN_COMPL", "wc1"), ("RUN_COMPL", "wc2"), ("UPD_ME_ST", "wc1")),
+    ),
     Envelope(kind="bye", src="msched", inc=5),
 ]
 
@@ -69,10 +77,11 @@ def test_round_trip(env: Envelope) -> None:
 
 def test_the_layout_is_as_documented_and_the_sender_comes_first() -> None:
     data = wire.encode(SAMPLES[-1])
-    # GWC, version 3, inc, src tag, no to or cls tag, kind 3 (bye), 32 zero bytes, len(src) 6, 8 zero bytes, src.
+    # GWC, version 4, inc, src tag, no to, cls or subject tag, kind 3 (bye), 33 zero bytes, len(src) 6,
+    # 9 zero bytes, src.
     src_tag = (zlib.crc32(b"msched") | 1).to_bytes(4, "big")
     assert data == (
-        b"GWC\x03" + (5).to_bytes(8, "big") + src_tag + bytes(8) + b"\x03" + bytes(33) + b"\x06" + bytes(8) + b"msched"
+        b"GWC\x04" + (5).to_bytes(8, "big") + src_tag + bytes(12) + b"\x03" + bytes(33) + b"\x06" + bytes(9) + b"msched"
     )
     assert data.startswith(wire.origin("msched", 5).prefix)
     assert not wire.encode(Envelope(kind="bye", src="msched", inc=55)).startswith(wire.origin("msched", 5).prefix)
@@ -133,14 +142,17 @@ def frame(
     interest: tuple[bytes, ...] = (),
     tail: bytes = b"",
     lengths: tuple[int, ...] | None = None,
+    subject: bytes = b"",
 ) -> bytes:
-    """A datagram laid out by hand (the encoder refuses to make bad ones); lengths overrides the length bytes."""
-    ls, lc, lk, lt, lm = lengths or (len(src), len(conv), len(cls), len(to), len(msg))
-    tags = [zlib.crc32(name) | 1 if name else 0 for name in (src, to, cls)]
+    """A datagram laid out by hand (the encoder refuses to make bad ones); lengths overrides the length bytes.
+    An interest entry is a class, or b"CLASS/subject"."""
+    ls, lc, lk, lt, lm, lj = lengths or (len(src), len(conv), len(cls), len(to), len(msg), len(subject))
+    tags = [zlib.crc32(name) | 1 if name else 0 for name in (src, to, cls, subject)]
+    entries = [i.partition(b"/")[::2] for i in interest]
     return (
         wire.HEADER
         + struct.pack(
-            "!QIIIBBQIIIIQBBBBBHH",
+            "!QIIIIBBQIIIIQBBBBBBHH",
             inc,
             *tags,
             kind,
@@ -156,6 +168,7 @@ def frame(
             lk,
             lt,
             lm,
+            lj,
             len(acks),
             len(interest),
         )
@@ -164,8 +177,9 @@ def frame(
         + cls
         + to
         + msg
+        + subject
         + b"".join(struct.pack("!Q", a) for a in acks)
-        + b"".join(bytes([len(i)]) + i for i in interest)
+        + b"".join(bytes([len(c)]) + c + bytes([len(j)]) + j for c, j in entries)
         + tail
     )
 
@@ -189,7 +203,7 @@ MALFORMED = {
     "unknown version": b"GWC\x09" + frame()[4:],
     "truncated header": wire.HEADER + b"\0\0\0",
     "truncated fixed part": frame()[:30],
-    "names past the end": frame(lengths=(1, 200, 4, 0, 4)),
+    "names past the end": frame(lengths=(1, 200, 4, 0, 4, 0)),
     "fields not json": frame(tail=b"{nope"),
     "fields not utf-8": frame(tail=b"\xff\xfe"),
     "fields not an object": frame(tail=b"[1,2]"),
@@ -209,7 +223,12 @@ MALFORMED = {
     "ack of seq 0": frame(kind=1, to=b"b", to_inc=1, acks=(0,)),
     "acks past the end": frame(kind=1, to=b"b", to_inc=1, acks=(1, 2))[:-4],
     "interest past the end": frame(kind=2, interest=(b"PING",))[:-2],
+    "interest's subject missing": frame(kind=2, interest=(b"PING",))[:-1],
+    "interest's subject past the end": frame(kind=2, interest=(b"RUN_COMPL/wc1",))[:-1],
     "interest not utf-8": frame(kind=2, interest=(b"\xff\xfe",)),
+    "interest's subject not utf-8": frame(kind=2, interest=(b"RUN_COMPL/\xff\xfe",)),
+    "wrong subject tag": frame(subject=b"wc1")[:24] + b"\0\0\0\5" + frame(subject=b"wc1")[28:],
+    "subject with a NUL": frame(subject=b"w\0c"),
     "name too long": frame(kind=2, src=b"a" * 250),
     "oversized": frame(tail=b" " * wire.MAX_DATAGRAM),
 }
@@ -335,3 +354,36 @@ def test_the_beat_filter_drops_exactly_the_beats_of_the_ignored_modules() -> Non
     assert kept("ms") and kept("msched") and kept("lot:12") and kept("wc") and kept("wcx:1") and kept("w")
     for garbage in (b"", b"GWC", bytes(60)):  # too short to tell: the bus counts it
         assert run_filter(code, garbage)
+
+
+def test_the_kernel_filter_keeps_of_a_narrowed_class_only_what_is_about_its_subjects() -> None:
+    code = wire.kernel_filter(
+        "lot:7", 5, ["MOD_DIED"], ignored=("lot:",), subjects={"RUN_COMPL": ["wc1", "wc3"], "UPD_ME_ST": ["wc1"]}
+    )
+
+    def kept(**kw: object) -> bool:
+        return run_filter(code, wire.encode(Envelope(**kw)))  # type: ignore[arg-type]
+
+    news = dict(kind="msg", inc=3, seq=1, idx=0)
+    assert kept(**news, src="wc:wc1", conv="wc:wc1.3.1", cls="RUN_COMPL", msg="Run_Complete", subject="wc1")
+    assert kept(**news, src="wc:wc3", conv="wc:wc3.3.1", cls="RUN_COMPL", msg="Run_Complete", subject="wc3")
+    assert not kept(**news, src="wc:wc2", conv="wc:wc2.3.1", cls="RUN_COMPL", msg="Run_Complete", subject="wc2")
+    assert not kept(**news, src="wc:wc2", conv="wc:wc2.3.1", cls="RUN_COMPL", msg="Run_Complete")  # none named
+    assert kept(**news, src="ms", conv="ms.3.1", cls="UPD_ME_ST", msg="Update_ME_Status", subject="wc1")
+    assert not kept(**news, src="ms", conv="ms.3.1", cls="UPD_ME_ST", msg="Update_ME_Status", subject="wc3")
+    assert kept(**news, src="agent", conv="agent.3.1", cls="MOD_DIED", msg="Module_Died")  # a class heard whole
+    assert kept(**news, src="agent", conv="agent.3.1", cls="MOD_DIED", msg="Module_Died", subject="wc2")
+    assert not kept(**news, src="ms", conv="ms.3.1", cls="ALARM_CLE", msg="Alarm_Clear", subject="wc1")
+    assert kept(**news, src="ms", conv="ms.3.1", cls="UPD_ME_ST", msg="Update_ME_Status", subject="wc2", to="lot:7")
+
+
+def test_a_class_heard_whole_and_about_subjects_is_heard_whole_and_many_subjects_fit_the_filter() -> None:
+    code = wire.kernel_filter("lot:7", 5, ["RUN_COMPL"], subjects={"RUN_COMPL": ["wc1"]})
+    env = dict(kind="msg", src="wc:wc2", inc=3, seq=1, conv="wc:wc2.3.1", cls="RUN_COMPL", msg="Run_Complete")
+    assert run_filter(code, wire.encode(Envelope(**env, subject="wc2")))  # type: ignore[arg-type]
+    machines = [f"wc{i}" for i in range(200)]  # past what 8-bit jumps reach: the kernel keeps the class whole
+    code = wire.kernel_filter("lot:7", 5, [], subjects={"RUN_COMPL": machines, "UPD_ME_ST": machines[:30]})
+    assert run_filter(code, wire.encode(Envelope(**env, subject="wc199")))  # type: ignore[arg-type]
+    code = wire.kernel_filter("lot:7", 5, [], subjects={"RUN_COMPL": machines[:32], "UPD_ME_ST": machines[:32]})
+    assert run_filter(code, wire.encode(Envelope(**env, subject="wc31")))  # type: ignore[arg-type]
+    assert not run_filter(code, wire.encode(Envelope(**env, subject="wc32")))  # type: ignore[arg-type]

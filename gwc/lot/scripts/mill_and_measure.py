@@ -59,5 +59,6 @@ def main(entity: OperationEntity) -> None:
     else:
         result = f"SCRAP: {result}"
         entity.log.warning("part scrapped: %s", result)
+        entity.scrap(mill.machines[0], mill.machine_run_id, 1, result)  # the mill's books (1.4.2)
     entity.lot_completed(result)
     entity.wait_for_export()

@@ -1,0 +1,1 @@
+"""The production record (issue 34, docs/record.md): planned time, timelines, downtime, OEE, genealogy."""
