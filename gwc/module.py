@@ -171,6 +171,12 @@ class Module:
         """Shutdown work: finish or refuse what is pending. May return a note for Shutdown_Complete."""
         return None
 
+    def cancel_start(self) -> Awaitable[str] | None:
+        """Asked on a stop request while not started: the work that cancels a start in progress (a WC
+        whose machine waits to be homed), giving the note of the stop's completion; None when no start
+        is in progress (the stop is then refused: not started)."""
+        return None
+
     async def still_up(self) -> bool:
         """Asked on a start request while started: whether the cell still counts this module up (a start
         is then refused as already done). False lets the start run again."""
@@ -486,7 +492,12 @@ class Module:
             self.log.info("ignored Shutdown_Request for %s", req.module)
             return
         if not self.started:
-            await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.NOTNOW, note=f"{self.name} is not started"))
+            cancel = self.cancel_start()
+            if cancel is None:
+                await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.NOTNOW, note=f"{self.name} is not started"))
+                return
+            await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.ACK_OK))
+            await conv.send(self.shutdown_complete(await cancel))
             return
         await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.ACK_OK))
         note = await self._shutdown_work()

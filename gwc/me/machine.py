@@ -352,6 +352,11 @@ class MachineSide:
         if self.state != MeState.HOMING or req is None:
             self.log.info("alarm %s cleared: nothing was waiting for it", msg.alarm_text or "?")
             return
+        if msg.ack_code == AckCode.REQ_CANCEL:  # a stop came while the operator had not homed the machine
+            self.state, self._start_req = MeState.SHUTDOWN, None
+            self.log.info("start cancelled by the cell while waiting for homing: the machine stays shut down")
+            self.answer(req, AckCode.REQ_CANCEL, alarm_text="start cancelled before the machine was homed")
+            return
         if msg.ack_code != AckCode.ACK_OK:
             self.state, self._start_req = MeState.SHUTDOWN, None
             self.answer(req, AckCode.START_FAIL, alarm_text="the homing alarm could not be raised")

@@ -509,13 +509,6 @@ class Gateway(Module):
         try:
             ack = batch.first
             if ack.ack_code == AckCode.NOTNOW:
-                if cls == Conv.ME_SHUT and self._homing(machine):
-                    # The WC is still starting: it waits for its homing alarm to be cleared.
-                    return result(
-                        AckCode.NOTNOW,
-                        f"{machine} is starting and waits to be homed (its alarm {self._homing(machine)}): "
-                        "it can be stopped once started",
-                    )
                 return result(AckCode.ACK_OK, ack.note or "nothing to do")
             if ack.ack_code != AckCode.ACK_OK:
                 return result(ack.ack_code, ack.note or "")
@@ -528,13 +521,6 @@ class Gateway(Module):
             return result(end.ack_code, end.fields.get("note") or "")
         finally:
             conv.end()
-
-    def _homing(self, machine: str) -> str | None:
-        """The alarm number of a homing alarm pending for this machine, if any."""
-        for no, c in self.alarms.items():
-            if c.row["machine_id"] == machine and str(c.row["alarm_id"]).startswith("HOME"):
-                return f"{no} {c.row['alarm_id']}"
-        return None
 
     async def start_machine(self, machine: str) -> ua.CallMethodResult:
         return await self._converse(

@@ -125,9 +125,11 @@ class WCBase(Module):
         self.log.info("accept types: %s", "all operations" if op_types == ALL_OPERATIONS else op_types or "none")
         return True
 
-    async def raise_alarm(self, alarm_id: str, text: str, wait: bool) -> int | None:
-        """6.3.2.8: pass an alarm to the CAS; when `wait`, hold until the operator clears it. Its alarm
-        number, or None if the CAS did not take it."""
+    async def raise_alarm(self, alarm_id: str, text: str, wait: bool, retry: bool | None = None) -> int | None:
+        """6.3.2.8: pass an alarm to the CAS; when `wait`, hold until the operator clears it (wait_cleared).
+        Its alarm number, or None if the CAS did not take it. A CAS that does not answer is asked again
+        when `retry` (by default: when `wait`)."""
+        retry = wait if retry is None else retry
         while True:
             try:
                 answer = await self.ask(
@@ -144,7 +146,7 @@ class WCBase(Module):
                 )
                 break
             except ConversationTimeout:
-                if not wait:
+                if not retry:
                     self.log.error("Cell Alarm Server did not take alarm %s", alarm_id)
                     return None
                 self.log.error("Cell Alarm Server did not take alarm %s: trying again", alarm_id)
@@ -152,27 +154,36 @@ class WCBase(Module):
             self.log.error("Cell Alarm Server refused alarm %s: %s", alarm_id, answer.ack_code)
             return None
         self.log.info("alarm %d (%s) raised: %s", answer.alarm_no, alarm_id, text)
-        if not wait or answer.alarm_no in self._cleared:
-            return int(answer.alarm_no)
+        if wait:
+            await self.wait_cleared(int(answer.alarm_no))
+        return int(answer.alarm_no)
+
+    async def wait_cleared(self, alarm_no: int) -> None:
+        """Hold until alarm `alarm_no` is cleared (by the operator, or withdrawn by the WC itself)."""
+        if alarm_no in self._cleared:
+            return
         cleared = self._loop.create_future()
-        self._alarm_waits[answer.alarm_no] = cleared
-        self.log.info("alarm %d (%s) pending: waiting for the operator to clear it", answer.alarm_no, alarm_id)
+        self._alarm_waits[alarm_no] = cleared
+        self.log.info("alarm %d pending: waiting for the operator to clear it", alarm_no)
         try:
             await cleared
         finally:
-            self._alarm_waits.pop(answer.alarm_no, None)
-        self.log.info("alarm %d cleared: continuing", answer.alarm_no)
-        return int(answer.alarm_no)
+            self._alarm_waits.pop(alarm_no, None)
+        self.log.info("alarm %d cleared: continuing", alarm_no)
+
+    def _done_waiting(self, alarm_no: int) -> None:
+        """Alarm `alarm_no` is cleared: whoever waits for it goes on."""
+        self._cleared.add(alarm_no)
+        waiter = self._alarm_waits.get(alarm_no)
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
 
     async def alarm_cleared(self, conv: Conversation) -> None:
         assert conv.first is not None
         clear = conv.first.first
         if clear.machine_id not in (None, self.machine_id):
             return
-        self._cleared.add(clear.alarm_no)
-        waiter = self._alarm_waits.get(clear.alarm_no)
-        if waiter is not None and not waiter.done():
-            waiter.set_result(None)
+        self._done_waiting(clear.alarm_no)
 
     def _alarm_text(self, alarm_id: str) -> str:
         try:

@@ -11,7 +11,9 @@ The homing rule: the thesis homes the CMM when the operator starts its machine (
 HOME_CMM, Listing 3). A machine coming back is not a start: no homing alarm is raised, so it comes
 back by itself. A CMM whose controller lost power homes at its own power-on, before its Listing 9
 program reads the line again; one that needs the operator is started again with `gwc machine stop`
-and `gwc machine start`, which raise HOME_CMM as on any start.
+and `gwc machine start`, which raise HOME_CMM as on any start. A stop while a start waits for its
+HOME_CMM cancels that start: the WC withdraws the alarm ("start cancelled"), the ME stays shut down
+(gwc/wc/runs.py, cancel_start).
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from gwc.db import Statement
-from gwc.errors import DatabaseError, DatabaseUnavailable, GwcError, QueueError
+from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, GwcError, QueueError
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import MeMessage, MessageId
@@ -19,7 +19,7 @@ from gwc.ipc.names import Conv, Msg
 from gwc.me import answer_deadline
 from gwc.me.results import read_outcome, read_results
 from gwc.module import DATABASE_OUTAGE_S
-from gwc.wc.base import ALL_OPERATIONS, S, WCBase
+from gwc.wc.base import ALL_OPERATIONS, SERVER_TIMEOUT, S, WCBase
 from gwc.wc.link import MeDied
 
 # A run's results ride in its Run_Complete when they are this small (characters of params and values
@@ -33,8 +33,19 @@ def _lot(row: tuple[Any, ...] | None) -> str | None:
     return None if row is None or row[0] is None else f"lot:{row[0]}"
 
 
+START_CANCELLED = "start cancelled: the machine was stopped before it was homed and started"
+
+
+class StartCancelled(GwcError):
+    """ME_START was cancelled by a stop (ME_SHUT) while it waited for the machine to be homed."""
+
+
 class WCRuns(WCBase):
     """The ME side and a run's end."""
+
+    _starting: asyncio.Future[None] | None = None  # ME_START is out to the ME: done once it is answered
+    _start_cancelled: str | None = None  # why the ME_START out was cancelled (a stop came), once it was
+    _start_alarms: set[int]  # the alarms (HOME_CMM) raised while that ME_START is out
 
     # ----------------------------------------------------------------- the ME side
 
@@ -107,26 +118,100 @@ class WCRuns(WCBase):
                 self.log.warning("ME did not acknowledge ME_SHUT: %s", e)
 
     async def alarm_action(self, msg: MeMessage) -> None:
-        """An alarm from the ME: to the CAS, wait for the operator, then let the ME continue (ME_START_WAIT)."""
+        """An alarm from the ME: to the CAS, wait for the operator, then let the ME continue (ME_START_WAIT).
+
+        An alarm raised while ME_START is out (the homing alarm) belongs to the start: a stop meanwhile
+        withdraws it (cancel_start) and the ME is told REQ_CANCEL instead, so it stays shut down."""
         self._alarm_pending += 1
         try:
             alarm_id = msg.alarm_text or "UNKNOWN"
             self.log.info("the ME raises alarm %s", alarm_id)
             text = self._alarm_text(alarm_id)
-            cleared = await self.raise_alarm(alarm_id, text, wait=True)
-            self.me.send(
-                MeMessage(
-                    MessageId.ME_START_WAIT,
-                    alarm_text=alarm_id,
-                    seq=msg.seq,
-                    ack_code=AckCode.ACK_OK if cleared else AckCode.START_FAIL,
-                )
-            )
+            starting = self._starting is not None
+            no = None
+            if starting and self._start_cancelled is not None:  # the stop came first: not raised at all
+                self.log.info("alarm %s not raised: the start it belongs to was cancelled", alarm_id)
+            else:
+                no = await self.raise_alarm(alarm_id, text, wait=False, retry=True)
+            if no is not None:
+                if starting:
+                    self._start_alarms.add(no)
+                    if self._start_cancelled is not None:  # the stop came while the CAS took the alarm
+                        await self._withdraw_start_alarm(no)
+                await self.wait_cleared(no)
+            code = AckCode.ACK_OK if no is not None else AckCode.START_FAIL
+            if starting and self._start_cancelled is not None:
+                code = AckCode.REQ_CANCEL
+            self.me.send(MeMessage(MessageId.ME_START_WAIT, alarm_text=alarm_id, seq=msg.seq, ack_code=code))
         except QueueError as e:
             self.log.error("could not tell the ME its alarm was cleared: %s", e)
         finally:
             self._alarm_pending -= 1
             self.me.heard = time.monotonic()
+
+    # ----------------------------------------------------------------- a start cancelled by a stop
+
+    async def _start_on_me(self) -> MeMessage:
+        """ME_START to the ME: its answer comes once the machine is homed (its homing alarm cleared by
+        the operator). StartCancelled when a stop came meanwhile (cancel_start), whatever the ME said:
+        an ME that started all the same (the operator cleared the alarm as the stop came) is shut again."""
+        if self._starting is not None:  # one ME_START at a time: a second would home the machine twice
+            raise StartCancelled("another start is in progress (waiting for homing): this one is not sent")
+        starting = self._starting = self._loop.create_future()
+        self._start_cancelled, self._start_alarms = None, set()
+        try:
+            answer = await self.me_request(MeMessage(MessageId.ME_START))
+        finally:
+            starting.set_result(None)
+            self._starting = None
+        why = self._start_cancelled
+        if why is None:
+            return answer
+        if answer.ack_code == AckCode.ACK_OK:
+            self.log.warning("the ME started as the start was cancelled: ME_SHUT to the ME")
+            try:
+                await self.me_request(MeMessage(MessageId.ME_SHUT))
+            except (MeDied, QueueError) as e:
+                self.log.warning("ME did not acknowledge ME_SHUT: %s", e)
+        raise StartCancelled(why)
+
+    def cancel_start(self) -> Coroutine[Any, Any, str] | None:
+        """A stop while ME_START is out (the machine waits to be homed): the start is cancelled."""
+        if self._starting is None:
+            return None
+        return self._cancel_start(self._starting)
+
+    async def _cancel_start(self, starting: asyncio.Future[None]) -> str:
+        """The start's homing alarm withdrawn ("start cancelled"), the ME told REQ_CANCEL (alarm_action),
+        and the start's end waited for: its ME_READY says it was cancelled; the machine stays Shutdown."""
+        if self._start_cancelled is None:
+            self._start_cancelled = START_CANCELLED
+            self.log.warning("stop while ME_START waits for the machine to be homed: the start is cancelled")
+            for no in list(self._start_alarms):
+                await self._withdraw_start_alarm(no)
+        try:
+            async with asyncio.timeout(SERVER_TIMEOUT):
+                await asyncio.shield(starting)
+        except TimeoutError:
+            self.log.warning("the ME has not answered the cancelled ME_START yet: the machine stays Shutdown")
+        return START_CANCELLED
+
+    async def _withdraw_start_alarm(self, alarm_no: int) -> None:
+        """A cancelled start's alarm cleared by the WC itself, as "start cancelled": the operator's later
+        clear finds it cleared, and nothing waits for it any more."""
+        self._start_alarms.discard(alarm_no)
+        try:
+            answer = await self.ask(
+                Conv.ALARM_CLR_REQ,
+                message(Msg.ALARM_CLEAR_REQUEST, alarm_no=alarm_no, cleared_by=f"{self.name}: start cancelled"),
+                "cas",
+                SERVER_TIMEOUT,
+            )
+        except ConversationTimeout:
+            self.log.error("Cell Alarm Server did not answer the clearing of alarm %d (start cancelled)", alarm_no)
+        else:
+            self.log.info("alarm %d withdrawn (start cancelled): %s %s", alarm_no, answer.ack_code, answer.note or "")
+        self._done_waiting(alarm_no)
 
     # ----------------------------------------------------------------- a run's end
 

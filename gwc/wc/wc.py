@@ -45,6 +45,7 @@ from gwc.me.machine import MeState
 from gwc.module import Handler, module_name
 from gwc.wc.base import ABANDONED_S, ALL_OPERATIONS, ME_DEADLINE, ME_PING, SETUP_CHECK_S, S
 from gwc.wc.link import MeDied, MeLink
+from gwc.wc.runs import StartCancelled
 from gwc.wc.steps import WCSteps
 
 
@@ -262,7 +263,9 @@ class WC(WCSteps):
             return AckCode.NOTNOW, f"the machine is {self.status}, not Shutdown"
         self.log.info("starting machine %s: ME_START to the ME", self.machine_id)
         try:
-            answer = await self.me_request(MeMessage(MessageId.ME_START))
+            answer = await self._start_on_me()
+        except StartCancelled as e:
+            return AckCode.REQ_CANCEL, str(e)
         except (MeDied, QueueError) as e:
             await self.raise_alarm(
                 "ME_DIED", f"machine side of {self.machine_id} did not answer ME_START: {e}", wait=False

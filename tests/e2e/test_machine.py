@@ -305,6 +305,48 @@ def test_cmm_over_a_pseudo_terminal_measures_a_pass_and_a_fail_part(machine_cell
     story(cell, "me:cmm_wc", "serial line to the CMM open", "the CMM answered PASS!", "the CMM answered FAIL!")
 
 
+def test_a_stop_while_the_cmm_waits_to_be_homed_cancels_the_start_and_a_later_start_homes_again(
+    machine_cell: Any,
+) -> None:
+    """Issue 41: `gwc machine stop` while `gwc machine start` waits for HOME_CMM cancels that start."""
+    cell, _ = machine_cell({**CMM, "sim": {"measure_time": 0.2}})
+    start = subprocess.Popen(
+        [sys.executable, "-m", "gwc", "machine", "start", "cmm_wc"],
+        env=cell.env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        homing = pending_alarm(cell, "HOME_CMM", "cmm_wc")
+        stopped = gwc(cell, "machine", "stop", "cmm_wc")
+        out, err = start.communicate(timeout=T)
+    finally:
+        if start.poll() is None:
+            start.kill()
+            start.wait()
+    assert stopped.returncode == 0, stopped.stderr
+    assert "wc:cmm_wc: shut down" in stopped.stdout, stopped.stdout
+    # The start's conversation ends, failed, saying why.
+    assert start.returncode != 0, out
+    assert "REQ_CANCEL start cancelled" in err, err
+    # The homing alarm was cleared by the cell as "start cancelled": nothing waits for it any more.
+    cleared, by = cell.query("select cleared_at is not null, cleared_by from alarms where alarm_no = %s", homing)[0]
+    assert cleared and by == "wc:cmm_wc: start cancelled", by
+    late = ask(
+        cell, "ALARM_CLR_REQ", message("Alarm_Clear_Request", alarm_no=homing, cleared_by="test operator"), "cas"
+    )
+    assert late.ack_code != OK and "already cleared" in (late.note or ""), late
+    assert status(cell, "cmm_wc")[0] == "Shutdown" and accepts(cell, "cmm_wc") == []
+    story(cell, "me:cmm_wc", "homing: alarm HOME_CMM", "start cancelled by the cell while waiting for homing")
+    story(cell, "wc:cmm_wc", "the start is cancelled", f"alarm {homing} withdrawn", "not started: REQ_CANCEL")
+    # The ME is shut down, not homed: a later start raises HOME_CMM again, and once homed the CMM is Idle.
+    start_machine(cell, "cmm_wc", homing=True)
+    again = cell.query("select alarm_no from alarms where machine_id = 'cmm_wc' and alarm_id = 'HOME_CMM'")
+    assert len(again) == 2 and homing in {a for (a,) in again}
+    assert accepts(cell, "cmm_wc") == ["alum_chess"]
+
+
 # ----------------------------------------------------------------------------- the refusals
 
 

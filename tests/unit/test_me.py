@@ -156,6 +156,18 @@ def test_dummy_homing_alarm_holds_the_start_until_cleared(machine) -> None:
     assert (ready.message_id, ready.seq, ready.ack_code) == (MessageId.ME_START, 41, AckCode.ACK_OK)
 
 
+def test_dummy_start_cancelled_while_homing_stays_shut_down_and_a_late_clear_does_nothing(machine) -> None:
+    m = machine(kind="dummy", homing_alarm=True)
+    m.wc.send(MeMessage(MessageId.ME_START, seq=42))
+    assert m.wc.receive(5).message_id == MessageId.CELL_ALAR
+    m.wc.send(MeMessage(MessageId.ME_START_WAIT, ack_code=AckCode.REQ_CANCEL, alarm_text="HOME_CMM"))
+    cancelled = m.wc.receive(5)
+    assert (cancelled.message_id, cancelled.seq, cancelled.ack_code) == (MessageId.ME_START, 42, AckCode.REQ_CANCEL)
+    assert "cancelled" in cancelled.alarm_text
+    m.wc.send(MeMessage(MessageId.ME_START_WAIT, ack_code=AckCode.ACK_OK, alarm_text="HOME_CMM"))  # a late clear
+    assert m.ask(MessageId.NO_MESSAGE).ack_code == AckCode.NOTNOW  # still shut down, not homed
+
+
 def test_dummy_refuses_what_its_state_does_not_allow(machine, tmp_path: Path) -> None:
     m = machine(kind="dummy")
     assert m.ask(MessageId.NO_MESSAGE).ack_code == AckCode.NOTNOW  # shut down: a WC learns the ME restarted
