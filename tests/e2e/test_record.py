@@ -30,6 +30,7 @@ from gwc.cell import shutdown, startup
 from gwc.config import write_config
 from gwc.console.app import ConsoleApp
 from gwc.log import open_log
+from gwc.opcua.security import hash_password
 from tests.e2e.lotkit import gwc, import_export_all, ok, order, start_machine, steps
 from tests.harness import CellHarness, until, wait_for
 
@@ -76,7 +77,8 @@ def test_record_books_oee_downtime_and_genealogy_against_a_known_truth(lot_cell:
     )
     endpoint = f"opc.tcp://127.0.0.1:{_free_port()}/gwc/"
     cell.cfg = write_config(
-        cell.cfg.path, {**cell.cfg.raw, "opcua": {"endpoint": endpoint, "users": {"operator": "cell-secret"}}}
+        cell.cfg.path,
+        {**cell.cfg.raw, "opcua": {"endpoint": endpoint, "users": {"operator": hash_password("cell-secret")}}},
     )
     script = tmp_path / "pawn.py"
     script.write_text(PAWN)
