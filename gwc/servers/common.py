@@ -13,7 +13,8 @@ import logging
 from collections.abc import Callable, Coroutine
 from typing import Any
 
-from gwc.config import Config
+from gwc import db
+from gwc.config import Config, RecordConfig
 from gwc.errors import GwcError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
@@ -109,3 +110,34 @@ class Server:
             await conv.send(reply)
         except GwcError as e:
             self.log.warning("could not refuse %s: %s", conv.cls, e)
+
+
+class Pruner:
+    """The production record's retention for one owner of history tables (docs/record.md, Retention):
+    `prune_record(owner, keep_days)` at the module's first idle, then every `prune_every_s`. A failure
+    is logged and tried again at the next turn."""
+
+    def __init__(
+        self,
+        owner: str,
+        what: str,
+        record: RecordConfig,
+        transaction: Callable[[db.Statement], Any],
+        log: logging.Logger,
+    ) -> None:
+        self.owner, self.what, self.record = owner, what, record
+        self.transaction, self.log = transaction, log
+        self.last = 0.0  # monotonic time of the last prune (0: none yet)
+
+    def on_idle(self, now: float) -> None:
+        if not self.record.history or (self.last and now - self.last <= self.record.prune_every_s):
+            return
+        self.last = now
+        days = self.record.keep_days
+        try:
+            row = self.transaction(db.Statement("select prune_record(%s, %s)", (self.owner, days)))
+        except GwcError as e:
+            self.log.error("pruning the %s failed: %s", self.what, e)
+            return
+        if row and row[0]:
+            self.log.info("pruned %d rows of %s older than %g days", row[0], self.what, days)

@@ -28,7 +28,7 @@ from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv, Msg
 from gwc.module import DATABASE_OUTAGE_S, Handler, Module
-from gwc.servers.common import SERVER_TIMEOUT, Server
+from gwc.servers.common import SERVER_TIMEOUT, Pruner, Server
 
 L = LotState
 MAX_QUANTITY = 1000
@@ -129,7 +129,7 @@ class LotServer(Server, Module):
         self.watched: dict[int, float] = {}  # entity -> when its script was last seen on the bus
         self.restarting: dict[int, float] = {}  # entity -> until when its script's restart is waited for
         self.grace = max(3.0, 2 * cfg.bus.peer_timeout)
-        self.pruned = 0.0  # monotonic time the history was last pruned (0: at the first idle)
+        self.pruner = Pruner("ls", "entity history", cfg.record, self.transaction, log)
 
     def handlers(self) -> dict[str, Handler]:
         return {
@@ -158,20 +158,8 @@ class LotServer(Server, Module):
         if not self.started:
             return
         now = time.monotonic()
-        if self.cfg.record.history and (not self.pruned or now - self.pruned > self.cfg.record.prune_every_s):
-            self.pruned = now
-            self.prune()
+        self.pruner.on_idle(now)
         self.reap_silent(now)
-
-    def prune(self) -> None:
-        """Entity history and operator actions older than [record] keep_days go (docs/record.md)."""
-        try:
-            row = self.transaction(db.Statement("select prune_record('ls', %s)", (self.cfg.record.keep_days,)))
-        except GwcError as e:
-            self.log.error("pruning the entity history failed: %s", e)
-            return
-        if row and row[0]:
-            self.log.info("pruned %d rows of entity history older than %g days", row[0], self.cfg.record.keep_days)
 
     async def lot_action(self, conv: Conversation) -> None:
         """LOT_ACTION: an operator's action on an entity done through another module (a cancel, told

@@ -30,14 +30,13 @@ from typing import Any
 
 from gwc.config import Config
 from gwc.db import Statement
-from gwc.errors import GwcError
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.names import Conv, Msg
 from gwc.module import DATABASE_OUTAGE_S, Handler, Module
 from gwc.record.calendar import is_planned
-from gwc.servers.common import Server
+from gwc.servers.common import Pruner, Server
 
 S = MachineStatus
 # 6.3.2: where each status may go. Shutdown is always reachable (operator, ME death, liveness).
@@ -139,7 +138,7 @@ class MachineServer(Server, Module):
     def __init__(self, cfg: Config, name: str, log: logging.Logger) -> None:
         super().__init__(cfg, name, log)
         self.machines: dict[str, _Watch] = {}
-        self.pruned = 0.0  # monotonic time the history was last pruned (0: at the first idle)
+        self.pruner = Pruner("ms", "machine history", cfg.record, self.transaction, log)
 
     def handlers(self) -> dict[str, Handler]:
         return {
@@ -192,9 +191,7 @@ class MachineServer(Server, Module):
         if not self.started:
             return
         now = time.monotonic()
-        if self.cfg.record.history and (not self.pruned or now - self.pruned > self.cfg.record.prune_every_s):
-            self.pruned = now
-            self.prune()
+        self.pruner.on_idle(now)
         peers = self.bus.peers()
         for mid, w in list(self.machines.items()):
             peer = peers.get(f"wc:{mid}")
@@ -333,16 +330,6 @@ class MachineServer(Server, Module):
         if not is_planned(rec.calendar_of(machine_id), datetime.now(UTC), rec.timezone):
             return "non_scheduled"
         return rec.reasons[reason][1] if reason in rec.reasons else "unscheduled_downtime"
-
-    def prune(self) -> None:
-        """History older than [record] keep_days goes (docs/record.md, Retention)."""
-        try:
-            row = self.transaction(Statement("select prune_record('ms', %s)", (self.cfg.record.keep_days,)))
-        except GwcError as e:
-            self.log.error("pruning the machine history failed: %s", e)
-            return
-        if row and row[0]:
-            self.log.info("pruned %d rows of machine history older than %g days", row[0], self.cfg.record.keep_days)
 
     async def downtime_reason(self, conv: Conversation) -> None:
         """DOWNTIME_RSN: the operator's reason for a downtime event (the open one of a machine, or by
