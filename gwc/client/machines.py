@@ -80,6 +80,23 @@ def heard_peers(cfg: Config, bus: BlockingBus) -> set[str]:
     return set(bus.peers())
 
 
+# The Machine Status screen's columns (MSTT), as machine_rows names them: the console's and `gwc machine status`.
+MACHINE_COLUMNS = (
+    "machine_id",
+    "kind",
+    "status",
+    "recipe_id",
+    "machine_run_id",
+    "start_time",
+    "end_time",
+    "accepts",
+    "wc",
+    "runs",
+    "maint_every",
+    "scrap",
+)
+
+
 def machine_rows(conn: psycopg.Connection[Any], cfg: Config, peers: set[str]) -> list[dict[str, Any]]:
     """MSTT's rows: each configured machine's MACHINE_STATUS, kind, accept types and whether its WC is among
     `peers` (on the bus). On the caller's connection (a screen keeps one open)."""

@@ -27,7 +27,7 @@ from textual.widgets.data_table import ColumnKey, RowKey
 
 from gwc.cell import cell_status
 from gwc.client.alarms import alarm_rows
-from gwc.client.machines import machine_rows
+from gwc.client.machines import MACHINE_COLUMNS, machine_rows
 from gwc.client.orders import list_lots, list_orders, rows_of
 from gwc.client.requests import request_tables
 from gwc.console.link import WAITING, Answer, CellLink
@@ -258,20 +258,7 @@ def selected_row(table: DataTable[Any], rows: list[dict[str, Any]], key: str) ->
 
 class MachinesView(View):
     name_ = "machines"
-    columns = (
-        "machine_id",
-        "kind",
-        "status",
-        "recipe_id",
-        "machine_run_id",
-        "start_time",
-        "end_time",
-        "accepts",
-        "wc",
-        "runs",
-        "maint_every",
-        "scrap",
-    )
+    columns = MACHINE_COLUMNS
     key = "machine_id"
     help = (
         "MSTT: each machine's status, its current run, what it accepts and its books.  s start  x stop  "

@@ -14,6 +14,7 @@ from __future__ import annotations
 import click
 
 from gwc.client.machines import (
+    MACHINE_COLUMNS,
     START_TIMEOUT,
     STOP_TIMEOUT,
     heard_peers,
@@ -28,21 +29,7 @@ from gwc.errors import GwcError, ModuleError
 from gwc.hi import context, json_option, table
 from gwc.module import module_name
 
-STATUS_COLUMNS = [
-    "machine_id",
-    "kind",
-    "status",
-    "recipe_id",
-    "machine_run_id",
-    "start_time",
-    "end_time",
-    "accepts",
-    "wc",
-    "runs",
-    "maint_every",
-    "scrap",
-    "note",
-]
+STATUS_COLUMNS = [*MACHINE_COLUMNS, "note"]
 
 
 @click.group("machine")

@@ -21,6 +21,20 @@ from gwc.ipc.codes import AckCode
 from gwc.lot.entity import read_traveller
 from tests.harness import CellHarness, wait_for
 
+# A lot script of two runs of the dummy operation, each on whichever dummy machine is free.
+TWO_DUMMY_RUNS = '''"""Two runs of the dummy operation, on whichever dummy machine is free."""
+
+from gwc.lot import OperationEntity
+
+
+def main(entity: OperationEntity) -> None:
+    entity.wait_for_import()
+    for _ in range(2):
+        entity.operate("dummy_op")
+    entity.lot_completed("PASS")
+    entity.wait_for_export()
+'''
+
 
 def default_machines(run_time: float = 0.2, measure_time: float = 0.2) -> list[dict[str, Any]]:
     """The default test machines: wc1, wc2 (dummy mills) and cmm_wc (the CMM simulator, every part PASS)."""

@@ -32,7 +32,7 @@ from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.log import log_file_name
-from tests.e2e.lotkit import cell_with_machines, gwc, import_export_all, ok, order
+from tests.e2e.lotkit import TWO_DUMMY_RUNS, cell_with_machines, gwc, import_export_all, ok, order
 from tests.harness import CellHarness, wait_for
 
 pytestmark = pytest.mark.e2e
@@ -235,24 +235,10 @@ def main(entity: OperationEntity) -> None:
 '''
 
 
-PAWN = '''"""Two runs of the dummy operation, on whichever dummy machine is free."""
-
-from gwc.lot import OperationEntity
-
-
-def main(entity: OperationEntity) -> None:
-    entity.wait_for_import()
-    for _ in range(2):
-        entity.operate("dummy_op")
-    entity.lot_completed("PASS")
-    entity.wait_for_export()
-'''
-
-
 def register_pawn(cell: CellHarness, tmp_path: Path) -> None:
     """A product of the dummy machines alone: `pawn`."""
     script = tmp_path / f"pawn_{cell.tag}.py"
-    script.write_text(PAWN)
+    script.write_text(TWO_DUMMY_RUNS)
     ok(gwc(cell, "script", "register", "pawn", str(script), "--product", "pawn"))
 
 

@@ -31,23 +31,11 @@ from gwc.config import write_config
 from gwc.console.app import ConsoleApp
 from gwc.log import open_log
 from gwc.opcua.security import hash_password
-from tests.e2e.lotkit import gwc, import_export_all, ok, order, start_machine, steps
+from tests.e2e.lotkit import TWO_DUMMY_RUNS, gwc, import_export_all, ok, order, start_machine, steps
 from tests.harness import CellHarness, until, wait_for
 
 RUN_TIME = 0.5
 DOWN_FOR = 20.0
-PAWN = '''"""Two runs of the dummy operation, on whichever dummy machine is free."""
-
-from gwc.lot import OperationEntity
-
-
-def main(entity: OperationEntity) -> None:
-    entity.wait_for_import()
-    for _ in range(2):
-        entity.operate("dummy_op")
-    entity.lot_completed("PASS")
-    entity.wait_for_export()
-'''
 CHROMIUM = shutil.which("chromium")
 
 
@@ -81,7 +69,7 @@ def test_record_books_oee_downtime_and_genealogy_against_a_known_truth(lot_cell:
         {**cell.cfg.raw, "opcua": {"endpoint": endpoint, "users": {"operator": hash_password("cell-secret")}}},
     )
     script = tmp_path / "pawn.py"
-    script.write_text(PAWN)
+    script.write_text(TWO_DUMMY_RUNS)
     cell.start_servers()
     for m in ("wc1", "wc2", "wc3"):
         cell.start_machine_processes(m)
