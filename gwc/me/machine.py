@@ -313,7 +313,7 @@ class MachineSide:
             self.answer(msg, AckCode.NOTNOW, alarm_text="the machine is shut down")
             return
         # A started ME tells its state, and while running the results file of its run: a restarted
-        # WC learns whether the run it resumes is still going (gwc.wc.wc.WC._resume).
+        # WC learns whether the run it resumes is still going (gwc.wc.me_side.MeSide._resume).
         running = self.state == MeState.RUNNING and self.results_path is not None
         self.answer(
             msg,
