@@ -22,6 +22,7 @@ from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import LotError, LotTimeout, StepRefused
 from gwc.lot.runs import MachineRuns
+from gwc.lot.spawn import spawn_lot_scripts  # the HI's way: one path (and queue) for every lot script
 from gwc.lot.state import EntityState
 from gwc.lot.talk import BusLink
 from gwc.module import ask
@@ -107,8 +108,6 @@ class Holdings:
         The n-th call of a script's run asks with the same request id every time, so a script its agent
         restarted gets the children its first run made, not new ones (and their scripts, running, are
         left as they are)."""
-        from gwc.lot.run import spawn_lot_scripts  # the HI's way: one path (and queue) for every lot script
-
         self._children_asked += 1
         request_id = f"{self.facts.name}.child.{self._children_asked}"
         try:
@@ -141,8 +140,6 @@ class Holdings:
         """The Lot Server's division (1.4.4): `quantity` new entities split off this one, in its lot and
         state (only while it is created or imported), each its child; their lot scripts started as
         start_child's are, unless `start_scripts` is false. Returns the new entities."""
-        from gwc.lot.run import spawn_lot_scripts  # the HI's way: one path (and queue) for every lot script
-
         try:
             new = divide_entity(self.link.need(), self.facts.entity_id, quantity, self.facts.timeouts.answer)
         except GwcError as e:
