@@ -51,6 +51,7 @@ from gwc.lot.admission import LotQueue
 from gwc.lot.run import Forked, fork_lot_script
 from gwc.module import ask, module_name
 from gwc.private import open_lock, secure_var
+from gwc.retry import Deadline
 from gwc.servers.common import Server
 
 S = ProcessState
@@ -492,10 +493,10 @@ class Agent(Server):
         await asyncio.gather(*(self.stop_child(c, say) for c in lots))
 
     async def _wait(self, child: Child, states: Iterable[ProcessState], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
+        deadline = Deadline(timeout)
         wanted = tuple(states)
         while child.state not in wanted:
-            left = deadline - time.monotonic()
+            left = deadline.left()
             if left <= 0:
                 return False
             child.changed.clear()
