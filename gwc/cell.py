@@ -26,7 +26,7 @@ from typing import Any
 from gwc import db
 from gwc.agent import control as agent_control
 from gwc.config import Config
-from gwc.errors import ConfigError, GwcError, ModuleError
+from gwc.errors import ConfigError, ModuleError
 from gwc.ipc import keys
 from gwc.ipc.bus import BlockingBus, Bus
 from gwc.ipc.catalogue import message
@@ -436,8 +436,3 @@ def cell_status(cfg: Config) -> tuple[dict[str, Any] | None, list[dict[str, Any]
         return None, [{**r, "alive": "yes" if r["state"] == "RUNNING" else "no"} for r in rows]
     rows = [{**r, "alive": "yes" if r["state"] in ("RUNNING", "STARTING") else "no"} for r in answer["modules"]]
     return answer["agent"], rows
-
-
-def check_alive(cfg: Config, name: str) -> None:
-    if not read_pid(cfg, name).alive:
-        raise GwcError(f"{name} is not running (start it with `gwc start`)")
