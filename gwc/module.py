@@ -433,7 +433,7 @@ class Module:
 
     async def _refuse(self, conv: Conversation, code: str, note: str) -> None:
         """Answer a conversation nobody answered yet with its class's ack message and `code`."""
-        if conv._idx or conv.first is None:
+        if conv.sent or conv.first is None:
             return
         answer = _ack_message_of(conv.cls)
         if answer is None:

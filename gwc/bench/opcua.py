@@ -35,7 +35,7 @@ from gwc.bench.cell import _ms, log_events
 from gwc.client.session import context
 from gwc.config import load_config, write_config
 from gwc.errors import GwcError
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.names import Conv
 from gwc.log import log_file_name
 from gwc.module import module_name

@@ -19,7 +19,7 @@ import psycopg
 from gwc import db
 from gwc.config import Config
 from gwc.errors import DatabaseError, DatabaseUnavailable
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import Message
 from gwc.ipc.codes import AckCode
 from gwc.lot.errors import LotTimeout, MachineLost

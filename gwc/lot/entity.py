@@ -48,7 +48,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from gwc.errors import GwcError
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg

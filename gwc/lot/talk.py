@@ -11,7 +11,7 @@ from collections.abc import Callable, Coroutine, Iterable, Sequence
 from typing import Any
 
 from gwc.errors import ConversationTimeout, GwcError
-from gwc.ipc.bus import Batch, BlockingConversation, Bus, Conversation, Peer
+from gwc.ipc import Batch, BlockingConversation, Bus, Conversation, Peer
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg

@@ -100,7 +100,7 @@ class Server:
         # Module._refuse answers only classes whose answer needs nothing but ack_code; a server's
         # other answers (Status_Reply, Status_Line) are built by refusal() so no client is left to
         # time out when, say, the database fails.
-        if conv._idx or conv.first is None:
+        if conv.sent or conv.first is None:
             return
         reply = self.refusal(conv.cls, conv.first.first, code, note)
         if reply is None:

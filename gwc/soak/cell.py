@@ -40,7 +40,7 @@ from gwc.cell import (
 )
 from gwc.config import SERVER_MODULES, Config, private_bus, write_config
 from gwc.errors import GwcError, ModuleError
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.mq import queue_exists, queue_names
 from gwc.ipc.names import Conv
 

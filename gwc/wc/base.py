@@ -50,9 +50,7 @@ class WCBase(Module):
 
     @property
     def _loop(self) -> asyncio.AbstractEventLoop:
-        loop = self.bus._loop
-        assert loop is not None
-        return loop
+        return self.bus.loop
 
     def _read_status(self) -> tuple[MachineStatus, int | None, str | None]:
         row = self._read(

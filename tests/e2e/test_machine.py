@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from gwc.ipc.bus import BlockingBus, BlockingConversation
+from gwc.ipc import BlockingBus, BlockingConversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import Channel, MessageId
@@ -655,7 +655,9 @@ def test_kill_9_of_the_wc_after_it_read_run_compl_the_restarted_wc_completes_the
     wait_for(lambda: status(cell, "wc2")[0] == "Idle", T, "Idle again")
     pending_alarm(cell, "RUN_FAIL", "wc2")
     # Idle is written before the resumed WC serves (until then it answers Notnow, as it should): wait.
-    story(cell, "wc:wc2", "resumed: Idle", "run 428: no results file", r"run 428 complete \(Run_Fail\)", "resumed: Idle")
+    story(
+        cell, "wc:wc2", "resumed: Idle", "run 428: no results file", r"run 428 complete \(Run_Fail\)", "resumed: Idle"
+    )
     assert setup_run(cell, "wc2", 429).ack_code == OK  # and it serves the cell again
 
 

@@ -33,7 +33,7 @@ from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from gwc.config import write_config
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.opcua.security import hash_password
 from tests.e2e.lotkit import cell_with_machines, gwc, ok, order, script_pid, stop_lot_scripts, wait_state
 from tests.e2e.test_cell import gwc as gwc_env
