@@ -435,11 +435,11 @@ class Module:
         """Answer a conversation nobody answered yet with its class's ack message and `code`."""
         if conv.sent or conv.first is None:
             return
-        answer = _ack_message_of(conv.cls)
+        answer = catalogue.refusal(conv.cls, code, note, conv.first.first.fields)
         if answer is None:
             return
         try:
-            await conv.send(answer(code, note))
+            await conv.send(answer)
         except GwcError as e:
             self.log.warning("could not refuse %s: %s", conv.cls, e)
 
@@ -518,21 +518,6 @@ class Module:
 def _readable(fd: int) -> bool:
     """Whether a socket has something to read (or was closed by its other end) now."""
     return bool(select.select([fd], [], [], 0)[0])
-
-
-def _ack_message_of(cls: str) -> Callable[[str, str], catalogue.Message] | None:
-    """The first answer message of a conversation class, if it can carry just an ack code."""
-    for name in catalogue.CONVERSATION_CLASSES[cls].messages[1:]:
-        mc = catalogue.MESSAGE_CLASSES[name]
-        names = {f.name for f in mc.fields}
-        required = {f.name for f in mc.fields if not f.nullable}
-        if "ack_code" in names and required <= {"ack_code"}:
-
-            def ack(code: str, note: str, name: str = name, has_note: bool = "note" in names) -> catalogue.Message:
-                return message(name, ack_code=code, **({"note": note[:500]} if has_note else {}))
-
-            return ack
-    return None
 
 
 def run_module(

@@ -465,7 +465,7 @@ class Bus:
         self.outbox.ack(key, env.seq)
         if to is None or env.idx or self._inbound.duplicate(key, env.seq, time.monotonic()):
             return
-        answer = catalogue.refusal(env.cls, AckCode.NOT_AUTH, "not allowed under the lot key")
+        answer = catalogue.refusal(env.cls, AckCode.NOT_AUTH, "not allowed under the lot key", env.fields)
         if answer is not None:
             conv = self.resume(env.conv, env.cls, env.src)
             self.send_batch(conv, (answer,), env.src)

@@ -10,6 +10,7 @@ Field types are written as strings: "str", "int", "float", "bool", "list", "dict
 from __future__ import annotations
 
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -361,12 +362,29 @@ MESSAGE_CLASSES: dict[str, MessageClass] = {
         ),
         # --- Status Line Server ---
         _msg("Status_Line_Get"),
-        _msg("Status_Line", text="str", imports="int?", exports="int?", alarms="int?", last_event="str?"),
+        _msg(
+            "Status_Line",
+            "the status line; ack_code and note only on a refusal",
+            text="str",
+            imports="int?",
+            exports="int?",
+            alarms="int?",
+            last_event="str?",
+            ack_code="str?",
+            note="str?",
+        ),
         _msg("Cell_Event", "a cell event worth the status line", text="str", source="str?"),
         # --- generic ---
         _msg("Ack", **ACK),
         _msg("Ping", "bus test traffic", n="int", payload="str?"),
-        _msg("Pong", n="int", payload="str?"),
+        _msg(
+            "Pong",
+            "the Ping's n; ack_code and note only on a refusal",
+            n="int",
+            payload="str?",
+            ack_code="str?",
+            note="str?",
+        ),
     )
 }
 
@@ -546,13 +564,31 @@ def check(cls: str, msg: str, fields: dict[str, Any]) -> Message:
     return Message(msg, fields)
 
 
-def refusal(cls: str, ack_code: str, note: str) -> Message | None:
-    """The answer that refuses a conversation of class `cls` with ack_code: its first answer message
-    that needs nothing but an ack code; None if the class has none (a broadcast)."""
+def refusal(cls: str, ack_code: str, note: str, opener: Mapping[str, Any] | None = None) -> Message | None:
+    """The answer that refuses a conversation of class `cls` with ack_code (docs/protocol.md, "Refusals"):
+    its first answer message that has an ack_code field, with the note (cut to 500 characters), and
+    every other field it requires taken from the opener's field of the same name (Status_Reply's
+    machine_id, Pong's n) or, for a `text`, the code and the note. None if the class has no answer (a
+    broadcast) or the opener lacks what the answer requires."""
     for name in CONVERSATION_CLASSES[cls].messages[1:]:
         mc = MESSAGE_CLASSES[name]
-        if "ack_code" in mc._known and all(f.nullable or f.name == "ack_code" for f in mc.fields):
-            return Message(name, {"ack_code": ack_code, "note": note})
+        if "ack_code" not in mc._known:
+            continue
+        values: dict[str, Any] = {"ack_code": ack_code}
+        if "note" in mc._known:
+            values["note"] = note[:500]
+        for f in mc.fields:
+            if f.nullable or f.name in values:
+                continue
+            if opener is not None and opener.get(f.name) is not None:
+                values[f.name] = opener[f.name]
+            elif f.name == "text":
+                values["text"] = f"{ack_code}: {note}"[:500]
+        try:
+            mc.check(values)
+        except MessageError:
+            return None
+        return Message(name, values)
     return None
 
 
