@@ -42,7 +42,7 @@ import psycopg
 
 from gwc import db
 from gwc.agent import control as agent_control
-from gwc.bench import cpu_s, reaped_cpu_s, summary
+from gwc.bench import brief, cpu_s, reaped_cpu_s, summary
 from gwc.bench.heal import freeze_trials
 from gwc.cell import machine_procs
 from gwc.check import check_cell
@@ -211,7 +211,7 @@ class CellBench:
         spawn_lot_script(self.cell.cfg, entities[0])
         return entities[0]
 
-    def _operator(self, decided: set[tuple[int, str]], entities: list[int]) -> dict[int, str]:
+    def operator(self, decided: set[tuple[int, str]], entities: list[int]) -> dict[int, str]:
         """Import and export what of `entities` waits; return their states. (Only theirs: the operator
         looks every 10 ms, and reading every lot's row would load the cell it measures.)"""
         assert self.conn is not None and self.cell.bus is not None
@@ -251,7 +251,7 @@ class CellBench:
                 lane[m] = self._order([[m]])
                 entities.append(lane[m])  # type: ignore[arg-type]
                 ordered += 1
-            states = self._operator(decided, [e for e in lane.values() if e is not None])
+            states = self.operator(decided, [e for e in lane.values() if e is not None])
             for m, e in lane.items():
                 if e is not None and states.get(e) in FINAL:
                     finished += 1
@@ -334,7 +334,7 @@ class CellBench:
     ) -> dict[int, str]:
         deadline = time.monotonic() + LOT_TIMEOUT
         while True:
-            now = self._operator(decided, entities)
+            now = self.operator(decided, entities)
             if all(now.get(e) in states for e in entities):
                 return now
             if time.monotonic() > deadline:
@@ -434,7 +434,7 @@ class CellBench:
             rerouted = None
             path = self.cell.cfg.log_dir / log_file_name(f"lot:{entity}")
             while rerouted is None:
-                self._operator(decided, [entity])
+                self.operator(decided, [entity])
                 for t, text in log_events(path):
                     hit = PHASES[1][1].search(text)
                     if t >= killed_at and hit and hit.group(1).rstrip(",") == other:
@@ -449,11 +449,11 @@ class CellBench:
             self.say(f"  trial {k + 1}: {victim} killed, lot on {other} after {rerouted - killed_at:.2f}s")
             for p in machine_procs(self.cell.cfg, victim):
                 self.cell.restart(p.name)
-            while self._operator(decided, [entity]).get(entity) not in FINAL:
+            while self.operator(decided, [entity]).get(entity) not in FINAL:
                 if time.monotonic() > deadline:
                     raise GwcError(f"death trial {k + 1}: entity {entity} did not finish")
                 time.sleep(POLL * 5)
-            self._machine_up(victim)
+            self.machine_up(victim)
         return times
 
     def running_lot(self, what: str) -> tuple[int, str, float, set[tuple[int, str]]]:
@@ -464,7 +464,7 @@ class CellBench:
         decided: set[tuple[int, str]] = set()
         deadline = time.monotonic() + LOT_TIMEOUT
         while True:
-            self._operator(decided, [entity])
+            self.operator(decided, [entity])
             row = self.conn.execute(
                 "SELECT r.machine_id FROM reserved_machines r JOIN machine_status s USING (machine_id) "
                 "WHERE r.entity_id = %s AND s.status = 'Running'",
@@ -476,7 +476,7 @@ class CellBench:
                 raise GwcError(f"{what}: the lot's run never started (entity {entity})")
             time.sleep(POLL)
 
-    def _machine_up(self, machine: str) -> None:
+    def machine_up(self, machine: str) -> None:
         """The killed machine back up (its WC resumes it or it needs ME_START), ready for the next trial."""
         assert self.conn is not None
         deadline = time.monotonic() + LOT_TIMEOUT
@@ -525,10 +525,6 @@ def _lot_script(pid: int, cmd: str) -> bool:
         return "gwc.lot.run" in cmd or Path(f"/proc/{pid}/comm").read_text().startswith("lot:")
     except OSError:
         return False
-
-
-def _ms(s: dict[str, float]) -> str:
-    return f"median {s['median']:.1f}, p99 {s['p99']:.1f}, n {s['n']}"
 
 
 @click.command("cell")
@@ -646,23 +642,23 @@ def command(
     )
     click.echo(
         f"  overhead per lot with {result['at_once']} lots at once, request to unreserve (ms): "
-        f"{_ms(result['loaded_overhead_ms'])}"
+        f"{brief(result['loaded_overhead_ms'])}"
     )
     for k, v in result["loaded_phases_ms"].items():
-        click.echo(f"    {k:22s} (ms): {_ms(v)}")
+        click.echo(f"    {k:22s} (ms): {brief(v)}")
     click.echo(
         f"  per lot: {result['db_commits_per_lot']} database commits; CPU (ms) "
         + ", ".join(f"{k} {v}" for k, v in result["loaded_cpu_ms_per_lot"].items())
     )
     if "overhead_ms" in result:
         click.echo(
-            f"overhead per lot, one lot at a time, request to unreserve (ms): {_ms(result['overhead_ms'])} "
+            f"overhead per lot, one lot at a time, request to unreserve (ms): {brief(result['overhead_ms'])} "
             f"({result['solo_failed']} failed)"
         )
         for k, v in result["phases_ms"].items():
-            click.echo(f"    {k:22s} (ms): {_ms(v)}")
+            click.echo(f"    {k:22s} (ms): {brief(v)}")
     if "death_to_reroute_s" in result:
-        click.echo(f"death to reroute (s): {_ms(result['death_to_reroute_s'])}")
+        click.echo(f"death to reroute (s): {brief(result['death_to_reroute_s'])}")
     if "freezes" in result:
         f = result["freezes"]
         click.echo(
