@@ -34,7 +34,7 @@ import psycopg
 
 from gwc import db
 from gwc.config import Config, load_config
-from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, GwcError
+from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, GwcError, Refused
 from gwc.ipc import catalogue, eventloop
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
@@ -416,6 +416,9 @@ class Module:
                         await handler(conv)
             except asyncio.CancelledError:
                 raise
+            except Refused as e:  # a handler's (or its store's) refusal: answered here, for every module
+                self.log.info("refused %s from %s: %s (%s)", conv.cls, conv.first.sender, e.ack_code, e.detail or "-")
+                await self._refuse(conv, e.ack_code, e.detail, **e.fields)
             except DatabaseUnavailable as e:
                 self.log.warning("%s from %s not served now: %s", head.name, conv.first.sender, e)
                 await self._refuse(conv, AckCode.DB_BADREA, str(e))
@@ -431,15 +434,15 @@ class Module:
             finally:
                 conv.end()
 
-    async def _refuse(self, conv: Conversation, code: str, note: str) -> None:
-        """Answer a conversation nobody answered yet with its class's ack message and `code`."""
+    async def _refuse(self, conv: Conversation, code: str, note: str, **fields: Any) -> None:
+        """Answer a conversation nobody answered yet with its class's refusal: `code`, `note`, `fields`."""
         if conv.sent or conv.first is None:
             return
         answer = catalogue.refusal(conv.cls, code, note, conv.first.first.fields)
         if answer is None:
             return
         try:
-            await conv.send(answer)
+            await conv.send(message(answer.name, **answer.fields, **fields) if fields else answer)
         except GwcError as e:
             self.log.warning("could not refuse %s: %s", conv.cls, e)
 
