@@ -50,8 +50,8 @@ from gwc.client.orders import decide
 from gwc.client.session import context
 from gwc.errors import GwcError
 from gwc.ipc.codes import LotState
-from gwc.log import log_file_name
 from gwc.lot.entity import create_lot
+from gwc.lot.events import Phase
 from gwc.lot.run import spawn_lot_script
 from gwc.soak.cell import PrivateCell
 from gwc.soak.driver import PRODUCT, SCRIPT_ID, SCRIPT_PATH
@@ -62,15 +62,9 @@ POLL = 0.01  # the operator's look at the lots, when lots per second are measure
 SOLO_POLL = 0.05  # ... when one lot's own cost is: the operator's reads must not load the cell it measures
 FINAL = (LotState.EXPORTED.value, LotState.FAILED.value)
 
-# The lot library's log lines that mark the phases of an operation (gwc/lot/entity.py).
-PHASES = [
-    ("queued", re.compile(r"request \S+ for \S+ \(.*\) queued")),
-    ("bound", re.compile(r"got machine_run_id \d+ on (\S+) for")),
-    ("setup", re.compile(r"setting up (?:and starting )?run \d+ on")),
-    ("started", re.compile(r"run \d+ started on")),
-    ("complete", re.compile(r"run \d+ complete:")),
-    ("unreserved", re.compile(r"unreserved .* freed\)")),
-]
+# The phases of an operation, in order: the named events the lot library emits (gwc/lot/events.py),
+# which the bench's lot script leaves in its timing file (gwc/lot/scripts/soak.py).
+PHASES = [p.value for p in Phase]
 FLOOR_S = 30.0  # the resting floor is measured for at most this long
 
 # A process that only wakes once a heartbeat on the cell's event loop, and prints the CPU its wake-ups took:
@@ -102,15 +96,18 @@ def log_events(path: Path) -> list[tuple[float, str]]:
     return out
 
 
-def phases(path: Path) -> dict[str, float]:
-    """Seconds between the marks of a lot's (first) operation: queued->bound, bound->setup, ..."""
+def phases(events: list[list[Any]]) -> dict[str, float]:
+    """Seconds between the marks of a lot's (first) operation: queued->bound, bound->setup, ..., from
+    its named events ([phase, epoch seconds, machine] each)."""
     marks: dict[str, float] = {}
-    for t, text in log_events(path):
-        for name, rx in PHASES:
-            if name not in marks and rx.search(text):
-                marks[name] = t
-    names = [n for n, _ in PHASES]
-    return {f"{a}->{b}": marks[b] - marks[a] for a, b in itertools.pairwise(names) if a in marks and b in marks}
+    for phase, at, _machine in events:
+        marks.setdefault(phase, at)
+    return {f"{a}->{b}": marks[b] - marks[a] for a, b in itertools.pairwise(PHASES) if a in marks and b in marks}
+
+
+def bound_to(events: list[list[Any]], machine: str, since: float) -> float | None:
+    """When the lot was given `machine` (the first machine of a reservation) at or after `since`."""
+    return next((at for phase, at, m in events if phase == Phase.BOUND and m == machine and at >= since), None)
 
 
 class CellBench:
@@ -298,8 +295,8 @@ class CellBench:
         """Each lot's operation (request to unreserve, ms; lots that needed one try) and its phases."""
         overhead = [t["operate_s"] * 1000 for t in self._timing_files(entities) if t.get("tries") == 1]
         parts: dict[str, list[float]] = {}
-        for e in entities:
-            for k, v in phases(self.cell.cfg.log_dir / log_file_name(f"lot:{e}")).items():
+        for timing in self._timing_files(entities):
+            for k, v in phases(timing.get("events", [])).items():
                 parts.setdefault(k, []).append(v * 1000)
         return overhead, {k: summary(v) for k, v in parts.items()}
 
@@ -431,28 +428,19 @@ class CellBench:
             killed_at = time.time()
             for p in machine_procs(self.cell.cfg, victim):
                 self.cell.kill(p.name)
-            rerouted = None
-            path = self.cell.cfg.log_dir / log_file_name(f"lot:{entity}")
-            while rerouted is None:
-                self.operator(decided, [entity])
-                for t, text in log_events(path):
-                    hit = PHASES[1][1].search(text)
-                    if t >= killed_at and hit and hit.group(1).rstrip(",") == other:
-                        rerouted = t
-                        break
-                if time.monotonic() > deadline:
-                    raise GwcError(
-                        f"death trial {k + 1}: entity {entity} was not given {other} after {victim} died (see {path})"
-                    )
-                time.sleep(POLL * 5)
-            times.append(rerouted - killed_at)
-            self.say(f"  trial {k + 1}: {victim} killed, lot on {other} after {rerouted - killed_at:.2f}s")
-            for p in machine_procs(self.cell.cfg, victim):
-                self.cell.restart(p.name)
+            # The lot finishes on the other machine; when it was given it, its timing file says (a BOUND event).
             while self.operator(decided, [entity]).get(entity) not in FINAL:
                 if time.monotonic() > deadline:
                     raise GwcError(f"death trial {k + 1}: entity {entity} did not finish")
                 time.sleep(POLL * 5)
+            (timing,) = self._timing_files([entity]) or [{}]
+            rerouted = bound_to(timing.get("events", []), other, killed_at)
+            if rerouted is None:
+                raise GwcError(f"death trial {k + 1}: entity {entity} was not given {other} after {victim} died")
+            times.append(rerouted - killed_at)
+            self.say(f"  trial {k + 1}: {victim} killed, lot on {other} after {rerouted - killed_at:.2f}s")
+            for p in machine_procs(self.cell.cfg, victim):
+                self.cell.restart(p.name)
             self.machine_up(victim)
         return times
 

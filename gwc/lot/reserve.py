@@ -12,6 +12,7 @@ from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import LotError, LotTimeout, RequestCancelled, RequestRefused
+from gwc.lot.events import Phase, event
 from gwc.lot.model import BOUND_AT_ONCE, POLL, UP, Alternative, MachineRequest, Reservation, S
 from gwc.lot.talk import EntityTalk
 
@@ -54,7 +55,7 @@ class EntityReserve(EntityTalk):
         )
         for a in alts:
             if a.ack is not None and a.ack.ack_code == AckCode.ACK_OK:
-                self.log.info("request %s for %s (%s) queued", a.key, op_type, a.describe())
+                self.log.info("request %s for %s (%s) queued", a.key, op_type, a.describe(), extra=event(Phase.QUEUED))
             elif a.sibling_cancelled:
                 self.log.info("request for %s (%s) not queued: another alternative is bound", op_type, a.describe())
             else:
@@ -114,6 +115,7 @@ class EntityReserve(EntityTalk):
                 ", ".join(res.machines),
                 res.op_type,
                 res.request_key,
+                extra=event(Phase.BOUND, res.machines[0] if res.machines else None),
             )
             self.report(S.RUNNING)
             return res
@@ -228,7 +230,9 @@ class EntityReserve(EntityTalk):
                     f"MSCHED refused to unreserve {machine_id or 'the machines'} of entity {self.entity_id}: "
                     f"{ack.ack_code}"
                 )
-            self.log.info("unreserved %s (%s freed)", machine_id or "all machines", ack.freed)
+            self.log.info(
+                "unreserved %s (%s freed)", machine_id or "all machines", ack.freed, extra=event(Phase.UNRESERVED)
+            )
             return int(ack.freed or 0)
 
         return freed

@@ -11,6 +11,7 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import MachineDied, MachineLost, RunFailed, RunInDoubt
+from gwc.lot.events import Phase, event
 from gwc.lot.model import ENDED, RELEASES, SHUT, Reservation, Run, S, now_text
 from gwc.lot.reserve import EntityReserve
 
@@ -48,6 +49,7 @@ class EntityRuns(EntityReserve):
             machine_run_id,
             machine_id,
             recipe_id or "(its own)",
+            extra=event(Phase.SETUP, machine_id),
         )
         msg = message(
             Msg.SETUP_RUN,
@@ -73,7 +75,7 @@ class EntityRuns(EntityReserve):
                 f"({recipe_id or op_type}): {ack.ack_code}" + (f" ({ack.note})" if ack.note else "")
             )
         if start:
-            self.log.info("run %d started on %s", machine_run_id, machine_id)
+            self.log.info("run %d started on %s", machine_run_id, machine_id, extra=event(Phase.STARTED, machine_id))
         return str(ack.recipe_id or recipe_id or "")  # (a WC names the recipe it set up)
 
     def start_run(self, machine_id: str, machine_run_id: int) -> None:
@@ -93,7 +95,7 @@ class EntityRuns(EntityReserve):
                 f"{machine_id} refused to start run {machine_run_id}: {ack.ack_code}"
                 + (f" ({ack.note})" if ack.note else "")
             )
-        self.log.info("run %d started on %s", machine_run_id, machine_id)
+        self.log.info("run %d started on %s", machine_run_id, machine_id, extra=event(Phase.STARTED, machine_id))
 
     def _begin(self, machine_id: str, machine_run_id: int, anew: bool) -> float:
         """The run's life on the machine begins now (anew: with this setup; else unless its setup began
@@ -158,9 +160,8 @@ class EntityRuns(EntityReserve):
                 poll=lambda: self._poll_run(machine_run_id, machines, started),
             )
             if done:
-                self.log.info(
-                    "run %d complete: %s", machine_run_id, ", ".join(f"{m} {c}" for m, c in by_machine.items())
-                )
+                results = ", ".join(f"{m} {c}" for m, c in by_machine.items())
+                self.log.info("run %d complete: %s", machine_run_id, results, extra=event(Phase.COMPLETE))
                 return by_machine
             outcomes = self._run_outcomes(machine_run_id, list(by_machine))
             with self._cond:
