@@ -411,7 +411,8 @@ class Module:
                     handler = self.handlers().get(conv.cls)
                     if handler is None or not self.serves(conv.cls):
                         self.log.info("ignored %s from %s: not served now", head.name, conv.first.sender)
-                        await self._refuse(conv, AckCode.NOTNOW, NOT_STARTED)
+                        why = NOT_STARTED if handler is not None else f"{self.name} does not serve {conv.cls}"
+                        await self._refuse(conv, AckCode.NOTNOW, why)
                     else:
                         await handler(conv)
             except asyncio.CancelledError:

@@ -473,6 +473,36 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
 }
 
 
+# How each conversation with more than one answer goes: who sends what, and which message ends it
+# (docs/conversations.md prints a line per class; a class of one or two messages is described by
+# sequence() alone). "->" is the other side's turn; a refusal is always the class's ack message
+# with a code other than ACK_OK, and it ends the conversation.
+SEQUENCES = {
+    "STARTUP": "Startup_Request -> Startup_Ack (Notnow ends it: already started; ACK_OK: the start begins) "
+    "-> Startup_Complete, which ends it (its ack_code says how the start went)",
+    "SHUTDOWN": "Shutdown_Request -> Shutdown_Ack (Notnow ends it: not started; ACK_OK: the stop begins) "
+    "-> Shutdown_Complete, which ends it",
+    "ME_START": "Startup_Request (module = the WC's bus name, wc:<machine>) -> Startup_Ack (Notnow ends it; "
+    "ACK_OK: the ME homes, which may wait for the operator) -> ME_Ready, which ends it (ACK_OK: Idle; else "
+    "Start_Fail, REQ_CANCEL when a stop came first). Startup_Complete is not used in it",
+    "ME_SHUT": "Shutdown_Request (module = wc:<machine>) -> Shutdown_Ack (Notnow ends it) -> ME_Stopped, "
+    "which ends it. Shutdown_Complete is not used in it",
+    "MACH_REQ": "Machine_Request + N x Machine_Entry (one batch) -> Machine_Req_Ack (a code other than ACK_OK "
+    "ends it; ACK_OK carries the request_key) -> later, Machine_Req_Comp (+ N x Reserved_Machine when "
+    "ACK_OK: bound; else NO_MACHINE or REQ_CANCEL) -> Request_Comp_Ack from the asker, which ends it",
+}
+
+
+def sequence(cls: str) -> str:
+    """How a conversation of class `cls` goes, in one line (docs/conversations.md)."""
+    if cls in SEQUENCES:
+        return SEQUENCES[cls]
+    messages = CONVERSATION_CLASSES[cls].messages
+    if len(messages) == 1:
+        return f"{messages[0]}, broadcast (or addressed to one module); nobody answers: the opener ends it"
+    return f"{messages[0]} -> {messages[1]}, which ends it (ACK_OK or a refusal)"
+
+
 # The conversation classes a lot entity starts or answers: all that receivers accept under the lot
 # key (docs/security.md). Everything else a lot script sends is refused Not_Auth. The server of each
 # checks that the asker lot:E holds what it asks about (Listing 1's calls, docs/lot-scripts.md): a WC

@@ -36,6 +36,7 @@ def test_a_directed_opener_a_module_does_not_serve_is_answered_notnow(servers: C
     bus = servers.bus
     status = ask(bus, "GET_STATUS", message("Get_Status", machine_id="wc1"), to="sls")
     assert (status.name, status.ack_code, status.machine_id) == ("Status_Reply", AckCode.NOTNOW, "wc1")
+    assert status.note == "sls does not serve GET_STATUS"
     line = ask(bus, "STATUS_LN", message("Status_Line_Get"), to="ms")
     assert (line.name, line.ack_code) == ("Status_Line", AckCode.NOTNOW) and line.text.startswith("Notnow")
     action = ask(bus, "LOT_ACTION", message("Lot_Action", entity_id=1, action="hold", by="test"), to="ms")
