@@ -20,7 +20,6 @@ import logging
 import time
 from typing import Any
 
-from gwc import db
 from gwc.config import Config
 from gwc.errors import GwcError, Refused
 from gwc.ipc.bus import Conversation, Peer
@@ -113,36 +112,16 @@ class LotServer(Server, Module):
         """LOT_ACTION: an operator's action on an entity done through another module (a cancel, told
         MSCHED), kept in the entity's history with who did it."""
         req = self.request(conv)
-        ack = Msg.LOT_ACTION_ACK
         if not str(req.action).strip() or not str(req.by).strip():
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "a lot action needs an action and who did it")
-        row = self.transaction(
-            db.Statement(
-                "insert into operator_actions (entity_id, lot_id, action, by, note) "
-                "select entity_id, lot_id, %s, %s, %s from lot_status where entity_id = %s returning lot_id",
-                (req.action[:100], req.by[:200], req.note, req.entity_id),
-            )
-        )
-        if row is None:
-            return await self.answer(conv, ack, AckCode.UNKNOWN, f"no entity {req.entity_id}")
+            raise Refused(AckCode.BAD_MESSAGE, "a lot action needs an action and who did it")
+        lot_id = self.transaction(lot_store.record_action(req.entity_id, req.action, req.by, req.note))
         self.log.info("entity %d: %s by %s", req.entity_id, req.action, req.by)
-        await self.answer(conv, ack, AckCode.ACK_OK, lot_id=row[0])
+        await self.answer(conv, Msg.LOT_ACTION_ACK, lot_id=lot_id)
 
     async def on_startup(self) -> str:
         """Watch the scripts of entities at work (they had a script when we were last up)."""
-
-        def attached(cur: Any) -> list[int]:
-            return [
-                r[0]
-                for r in cur.execute(
-                    "select s.entity_id from lot_status s join lot_entities e using (entity_id) "
-                    "where s.script_pid is not null and e.destroyed_at is null and s.state <> all(%s)",
-                    ([str(s) for s in FINISHED],),
-                ).fetchall()
-            ]
-
         now = time.monotonic()
-        self.watched = {e: now for e in self.transaction(attached)}
+        self.watched = {e: now for e in self.transaction(lot_store.attached_entities)}
         self.log.info("watching the scripts of %d entities", len(self.watched))
         return AckCode.ACK_OK
 
@@ -192,18 +171,7 @@ class LotServer(Server, Module):
         reason = f"lot script died ({why})"
 
         def fail(cur: Any) -> bool:
-            row = cur.execute(
-                "select s.state from lot_status s join lot_entities e using (entity_id) "
-                "where s.entity_id = %s and e.destroyed_at is null for update of s",
-                (entity_id,),
-            ).fetchone()
-            if row is None or L(row[0]) in FINISHED:
-                return False
-            cur.execute(
-                "update lot_status set state = 'failed', reason = %s, updated_at = now() where entity_id = %s",
-                (reason, entity_id),
-            )
-            return True
+            return lot_store.fail_unless_finished(cur, entity_id, reason)
 
         if not await self.transaction_when_up(fail):  # a dead script is reaped once the database is back
             return
@@ -299,7 +267,7 @@ class LotServer(Server, Module):
         ack = Msg.LOT_DECISION_ACK
         if req.action not in DECISIONS[conv.cls]:
             known = ", ".join(DECISIONS[conv.cls])
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"{conv.cls} decides {known}, not {req.action!r}")
+            raise Refused(AckCode.BAD_MESSAGE, f"{conv.cls} decides {known}, not {req.action!r}")
         action = req.action
         waiting, moved, done = DECISIONS[conv.cls][action]
         by = req.by or conv.peer
@@ -310,24 +278,10 @@ class LotServer(Server, Module):
         what = action if conv.cls in (Conv.IMPORT_LOT, Conv.EXPORT_LOT) else f"release {action}"
         record = (str(what), str(by)) if self.cfg.record.history else None
         row = self.transaction(lot_store.move(req.entity_id, moved, waiting, reason, keep=True, action=record))
-        if row is not None:
-            code, lot_id, note = AckCode.ACK_OK, row[0], None
-        else:
-            row = self.transaction(
-                db.Statement(
-                    "select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
-                    "where s.entity_id = %s and e.destroyed_at is null",
-                    (req.entity_id,),
-                )
-            )
-            if row is None:
-                code, lot_id, note = AckCode.UNKNOWN, None, f"no entity {req.entity_id}"
-            else:
-                need = " or ".join(sorted(waiting))
-                code, lot_id, note = AckCode.NOTNOW, row[0], f"entity {req.entity_id} is {row[1]}, not {need}"
-        await self.answer(conv, ack, code, note, lot_id=lot_id)
-        if code != AckCode.ACK_OK:
-            return
+        if row is None:  # not moved: why not, refused (Notnow with its lot, or Unknown)
+            self.transaction(lot_store.why_not_moved(req.entity_id, waiting))
+        lot_id = row[0] if row else None
+        await self.answer(conv, ack, lot_id=lot_id)
         if moved in FINISHED:
             self.watched.pop(req.entity_id, None)
         self.log.info("entity %d (lot %s) %s by %s", req.entity_id, lot_id, done, by)
@@ -345,63 +299,17 @@ class LotServer(Server, Module):
         """DIV_MERGE: divide splits `quantity` new entities off one (same lot and state, parent set);
         merge folds other_entity_id into entity_id (the other is destroyed). Only before work starts."""
         req = self.request(conv)
-        ack = Msg.DIVIDE_MERGE_ACK
-        still = (L.CREATED, L.IMPORTED)
         if req.action not in ("divide", "merge"):
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"action {req.action!r} is not divide or merge")
+            raise Refused(AckCode.BAD_MESSAGE, f"action {req.action!r} is not divide or merge")
         n = 1 if req.quantity is None else req.quantity
         if req.action == "divide" and not 0 < n <= MAX_QUANTITY:
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
+            raise Refused(AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
         if req.action == "merge" and (req.other_entity_id is None or req.other_entity_id == req.entity_id):
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "merge needs another entity (other_entity_id)")
+            raise Refused(AckCode.BAD_MESSAGE, "merge needs another entity (other_entity_id)")
         asker = lot_parent(conv.initiator)  # a lot script divides itself, merges its own children into itself
         if asker is not None and req.entity_id != asker:
-            return await self.answer(conv, ack, AckCode.NOT_AUTH, f"{conv.initiator} divides and merges itself only")
-
-        def lookup(cur: Any, eid: int) -> tuple[int, str] | None:
-            return cur.execute(
-                "select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
-                "where s.entity_id = %s and e.destroyed_at is null for update of s",
-                (eid,),
-            ).fetchone()
-
-        def step(cur: Any) -> tuple[str, list[int] | None, str | None]:
-            me = lookup(cur, req.entity_id)
-            other = lookup(cur, req.other_entity_id) if req.action == "merge" else None
-            if me is None or (req.action == "merge" and other is None):
-                missing = req.entity_id if me is None else req.other_entity_id
-                return AckCode.UNKNOWN, None, f"no entity {missing}"
-            if (
-                req.action == "merge"
-                and asker is not None
-                and not cur.execute(
-                    "select 1 from lot_entities where entity_id = %s and parent_entity_id = %s",
-                    (req.other_entity_id, asker),
-                ).fetchone()
-            ):
-                return AckCode.NOT_AUTH, None, f"entity {req.other_entity_id} is not a child of {conv.initiator}"
-            for eid, (_lot, state) in ((req.entity_id, me), (req.other_entity_id, other or me)):
-                if state not in still:
-                    return AckCode.NOTNOW, None, f"entity {eid} is {state}: only created or imported ones"
-            if req.action == "merge":
-                if other[0] != me[0] or other[1] != me[1]:  # type: ignore[index]
-                    return AckCode.NOTNOW, None, "only entities of one lot and one state merge"
-                cur.execute("update lot_entities set destroyed_at = now() where entity_id = %s", (req.other_entity_id,))
-                return AckCode.ACK_OK, [req.entity_id], f"entity {req.other_entity_id} merged into {req.entity_id}"
-            ids = [req.entity_id]
-            for _ in range(n):
-                eid = db.get_new_max_value(cur, "ENTITY_ID")
-                cur.execute(
-                    "insert into lot_entities (entity_id, lot_id, parent_entity_id) values (%s, %s, %s)",
-                    (eid, me[0], req.entity_id),
-                )
-                cur.execute(
-                    "insert into lot_status (entity_id, lot_id, state) values (%s, %s, %s)", (eid, me[0], me[1])
-                )
-                ids.append(eid)
-            return AckCode.ACK_OK, ids, None
-
-        code, ids, note = self.transaction(step)
-        if code == AckCode.ACK_OK:
-            self.log.info("%s of entity %d: %s", req.action, req.entity_id, note or ids)
-        await self.answer(conv, ack, code, note, entity_ids=ids)
+            raise Refused(AckCode.NOT_AUTH, f"{conv.initiator} divides and merges itself only")
+        asked = req.action, req.entity_id, req.other_entity_id, n, asker
+        ids, note = self.transaction(lambda cur: lot_store.divide_merge(cur, *asked))
+        self.log.info("%s of entity %d: %s", req.action, req.entity_id, note or ids)
+        await self.answer(conv, Msg.DIVIDE_MERGE_ACK, note=note, entity_ids=ids)

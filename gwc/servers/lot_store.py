@@ -247,3 +247,107 @@ def new_lot_for(cur: Any, entity_id: int, old_lot: int) -> int:
         (entity_id, lot_id, *st),
     )
     return lot_id
+
+
+def record_action(entity_id: int, action: str, by: str, note: str | None) -> db.Statement:
+    """An operator's action on an entity done through another module (LOT_ACTION), kept in its history:
+    the entity's lot_id; Refused UNKNOWN for no such entity."""
+
+    def into(row: tuple[int] | None) -> int:
+        if row is None:
+            raise Refused(AckCode.UNKNOWN, f"no entity {entity_id}")
+        return row[0]
+
+    return db.Statement(
+        "insert into operator_actions (entity_id, lot_id, action, by, note) "
+        "select entity_id, lot_id, %s, %s, %s from lot_status where entity_id = %s returning lot_id",
+        (action[:100], by[:200], note, entity_id),
+        into=into,
+    )
+
+
+def attached_entities(cur: Any) -> list[int]:
+    """Entities at work whose script attached (had one when the Lot Server was last up)."""
+    rows = cur.execute(
+        "select s.entity_id from lot_status s join lot_entities e using (entity_id) "
+        "where s.script_pid is not null and e.destroyed_at is null and s.state <> all(%s)",
+        ([str(s) for s in FINISHED],),
+    ).fetchall()
+    return [r[0] for r in rows]
+
+
+def fail_unless_finished(cur: Any, entity_id: int, reason: str) -> bool:
+    """A dead script's entity fails, if it is still at work; whether it did."""
+    row = cur.execute(
+        "select s.state from lot_status s join lot_entities e using (entity_id) "
+        "where s.entity_id = %s and e.destroyed_at is null for update of s",
+        (entity_id,),
+    ).fetchone()
+    if row is None or LotState(row[0]) in FINISHED:
+        return False
+    cur.execute(
+        "update lot_status set state = 'failed', reason = %s, updated_at = now() where entity_id = %s",
+        (reason, entity_id),
+    )
+    return True
+
+
+def why_not_moved(entity_id: int, waiting: frozenset[LotState]) -> db.Statement:
+    """After a decision's move() found the entity in none of `waiting`: Refused UNKNOWN (no such entity)
+    or NOTNOW (its state, and its lot_id), read as a snapshot of its own."""
+
+    def into(row: tuple[int, str] | None) -> None:
+        if row is None:
+            raise Refused(AckCode.UNKNOWN, f"no entity {entity_id}")
+        need = " or ".join(sorted(waiting))
+        raise Refused(AckCode.NOTNOW, f"entity {entity_id} is {row[1]}, not {need}", lot_id=row[0])
+
+    return db.Statement(
+        "select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
+        "where s.entity_id = %s and e.destroyed_at is null",
+        (entity_id,),
+        into=into,
+    )
+
+
+def _entity_row(cur: Any, entity_id: int) -> tuple[int, str] | None:
+    return cur.execute(
+        "select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
+        "where s.entity_id = %s and e.destroyed_at is null for update of s",
+        (entity_id,),
+    ).fetchone()
+
+
+def divide_merge(
+    cur: Any, action: str, entity_id: int, other: int | None, quantity: int, asker: int | None
+) -> tuple[list[int], str | None]:
+    """DIV_MERGE: divide splits `quantity` new entities off one (same lot and state, parent set); merge
+    folds `other` into `entity_id` (the other is destroyed). Only created or imported entities; a lot
+    script (`asker`) merges only its own children. The entities it leaves, and a note."""
+    me = _entity_row(cur, entity_id)
+    them = _entity_row(cur, other) if action == "merge" and other is not None else None
+    if me is None or (action == "merge" and them is None):
+        raise Refused(AckCode.UNKNOWN, f"no entity {entity_id if me is None else other}")
+    if action == "merge" and asker is not None:
+        child = "select 1 from lot_entities where entity_id = %s and parent_entity_id = %s"
+        if not cur.execute(child, (other, asker)).fetchone():
+            raise Refused(AckCode.NOT_AUTH, f"entity {other} is not a child of lot:{asker}")
+    for eid, (_lot, state) in ((entity_id, me), (other, them or me)):
+        if state not in (LotState.CREATED, LotState.IMPORTED):
+            raise Refused(AckCode.NOTNOW, f"entity {eid} is {state}: only created or imported ones")
+    if action == "merge":
+        assert them is not None
+        if them != me:
+            raise Refused(AckCode.NOTNOW, "only entities of one lot and one state merge")
+        cur.execute("update lot_entities set destroyed_at = now() where entity_id = %s", (other,))
+        return [entity_id], f"entity {other} merged into {entity_id}"
+    ids = [entity_id]
+    for _ in range(quantity):
+        eid = db.get_new_max_value(cur, "ENTITY_ID")
+        cur.execute(
+            "insert into lot_entities (entity_id, lot_id, parent_entity_id) values (%s, %s, %s)",
+            (eid, me[0], entity_id),
+        )
+        cur.execute("insert into lot_status (entity_id, lot_id, state) values (%s, %s, %s)", (eid, me[0], me[1]))
+        ids.append(eid)
+    return ids, None

@@ -21,7 +21,6 @@ import logging
 import os
 import re
 from pathlib import Path
-from typing import Any
 
 from gwc.config import Config
 from gwc.errors import Refused
@@ -76,11 +75,8 @@ class RecipeServer(Server, Module):
     async def on_startup(self) -> str:
         """Give every version its library file if it has none (first start, a new var/)."""
 
-        def versions(cur: Any) -> list[tuple[str, int, bytes]]:
-            return cur.execute("select recipe_id, version, content from recipe_versions").fetchall()
-
         written = 0
-        for recipe_id, version, content in self.transaction(versions):
+        for recipe_id, version, content in self.transaction(recipe_store.all_versions):
             path = version_path(self.cfg, recipe_id, version)
             if not path.exists():
                 _write(path, bytes(content))

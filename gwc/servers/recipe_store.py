@@ -55,6 +55,12 @@ class Approval:
     new_file: bytes | None
 
 
+def all_versions(cur: Any) -> list[tuple[str, int, bytes]]:
+    """(recipe_id, version, content) of every version kept: what the library's files hold."""
+    rows = cur.execute("select recipe_id, version, content from recipe_versions").fetchall()
+    return [(r, v, bytes(c)) for r, v, c in rows]
+
+
 def approved(recipe_id: str, machine_id: str | None) -> Statement:
     """The approved version of a recipe for a machine (any machine when None); Refused REC_INVAL when
     the recipe is unknown, has no approved version, or is not for that machine."""

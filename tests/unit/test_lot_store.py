@@ -108,3 +108,35 @@ def test_attach_answers_the_lot_script_and_an_exported_entity_comes_back_in_a_ne
     assert back.state == LotState.WAITING_IMPORT and back.lot_id != made.lot_id
     assert back.note == f"re-imported entity: lot {made.lot_id} -> lot {back.lot_id}"
     assert states(ls, [eid]) == ["waiting_import"]
+
+
+def test_divide_merge_split_and_fold_back_only_before_work_and_only_ones_own(ls: psycopg.Connection[Any]) -> None:
+    (eid,) = step(ls, lambda cur: lot_store.create_lot(cur, NewLot("alum_chess_set", 1))).entity_ids
+    ids, note = step(ls, lambda cur: lot_store.divide_merge(cur, "divide", eid, None, 2, None))
+    assert ids[0] == eid and len(ids) == 3 and note is None
+    assert states(ls, ids) == ["created"] * 3
+    with pytest.raises(Refused) as refused:  # lot:999 merges only its own children
+        step(ls, lambda cur: lot_store.divide_merge(cur, "merge", eid, ids[1], 1, 999))
+    assert refused.value.ack_code == AckCode.NOT_AUTH
+    kept, note = step(ls, lambda cur: lot_store.divide_merge(cur, "merge", eid, ids[1], 1, eid))
+    assert kept == [eid] and note == f"entity {ids[1]} merged into {eid}"
+    ls.execute("update lot_status set state = 'running' where entity_id = %s", (ids[2],))
+    ls.commit()
+    with pytest.raises(Refused) as refused:
+        step(ls, lambda cur: lot_store.divide_merge(cur, "merge", eid, ids[2], 1, None))
+    assert refused.value.ack_code == AckCode.NOTNOW and "only created or imported" in refused.value.detail
+
+
+def test_an_operator_action_is_kept_and_a_refused_decision_says_why(ls: psycopg.Connection[Any]) -> None:
+    made = step(ls, lambda cur: lot_store.create_lot(cur, NewLot("alum_chess_set", 1)))
+    (eid,) = made.entity_ids
+    assert step(ls, lot_store.record_action(eid, "cancel", "op", None)) == made.lot_id
+    with pytest.raises(Refused) as refused:
+        step(ls, lot_store.record_action(424242, "cancel", "op", None))
+    assert refused.value.ack_code == AckCode.UNKNOWN
+    with pytest.raises(Refused) as refused:
+        step(ls, lot_store.why_not_moved(eid, frozenset({LotState.WAITING_EXPORT})))
+    assert refused.value.ack_code == AckCode.NOTNOW and refused.value.fields == {"lot_id": made.lot_id}
+    assert step(ls, lambda cur: lot_store.fail_unless_finished(cur, eid, "script died")) is True
+    assert states(ls, [eid]) == ["failed"]
+    assert step(ls, lambda cur: lot_store.fail_unless_finished(cur, eid, "again")) is False
