@@ -27,8 +27,7 @@ from gwc import db
 from gwc.agent import control as agent_control
 from gwc.config import Config
 from gwc.errors import ConfigError, ModuleError
-from gwc.ipc import keys
-from gwc.ipc.bus import BlockingBus, Bus
+from gwc.ipc import BlockingBus, Bus, keys
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg

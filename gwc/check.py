@@ -22,7 +22,7 @@ from typing import Any
 import psycopg
 
 from gwc.config import Config
-from gwc.ipc.bus import BlockingBus, Peer
+from gwc.ipc import BlockingBus, Peer
 from gwc.ipc.codes import LotState, MachineStatus
 from gwc.ipc.names import Conv
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import random
 import re
 import socket
 import tomllib
@@ -552,25 +551,3 @@ def dump_toml(doc: dict[str, Any]) -> str:
         for sub, table in subs.items():
             lines += ["", f"[{key}.{sub}]"] + [f"{k} = {toml_value(x)}" for k, x in table.items()]
     return "\n".join(lines).lstrip() + "\n"
-
-
-def write_config(path: Path, doc: dict[str, Any]) -> Config:
-    """Write a cell configuration (for tests, benchmarks and private cells) and load it back."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(dump_toml(doc))
-    cfg = load_config(path)
-    from gwc.ipc.keys import ensure  # here: the keys module builds on this one
-
-    ensure(cfg.bus)  # set-up: a private cell gets keys of its own
-    return cfg
-
-
-def private_bus(**settings: Any) -> dict[str, Any]:
-    """[bus] settings of a private cell (tests, benchmarks, soaks): a multicast group and port of its
-    own, so that it never hears another cell on this machine."""
-    rnd = random.SystemRandom()
-    return {
-        "group": f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
-        "port": rnd.randrange(20000, 60000),
-        **settings,
-    }

@@ -527,18 +527,23 @@ class Statement:
     The connection is left in the mode it was in.
     """
 
-    __slots__ = ("fetch", "params", "sql")
+    __slots__ = ("fetch", "into", "params", "sql")
 
-    def __init__(self, sql: str, params: Any = (), fetch: str | None = "one") -> None:
+    def __init__(
+        self, sql: str, params: Any = (), fetch: str | None = "one", into: Callable[[Any], Any] | None = None
+    ) -> None:
         if fetch not in ("one", "all", None):
             raise ValueError(f"fetch must be 'one', 'all' or None, not {fetch!r}")
         self.sql, self.params, self.fetch = sql, params, fetch
+        self.into = into  # what a store makes of the fetched row(s): a dataclass (or a refusal raised)
 
     def __call__(self, cur: psycopg.Cursor[Any]) -> Any:
         cur.execute(self.sql, self.params)
         if self.fetch == "one":
-            return cur.fetchone()
-        return cur.fetchall() if self.fetch == "all" else None
+            got = cur.fetchone()
+        else:
+            got = cur.fetchall() if self.fetch == "all" else None
+        return got if self.into is None else self.into(got)
 
 
 def _autocommit(conn: psycopg.Connection[Any], on: bool) -> bool:

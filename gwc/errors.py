@@ -71,8 +71,11 @@ class ModuleError(GwcError):
 
 
 class Refused(GwcError):
-    """A conversation was answered with an ack code other than ACK_OK."""
+    """A conversation was answered with an ack code other than ACK_OK; or, raised by a server's
+    handler or store, is to be (the module runtime answers it, with `fields` beside the code)."""
 
-    def __init__(self, ack_code: str, detail: str = "") -> None:
+    def __init__(self, ack_code: str, detail: str = "", **fields: object) -> None:
         self.ack_code = ack_code
+        self.detail = detail
+        self.fields = fields
         super().__init__(f"refused with {ack_code}" + (f": {detail}" if detail else ""))

@@ -34,7 +34,7 @@ import psycopg
 
 from gwc import db
 from gwc.config import Config, load_config
-from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, GwcError
+from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, GwcError, Refused
 from gwc.ipc import catalogue, eventloop
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
@@ -417,11 +417,15 @@ class Module:
                     handler = self.handlers().get(conv.cls)
                     if handler is None or not self.serves(conv.cls):
                         self.log.info("ignored %s from %s: not served now", head.name, conv.first.sender)
-                        await self._refuse(conv, AckCode.NOTNOW, NOT_STARTED)
+                        why = NOT_STARTED if handler is not None else f"{self.name} does not serve {conv.cls}"
+                        await self._refuse(conv, AckCode.NOTNOW, why)
                     else:
                         await handler(conv)
             except asyncio.CancelledError:
                 raise
+            except Refused as e:  # a handler's (or its store's) refusal: answered here, for every module
+                self.log.info("refused %s from %s: %s (%s)", conv.cls, conv.first.sender, e.ack_code, e.detail or "-")
+                await self._refuse(conv, e.ack_code, e.detail, **e.fields)
             except DatabaseUnavailable as e:
                 self.log.warning("%s from %s not served now: %s", head.name, conv.first.sender, e)
                 await self._refuse(conv, AckCode.DB_BADREA, str(e))
@@ -437,15 +441,15 @@ class Module:
             finally:
                 conv.end()
 
-    async def _refuse(self, conv: Conversation, code: str, note: str) -> None:
-        """Answer a conversation nobody answered yet with its class's ack message and `code`."""
-        if conv._idx or conv.first is None:
+    async def _refuse(self, conv: Conversation, code: str, note: str, **fields: Any) -> None:
+        """Answer a conversation nobody answered yet with its class's refusal: `code`, `note`, `fields`."""
+        if conv.sent or conv.first is None:
             return
-        answer = _ack_message_of(conv.cls)
+        answer = catalogue.refusal(conv.cls, code, note, conv.first.first.fields)
         if answer is None:
             return
         try:
-            await conv.send(answer(code, note))
+            await conv.send(message(answer.name, **answer.fields, **fields) if fields else answer)
         except GwcError as e:
             self.log.warning("could not refuse %s: %s", conv.cls, e)
 
@@ -524,21 +528,6 @@ class Module:
 def _readable(fd: int) -> bool:
     """Whether a socket has something to read (or was closed by its other end) now."""
     return bool(select.select([fd], [], [], 0)[0])
-
-
-def _ack_message_of(cls: str) -> Callable[[str, str], catalogue.Message] | None:
-    """The first answer message of a conversation class, if it can carry just an ack code."""
-    for name in catalogue.CONVERSATION_CLASSES[cls].messages[1:]:
-        mc = catalogue.MESSAGE_CLASSES[name]
-        names = {f.name for f in mc.fields}
-        required = {f.name for f in mc.fields if not f.nullable}
-        if "ack_code" in names and required <= {"ack_code"}:
-
-            def ack(code: str, note: str, name: str = name, has_note: bool = "note" in names) -> catalogue.Message:
-                return message(name, ack_code=code, **({"note": note[:500]} if has_note else {}))
-
-            return ack
-    return None
 
 
 def run_module(

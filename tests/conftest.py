@@ -25,7 +25,8 @@ import pytest
 from psycopg import sql
 
 from gwc import db
-from gwc.config import Config, write_config
+from gwc.config import Config
+from gwc.soak.private_config import write_config
 from tests.leaks import kill_on_termination, leak_check, unmarked
 
 TEMPLATE_DB = "gwc_template"

@@ -20,11 +20,12 @@ import psycopg
 from xprocess import ProcessStarter
 
 from gwc.cell import write_pid_file
-from gwc.config import Config, private_bus, write_config
-from gwc.ipc.bus import BlockingBus
+from gwc.config import Config
+from gwc.ipc import BlockingBus
 from gwc.log import log_file_name, open_log
 from gwc.me.cmm_sim import simulated
 from gwc.module import module_name
+from gwc.soak.private_config import private_bus, write_config
 
 T = TypeVar("T")
 SERVERS = ("cas", "ers", "ms", "ls", "sls", "msched")

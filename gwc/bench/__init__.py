@@ -61,3 +61,8 @@ def summary(values: Sequence[float]) -> dict[str, float]:
         "min": min(values),
         "max": max(values),
     }
+
+
+def brief(s: dict[str, float]) -> str:
+    """A summary() in one line: median, p99 and count."""
+    return f"median {s['median']:.1f}, p99 {s['p99']:.1f}, n {s['n']}"

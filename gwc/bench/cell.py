@@ -42,7 +42,7 @@ import psycopg
 
 from gwc import db
 from gwc.agent import control as agent_control
-from gwc.bench import cpu_s, reaped_cpu_s, summary
+from gwc.bench import brief, cpu_s, reaped_cpu_s, summary
 from gwc.bench.heal import freeze_trials
 from gwc.cell import machine_procs
 from gwc.check import check_cell
@@ -50,8 +50,8 @@ from gwc.client.orders import decide
 from gwc.client.session import context
 from gwc.errors import GwcError
 from gwc.ipc.codes import LotState
-from gwc.log import log_file_name
 from gwc.lot.entity import create_lot
+from gwc.lot.events import Phase
 from gwc.lot.run import spawn_lot_script
 from gwc.soak.cell import PrivateCell
 from gwc.soak.driver import PRODUCT, SCRIPT_ID, SCRIPT_PATH
@@ -62,15 +62,9 @@ POLL = 0.01  # the operator's look at the lots, when lots per second are measure
 SOLO_POLL = 0.05  # ... when one lot's own cost is: the operator's reads must not load the cell it measures
 FINAL = (LotState.EXPORTED.value, LotState.FAILED.value)
 
-# The lot library's log lines that mark the phases of an operation (gwc/lot/entity.py).
-PHASES = [
-    ("queued", re.compile(r"request \S+ for \S+ \(.*\) queued")),
-    ("bound", re.compile(r"got machine_run_id \d+ on (\S+) for")),
-    ("setup", re.compile(r"setting up (?:and starting )?run \d+ on")),
-    ("started", re.compile(r"run \d+ started on")),
-    ("complete", re.compile(r"run \d+ complete:")),
-    ("unreserved", re.compile(r"unreserved .* freed\)")),
-]
+# The phases of an operation, in order: the named events the lot library emits (gwc/lot/events.py),
+# which the bench's lot script leaves in its timing file (gwc/lot/scripts/soak.py).
+PHASES = [p.value for p in Phase]
 FLOOR_S = 30.0  # the resting floor is measured for at most this long
 
 # A process that only wakes once a heartbeat on the cell's event loop, and prints the CPU its wake-ups took:
@@ -102,15 +96,18 @@ def log_events(path: Path) -> list[tuple[float, str]]:
     return out
 
 
-def phases(path: Path) -> dict[str, float]:
-    """Seconds between the marks of a lot's (first) operation: queued->bound, bound->setup, ..."""
+def phases(events: list[list[Any]]) -> dict[str, float]:
+    """Seconds between the marks of a lot's (first) operation: queued->bound, bound->setup, ..., from
+    its named events ([phase, epoch seconds, machine] each)."""
     marks: dict[str, float] = {}
-    for t, text in log_events(path):
-        for name, rx in PHASES:
-            if name not in marks and rx.search(text):
-                marks[name] = t
-    names = [n for n, _ in PHASES]
-    return {f"{a}->{b}": marks[b] - marks[a] for a, b in itertools.pairwise(names) if a in marks and b in marks}
+    for phase, at, _machine in events:
+        marks.setdefault(phase, at)
+    return {f"{a}->{b}": marks[b] - marks[a] for a, b in itertools.pairwise(PHASES) if a in marks and b in marks}
+
+
+def bound_to(events: list[list[Any]], machine: str, since: float) -> float | None:
+    """When the lot was given `machine` (the first machine of a reservation) at or after `since`."""
+    return next((at for phase, at, m in events if phase == Phase.BOUND and m == machine and at >= since), None)
 
 
 class CellBench:
@@ -211,7 +208,7 @@ class CellBench:
         spawn_lot_script(self.cell.cfg, entities[0])
         return entities[0]
 
-    def _operator(self, decided: set[tuple[int, str]], entities: list[int]) -> dict[int, str]:
+    def operator(self, decided: set[tuple[int, str]], entities: list[int]) -> dict[int, str]:
         """Import and export what of `entities` waits; return their states. (Only theirs: the operator
         looks every 10 ms, and reading every lot's row would load the cell it measures.)"""
         assert self.conn is not None and self.cell.bus is not None
@@ -251,7 +248,7 @@ class CellBench:
                 lane[m] = self._order([[m]])
                 entities.append(lane[m])  # type: ignore[arg-type]
                 ordered += 1
-            states = self._operator(decided, [e for e in lane.values() if e is not None])
+            states = self.operator(decided, [e for e in lane.values() if e is not None])
             for m, e in lane.items():
                 if e is not None and states.get(e) in FINAL:
                     finished += 1
@@ -298,8 +295,8 @@ class CellBench:
         """Each lot's operation (request to unreserve, ms; lots that needed one try) and its phases."""
         overhead = [t["operate_s"] * 1000 for t in self._timing_files(entities) if t.get("tries") == 1]
         parts: dict[str, list[float]] = {}
-        for e in entities:
-            for k, v in phases(self.cell.cfg.log_dir / log_file_name(f"lot:{e}")).items():
+        for timing in self._timing_files(entities):
+            for k, v in phases(timing.get("events", [])).items():
                 parts.setdefault(k, []).append(v * 1000)
         return overhead, {k: summary(v) for k, v in parts.items()}
 
@@ -334,7 +331,7 @@ class CellBench:
     ) -> dict[int, str]:
         deadline = time.monotonic() + LOT_TIMEOUT
         while True:
-            now = self._operator(decided, entities)
+            now = self.operator(decided, entities)
             if all(now.get(e) in states for e in entities):
                 return now
             if time.monotonic() > deadline:
@@ -431,29 +428,20 @@ class CellBench:
             killed_at = time.time()
             for p in machine_procs(self.cell.cfg, victim):
                 self.cell.kill(p.name)
-            rerouted = None
-            path = self.cell.cfg.log_dir / log_file_name(f"lot:{entity}")
-            while rerouted is None:
-                self._operator(decided, [entity])
-                for t, text in log_events(path):
-                    hit = PHASES[1][1].search(text)
-                    if t >= killed_at and hit and hit.group(1).rstrip(",") == other:
-                        rerouted = t
-                        break
+            # The lot finishes on the other machine; when it was given it, its timing file says (a BOUND event).
+            while self.operator(decided, [entity]).get(entity) not in FINAL:
                 if time.monotonic() > deadline:
-                    raise GwcError(
-                        f"death trial {k + 1}: entity {entity} was not given {other} after {victim} died (see {path})"
-                    )
+                    raise GwcError(f"death trial {k + 1}: entity {entity} did not finish")
                 time.sleep(POLL * 5)
+            (timing,) = self._timing_files([entity]) or [{}]
+            rerouted = bound_to(timing.get("events", []), other, killed_at)
+            if rerouted is None:
+                raise GwcError(f"death trial {k + 1}: entity {entity} was not given {other} after {victim} died")
             times.append(rerouted - killed_at)
             self.say(f"  trial {k + 1}: {victim} killed, lot on {other} after {rerouted - killed_at:.2f}s")
             for p in machine_procs(self.cell.cfg, victim):
                 self.cell.restart(p.name)
-            while self._operator(decided, [entity]).get(entity) not in FINAL:
-                if time.monotonic() > deadline:
-                    raise GwcError(f"death trial {k + 1}: entity {entity} did not finish")
-                time.sleep(POLL * 5)
-            self._machine_up(victim)
+            self.machine_up(victim)
         return times
 
     def running_lot(self, what: str) -> tuple[int, str, float, set[tuple[int, str]]]:
@@ -464,7 +452,7 @@ class CellBench:
         decided: set[tuple[int, str]] = set()
         deadline = time.monotonic() + LOT_TIMEOUT
         while True:
-            self._operator(decided, [entity])
+            self.operator(decided, [entity])
             row = self.conn.execute(
                 "SELECT r.machine_id FROM reserved_machines r JOIN machine_status s USING (machine_id) "
                 "WHERE r.entity_id = %s AND s.status = 'Running'",
@@ -476,7 +464,7 @@ class CellBench:
                 raise GwcError(f"{what}: the lot's run never started (entity {entity})")
             time.sleep(POLL)
 
-    def _machine_up(self, machine: str) -> None:
+    def machine_up(self, machine: str) -> None:
         """The killed machine back up (its WC resumes it or it needs ME_START), ready for the next trial."""
         assert self.conn is not None
         deadline = time.monotonic() + LOT_TIMEOUT
@@ -525,10 +513,6 @@ def _lot_script(pid: int, cmd: str) -> bool:
         return "gwc.lot.run" in cmd or Path(f"/proc/{pid}/comm").read_text().startswith("lot:")
     except OSError:
         return False
-
-
-def _ms(s: dict[str, float]) -> str:
-    return f"median {s['median']:.1f}, p99 {s['p99']:.1f}, n {s['n']}"
 
 
 @click.command("cell")
@@ -646,23 +630,23 @@ def command(
     )
     click.echo(
         f"  overhead per lot with {result['at_once']} lots at once, request to unreserve (ms): "
-        f"{_ms(result['loaded_overhead_ms'])}"
+        f"{brief(result['loaded_overhead_ms'])}"
     )
     for k, v in result["loaded_phases_ms"].items():
-        click.echo(f"    {k:22s} (ms): {_ms(v)}")
+        click.echo(f"    {k:22s} (ms): {brief(v)}")
     click.echo(
         f"  per lot: {result['db_commits_per_lot']} database commits; CPU (ms) "
         + ", ".join(f"{k} {v}" for k, v in result["loaded_cpu_ms_per_lot"].items())
     )
     if "overhead_ms" in result:
         click.echo(
-            f"overhead per lot, one lot at a time, request to unreserve (ms): {_ms(result['overhead_ms'])} "
+            f"overhead per lot, one lot at a time, request to unreserve (ms): {brief(result['overhead_ms'])} "
             f"({result['solo_failed']} failed)"
         )
         for k, v in result["phases_ms"].items():
-            click.echo(f"    {k:22s} (ms): {_ms(v)}")
+            click.echo(f"    {k:22s} (ms): {brief(v)}")
     if "death_to_reroute_s" in result:
-        click.echo(f"death to reroute (s): {_ms(result['death_to_reroute_s'])}")
+        click.echo(f"death to reroute (s): {brief(result['death_to_reroute_s'])}")
     if "freezes" in result:
         f = result["freezes"]
         click.echo(

@@ -41,7 +41,7 @@ def freeze_trials(bench: CellBench, trials: int, freeze: float = FREEZE) -> dict
             time.sleep(freeze)
         finally:
             os.kill(pid, signal.SIGCONT)
-        while (state := bench._operator(decided, [entity]).get(entity)) not in ("exported", "failed"):
+        while (state := bench.operator(decided, [entity]).get(entity)) not in ("exported", "failed"):
             if time.monotonic() > deadline:
                 raise GwcError(f"freeze trial {k + 1}: entity {entity} did not finish")
             time.sleep(0.05)
@@ -49,7 +49,7 @@ def freeze_trials(bench: CellBench, trials: int, freeze: float = FREEZE) -> dict
         twice += len(runs) > 1
         ended[state] = ended.get(state, 0) + 1
         bench.say(f"  trial {k + 1}: wc:{victim} frozen {freeze:g}s; lot {state}, runs done: {runs}")
-        bench._machine_up(victim)
+        bench.machine_up(victim)
     return {"trials": trials, "freeze_s": freeze, "runs_done_twice": twice, "lots": ended}
 
 

@@ -14,7 +14,8 @@ from typing import Any
 
 import click
 
-from gwc.bench.cell import CellBench, _ms
+from gwc.bench import brief
+from gwc.bench.cell import CellBench
 from gwc.client.session import context
 
 
@@ -60,7 +61,7 @@ def compare_history(where: Path, machines: int, lots: int, pairs: int, as_json: 
         click.echo(f"  {machines} at once, overhead {what} (ms): {off[k]:8.2f} | {on[k]:8.2f}")
     for label in ("off", "on"):
         each = [
-            f"{r['lots_per_s']:.2f} lots/s, {_ms(r['loaded_overhead_ms'])} ms, check "
+            f"{r['lots_per_s']:.2f} lots/s, {brief(r['loaded_overhead_ms'])} ms, check "
             + ("held" if r["check_held"] else "BROKEN")
             for r in runs[label]
         ]

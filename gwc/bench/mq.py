@@ -29,10 +29,10 @@ import click
 import posix_ipc
 
 from gwc.bench import pin_cpu, summary
-from gwc.config import write_config
 from gwc.errors import GwcError, QueueTimeout
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import LAYOUT_SIZE, Channel, MeMessage, MessageId, open_queue, queue_names, remove_queues
+from gwc.soak.private_config import write_config
 from gwc.wc.link import MeLink
 
 WARMUP = 200

@@ -30,16 +30,17 @@ from typing import Any
 import click
 from asyncua import Client, Node, ua
 
-from gwc.bench import summary
-from gwc.bench.cell import _ms, log_events
+from gwc.bench import brief, summary
+from gwc.bench.cell import log_events
 from gwc.client.session import context
-from gwc.config import load_config, write_config
+from gwc.config import load_config
 from gwc.errors import GwcError
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.names import Conv
 from gwc.log import log_file_name
 from gwc.module import module_name
 from gwc.retry import Deadline
+from gwc.soak.private_config import write_config
 
 # Ten variables of each machine, the status first: what a dashboard of the cell would watch.
 WATCHED = (
@@ -256,7 +257,7 @@ def command(machines: int, lots: int, items: int, interval: float, where: Path |
         f"({result['lots_per_s'] or 0:.2f} lots/s)"
     )
     click.echo(
-        f"  status change (the Machine Server's log) to notification (ms): {_ms(result['latency_ms'])}; "
+        f"  status change (the Machine Server's log) to notification (ms): {brief(result['latency_ms'])}; "
         f"{result['status_changes']} changes, {result['missed']} not notified as such"
     )
     click.echo(f"  gateway CPU: {result['gateway_cpu_s']:.1f}s, {result['gateway_cpu_pct']:.0f}% of one core")

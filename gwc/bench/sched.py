@@ -38,7 +38,7 @@ from psycopg import sql
 from gwc import db
 from gwc.bench import cpu_s, summary
 from gwc.client.session import context
-from gwc.config import Config, private_bus, write_config
+from gwc.config import Config
 from gwc.errors import GwcError
 from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
@@ -46,6 +46,7 @@ from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.log import open_log
 from gwc.retry import Deadline
+from gwc.soak.private_config import private_bus, write_config
 
 OP = "dummy_op"
 T = 60.0

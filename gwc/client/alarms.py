@@ -10,7 +10,7 @@ import psycopg
 
 from gwc.client.session import ANSWER, ask, operator
 from gwc.errors import Refused
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg

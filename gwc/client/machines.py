@@ -13,7 +13,7 @@ from gwc import cell
 from gwc.client.session import ANSWER, ask, on_bus, operator
 from gwc.config import Config
 from gwc.errors import ConfigError, GwcError, ModuleError, Refused
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg

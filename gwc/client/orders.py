@@ -16,7 +16,7 @@ from gwc.cell import read_pid
 from gwc.client.session import ask, hi_conn, need_server, rows_of
 from gwc.config import PROJECT_ROOT, Config
 from gwc.errors import GwcError, MessageError, Refused
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv, Msg

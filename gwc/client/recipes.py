@@ -9,7 +9,7 @@ from gwc import db
 from gwc.client.session import ANSWER, ask, operator
 from gwc.config import Config
 from gwc.errors import Refused
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg

@@ -9,7 +9,7 @@ from zoneinfo import ZoneInfo
 
 from gwc.client.session import ANSWER, ask
 from gwc.errors import GwcError, Refused
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg

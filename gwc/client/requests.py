@@ -13,7 +13,7 @@ from gwc.cell import read_pid
 from gwc.client.session import ANSWER, ask, hi_conn, operator
 from gwc.config import Config
 from gwc.errors import GwcError, Refused
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg

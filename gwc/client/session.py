@@ -15,7 +15,7 @@ from gwc import db
 from gwc.cell import hi_bus
 from gwc.config import Config, load_config
 from gwc.errors import GwcError
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import Message
 from gwc.log import open_log
 from gwc.retry import Deadline

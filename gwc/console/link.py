@@ -35,7 +35,7 @@ from gwc.client.requests import cancel_request, unreserve_machine
 from gwc.config import Config
 from gwc.errors import GwcError, Refused
 from gwc.hi.monitor import watch
-from gwc.ipc.bus import BlockingBus, Peer
+from gwc.ipc import BlockingBus, Peer
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv
 from gwc.log import log_file_name, open_log

@@ -33,8 +33,7 @@ from gwc.client.orders import decide, enter_order, read_traveller
 from gwc.client.session import hi_bus
 from gwc.config import Config, load_config, shipped
 from gwc.errors import GwcError
-from gwc.ipc import keys
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus, keys
 from gwc.ipc.codes import LotState
 from gwc.log import open_log
 from gwc.record import store

@@ -185,11 +185,25 @@ def render_catalogue() -> str:
         "",
         "## Conversation classes",
         "",
+        "*Answered by* names the module that serves the class: a bus name (`msched`, `ms`, `ls`, `cas`, `ers`,",
+        "`sls`), `wc` for the WC of the machine the opener is addressed to (bus name `wc:<machine id>`), or",
+        "`any` for a class every module may open or hear (a broadcast, or a lifecycle class each module serves",
+        "for itself). An opener addressed to a module that does not serve its class now is answered `Notnow`",
+        "(docs/protocol.md, *Refusals*).",
+        "",
         "| Class | Answered by | Messages | What it is for |",
         "|---|---|---|---|",
     ]
     for c in catalogue.CONVERSATION_CLASSES.values():
         out.append(f"| `{c.name}` | {c.answered_by} | {', '.join(c.messages)} | {c.doc} |")
+    out += [
+        "",
+        "## Sequences",
+        "",
+        "Each class's turns: `->` is the other side's; the message named last ends the conversation.",
+        "",
+    ]
+    out += [f"* `{c}`: {catalogue.sequence(c)}." for c in catalogue.CONVERSATION_CLASSES]
     lot = ", ".join(f"`{c}`" for c in catalogue.CONVERSATION_CLASSES if c in catalogue.LOT_CLASSES)
     out += [
         "",

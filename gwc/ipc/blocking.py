@@ -8,16 +8,14 @@ import asyncio
 import logging
 import threading
 from collections.abc import Callable, Coroutine, Iterable, Mapping
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 from gwc.config import BusConfig
 from gwc.ipc import eventloop
+from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import Message
 from gwc.ipc.conversation import DEFAULT, Batch, Conversation, Peer
 from gwc.ipc.transport import Transport
-
-if TYPE_CHECKING:
-    from gwc.ipc.bus import Bus
 
 T = TypeVar("T")
 
@@ -52,8 +50,6 @@ class BlockingBus:
         transport: Transport | None,
         ignored_peers: tuple[str, ...],
     ) -> Bus:
-        from gwc.ipc.bus import Bus  # here: gwc.ipc.bus imports this module to re-export BlockingBus
-
         bus = Bus(name, cfg, log, interest, transport, ignored_peers)
         await bus.sign_on()
         return bus

@@ -28,12 +28,10 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import heapq
 import logging
 import random
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import replace
 
 from gwc.config import BusConfig
 from gwc.errors import BusError, MessageError
@@ -41,29 +39,15 @@ from gwc.ipc import catalogue, wire
 from gwc.ipc.auth import Guard
 from gwc.ipc.catalogue import Message
 from gwc.ipc.codes import AckCode
-from gwc.ipc.conversation import (
-    CLOSED,
-    INF,
-    Batch,
-    Conversation,
-    Deadlines,
-    Names,
-    Outgoing,
-    Peer,
-    Pending,
-    initiator,
-)
+from gwc.ipc.conversation import CLOSED, Batch, Conversation, Deadlines, Names, Peer, initiator
 from gwc.ipc.membership import Membership, tick
 from gwc.ipc.order import Inbound
+from gwc.ipc.outbox import MAX_REMEMBERED, Outbox
 from gwc.ipc.transport import FaultInjector, Transport, UdpTransport
 from gwc.ipc.wire import Envelope
 from gwc.log import TRACE, FaultLog
 
-__all__ = ["Batch", "BlockingBus", "BlockingConversation", "Bus", "Conversation", "Peer"]
-
-MAX_RTO = 0.5  # retransmission backoff stops growing here
-MAX_PIGGYBACK = 32  # acks riding on a msg at most; the rest go in ack datagrams
-MAX_REMEMBERED = 65_536  # ended conversations (and our idx counters) remembered, newest first
+__all__ = ["Batch", "Bus", "Conversation", "Peer"]
 
 
 class Bus:
@@ -87,39 +71,29 @@ class Bus:
         self._interest: set[str] = set()
         self._subjects: dict[str, frozenset[str]] = {}  # class -> the only subjects heard of it (set_interest)
         self.stats = collections.Counter[str]()
-        self._transport = UdpTransport(cfg, log) if transport is None else transport
+        self.transport = UdpTransport(cfg, log) if transport is None else transport
         self._open = False  # the transport is open (signed on, not yet closed)
         self._seq = self._conv_n = 0  # the last msg seq and conversation number used
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._faults = FaultInjector(cfg.faults, name, self.stats)
+        self.guard = Guard(cfg, name, log, self.stats)  # signs what we send, checks what we receive
+        self.outbox = Outbox(name, self.inc, cfg, log, self.stats, self._transmit)  # acks, retransmission
         self.ignored_peers = ignored_peers  # prefixes of the names of peers not tracked (docs/protocol.md)
         self._members = Membership(self)
         self._peers = self._members.peers  # the same dict: read on the hot paths
         self.set_interest(interest, announce=False)
-        self._pending: dict[int, Pending] = {}
-        # Retransmission: one timer for all pending msgs. First sends are due in send order (a deque);
-        # retransmissions, with their backoff, in a heap. Entries of msgs acked since are skipped.
-        self._due_first: collections.deque[tuple[float, int]] = collections.deque()
-        self._due_again: list[tuple[float, int]] = []
-        self._rtx_timer: asyncio.TimerHandle | None = None
-        self._rtx_at = INF
-        self._out: collections.OrderedDict[str, Outgoing] = collections.OrderedDict()
         self._inbound = Inbound(cfg, log, self.stats, self._deliver)
         self._convs: dict[str, Conversation] = {}
         self._ended: collections.OrderedDict[str, None] = collections.OrderedDict()
-        self._acks_due: dict[tuple[str, int], list[int]] = {}
-        self._ack_timer: asyncio.TimerHandle | None = None
         # New conversations, and the first_message() calls waiting for one (no asyncio.Queue: hot path).
         self._incoming: collections.deque[Conversation] = collections.deque()
         self._incoming_waiters: collections.deque[asyncio.Future[Conversation]] = collections.deque()
-        self._deadlines = Deadlines()
+        self.deadlines = Deadlines()  # every wait's deadline, on one timer
         self._heartbeat: asyncio.Task[None] | None = None
-        self._faults = FaultInjector(cfg.faults, name, self.stats)
-        self._guard = Guard(cfg, name, log, self.stats)  # signs what we send, checks what we receive
         self.faults = FaultLog(log, self.stats)  # a step that failed: counted, logged once per kind
         self._origin = wire.origin(name, self.inc)
         self._mine = f"{name}."  # how the ids of conversations this module opened begin
         self._conv_prefix = f"{name}.{self.inc:x}."  # ... in this incarnation
-        self._flushed: asyncio.Future[None] | None = None  # close() waiting for the last acks
         self.peer_listeners: list[Callable[[str, Peer | None], None]] = []  # told of every join and leave
         # Told after every heartbeat: a module's periodic work rides on the beat's wake-up, not a timer of its own.
         self.beat_listeners: list[Callable[[], None]] = []
@@ -129,15 +103,15 @@ class Bus:
 
     async def sign_on(self, settle: float = 0.05) -> None:
         """Join the group, announce ourselves, and give present modules `settle` s to answer."""
-        loop = self._loop = self._deadlines.loop = asyncio.get_running_loop()
+        loop = self._loop = self.deadlines.loop = self.outbox.loop = asyncio.get_running_loop()
         self._open = True  # the transport may hand over datagrams before open() returns: we can answer
         try:
-            await self._transport.open(loop, self._origin.prefix, self._faults.wrap(loop, self._handle))
+            await self.transport.open(loop, self._origin.prefix, self._faults.wrap(loop, self._handle))
         except BaseException:
             self._open = False
             raise
-        self._transport.set_filter(self.name, self.inc, self._interest, self.ignored_peers, self._subjects)
-        self._transport.ignore_beats_from(self.ignored_peers)
+        self.transport.set_filter(self.name, self.inc, self._interest, self.ignored_peers, self._subjects)
+        self.transport.ignore_beats_from(self.ignored_peers)
         self._members.hello(query=True)
         self._heartbeat = loop.create_task(self._beat())
         self.log.info("signed on to bus %s as %s (incarnation %x)", self.cfg.name, self.name, self.inc)
@@ -149,24 +123,18 @@ class Bus:
         if self.closed:
             return
         self.closed = True
-        self._flush_acks()
-        if flush and self._pending and self._loop is not None:
-            self._flushed = self._loop.create_future()
-            try:
-                await asyncio.wait_for(self._flushed, flush)
-            except TimeoutError:
-                self.log.warning("closing with %d datagram(s) unacknowledged", len(self._pending))
-        for timer in (self._heartbeat, self._ack_timer, self._rtx_timer):
-            if timer is not None:
-                timer.cancel()
-        self._deadlines.cancel()
-        self._pending.clear()
+        self.outbox.flush_acks()
+        await self.outbox.drain(flush)
+        if self._heartbeat is not None:
+            self._heartbeat.cancel()
+        self.outbox.close()
+        self.deadlines.cancel()
         if self._open:
-            self._raw_send(Envelope(kind="bye", src=self.name, inc=self.inc))
+            self.outbox.send_envelope(Envelope(kind="bye", src=self.name, inc=self.inc))
             self._open = False
-        self._transport.close()
+        self.transport.close()
         for conv in self._convs.values():
-            conv._put(CLOSED)
+            conv.deliver(CLOSED)
         self._put_incoming(CLOSED)
         self.log.info("signed off bus %s", self.cfg.name)
 
@@ -175,6 +143,23 @@ class Bus:
     @property
     def interests(self) -> frozenset[str]:
         return frozenset(self._interest)
+
+    @property
+    def subjects(self) -> Mapping[str, frozenset[str]]:
+        """Class -> the only subjects this module hears of it (set_interest)."""
+        return self._subjects
+
+    @property
+    def signed_on(self) -> bool:
+        """Joined and not yet closed: datagrams may be sent."""
+        return self._open
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        """The event loop the bus runs on (BusError before sign-on)."""
+        if self._loop is None:
+            raise BusError(f"{self.name} has not signed on to the bus")
+        return self._loop
 
     def set_interest(
         self, classes: Iterable[str], announce: bool = True, subjects: Mapping[str, Iterable[str]] | None = None
@@ -197,7 +182,7 @@ class Bus:
         self._subjects = about
         self._members.beat_body = None
         if self._open:
-            self._transport.set_filter(self.name, self.inc, new, self.ignored_peers, about)
+            self.transport.set_filter(self.name, self.inc, new, self.ignored_peers, about)
             if announce:
                 self._members.hello()
 
@@ -234,7 +219,7 @@ class Bus:
         conv.peer = to
         self._convs[conv.id] = conv
         try:
-            conv._idx = self._send_batch(conv, messages, to, heard_by)  # conv.send() without its coroutine
+            conv.sent = self.send_batch(conv, messages, to, heard_by)  # conv.send() without its coroutine
         except BaseException:
             conv.end()
             raise
@@ -259,8 +244,7 @@ class Bus:
         if conv is None:
             conv = Conversation(self, conv_id, cls, initiator(conv_id) or peer)
             conv.peer = peer
-            out = self._out.get(conv_id)
-            conv._idx = out.next_idx if out else 0
+            conv.sent = self.outbox.next_idx(conv_id)
             self._convs[conv_id] = conv
             self._ended.pop(conv_id, None)
         return conv
@@ -277,14 +261,14 @@ class Bus:
                 assert self._loop is not None
                 waiter = self._loop.create_future()
             else:
-                waiter = self._deadlines.waiter(timeout)
+                waiter = self.deadlines.waiter(timeout)
             self._incoming_waiters.append(waiter)
             try:
                 conv = await waiter
             except TimeoutError:
                 return None
             finally:
-                self._deadlines.discard(waiter)
+                self.deadlines.discard(waiter)
         if conv is CLOSED:
             self._incoming.appendleft(conv)
             return None
@@ -300,7 +284,8 @@ class Bus:
                 return
         self._incoming.append(conv)
 
-    def _end(self, conv: Conversation) -> None:
+    def end_conversation(self, conv: Conversation) -> None:
+        """Route no more messages to `conv` (Conversation.end): later ones are acknowledged and dropped."""
         if self._convs.get(conv.id) is conv:
             del self._convs[conv.id]
         if conv.initiator != self.name:  # ours are known ended by their id (_is_ended): not remembered
@@ -314,7 +299,7 @@ class Bus:
 
     # ----------------------------------------------------------------- sending
 
-    def _send_batch(self, conv: Conversation, messages: tuple[Message, ...], to: str | None, also: Names = ()) -> int:
+    def send_batch(self, conv: Conversation, messages: tuple[Message, ...], to: str | None, also: Names = ()) -> int:
         """Number, encode (all or nothing), transmit and track one batch; returns the conversation's next idx."""
         if not messages:
             raise MessageError("a send needs at least one message")
@@ -325,14 +310,8 @@ class Bus:
         for m in messages:  # fields were checked when message() built m; receivers check them again
             if m.name not in allowed:
                 raise MessageError(f"message {m.name} does not belong to conversation {cls}")
-        outs = self._out
-        out = outs.get(conv_id)
-        if out is None:
-            out = outs[conv_id] = Outgoing(conv._idx)
-            if len(outs) > MAX_REMEMBERED:
-                outs.popitem(last=False)
-        else:
-            outs.move_to_end(conv_id)
+        outbox = self.outbox
+        out = outbox.outgoing(conv_id, conv.sent)
         start = out.next_idx
         base = out.unsettled[0][0] if out.unsettled else start
         acks: tuple[int, ...] | list[int] = ()
@@ -340,10 +319,8 @@ class Bus:
         if to is not None:
             peer = self._peers.get(to)
             if peer is not None:
-                key = (to, peer.inc)
-                due = self._acks_due.get(key)
-                if due and len(due) <= MAX_PIGGYBACK:  # more wait for their own ack datagram
-                    del self._acks_due[key]
+                due = outbox.take_acks((to, peer.inc))
+                if due is not None:
                     acks, to_inc = due, peer.inc
         n = len(messages)
         seq = self._seq
@@ -366,7 +343,7 @@ class Bus:
                 )
         except MessageError:
             if acks:
-                self._acks_due.setdefault((to, to_inc), []).extend(acks)  # type: ignore[arg-type]
+                outbox.give_back_acks((to, to_inc), acks)  # type: ignore[arg-type]
             raise
         self._seq = seq + n
         out.next_idx = start + n
@@ -379,21 +356,7 @@ class Bus:
             waiting = {p.name for p in peers if cls in p.interest or (subject in p.subjects.get(cls, ()))}
             waiting.update(also)
         if waiting:
-            batch = [start, n]
-            if out.unsettled is None:
-                out.unsettled = [batch]
-            else:
-                out.unsettled.append(batch)
-            now = time.monotonic()
-            rto = self.cfg.ack_timeout
-            pending, first_due = self._pending, self._due_first
-            for i, data in enumerate(datas):
-                seq += 1
-                w = set(waiting) if i else waiting
-                pending[seq] = Pending(data, w, now, rto, batch, conv_id, cls, messages[i].name, to, base, subject)
-                first_due.append((now + rto, seq))
-            if self._rtx_timer is None or now + rto < self._rtx_at:
-                self._arm_retransmit(now + rto)
+            outbox.track(datas, messages, waiting, out, start, seq, conv_id, cls, to, base, subject)
         elif to is None:
             self.log.log(
                 TRACE, "%s: nobody listens to %s yet", cls, messages[0].name, extra={"conv": f"{conv_id} {cls}"}
@@ -415,110 +378,12 @@ class Bus:
         if not self._open:
             raise BusError(f"{self.name} is not signed on to the bus")
         try:
-            self._transport.send(self._guard.seal(data))
+            self.transport.send(self.guard.seal(data))
         except (BlockingIOError, InterruptedError):
             self.stats["send_lost"] += 1
         except OSError as e:
             self.stats["send_lost"] += 1
             self.log.warning("bus send failed (%s): counted as lost", e)
-
-    def _raw_send(self, env: Envelope) -> None:
-        try:
-            self._transmit(wire.encode(env))
-        except BusError as e:  # not signed on (closing): lost like a dropped datagram
-            self.log.warning("send of %s failed: %s", env.kind, e)
-
-    def _arm_retransmit(self, when: float) -> None:
-        """(Re)arm the one retransmission timer for `when` (monotonic time)."""
-        if self._rtx_timer is not None:
-            self._rtx_timer.cancel()
-        assert self._loop is not None
-        self._rtx_at = when
-        self._rtx_timer = self._loop.call_later(when - time.monotonic(), self._retransmit_due)
-
-    def _retransmit_due(self) -> None:
-        """The retransmission timer: resend every msg due and not yet acked, then re-arm for the next.
-
-        Runs at most every ack_timeout/4, so a retransmission may come that much after its due time;
-        between runs, acked msgs cost nothing but their entry, skipped here.
-        """
-        self._rtx_timer = None
-        now = time.monotonic()
-        pending, first, again = self._pending, self._due_first, self._due_again
-        while first and first[0][0] <= now:
-            seq = first.popleft()[1]
-            if seq in pending:
-                self._retransmit(seq, now)
-        while again and again[0][0] <= now:
-            seq = heapq.heappop(again)[1]
-            if seq in pending:
-                self._retransmit(seq, now)
-        nxt = min(first[0][0] if first else INF, again[0][0] if again else INF)
-        if nxt < INF:
-            self._arm_retransmit(max(nxt, now + self.cfg.ack_timeout / 4))
-
-    def _retransmit(self, seq: int, now: float) -> None:
-        p = self._pending[seq]
-        if now - p.first_sent > self.cfg.retry_deadline:
-            self.stats["gave_up"] += 1
-            self.log.warning(
-                "gave up on %s seq %d: no ack from %s within %.1fs",
-                p.msg,
-                seq,
-                ", ".join(sorted(p.waiting)),
-                self.cfg.retry_deadline,
-                extra={"conv": f"{p.conv} {p.cls}"},
-            )
-            self._done(seq)
-            return
-        self.stats["retransmitted"] += 1
-        # Sent with the conversation's base as it is now, so a receiver that has no state for this stream
-        # (it restarted) never waits for messages that are settled and will not come again.
-        out = self._out.get(p.conv)
-        if out is not None and out.base != p.base:
-            p.base = out.base
-            p.data = wire.encode(replace(wire.decode(p.data), base=p.base))
-        self._transmit(p.data)
-        p.rto = min(p.rto * 2, MAX_RTO)
-        heapq.heappush(self._due_again, (now + p.rto, seq))
-
-    def _done(self, seq: int) -> None:
-        p = self._pending.pop(seq, None)
-        if p is None:
-            return
-        batch = p.batch
-        batch[1] -= 1
-        if not batch[1]:
-            out = self._out.get(p.conv)
-            if out is not None and out.unsettled:
-                unsettled = out.unsettled
-                while unsettled and not unsettled[0][1]:
-                    del unsettled[0]
-                if not unsettled:
-                    out.unsettled = None
-        if not self._pending and self._flushed is not None and not self._flushed.done():
-            self._flushed.set_result(None)
-
-    def _ack(self, key: tuple[str, int], seq: int) -> None:
-        """Acknowledge soon: acks due to one peer (name, inc) go out together, or ride on our next msg to it."""
-        due = self._acks_due.get(key)
-        if due is None:
-            self._acks_due[key] = [seq]
-        else:
-            due.append(seq)
-        if self._ack_timer is None and self._loop is not None:
-            self._ack_timer = self._loop.call_later(self.cfg.ack_timeout / 4, self._flush_acks)
-
-    def _flush_acks(self) -> None:
-        self._ack_timer = None
-        due, self._acks_due = self._acks_due, {}
-        for (src, inc), seqs in due.items():
-            for i in range(0, len(seqs), 1000):
-                self._raw_send(
-                    Envelope(
-                        kind="ack", src=self.name, inc=self.inc, to=src, to_inc=inc, acks=tuple(seqs[i : i + 1000])
-                    )
-                )
 
     async def _beat(self) -> None:
         """Every heartbeat: read the beats that came, send ours, then look for who went silent."""
@@ -530,7 +395,7 @@ class Bus:
             run("reading beats", lambda: self._members.take_beats(heartbeat=True))
             run("sending our beat", self._members.send_beat)
             run("expiring peers", self._expire)
-            run("refreshing keys", self._guard.refresh)
+            run("refreshing keys", self.guard.refresh)
             for listener in self.beat_listeners:
                 run("heartbeat listener", listener)
 
@@ -539,21 +404,9 @@ class Bus:
         self._members.expire(now)
         self._inbound.housekeep(now, self._convs)
 
-    def _forget_waiting(self, name: str, directed_too: bool, unless: Peer | None = None) -> None:
-        """Stop waiting for acks from `name` (broadcasts; directed sends too when it left for good), or,
-        given `unless` (its new interest), for its acks of the broadcasts it no longer hears."""
-        for seq, p in list(self._pending.items()):
-            if name not in p.waiting or (p.to is not None and not directed_too):
-                continue
-            if unless is not None and (p.to is not None or unless.hears(p.cls, p.subject)):
-                continue
-            p.waiting.discard(name)
-            if not p.waiting:
-                self._done(seq)
-
     # ----------------------------------------------------------------- receiving
 
-    def _decode(self, data: bytes, what: str) -> Envelope | None:
+    def decode(self, data: bytes, what: str) -> Envelope | None:
         """The datagram's envelope; None (counted, logged) if it is malformed."""
         try:
             return wire.decode(data)
@@ -564,15 +417,15 @@ class Bus:
     def _malformed(self, data: bytes, what: str, e: MessageError) -> None:
         """Only a key holder gets here: counted and summarised like the rest."""
         self.stats["malformed"] += 1
-        self._guard.drops.drop("malformed", self._transport.source)
+        self.guard.drops.drop("malformed", self.transport.source)
         self.log.debug("dropped malformed %s (%d bytes): %s", what, len(data), e)
 
     def _handle(self, data: bytes) -> None:
         try:  # no datagram, and no bug, takes the receive path down, nor writes a traceback per datagram
-            opened = self._guard.open(data, False, self._transport.source)
+            opened = self.guard.open(data, False, self.transport.source)
             if opened is None:
                 return
-            try:  # (not through _decode: one call less a datagram)
+            try:  # (not through decode: one call less a datagram)
                 env = wire.decode(opened[0])
             except MessageError as e:
                 self._malformed(opened[0], "datagram", e)
@@ -607,37 +460,28 @@ class Bus:
             return
         if to is None and env.cls not in self._interest and env.subject not in self._subjects.get(env.cls, ()):
             return
-        self._guard.drops.drop("not_authorized", f"{env.src} ({env.cls})")
+        self.guard.drops.drop("not_authorized", f"{env.src} ({env.cls})")
         key = (env.src, env.inc)
-        self._ack(key, env.seq)
+        self.outbox.ack(key, env.seq)
         if to is None or env.idx or self._inbound.duplicate(key, env.seq, time.monotonic()):
             return
-        answer = catalogue.refusal(env.cls, AckCode.NOT_AUTH, "not allowed under the lot key")
+        answer = catalogue.refusal(env.cls, AckCode.NOT_AUTH, "not allowed under the lot key", env.fields)
         if answer is not None:
             conv = self.resume(env.conv, env.cls, env.src)
-            self._send_batch(conv, (answer,), env.src)
+            self.send_batch(conv, (answer,), env.src)
             conv.end()
 
     def _on_ack(self, env: Envelope) -> None:
         if env.to != self.name or env.to_inc != self.inc:
             return
-        self._acked(env.src, env.acks)
-
-    def _acked(self, src: str, seqs: Iterable[int]) -> None:
-        pending = self._pending
-        for seq in seqs:
-            p = pending.get(seq)
-            if p is not None:
-                p.waiting.discard(src)
-                if not p.waiting:
-                    self._done(seq)
+        self.outbox.acked(env.src, env.acks)
 
     def _on_msg(self, env: Envelope, now: float) -> None:
         to, src, inc = env.to, env.src, env.inc
         if to is not None and to != self.name:
             return
         if env.acks and to is not None and env.to_inc == self.inc:
-            self._acked(src, env.acks)
+            self.outbox.acked(src, env.acks)
         conv_id = env.conv
         conv = self._convs.get(conv_id)
         cls = env.cls
@@ -645,7 +489,7 @@ class Bus:
             return  # not for us (nor about a subject we hear it about): no ack, the sender does not count us
         seq = env.seq
         key = (src, inc)
-        self._ack(key, seq)
+        self.outbox.ack(key, seq)
         if self._inbound.duplicate(key, seq, now):
             self.stats["duplicates"] += 1
             return
@@ -678,7 +522,7 @@ class Bus:
         batch = Batch(head.src, msgs)  # type: ignore[arg-type]
         conv = self._convs.get(head.conv)
         if conv is not None:
-            conv._put(batch)
+            conv.deliver(batch)
             return
         if head.to is None and head.cls not in self._interest and head.subject not in self._subjects.get(head.cls, ()):
             return
@@ -695,7 +539,3 @@ class Bus:
         conv = Conversation(self, head.conv, head.cls, head.src, first=batch)
         self._convs[conv.id] = conv
         self._put_incoming(conv)
-
-
-# BlockingBus lives in its own file; imported here so that the bus's users find it where they find Bus.
-from gwc.ipc.blocking import BlockingBus, BlockingConversation  # noqa: E402

@@ -10,6 +10,7 @@ Field types are written as strings: "str", "int", "float", "bool", "list", "dict
 from __future__ import annotations
 
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -361,12 +362,29 @@ MESSAGE_CLASSES: dict[str, MessageClass] = {
         ),
         # --- Status Line Server ---
         _msg("Status_Line_Get"),
-        _msg("Status_Line", text="str", imports="int?", exports="int?", alarms="int?", last_event="str?"),
+        _msg(
+            "Status_Line",
+            "the status line; ack_code and note only on a refusal",
+            text="str",
+            imports="int?",
+            exports="int?",
+            alarms="int?",
+            last_event="str?",
+            ack_code="str?",
+            note="str?",
+        ),
         _msg("Cell_Event", "a cell event worth the status line", text="str", source="str?"),
         # --- generic ---
         _msg("Ack", **ACK),
         _msg("Ping", "bus test traffic", n="int", payload="str?"),
-        _msg("Pong", n="int", payload="str?"),
+        _msg(
+            "Pong",
+            "the Ping's n; ack_code and note only on a refusal",
+            n="int",
+            payload="str?",
+            ack_code="str?",
+            note="str?",
+        ),
     )
 }
 
@@ -453,6 +471,36 @@ CONVERSATION_CLASSES: dict[str, ConversationClass] = {
         _conv("PING", "bus test and benchmark traffic", "any", "Ping", "Pong"),
     )
 }
+
+
+# How each conversation with more than one answer goes: who sends what, and which message ends it
+# (docs/conversations.md prints a line per class; a class of one or two messages is described by
+# sequence() alone). "->" is the other side's turn; a refusal is always the class's ack message
+# with a code other than ACK_OK, and it ends the conversation.
+SEQUENCES = {
+    "STARTUP": "Startup_Request -> Startup_Ack (Notnow ends it: already started; ACK_OK: the start begins) "
+    "-> Startup_Complete, which ends it (its ack_code says how the start went)",
+    "SHUTDOWN": "Shutdown_Request -> Shutdown_Ack (Notnow ends it: not started; ACK_OK: the stop begins) "
+    "-> Shutdown_Complete, which ends it",
+    "ME_START": "Startup_Request (module = the WC's bus name, wc:<machine>) -> Startup_Ack (Notnow ends it; "
+    "ACK_OK: the ME homes, which may wait for the operator) -> ME_Ready, which ends it (ACK_OK: Idle; else "
+    "Start_Fail, REQ_CANCEL when a stop came first). Startup_Complete is not used in it",
+    "ME_SHUT": "Shutdown_Request (module = wc:<machine>) -> Shutdown_Ack (Notnow ends it) -> ME_Stopped, "
+    "which ends it. Shutdown_Complete is not used in it",
+    "MACH_REQ": "Machine_Request + N x Machine_Entry (one batch) -> Machine_Req_Ack (a code other than ACK_OK "
+    "ends it; ACK_OK carries the request_key) -> later, Machine_Req_Comp (+ N x Reserved_Machine when "
+    "ACK_OK: bound; else NO_MACHINE or REQ_CANCEL) -> Request_Comp_Ack from the asker, which ends it",
+}
+
+
+def sequence(cls: str) -> str:
+    """How a conversation of class `cls` goes, in one line (docs/conversations.md)."""
+    if cls in SEQUENCES:
+        return SEQUENCES[cls]
+    messages = CONVERSATION_CLASSES[cls].messages
+    if len(messages) == 1:
+        return f"{messages[0]}, broadcast (or addressed to one module); nobody answers: the opener ends it"
+    return f"{messages[0]} -> {messages[1]}, which ends it (ACK_OK or a refusal)"
 
 
 # The conversation classes a lot entity starts or answers: all that receivers accept under the lot
@@ -546,13 +594,31 @@ def check(cls: str, msg: str, fields: dict[str, Any]) -> Message:
     return Message(msg, fields)
 
 
-def refusal(cls: str, ack_code: str, note: str) -> Message | None:
-    """The answer that refuses a conversation of class `cls` with ack_code: its first answer message
-    that needs nothing but an ack code; None if the class has none (a broadcast)."""
+def refusal(cls: str, ack_code: str, note: str, opener: Mapping[str, Any] | None = None) -> Message | None:
+    """The answer that refuses a conversation of class `cls` with ack_code (docs/protocol.md, "Refusals"):
+    its first answer message that has an ack_code field, with the note (cut to 500 characters), and
+    every other field it requires taken from the opener's field of the same name (Status_Reply's
+    machine_id, Pong's n) or, for a `text`, the code and the note. None if the class has no answer (a
+    broadcast) or the opener lacks what the answer requires."""
     for name in CONVERSATION_CLASSES[cls].messages[1:]:
         mc = MESSAGE_CLASSES[name]
-        if "ack_code" in mc._known and all(f.nullable or f.name == "ack_code" for f in mc.fields):
-            return Message(name, {"ack_code": ack_code, "note": note})
+        if "ack_code" not in mc._known:
+            continue
+        values: dict[str, Any] = {"ack_code": ack_code}
+        if "note" in mc._known:
+            values["note"] = note[:500]
+        for f in mc.fields:
+            if f.nullable or f.name in values:
+                continue
+            if opener is not None and opener.get(f.name) is not None:
+                values[f.name] = opener[f.name]
+            elif f.name == "text":
+                values["text"] = f"{ack_code}: {note}"[:500]
+        try:
+            mc.check(values)
+        except MessageError:
+            return None
+        return Message(name, values)
     return None
 
 

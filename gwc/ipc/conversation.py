@@ -9,15 +9,14 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import logging
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
+from gwc.config import BusConfig
 from gwc.errors import BusError, ConversationTimeout, MessageError
 from gwc.ipc.catalogue import Message
-
-if TYPE_CHECKING:
-    from gwc.ipc.bus import Bus
 
 DEFAULT: Any = object()
 INF = float("inf")
@@ -108,12 +107,31 @@ class Batch:
 CLOSED: Any = object()  # put in inboxes when the bus closes, so every waiter fails at once
 
 
+class ConversationHost(Protocol):
+    """What a Conversation needs from its bus (gwc.ipc.bus.Bus is one)."""
+
+    cfg: BusConfig
+    log: logging.Logger
+    stats: collections.Counter[str]
+    deadlines: Deadlines
+
+    def send_batch(self, conv: Conversation, messages: tuple[Message, ...], to: str | None) -> int:
+        """Number, encode, transmit and track one batch of the conversation; its next idx."""
+        ...
+
+    def end_conversation(self, conv: Conversation) -> None:
+        """Route no more messages to the conversation."""
+        ...
+
+
 class Conversation:
     """One conversation as seen by one module: send into it, wait for the other side's messages."""
 
-    __slots__ = ("_idx", "_inbox", "_waiter", "bus", "cls", "ended", "first", "id", "initiator", "peer")
+    __slots__ = ("_inbox", "_waiter", "bus", "cls", "ended", "first", "id", "initiator", "peer", "sent")
 
-    def __init__(self, bus: Bus, conv_id: str, cls: str, initiator: str, first: Batch | None = None) -> None:
+    def __init__(
+        self, bus: ConversationHost, conv_id: str, cls: str, initiator: str, first: Batch | None = None
+    ) -> None:
         self.bus = bus
         self.id = conv_id
         self.cls = cls
@@ -122,7 +140,7 @@ class Conversation:
         self.peer: str | None = first.sender if first else None
         self._inbox: collections.deque[Batch] = collections.deque()
         self._waiter: asyncio.Future[Batch] | None = None
-        self._idx = 0  # messages this module has sent in the conversation so far
+        self.sent = 0  # messages this module has sent in the conversation so far (its bus counts them)
         self.ended = False
 
     @property
@@ -135,7 +153,7 @@ class Conversation:
     async def send(self, *messages: Message, to: str | None = DEFAULT) -> None:
         """Send a batch into this conversation; by default to the other side (or to all, if unknown)."""
         target = self.peer if to is DEFAULT else to
-        self._idx = self.bus._send_batch(self, messages, target)
+        self.sent = self.bus.send_batch(self, messages, target)
 
     async def next_message(self, timeout: float | None = None) -> Batch:
         """The next batch the other side sends; ConversationTimeout (logged) if none comes in time."""
@@ -148,7 +166,7 @@ class Conversation:
             # this is the bus's hot path).
             bus = self.bus
             t = bus.cfg.reply_timeout if timeout is None else timeout
-            waiter = self._waiter = bus._deadlines.waiter(t)
+            waiter = self._waiter = bus.deadlines.waiter(t)
             try:
                 batch = await waiter
             except TimeoutError:
@@ -158,7 +176,7 @@ class Conversation:
                 bus.log.error("%s", err, extra={"conv": f"{self.id} {self.cls}"})
                 raise err from None
             finally:
-                bus._deadlines.discard(waiter)
+                bus.deadlines.discard(waiter)
                 self._waiter = None
         if batch is CLOSED:
             self._inbox.appendleft(batch)
@@ -166,7 +184,8 @@ class Conversation:
         self.peer = batch.sender
         return batch
 
-    def _put(self, batch: Batch) -> None:
+    def deliver(self, batch: Batch) -> None:
+        """A batch (or CLOSED) for this conversation: to its waiter, or kept for the next next_message()."""
         waiter = self._waiter
         if waiter is not None and not waiter.done():
             waiter.set_result(batch)
@@ -186,7 +205,7 @@ class Conversation:
         """Stop routing messages to this conversation (late ones are acknowledged, logged and dropped)."""
         if not self.ended:
             self.ended = True
-            self.bus._end(self)
+            self.bus.end_conversation(self)
 
 
 def initiator(conv_id: str) -> str | None:

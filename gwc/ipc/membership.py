@@ -7,16 +7,17 @@ import collections
 import functools
 import logging
 import time
-from collections.abc import Iterable
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Iterable, Mapping
+from typing import Protocol
 
+from gwc.config import BusConfig
 from gwc.ipc import wire
-from gwc.ipc.conversation import Peer
+from gwc.ipc.auth import Guard
+from gwc.ipc.conversation import Names, Peer
+from gwc.ipc.outbox import Outbox
+from gwc.ipc.transport import Transport
 from gwc.ipc.wire import Envelope
-from gwc.log import TRACE
-
-if TYPE_CHECKING:
-    from gwc.ipc.bus import Bus
+from gwc.log import TRACE, FaultLog
 
 MAX_GONE = 1024  # incarnations that said bye, remembered so that their late beats are ignored
 FLOOD_BEATS = 50  # beats refused in one heartbeat that make a flood
@@ -32,7 +33,36 @@ def tick(heartbeat: float) -> float:
     return heartbeat - (time.monotonic() + heartbeat / 2) % heartbeat + heartbeat / 2
 
 
-def _level(bus: Bus, name: str) -> int:
+class MembershipHost(Protocol):
+    """What the membership needs from its bus (gwc.ipc.bus.Bus is one)."""
+
+    name: str
+    inc: int
+    cfg: BusConfig
+    log: logging.Logger
+    stats: collections.Counter[str]
+    faults: FaultLog
+    guard: Guard  # seals our hellos, checks the beats read
+    transport: Transport
+    outbox: Outbox  # sends hellos; stops waiting for acks of a peer gone
+    ignored_peers: Names
+    peer_listeners: list[Callable[[str, Peer | None], None]]
+
+    @property
+    def interests(self) -> frozenset[str]: ...
+
+    @property
+    def subjects(self) -> Mapping[str, frozenset[str]]: ...
+
+    @property
+    def signed_on(self) -> bool: ...
+
+    def decode(self, data: bytes, what: str) -> Envelope | None:
+        """The datagram's envelope; None (counted, logged) if it is malformed."""
+        ...
+
+
+def _level(bus: MembershipHost, name: str) -> int:
     """How a peer's coming and going is logged: a note, but trace where a lot script is either end. Lot
     scripts come and go with every lot: two lines per lot in every module's log, and a lot's own log
     began with one per module on the bus (a fifth of a forked lot script's log lines and their CPU)."""
@@ -42,7 +72,7 @@ def _level(bus: Bus, name: str) -> int:
 class Membership:
     """The peers one bus knows, kept for it (the bus reads `peers` on its hot paths)."""
 
-    def __init__(self, bus: Bus) -> None:
+    def __init__(self, bus: MembershipHost) -> None:
         self.bus = bus
         self.peers: dict[str, Peer] = {}
         self.beats: dict[bytes, tuple[str, int]] = {}  # each peer's last beat, as sent -> (name, inc)
@@ -54,12 +84,12 @@ class Membership:
     def hello(self, query: bool = False, to: str | None = None) -> None:
         """Our hello on the bus port: at sign-on (a query), on a change of interest, to a querier."""
         bus = self.bus
-        self.bus._raw_send(
+        bus.outbox.send_envelope(
             Envelope(
                 kind="hello",
                 src=bus.name,
                 inc=bus.inc,
-                interest=tuple(sorted(bus._interest)),
+                interest=tuple(sorted(bus.interests)),
                 query=query,
                 to=to,
                 subjects=self.subject_entries(),
@@ -67,37 +97,37 @@ class Membership:
         )
 
     def subject_entries(self) -> tuple[tuple[str, str], ...]:
-        return tuple(sorted((c, s) for c, about in self.bus._subjects.items() for s in about))
+        return tuple(sorted((c, s) for c, about in self.bus.subjects.items() for s in about))
 
     def take_beats(self, heartbeat: bool = False) -> None:
         """The beats that came, checked. A heartbeat that finds many refused (a flood on the beat port)
         switches to reading them as they come, so that the flood cannot fill the socket's buffer and
         push real beats out before they are read; a heartbeat without flood switches back."""
         bus = self.bus
-        self.read_beats(bus._guard.beats(bus._transport))
+        self.read_beats(bus.guard.beats(bus.transport))
         if not heartbeat:
             return  # called by the transport as beats come: the heartbeat decides
-        flood = bus._guard.beat_drops > FLOOD_BEATS
-        bus._guard.beat_drops = 0
+        flood = bus.guard.beat_drops > FLOOD_BEATS
+        bus.guard.beat_drops = 0
         if flood != self.following:
             self.following = flood
             follow = functools.partial(bus.faults.run, "reading beats", self.take_beats)
-            bus._transport.follow_beats(follow if flood else None)
+            bus.transport.follow_beats(follow if flood else None)
             bus.log.warning("beat port %s", "flooded: beats read as they come" if flood else "quiet again")
 
     def send_beat(self) -> None:
         """Our hello, to the beat port: a change of interest or a query goes to the bus port instead."""
         bus = self.bus
-        if not bus._open:
+        if not bus.signed_on:
             return
         beat = self.beat_body
         if beat is None:  # the same body every heartbeat until our interest changes: encoded once
-            interest = tuple(sorted(bus._interest))
+            interest = tuple(sorted(bus.interests))
             beat = self.beat_body = wire.encode(
                 Envelope(kind="hello", src=bus.name, inc=bus.inc, interest=interest, subjects=self.subject_entries())
             )
         try:
-            bus._transport.send_beat(bus._guard.seal(beat, beat=True))
+            bus.transport.send_beat(bus.guard.seal(beat, beat=True))
         except OSError as e:  # lost like a dropped datagram: the next beat makes up for it
             bus.stats["send_lost"] += 1
             bus.log.debug("beat not sent: %s", e)
@@ -121,12 +151,12 @@ class Membership:
                     peer.last_seen = now  # all read in one go, at one time
                     bus.stats["beat"] += 1
                     continue
-            env = bus._decode(data, "beat")
+            env = bus.decode(data, "beat")
             if env is None:
                 continue
             if env.kind != "hello":
                 bus.stats["malformed"] += 1  # summarised with the drops: a line per datagram would flood the log
-                bus._guard.drops.drop(f"{env.kind}_on_the_beat_port", env.src)
+                bus.guard.drops.drop(f"{env.kind}_on_the_beat_port", env.src)
                 continue
             if bus.ignored_peers and env.src.startswith(bus.ignored_peers):
                 bus.stats["beat_ignored"] += 1  # (the kernel drops these where it can)
@@ -165,7 +195,7 @@ class Membership:
             if interest != peer.interest or subjects != peer.subjects:
                 peer.interest, peer.subjects = interest, subjects
                 # It no longer listens to some classes (or subjects): it will not ack broadcasts of them.
-                self.bus._forget_waiting(env.src, directed_too=False, unless=peer)
+                self.bus.outbox.forget_waiting(env.src, directed_too=False, unless=peer)
             peer.last_seen = now
         if env.query:
             self.hello(to=env.src)  # addressed to the newcomer: N answers to one module, not N x N receptions
@@ -180,6 +210,6 @@ class Membership:
             self.gone[(name, peer.inc)] = None
             if len(self.gone) > MAX_GONE:
                 self.gone.popitem(last=False)
-        self.bus._forget_waiting(name, directed_too=clean)
+        self.bus.outbox.forget_waiting(name, directed_too=clean)
         for cb in self.bus.peer_listeners:
             cb(name, None)

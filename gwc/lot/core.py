@@ -14,7 +14,7 @@ import psycopg
 
 from gwc import db
 from gwc.errors import DatabaseUnavailable
-from gwc.ipc.bus import Bus, Peer
+from gwc.ipc import Bus, Peer
 from gwc.ipc.catalogue import Message
 from gwc.ipc.names import Msg
 from gwc.lot.errors import LotTimeout

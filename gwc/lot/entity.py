@@ -47,7 +47,7 @@ from typing import Any
 
 from gwc.config import Config
 from gwc.errors import GwcError
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import Message
 from gwc.ipc.codes import LotState
 from gwc.lot.core import Heard, LotReads

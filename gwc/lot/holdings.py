@@ -16,7 +16,7 @@ import time
 from collections.abc import Sequence
 
 from gwc.errors import GwcError, Refused
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv, Msg

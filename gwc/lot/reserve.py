@@ -9,12 +9,13 @@ import time
 from collections.abc import Callable, Sequence
 
 from gwc.errors import ConversationTimeout, GwcError
-from gwc.ipc.bus import Batch, Conversation
+from gwc.ipc import Batch, Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.core import Heard, LotReads
 from gwc.lot.errors import LotError, LotTimeout, RequestCancelled, RequestRefused
+from gwc.lot.events import Phase, event
 from gwc.lot.lot_server import LotServerLink
 from gwc.lot.model import BOUND_AT_ONCE, FOREVER, POLL, UP, Alternative, MachineRequest, Reservation
 from gwc.lot.state import EntityState
@@ -71,7 +72,9 @@ class MachineRequests:
         )
         for a in alts:
             if a.ack is not None and a.ack.ack_code == AckCode.ACK_OK:
-                self.facts.log.info("request %s for %s (%s) queued", a.key, op_type, a.describe())
+                self.facts.log.info(
+                    "request %s for %s (%s) queued", a.key, op_type, a.describe(), extra=event(Phase.QUEUED)
+                )
             elif a.sibling_cancelled:
                 self.facts.log.info(
                     "request for %s (%s) not queued: another alternative is bound", op_type, a.describe()
@@ -133,6 +136,7 @@ class MachineRequests:
                 ", ".join(res.machines),
                 res.op_type,
                 res.request_key,
+                extra=event(Phase.BOUND, res.machines[0] if res.machines else None),
             )
             self.ls.report(LotState.RUNNING)
             return res
@@ -249,7 +253,9 @@ class MachineRequests:
                     f"MSCHED refused to unreserve {machine_id or 'the machines'} of entity {self.facts.entity_id}: "
                     f"{ack.ack_code}"
                 )
-            self.facts.log.info("unreserved %s (%s freed)", machine_id or "all machines", ack.freed)
+            self.facts.log.info(
+                "unreserved %s (%s freed)", machine_id or "all machines", ack.freed, extra=event(Phase.UNRESERVED)
+            )
             return int(ack.freed or 0)
 
         return freed

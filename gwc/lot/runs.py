@@ -9,12 +9,13 @@ import time
 from collections.abc import Sequence
 
 from gwc.errors import DatabaseError, GwcError
-from gwc.ipc.bus import Bus
+from gwc.ipc import Bus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, LotState, MachineStatus
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.core import Heard, LotReads
 from gwc.lot.errors import MachineDied, MachineLost, RunFailed, RunInDoubt
+from gwc.lot.events import Phase, event
 from gwc.lot.lot_server import LotServerLink
 from gwc.lot.model import ENDED, RELEASES, SHUT, UP, Reservation, Run, WcCall, now_text
 from gwc.lot.state import EntityState
@@ -62,6 +63,7 @@ class MachineRuns:
             machine_run_id,
             machine_id,
             recipe_id or "(its own)",
+            extra=event(Phase.SETUP, machine_id),
         )
         msg = message(
             Msg.SETUP_RUN,
@@ -87,7 +89,9 @@ class MachineRuns:
                 f"({recipe_id or op_type}): {ack.ack_code}" + (f" ({ack.note})" if ack.note else "")
             )
         if start:
-            self.facts.log.info("run %d started on %s", machine_run_id, machine_id)
+            self.facts.log.info(
+                "run %d started on %s", machine_run_id, machine_id, extra=event(Phase.STARTED, machine_id)
+            )
         return str(ack.recipe_id or recipe_id or "")  # (a WC names the recipe it set up)
 
     def start_run(self, machine_id: str, machine_run_id: int) -> None:
@@ -107,7 +111,7 @@ class MachineRuns:
                 f"{machine_id} refused to start run {machine_run_id}: {ack.ack_code}"
                 + (f" ({ack.note})" if ack.note else "")
             )
-        self.facts.log.info("run %d started on %s", machine_run_id, machine_id)
+        self.facts.log.info("run %d started on %s", machine_run_id, machine_id, extra=event(Phase.STARTED, machine_id))
 
     def _begin(self, machine_id: str, machine_run_id: int, anew: bool) -> float:
         """The run's life on the machine begins now (anew: with this setup; else unless its setup began
@@ -167,9 +171,8 @@ class MachineRuns:
                 poll=lambda: self._poll_run(machine_run_id, machines, started),
             )
             if done:
-                self.facts.log.info(
-                    "run %d complete: %s", machine_run_id, ", ".join(f"{m} {c}" for m, c in by_machine.items())
-                )
+                results = ", ".join(f"{m} {c}" for m, c in by_machine.items())
+                self.facts.log.info("run %d complete: %s", machine_run_id, results, extra=event(Phase.COMPLETE))
                 return by_machine
             outcomes = self.run_outcomes(machine_run_id, list(by_machine))
             with self.heard.cond:

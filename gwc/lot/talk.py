@@ -11,7 +11,7 @@ from collections.abc import Callable, Coroutine, Iterable
 from typing import Any
 
 from gwc.errors import ConversationTimeout
-from gwc.ipc.bus import Batch, BlockingBus, BlockingConversation
+from gwc.ipc import Batch, BlockingBus, BlockingConversation
 from gwc.ipc.catalogue import Message
 from gwc.lot.core import Heard
 from gwc.lot.errors import LotError, LotTimeout

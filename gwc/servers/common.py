@@ -96,15 +96,15 @@ class Server:
         """The refusal of a class whose answer needs more than an ack code (override per server)."""
         return None
 
-    async def _refuse(self, conv: Conversation, code: str, note: str) -> None:
+    async def _refuse(self, conv: Conversation, code: str, note: str, **fields: Any) -> None:
         # Module._refuse answers only classes whose answer needs nothing but ack_code; a server's
         # other answers (Status_Reply, Status_Line) are built by refusal() so no client is left to
         # time out when, say, the database fails.
-        if conv._idx or conv.first is None:
+        if conv.sent or conv.first is None:
             return
         reply = self.refusal(conv.cls, conv.first.first, code, note)
         if reply is None:
-            await super()._refuse(conv, code, note)  # type: ignore[misc]
+            await super()._refuse(conv, code, note, **fields)  # type: ignore[misc]
             return
         try:
             await conv.send(reply)

@@ -20,23 +20,20 @@ import logging
 import time
 from typing import Any
 
-from gwc import db
 from gwc.config import Config
-from gwc.errors import GwcError
+from gwc.errors import GwcError, Refused
 from gwc.ipc.bus import Conversation, Peer
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv, Msg
 from gwc.module import DATABASE_OUTAGE_S, Handler, Module
+from gwc.servers import lot_store
 from gwc.servers.common import SERVER_TIMEOUT, Pruner, Server
+from gwc.servers.lot_store import FINISHED, IN_CELL, MAX_QUANTITY, NewLot
 
 L = LotState
-MAX_QUANTITY = 1000
 MAX_CHILDREN = 20  # entities one CREATE_LOT of a lot script may make (each is a process)
 RESTART_GRACE = 30.0  # s: a lot script its agent restarts attaches again within this (its start_timeout)
-IN_CELL = frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING, L.COMPLETED})
-# An entity in one of these needs no script any more: its death is no failure (CONTRACTS.md).
-FINISHED = frozenset({L.EXPORTED, L.FAILED, L.COMPLETED, L.WAITING_EXPORT})
 # ENTITY_REQ action -> (the state it moves the entity to, or None; the states it may come from).
 ACTIONS: dict[str, tuple[LotState | None, frozenset[LotState]]] = {
     "import": (L.WAITING_IMPORT, frozenset({L.CREATED, L.EXPORTED, L.WAITING_IMPORT})),
@@ -69,56 +66,6 @@ def lot_parent(asker: str) -> int | None:
     """The entity a conversation's asker is, when it is a lot script (lot:E): the parent of what it creates."""
     kind, _, ent = asker.partition(":")
     return int(ent) if kind == "lot" and ent.isdigit() else None
-
-
-def _new_lot_for(cur: Any, entity_id: int, old_lot: int) -> int:
-    """Move an entity into a new lot, a copy of its old one (6.1.1: re-imported, a new lot_id)."""
-    lot_id = db.get_new_max_value(cur, "LOT_ID")
-    cur.execute(
-        "insert into lots (lot_id, lot_type, work_order_id, product_id, quantity, priority, owner, "
-        "script_id, result_params) select %s, lot_type, work_order_id, product_id, 1, priority, owner, "
-        "script_id, result_params from lots where lot_id = %s",
-        (lot_id, old_lot),
-    )
-    # lot_status names (entity, lot) of lot_entities: out, move the entity, back in, in this one transaction.
-    st = cur.execute(
-        "delete from lot_status where entity_id = %s returning state, reason, script_pid", (entity_id,)
-    ).fetchone()
-    cur.execute("update lot_entities set lot_id = %s, unit = 1 where entity_id = %s", (lot_id, entity_id))
-    cur.execute(
-        "insert into lot_status (entity_id, lot_id, state, reason, script_pid) values (%s, %s, %s, %s, %s)",
-        (entity_id, lot_id, *st),
-    )
-    return lot_id
-
-
-def _move(
-    entity_id: int,
-    to: LotState,
-    came_from: frozenset[LotState],
-    reason: str | None,
-    keep: bool,
-    action: tuple[str, str] | None = None,
-) -> db.Statement:
-    """An entity (not destroyed) in one of `came_from` moves to `to`, in one statement: the row of its
-    lot_id, or None if it was not in one of them (the caller reads why). `reason` replaces the old one,
-    or only fills it when `keep`. An operator's `action` (what, by whom) is kept in operator_actions by
-    the same statement (the entity's new state goes to entity_state_history by lot_status's trigger)."""
-    move = (
-        "update lot_status s set state = %(to)s, updated_at = now(), "
-        + ("reason = coalesce(%(reason)s, s.reason) " if keep else "reason = %(reason)s ")
-        + "from (select s2.state from lot_status s2 join lot_entities e using (entity_id) "
-        "where s2.entity_id = %(e)s and e.destroyed_at is null for update of s2) old "
-        "where s.entity_id = %(e)s and old.state = any(%(from)s) returning s.lot_id"
-    )
-    params = {"to": to.value, "reason": reason, "e": entity_id, "from": [str(x) for x in came_from]}
-    if action is None:
-        return db.Statement(move, params)
-    return db.Statement(
-        f"with moved as ({move}), act as (insert into operator_actions (entity_id, lot_id, action, by) "
-        "select %(e)s, lot_id, %(action)s, %(by)s from moved) select lot_id from moved",
-        params | {"action": action[0], "by": action[1]},
-    )
 
 
 class LotServer(Server, Module):
@@ -165,36 +112,16 @@ class LotServer(Server, Module):
         """LOT_ACTION: an operator's action on an entity done through another module (a cancel, told
         MSCHED), kept in the entity's history with who did it."""
         req = self.request(conv)
-        ack = Msg.LOT_ACTION_ACK
         if not str(req.action).strip() or not str(req.by).strip():
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "a lot action needs an action and who did it")
-        row = self.transaction(
-            db.Statement(
-                "insert into operator_actions (entity_id, lot_id, action, by, note) "
-                "select entity_id, lot_id, %s, %s, %s from lot_status where entity_id = %s returning lot_id",
-                (req.action[:100], req.by[:200], req.note, req.entity_id),
-            )
-        )
-        if row is None:
-            return await self.answer(conv, ack, AckCode.UNKNOWN, f"no entity {req.entity_id}")
+            raise Refused(AckCode.BAD_MESSAGE, "a lot action needs an action and who did it")
+        lot_id = self.transaction(lot_store.record_action(req.entity_id, req.action, req.by, req.note))
         self.log.info("entity %d: %s by %s", req.entity_id, req.action, req.by)
-        await self.answer(conv, ack, AckCode.ACK_OK, lot_id=row[0])
+        await self.answer(conv, Msg.LOT_ACTION_ACK, lot_id=lot_id)
 
     async def on_startup(self) -> str:
         """Watch the scripts of entities at work (they had a script when we were last up)."""
-
-        def attached(cur: Any) -> list[int]:
-            return [
-                r[0]
-                for r in cur.execute(
-                    "select s.entity_id from lot_status s join lot_entities e using (entity_id) "
-                    "where s.script_pid is not null and e.destroyed_at is null and s.state <> all(%s)",
-                    ([str(s) for s in FINISHED],),
-                ).fetchall()
-            ]
-
         now = time.monotonic()
-        self.watched = {e: now for e in self.transaction(attached)}
+        self.watched = {e: now for e in self.transaction(lot_store.attached_entities)}
         self.log.info("watching the scripts of %d entities", len(self.watched))
         return AckCode.ACK_OK
 
@@ -244,18 +171,7 @@ class LotServer(Server, Module):
         reason = f"lot script died ({why})"
 
         def fail(cur: Any) -> bool:
-            row = cur.execute(
-                "select s.state from lot_status s join lot_entities e using (entity_id) "
-                "where s.entity_id = %s and e.destroyed_at is null for update of s",
-                (entity_id,),
-            ).fetchone()
-            if row is None or L(row[0]) in FINISHED:
-                return False
-            cur.execute(
-                "update lot_status set state = 'failed', reason = %s, updated_at = now() where entity_id = %s",
-                (reason, entity_id),
-            )
-            return True
+            return lot_store.fail_unless_finished(cur, entity_id, reason)
 
         if not await self.transaction_when_up(fail):  # a dead script is reaped once the database is back
             return
@@ -276,192 +192,63 @@ class LotServer(Server, Module):
     async def create_lot(self, conv: Conversation) -> None:
         """CREATE_LOT (create_lot_entity): a lot (or more of an existing one), one entity per unit."""
         req = self.request(conv)
-        ack = Msg.CREATE_LOT_ACK
         if not 0 < req.quantity <= MAX_QUANTITY:
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
-        params = [str(p) for p in req.result_params or []]
+            raise Refused(AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
         # A lot script creates its own children (6.1: "an OE can actually start other OEs"): new lots only,
         # of its own order, each entity's parent the asker (docs/lot-scripts.md, *Child entities*).
         parent = lot_parent(conv.initiator)
         if parent is not None and (req.lot_id is not None or req.quantity > MAX_CHILDREN):
             why = "a lot script creates a new lot of its own" if req.lot_id is not None else f"{MAX_CHILDREN} at most"
-            return await self.answer(conv, ack, AckCode.NOT_AUTH, why)
-
-        def create(cur: Any) -> tuple[int, list[int], bool] | str:
-            if req.request_id:  # asked again (the answer was lost, or we restarted): what the first one made
-                cur.execute("select pg_advisory_xact_lock(hashtext(%s))", (req.request_id,))
-                made = cur.execute(
-                    "select lot_id, entity_id from lot_entities where create_request = %s order by unit",
-                    (req.request_id,),
-                ).fetchall()
-                if made:
-                    return made[0][0], [e for _, e in made], False
-            work_order_id, owner = req.work_order_id, req.owner
-            if parent is not None:
-                of = cur.execute(
-                    "select s.state, l.work_order_id, l.owner from lot_status s join lot_entities e "
-                    "using (entity_id) join lots l on l.lot_id = s.lot_id "
-                    "where s.entity_id = %s and e.destroyed_at is null",
-                    (parent,),
-                ).fetchone()
-                if of is None or L(of[0]) not in IN_CELL:
-                    return f"entity {parent} is {of[0] if of else 'unknown'}: only an entity in the cell starts others"
-                work_order_id, owner = of[1], owner or of[2]
-            product = cur.execute(
-                "select script_id, lot_type from products where product_id = %s", (req.product_id,)
-            ).fetchone()
-            if product is None:
-                return f"no product {req.product_id!r}"
-            script_id = req.script_id or product[0]
-            if (
-                req.script_id
-                and not cur.execute("select 1 from lot_scripts where script_id = %s", (req.script_id,)).fetchone()
-            ):
-                return f"no lot script {req.script_id!r}"
-            if (
-                work_order_id is not None
-                and not cur.execute("select 1 from work_orders where work_order_id = %s", (work_order_id,)).fetchone()
-            ):
-                return f"no work order {work_order_id}"
-            if req.lot_id is not None:
-                lot = cur.execute("select lot_id from lots where lot_id = %s for update", (req.lot_id,)).fetchone()
-                if lot is None:
-                    return f"no lot {req.lot_id}"
-                lot_id = req.lot_id
-                first = cur.execute(
-                    "select coalesce(max(unit), 0) + 1 from lot_entities where lot_id = %s", (lot_id,)
-                ).fetchone()[0]
-                cur.execute("update lots set quantity = quantity + %s where lot_id = %s", (req.quantity, lot_id))
-            else:
-                lot_id, first = db.get_new_max_value(cur, "LOT_ID"), 1
-                cur.execute(
-                    "insert into lots (lot_id, lot_type, work_order_id, product_id, quantity, priority, "
-                    "owner, script_id, result_params) values (%s, %s, %s, %s, %s, coalesce(%s, 20), %s, "
-                    "%s, %s)",
-                    (
-                        lot_id,
-                        req.lot_type or product[1],
-                        work_order_id,
-                        req.product_id,
-                        req.quantity,
-                        req.priority,
-                        owner,
-                        script_id,
-                        params,
-                    ),
-                )
-            ids = []
-            for unit in range(first, first + req.quantity):
-                eid = db.get_new_max_value(cur, "ENTITY_ID")
-                cur.execute(
-                    "insert into lot_entities (entity_id, lot_id, unit, create_request, parent_entity_id) "
-                    "values (%s, %s, %s, %s, %s)",
-                    (eid, lot_id, unit, req.request_id, parent),
-                )
-                cur.execute(
-                    "insert into lot_status (entity_id, lot_id, state) values (%s, %s, 'created')", (eid, lot_id)
-                )
-                ids.append(eid)
-            return lot_id, ids, True
-
-        result = self.transaction(create)
-        if isinstance(result, str):
-            return await self.answer(conv, ack, AckCode.UNKNOWN, result)
-        lot_id, ids, new = result
-        if new:
-            self.log.info(
-                "lot %d: %d entit%s created (%s) for %s",
-                lot_id,
-                len(ids),
-                "y" if len(ids) == 1 else "ies",
-                ", ".join(map(str, ids)),
-                str(req.owner or conv.peer) + (f", children of entity {parent}" if parent is not None else ""),
-            )
+            raise Refused(AckCode.NOT_AUTH, why)
+        asked = ("lot_id", "lot_type", "work_order_id", "owner", "priority", "script_id", "request_id")
+        params = tuple(str(p) for p in req.result_params or ())
+        new = NewLot(
+            req.product_id, req.quantity, **{k: req.fields.get(k) for k in asked}, result_params=params, parent=parent
+        )
+        made = self.transaction(lambda cur: lot_store.create_lot(cur, new))
+        ids = ", ".join(map(str, made.entity_ids))
+        if made.new:
+            children = f", children of entity {parent}" if parent is not None else ""
+            self.log.info("lot %d: entities %s created for %s%s", made.lot_id, ids, req.owner or conv.peer, children)
         else:
             self.log.warning(
-                "CREATE_LOT %s asked again: lot %d, entities %s, already created",
-                req.request_id,
-                lot_id,
-                ", ".join(map(str, ids)),
+                "CREATE_LOT %s asked again: lot %d, entities %s, already created", req.request_id, made.lot_id, ids
             )
-        await self.answer(conv, ack, AckCode.ACK_OK, None if new else "already created", lot_id=lot_id, entity_ids=ids)
+        note = None if made.new else "already created"
+        await self.answer(conv, Msg.CREATE_LOT_ACK, note=note, lot_id=made.lot_id, entity_ids=made.entity_ids)
 
     async def entity_request(self, conv: Conversation) -> None:
         """ENTITY_REQ: an entity moves itself (import, export, waiting_machine, running, completed,
         failed), attaches its script, reads its state or is destroyed; Notnow if its state forbids it."""
         req = self.request(conv)
-        ack = Msg.ENTITY_ACK
         if req.action not in ACTIONS:
-            return await self.answer(
-                conv, ack, AckCode.BAD_MESSAGE, f"action {req.action!r} is not one of {', '.join(ACTIONS)}"
-            )
+            raise Refused(AckCode.BAD_MESSAGE, f"action {req.action!r} is not one of {', '.join(ACTIONS)}")
         if req.action == "failed" and not (req.reason or "").strip():
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "failed needs a reason")
+            raise Refused(AckCode.BAD_MESSAGE, "failed needs a reason")
         if req.action == "attach" and not (req.script_pid or 0) > 0:
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "attach needs the script's pid")
+            raise Refused(AckCode.BAD_MESSAGE, "attach needs the script's pid")
         target, allowed = ACTIONS[req.action]
-
-        # A move to another state (the usual ENTITY_REQ) is one statement; the rest reads first.
-        movable = None if target is None or req.action == "destroy" else allowed - {target, L.EXPORTED}
-
-        lot: dict[str, Any] = {}  # an attach's answer: the entity's lot and lot script
-
-        def step(cur: Any) -> tuple[str, int | None, LotState | None, str | None]:
-            row = cur.execute(
-                "select s.lot_id, s.state, e.destroyed_at from lot_status s "
-                "join lot_entities e using (entity_id) where s.entity_id = %s for update of s",
-                (req.entity_id,),
-            ).fetchone()
-            if row is None or (row[2] is not None and req.action != "state"):
-                return AckCode.UNKNOWN, None, None, f"no entity {req.entity_id}" + (" (destroyed)" if row else "")
-            lot_id, state = row[0], L(row[1])
-            if state not in allowed:
-                return AckCode.NOTNOW, lot_id, state, f"entity {req.entity_id} is {state}: cannot {req.action}"
-            note = "destroyed" if row[2] is not None else None
-            if req.action == "attach":
-                lot.update(
-                    zip(
-                        ("product_id", "priority", "work_order_id", "script_id", "script_path"),
-                        cur.execute(
-                            "update lot_status s set script_pid = %s, updated_at = now() FROM lots l "
-                            "LEFT JOIN products p USING (product_id) LEFT JOIN lot_scripts ls "
-                            "ON ls.script_id = coalesce(l.script_id, p.script_id) "
-                            "WHERE s.entity_id = %s AND l.lot_id = s.lot_id "
-                            "RETURNING l.product_id, l.priority, l.work_order_id, ls.script_id, ls.path",
-                            (req.script_pid, req.entity_id),
-                        ).fetchone()
-                        or (),
-                    )
-                )
-            elif req.action == "destroy":
-                cur.execute("update lot_entities set destroyed_at = now() where entity_id = %s", (req.entity_id,))
-                note = "destroyed"
-            elif target is not None and target != state:
-                if state == L.EXPORTED:  # back after an export: a new lot (6.1.1)
-                    old, lot_id = lot_id, _new_lot_for(cur, req.entity_id, lot_id)
-                    note = f"re-imported entity: lot {old} -> lot {lot_id}"
-                cur.execute(
-                    "update lot_status set state = %s, reason = %s, updated_at = now() where entity_id = %s",
-                    (target.value, req.reason, req.entity_id),
-                )
-                state = target
-            return AckCode.ACK_OK, lot_id, state, note
-
+        # A move to another state (the usual ENTITY_REQ) is one statement; the rest (or a move that did
+        # not apply: the step says why) reads first.
         moved = None
-        if movable and target is not None:  # the usual move: that statement alone
-            moved = self.transaction(_move(req.entity_id, target, movable, req.reason, keep=False))
-        code: str
+        if target is not None and req.action != "destroy":
+            step = lot_store.move(req.entity_id, target, allowed - {target, L.EXPORTED}, req.reason, keep=False)
+            moved = self.transaction(step)
         if moved is not None:
-            code, lot_id, state, note = AckCode.ACK_OK, moved[0], target, None
+            done = lot_store.Moved(moved[0], target)
         else:
-            code, lot_id, state, note = self.transaction(step)
-        if code == AckCode.ACK_OK:
-            self._after(req.entity_id, req.action, state, conv)
-            if req.action not in ("state", "attach"):
-                self.log.info("entity %d: %s -> %s%s", req.entity_id, req.action, state, f" ({note})" if note else "")
-        await self.answer(conv, ack, code, note, lot_id=lot_id, state=state.value if state else None, **lot)
-        if code == AckCode.ACK_OK and req.action in ("import", "export"):
-            await self.event(f"entity {req.entity_id} (lot {lot_id}) waits to be {req.action}ed")
+            entity = req.entity_id, req.action, target, allowed, req.reason, req.script_pid
+            done = self.transaction(lambda cur: lot_store.entity_step(cur, *entity))
+        self._after(req.entity_id, req.action, done.state, conv)
+        if req.action not in ("state", "attach"):
+            note = f" ({done.note})" if done.note else ""
+            self.log.info("entity %d: %s -> %s%s", req.entity_id, req.action, done.state, note)
+        state = done.state.value if done.state else None
+        await self.answer(
+            conv, Msg.ENTITY_ACK, AckCode.ACK_OK, done.note, lot_id=done.lot_id, state=state, **done.attached
+        )
+        if req.action in ("import", "export"):
+            await self.event(f"entity {req.entity_id} (lot {done.lot_id}) waits to be {req.action}ed")
 
     def _after(self, entity_id: int, action: str, state: LotState | None, conv: Conversation) -> None:
         """Keep the reaper's watch in step with the entity."""
@@ -480,7 +267,7 @@ class LotServer(Server, Module):
         ack = Msg.LOT_DECISION_ACK
         if req.action not in DECISIONS[conv.cls]:
             known = ", ".join(DECISIONS[conv.cls])
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"{conv.cls} decides {known}, not {req.action!r}")
+            raise Refused(AckCode.BAD_MESSAGE, f"{conv.cls} decides {known}, not {req.action!r}")
         action = req.action
         waiting, moved, done = DECISIONS[conv.cls][action]
         by = req.by or conv.peer
@@ -490,25 +277,11 @@ class LotServer(Server, Module):
         # as it was in one read-committed step).
         what = action if conv.cls in (Conv.IMPORT_LOT, Conv.EXPORT_LOT) else f"release {action}"
         record = (str(what), str(by)) if self.cfg.record.history else None
-        row = self.transaction(_move(req.entity_id, moved, waiting, reason, keep=True, action=record))
-        if row is not None:
-            code, lot_id, note = AckCode.ACK_OK, row[0], None
-        else:
-            row = self.transaction(
-                db.Statement(
-                    "select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
-                    "where s.entity_id = %s and e.destroyed_at is null",
-                    (req.entity_id,),
-                )
-            )
-            if row is None:
-                code, lot_id, note = AckCode.UNKNOWN, None, f"no entity {req.entity_id}"
-            else:
-                need = " or ".join(sorted(waiting))
-                code, lot_id, note = AckCode.NOTNOW, row[0], f"entity {req.entity_id} is {row[1]}, not {need}"
-        await self.answer(conv, ack, code, note, lot_id=lot_id)
-        if code != AckCode.ACK_OK:
-            return
+        row = self.transaction(lot_store.move(req.entity_id, moved, waiting, reason, keep=True, action=record))
+        if row is None:  # not moved: why not, refused (Notnow with its lot, or Unknown)
+            self.transaction(lot_store.why_not_moved(req.entity_id, waiting))
+        lot_id = row[0] if row else None
+        await self.answer(conv, ack, lot_id=lot_id)
         if moved in FINISHED:
             self.watched.pop(req.entity_id, None)
         self.log.info("entity %d (lot %s) %s by %s", req.entity_id, lot_id, done, by)
@@ -526,63 +299,17 @@ class LotServer(Server, Module):
         """DIV_MERGE: divide splits `quantity` new entities off one (same lot and state, parent set);
         merge folds other_entity_id into entity_id (the other is destroyed). Only before work starts."""
         req = self.request(conv)
-        ack = Msg.DIVIDE_MERGE_ACK
-        still = (L.CREATED, L.IMPORTED)
         if req.action not in ("divide", "merge"):
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"action {req.action!r} is not divide or merge")
+            raise Refused(AckCode.BAD_MESSAGE, f"action {req.action!r} is not divide or merge")
         n = 1 if req.quantity is None else req.quantity
         if req.action == "divide" and not 0 < n <= MAX_QUANTITY:
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
+            raise Refused(AckCode.BAD_MESSAGE, f"quantity must be 1..{MAX_QUANTITY}")
         if req.action == "merge" and (req.other_entity_id is None or req.other_entity_id == req.entity_id):
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, "merge needs another entity (other_entity_id)")
+            raise Refused(AckCode.BAD_MESSAGE, "merge needs another entity (other_entity_id)")
         asker = lot_parent(conv.initiator)  # a lot script divides itself, merges its own children into itself
         if asker is not None and req.entity_id != asker:
-            return await self.answer(conv, ack, AckCode.NOT_AUTH, f"{conv.initiator} divides and merges itself only")
-
-        def lookup(cur: Any, eid: int) -> tuple[int, str] | None:
-            return cur.execute(
-                "select s.lot_id, s.state from lot_status s join lot_entities e using (entity_id) "
-                "where s.entity_id = %s and e.destroyed_at is null for update of s",
-                (eid,),
-            ).fetchone()
-
-        def step(cur: Any) -> tuple[str, list[int] | None, str | None]:
-            me = lookup(cur, req.entity_id)
-            other = lookup(cur, req.other_entity_id) if req.action == "merge" else None
-            if me is None or (req.action == "merge" and other is None):
-                missing = req.entity_id if me is None else req.other_entity_id
-                return AckCode.UNKNOWN, None, f"no entity {missing}"
-            if (
-                req.action == "merge"
-                and asker is not None
-                and not cur.execute(
-                    "select 1 from lot_entities where entity_id = %s and parent_entity_id = %s",
-                    (req.other_entity_id, asker),
-                ).fetchone()
-            ):
-                return AckCode.NOT_AUTH, None, f"entity {req.other_entity_id} is not a child of {conv.initiator}"
-            for eid, (_lot, state) in ((req.entity_id, me), (req.other_entity_id, other or me)):
-                if state not in still:
-                    return AckCode.NOTNOW, None, f"entity {eid} is {state}: only created or imported ones"
-            if req.action == "merge":
-                if other[0] != me[0] or other[1] != me[1]:  # type: ignore[index]
-                    return AckCode.NOTNOW, None, "only entities of one lot and one state merge"
-                cur.execute("update lot_entities set destroyed_at = now() where entity_id = %s", (req.other_entity_id,))
-                return AckCode.ACK_OK, [req.entity_id], f"entity {req.other_entity_id} merged into {req.entity_id}"
-            ids = [req.entity_id]
-            for _ in range(n):
-                eid = db.get_new_max_value(cur, "ENTITY_ID")
-                cur.execute(
-                    "insert into lot_entities (entity_id, lot_id, parent_entity_id) values (%s, %s, %s)",
-                    (eid, me[0], req.entity_id),
-                )
-                cur.execute(
-                    "insert into lot_status (entity_id, lot_id, state) values (%s, %s, %s)", (eid, me[0], me[1])
-                )
-                ids.append(eid)
-            return AckCode.ACK_OK, ids, None
-
-        code, ids, note = self.transaction(step)
-        if code == AckCode.ACK_OK:
-            self.log.info("%s of entity %d: %s", req.action, req.entity_id, note or ids)
-        await self.answer(conv, ack, code, note, entity_ids=ids)
+            raise Refused(AckCode.NOT_AUTH, f"{conv.initiator} divides and merges itself only")
+        asked = req.action, req.entity_id, req.other_entity_id, n, asker
+        ids, note = self.transaction(lambda cur: lot_store.divide_merge(cur, *asked))
+        self.log.info("%s of entity %d: %s", req.action, req.entity_id, note or ids)
+        await self.answer(conv, Msg.DIVIDE_MERGE_ACK, note=note, entity_ids=ids)

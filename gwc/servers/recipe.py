@@ -17,23 +17,24 @@ approved, and the old version's file is put back as it was, so the original stay
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import re
 from pathlib import Path
-from typing import Any
 
 from gwc.config import Config
-from gwc.db import Statement
+from gwc.errors import Refused
 from gwc.ipc.bus import Conversation
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module
+from gwc.servers import recipe_store
 from gwc.servers.common import NOT_LOTS, Server
+from gwc.servers.recipe_store import MAX_RECIPE, sha256
+
+__all__ = ["MAX_RECIPE", "RECIPE_ID", "RecipeServer", "library_dir", "sha256", "version_path"]
 
 RECIPE_ID = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
-MAX_RECIPE = 48_000  # bytes: a recipe travels in one bus datagram (wire.MAX_DATAGRAM, with headroom)
 
 
 def library_dir(cfg: Config) -> Path:
@@ -43,10 +44,6 @@ def library_dir(cfg: Config) -> Path:
 
 def version_path(cfg: Config, recipe_id: str, version: int) -> Path:
     return library_dir(cfg) / recipe_id / f"v{version}"
-
-
-def sha256(content: bytes) -> str:
-    return hashlib.sha256(content).hexdigest()
 
 
 def _write(path: Path, content: bytes) -> None:
@@ -64,24 +61,6 @@ def _read(path: Path) -> bytes | None:
         return None
 
 
-def lot_may_propose(asker: str, recipe_id: str) -> Statement:
-    """Why lot script `asker` (lot:E) may not propose a version of this recipe, or None: it may for a
-    recipe that exists and is for a machine RESERVED_MACHINES gives to E (one statement, run alone)."""
-    entity = asker[4:]
-    return Statement(
-        "select case when not exists (select 1 from recipes where recipe_id = %(r)s) then %(unknown)s "
-        "when not exists (select 1 from op_machine_recipe o join reserved_machines m using (machine_id) "
-        "where o.recipe_id = %(r)s and m.entity_id = %(e)s) then %(unheld)s end",
-        {
-            "r": recipe_id,
-            "e": int(entity) if entity.isdigit() else -1,
-            "unknown": f"no recipe {recipe_id!r}: a lot script proposes versions of known recipes only",
-            "unheld": f"recipe {recipe_id} is for no machine reserved to {asker}",
-        },
-        "one",
-    )
-
-
 class RecipeServer(Server, Module):
     role = "ers"
     ignored_peers = NOT_LOTS
@@ -96,11 +75,8 @@ class RecipeServer(Server, Module):
     async def on_startup(self) -> str:
         """Give every version its library file if it has none (first start, a new var/)."""
 
-        def versions(cur: Any) -> list[tuple[str, int, bytes]]:
-            return cur.execute("select recipe_id, version, content from recipe_versions").fetchall()
-
         written = 0
-        for recipe_id, version, content in self.transaction(versions):
+        for recipe_id, version, content in self.transaction(recipe_store.all_versions):
             path = version_path(self.cfg, recipe_id, version)
             if not path.exists():
                 _write(path, bytes(content))
@@ -121,176 +97,67 @@ class RecipeServer(Server, Module):
     async def fetch(self, conv: Conversation) -> None:
         """RECIPE_GET: the approved version for a machine; Rec_Inval when there is none to give."""
         req = self.request(conv)
-        ack = Msg.RECIPE_REPLY
-
-        # One statement, run alone: is the recipe known, its approved version, is it for this machine.
-        read = Statement(
-            "select exists (select 1 from recipes where recipe_id = %(r)s), v.version, v.checksum, v.content, "
-            "%(m)s::text is null or exists (select 1 from op_machine_recipe where recipe_id = %(r)s "
-            "and machine_id = %(m)s) "
-            "from (select) one left join recipe_versions v on v.recipe_id = %(r)s and v.approved",
-            {"r": req.recipe_id, "m": req.machine_id},
-        )
-        known, version, checksum, original, bound = self.transaction(read)
-        if not known:
-            return await self.answer(conv, ack, AckCode.REC_INVAL, f"no recipe {req.recipe_id!r}")
-        if version is None:
-            return await self.answer(conv, ack, AckCode.REC_INVAL, f"recipe {req.recipe_id} has no approved version")
-        if not bound:
-            return await self.answer(
-                conv, ack, AckCode.REC_INVAL, f"recipe {req.recipe_id} is not for machine {req.machine_id}"
-            )
-        data = self._file(req.recipe_id, version, bytes(original))
+        got = self.transaction(recipe_store.approved(req.recipe_id, req.machine_id))
+        data = self._file(got.recipe_id, got.version, got.content)
         if len(data) > MAX_RECIPE:
-            return await self.answer(
-                conv,
-                ack,
-                AckCode.REC_INVAL,
-                f"recipe {req.recipe_id} v{version} is {len(data)} bytes, over {MAX_RECIPE}",
+            raise Refused(
+                AckCode.REC_INVAL, f"recipe {got.recipe_id} v{got.version} is {len(data)} bytes, over {MAX_RECIPE}"
             )
         try:
             text = data.decode()
         except UnicodeDecodeError:
-            return await self.answer(
-                conv, ack, AckCode.REC_INVAL, f"recipe {req.recipe_id} v{version} library file is not UTF-8 text"
-            )
-        if sha256(data) != checksum:
+            raise Refused(
+                AckCode.REC_INVAL, f"recipe {got.recipe_id} v{got.version} library file is not UTF-8 text"
+            ) from None
+        if sha256(data) != got.checksum:
             self.log.warning(
                 "recipe %s v%d: library file differs from what was approved; sent as it is, the machine will refuse it",
-                req.recipe_id,
-                version,
+                got.recipe_id,
+                got.version,
             )
-        self.log.info("recipe %s v%d to %s", req.recipe_id, version, req.machine_id or conv.peer)
+        self.log.info("recipe %s v%d to %s", got.recipe_id, got.version, req.machine_id or conv.peer)
         await self.answer(
-            conv, ack, AckCode.ACK_OK, recipe_id=req.recipe_id, version=version, checksum=checksum, content=text
+            conv, Msg.RECIPE_REPLY, recipe_id=got.recipe_id, version=got.version, checksum=got.checksum, content=text
         )
 
     async def store(self, conv: Conversation) -> None:
         """RECIPE_PUT: new content becomes a new, unapproved version (content equal to the latest: that one)."""
         req = self.request(conv)
-        ack = Msg.RECIPE_STORE_ACK
         if not RECIPE_ID.match(req.recipe_id):
-            return await self.answer(
-                conv, ack, AckCode.BAD_MESSAGE, f"recipe id {req.recipe_id!r}: letters, digits, _ . - only (64 at most)"
-            )
+            raise Refused(AckCode.BAD_MESSAGE, f"recipe id {req.recipe_id!r}: letters, digits, _ . - only (64 at most)")
         content = req.content.encode()
         if len(content) > MAX_RECIPE:
-            return await self.answer(
-                conv, ack, AckCode.BAD_MESSAGE, f"recipe is {len(content)} bytes, over the limit of {MAX_RECIPE}"
-            )
-        checksum = sha256(content)
-        by = req.by
+            raise Refused(AckCode.BAD_MESSAGE, f"recipe is {len(content)} bytes, over the limit of {MAX_RECIPE}")
         lot = conv.initiator.startswith("lot:")
+        by = conv.initiator if lot else req.by
         if lot:  # a lot script proposes (Listing 1, 6.1's recipe tweak): only for a machine it holds
-            by = conv.initiator
-            refusal = self.transaction(lot_may_propose(conv.initiator, req.recipe_id))[0]
-            if refusal is not None:
-                return await self.answer(conv, ack, AckCode.NOT_AUTH, refusal)
-
-        def put(cur: Any) -> tuple[int, bool]:
-            cur.execute(
-                "insert into recipes (recipe_id, description) values (%s, %s) on conflict do nothing",
-                (req.recipe_id, req.description),
-            )
-            cur.execute("select 1 from recipes where recipe_id = %s for update", (req.recipe_id,))
-            if req.description and not lot:
-                cur.execute(
-                    "update recipes set description = %s where recipe_id = %s", (req.description, req.recipe_id)
-                )
-            last = cur.execute(
-                "select version, checksum from recipe_versions where recipe_id = %s order by version desc limit 1",
-                (req.recipe_id,),
-            ).fetchone()
-            if last is not None and last[1] == checksum:
-                return last[0], False
-            version = (last[0] if last else 0) + 1
-            cur.execute(
-                "insert into recipe_versions (recipe_id, version, content, checksum, created_by) "
-                "values (%s, %s, %s, %s, %s)",
-                (req.recipe_id, version, content, checksum, by),
-            )
-            return version, True
-
-        version, new = self.transaction(put)
-        if new:
-            _write(version_path(self.cfg, req.recipe_id, version), content)
-            self.log.info(
-                "recipe %s v%d stored (from %s)%s",
-                req.recipe_id,
-                version,
-                by or conv.peer,
-                ", proposed by a lot: unapproved until the operator approves it" if lot else "",
-            )
+            self.transaction(recipe_store.lot_may_propose(conv.initiator, req.recipe_id))
+        put = recipe_store.put_version
+        stored = self.transaction(lambda cur: put(cur, req.recipe_id, content, by, req.description, not lot))
+        if stored.new:
+            _write(version_path(self.cfg, req.recipe_id, stored.version), content)
+            proposed = ", proposed by a lot: unapproved until the operator approves it" if lot else ""
+            self.log.info("recipe %s v%d stored (from %s)%s", req.recipe_id, stored.version, by or conv.peer, proposed)
             if lot:
-                await self.event(f"recipe {req.recipe_id} v{version} proposed by {by}: `gwc recipe approve`")
-        await self.answer(
-            conv,
-            ack,
-            AckCode.ACK_OK,
-            None if new else f"same as v{version}: nothing new stored",
-            version=version,
-            checksum=checksum,
-        )
+                await self.event(f"recipe {req.recipe_id} v{stored.version} proposed by {by}: `gwc recipe approve`")
+        note = None if stored.new else f"same as v{stored.version}: nothing new stored"
+        await self.answer(conv, Msg.RECIPE_STORE_ACK, note=note, version=stored.version, checksum=stored.checksum)
 
     async def approve(self, conv: Conversation) -> None:
         """RECIPE_APPR: approve a version; an edited library file is stored as a new version, approved."""
         req = self.request(conv)
-        ack = Msg.RECIPE_STORE_ACK
         if not RECIPE_ID.match(req.recipe_id):
-            return await self.answer(conv, ack, AckCode.UNKNOWN, f"no recipe {req.recipe_id!r}")
+            raise Refused(AckCode.UNKNOWN, f"no recipe {req.recipe_id!r}")
 
-        def appr(cur: Any) -> tuple[int, str, str | None, tuple[int, bytes] | None, bytes | None] | str:
-            cur.execute("select 1 from recipes where recipe_id = %s for update", (req.recipe_id,))
-            rows = cur.execute(
-                "select version, checksum, content, approved from recipe_versions "
-                "where recipe_id = %s order by version",
-                (req.recipe_id,),
-            ).fetchall()
-            if not rows:
-                return f"no recipe {req.recipe_id!r} (or it has no versions)"
-            chosen = rows[-1] if req.version is None else next((r for r in rows if r[0] == req.version), None)
-            if chosen is None:
-                return f"recipe {req.recipe_id} has no version {req.version}"
-            version, checksum, content, approved = chosen[0], chosen[1], bytes(chosen[2]), chosen[3]
-            on_disk = _read(version_path(self.cfg, req.recipe_id, version))
-            restore, note, new_file = None, None, None
-            if on_disk is not None and sha256(on_disk) != checksum:
-                if len(on_disk) > MAX_RECIPE:
-                    return f"the edited file of v{version} is {len(on_disk)} bytes, over {MAX_RECIPE}"
-                restore = (version, content)
-                new = rows[-1][0] + 1
-                note = f"library file of v{version} was edited: stored as v{new}, approved; v{version} restored"
-                cur.execute(
-                    "insert into recipe_versions (recipe_id, version, content, checksum, created_by, note) "
-                    "values (%s, %s, %s, %s, %s, %s)",
-                    (req.recipe_id, new, on_disk, sha256(on_disk), req.by, f"edit of v{version}"),
-                )
-                version, checksum, new_file, approved = new, sha256(on_disk), on_disk, False
-            else:
-                if on_disk is None:
-                    restore = (version, content)
-                if approved:
-                    note = f"v{version} was already approved"
-            cur.execute(
-                "update recipe_versions set approved = false where recipe_id = %s and approved and version <> %s",
-                (req.recipe_id, version),
-            )
-            cur.execute(
-                "update recipe_versions set approved = true where recipe_id = %s and version = %s",
-                (req.recipe_id, version),
-            )
-            return version, checksum, note, restore, new_file
+        def on_disk(version: int) -> bytes | None:
+            return _read(version_path(self.cfg, req.recipe_id, version))
 
-        result = self.transaction(appr)
-        if isinstance(result, str):
-            return await self.answer(conv, ack, AckCode.UNKNOWN, result)
-        version, checksum, note, restore, new_file = result
-        if new_file is not None:
-            _write(version_path(self.cfg, req.recipe_id, version), new_file)
-        if restore is not None:
-            _write(version_path(self.cfg, req.recipe_id, restore[0]), restore[1])
-        self.log.info(
-            "recipe %s v%d approved by %s%s", req.recipe_id, version, req.by or conv.peer, f" ({note})" if note else ""
-        )
-        await self.answer(conv, ack, AckCode.ACK_OK, note, version=version, checksum=checksum)
-        await self.event(f"recipe {req.recipe_id} v{version} approved by {req.by or conv.peer}")
+        done = self.transaction(lambda cur: recipe_store.approve(cur, req.recipe_id, req.version, req.by, on_disk))
+        if done.new_file is not None:
+            _write(version_path(self.cfg, req.recipe_id, done.version), done.new_file)
+        if done.restore is not None:
+            _write(version_path(self.cfg, req.recipe_id, done.restore[0]), done.restore[1])
+        by, note = req.by or conv.peer, f" ({done.note})" if done.note else ""
+        self.log.info("recipe %s v%d approved by %s%s", req.recipe_id, done.version, by, note)
+        await self.answer(conv, Msg.RECIPE_STORE_ACK, note=done.note, version=done.version, checksum=done.checksum)
+        await self.event(f"recipe {req.recipe_id} v{done.version} approved by {by}")

@@ -38,12 +38,13 @@ from gwc.cell import (
     stop_cell,
     wait_on_bus,
 )
-from gwc.config import SERVER_MODULES, Config, private_bus, write_config
+from gwc.config import SERVER_MODULES, Config
 from gwc.errors import GwcError, ModuleError
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.mq import queue_exists, queue_names
 from gwc.ipc.names import Conv
 from gwc.retry import Deadline
+from gwc.soak.private_config import private_bus, write_config
 
 UP_TIMEOUT = 30.0  # a restarted module must be back on the bus within this (machines are shared and busy)
 HI_TIMEOUT = 60.0  # one `gwc machine start|stop` command

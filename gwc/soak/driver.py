@@ -40,7 +40,7 @@ from gwc.cell import cell_procs, machine_procs, start_procs
 from gwc.check import check_cell
 from gwc.client.orders import create_lot, decide, read_traveller
 from gwc.errors import GwcError
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.codes import LotState, MachineStatus
 from gwc.ipc.names import Conv
 from gwc.lot.run import spawn_lot_script

@@ -19,7 +19,7 @@ import psycopg
 from gwc.config import Config
 from gwc.db import Statement
 from gwc.errors import ConversationTimeout, DatabaseError, GwcError
-from gwc.ipc.bus import Bus
+from gwc.ipc import Bus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.names import Conv, Msg

@@ -18,7 +18,7 @@ import psycopg
 import pytest
 
 from gwc.agent import control as agent_control
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from tests.e2e.test_cell import gwc
 from tests.harness import wait_for, write_cell_config
 from tests.leaks import open_files

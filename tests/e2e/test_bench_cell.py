@@ -55,7 +55,9 @@ def test_bench_cell_runs_lots_and_a_death_trial_and_reports_them(tmp_path: Path,
     assert result["solo_lots"] == 3 and result["solo_failed"] == 0
     assert result["overhead_ms"]["n"] == 3 and 0 < result["overhead_ms"]["median"] < 5000
     every_phase = ("queued->bound", "bound->setup", "setup->started", "started->complete", "complete->unreserved")
-    assert set(every_phase) <= set(result["phases_ms"]), "a lot log line the phases are read from changed"
+    assert set(every_phase) <= set(result["phases_ms"]), (
+        "a named event of the lot library (gwc/lot/events.py) went missing"
+    )
     death = result["death_to_reroute_s"]
     assert death["n"] == 1 and 0 < death["median"] < 60
     # the resting cell's CPU, summed over its processes (servers, MSCHED, 2 WCs and MEs at least): the 2

@@ -25,9 +25,8 @@ from xprocess import ProcessStarter
 
 from gwc.config import Config
 from gwc.errors import ConversationTimeout
-from gwc.ipc import wire
+from gwc.ipc import BlockingBus, Bus, wire
 from gwc.ipc.auth import Guard
-from gwc.ipc.bus import BlockingBus, Bus
 from gwc.ipc.catalogue import message
 from gwc.log import log_file_name, open_log
 from tests.harness import wait_for, write_cell_config

@@ -26,9 +26,8 @@ import pytest
 from psycopg import sql
 
 from gwc.config import BusConfig
-from gwc.ipc import keys, wire
+from gwc.ipc import BlockingBus, keys, wire
 from gwc.ipc.auth import Guard
-from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.log import log_file_name
@@ -151,7 +150,7 @@ def the_keys_change_on_the_running_cell(cell: CellHarness) -> None:
     assert answer.ack_code == AckCode.REQ_KEY_U
     assert {name: p.inc for name, p in cell.bus.peers().items() if name in incs} == incs
     assert status(cell, "wc1") == "Idle"
-    assert cell.bus.bus._guard.key_ids == (2, 2)
+    assert cell.bus.bus.guard.key_ids == (2, 2)
 
 
 def forgeries_and_replays_are_refused_and_change_nothing(cell: CellHarness, out: Outsider) -> None:
@@ -185,7 +184,7 @@ def forgeries_and_replays_are_refused_and_change_nothing(cell: CellHarness, out:
     # A valid datagram captured off the wire and sent again byte for byte: a Machine_Request.
     captured: list[bytes] = []
     sniffer = BlockingBus(f"sniff.{cell.tag}", cell.cfg.bus, cell.log)
-    transport = sniffer.bus._transport
+    transport = sniffer.bus.transport
     send = transport.send
     transport.send = lambda data: (captured.append(data), send(data))[1]  # type: ignore[method-assign]
     try:

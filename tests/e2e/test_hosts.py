@@ -23,9 +23,10 @@ from typing import Any
 import psycopg
 import pytest
 
-from gwc.config import dump_toml, private_bus
+from gwc.config import dump_toml
 from gwc.log import log_file_name
 from gwc.netns import Hosts, leftovers, unavailable
+from gwc.soak.private_config import private_bus
 from tests.harness import SERVERS, wait_for
 
 pytestmark = [

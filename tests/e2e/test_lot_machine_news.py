@@ -7,7 +7,7 @@ import logging
 import re
 from typing import Any
 
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.ipc.names import Conv
 from tests.e2e.lotkit import cell_with_machines, default_machines, import_export_all, lot_log, order, steps
 from tests.harness import CellHarness, wait_for

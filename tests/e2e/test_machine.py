@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from gwc.ipc.bus import BlockingBus, BlockingConversation
+from gwc.ipc import BlockingBus, BlockingConversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import Channel, MessageId

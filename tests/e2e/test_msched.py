@@ -20,7 +20,7 @@ import pytest
 
 from gwc.cell import startup
 from gwc.errors import ConversationTimeout
-from gwc.ipc.bus import Batch, BlockingBus, BlockingConversation
+from gwc.ipc import Batch, BlockingBus, BlockingConversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.msched.store import SWEEP_WORK

@@ -32,9 +32,9 @@ from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-from gwc.config import write_config
-from gwc.ipc.bus import BlockingBus
+from gwc.ipc import BlockingBus
 from gwc.opcua.security import hash_password
+from gwc.soak.private_config import write_config
 from tests.e2e.lotkit import cell_with_machines, gwc, ok, order, script_pid, stop_lot_scripts, wait_state
 from tests.e2e.test_cell import gwc as gwc_env
 from tests.harness import SERVERS, CellHarness, wait_for, write_cell_config

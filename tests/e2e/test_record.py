@@ -27,10 +27,10 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from textual.widgets import DataTable, OptionList
 
 from gwc.cell import shutdown, startup
-from gwc.config import write_config
 from gwc.console.app import ConsoleApp
 from gwc.log import open_log
 from gwc.opcua.security import hash_password
+from gwc.soak.private_config import write_config
 from tests.e2e.lotkit import TWO_DUMMY_RUNS, gwc, import_export_all, ok, order, start_machine, steps
 from tests.harness import CellHarness, until, wait_for
 

@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from gwc.cell import startup
-from gwc.ipc.bus import Batch, BlockingConversation
+from gwc.ipc import Batch, BlockingConversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.servers.recipe import version_path

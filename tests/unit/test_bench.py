@@ -2,13 +2,21 @@
 
 from __future__ import annotations
 
+import itertools
+import logging
 import os
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
-from gwc.bench import percentile, reaped_cpu_s
+from gwc.bench import cell, percentile, reaped_cpu_s
+from gwc.lot import events
+from gwc.lot.events import Phase
+
+PHASE_LIST = list(Phase)
 
 # In a child process: pytest's own CPUs stay as they are.
 PLACE = """
@@ -55,3 +63,28 @@ def test_reaped_cpu_s_counts_the_children_a_process_waited_for() -> None:
         check=True,
     )
     assert reaped_cpu_s(os.getpid()) - before >= 0.15
+
+
+def test_the_cell_bench_times_phases_from_named_events_not_log_wording() -> None:
+    """Each phase `gwc bench cell` times is a named event the lot library emits (gwc/lot/events.py):
+    the log line's words may change, the event stays, and the bench reads the event only."""
+    lot_source = "".join(p.read_text() for p in (Path(__file__).parents[2] / "gwc" / "lot").rglob("*.py"))
+    for phase in Phase:
+        assert f"event(Phase.{phase.name}" in lot_source, f"the lot library no longer emits {phase}"
+    log = logging.getLogger("test.bench.events")
+    log.setLevel(logging.INFO)
+    recorder = events.record(log)
+    try:
+        for phase, machine in [(Phase.QUEUED, None), (Phase.BOUND, "wc2"), *[(p, "wc2") for p in PHASE_LIST[2:]]]:
+            log.info("any wording at all %s", phase, extra=events.event(phase, machine))
+            time.sleep(0.002)
+        log.info("a line that marks nothing")
+    finally:
+        log.removeHandler(recorder)
+    marks = recorder.as_list()
+    assert [m[0] for m in marks] == [p.value for p in Phase]
+    timed = cell.phases(marks)
+    assert list(timed) == [f"{a}->{b}" for a, b in itertools.pairwise(cell.PHASES)]
+    assert all(v > 0 for v in timed.values())
+    assert cell.bound_to(marks, "wc2", marks[0][1]) == marks[1][1]
+    assert cell.bound_to(marks, "wc1", 0) is None

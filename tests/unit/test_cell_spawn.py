@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from gwc.cell import Proc, out_file, spawn_process
-from gwc.config import write_config
+from gwc.soak.private_config import write_config
 
 
 def test_a_process_gets_the_cells_environment_and_an_extra_one_overrides_it(tmp_path: Path) -> None:

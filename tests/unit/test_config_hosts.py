@@ -11,8 +11,8 @@ import pytest
 from gwc import db
 from gwc.agent.agent import systemd_unit
 from gwc.cell import cell_procs
-from gwc.config import write_config
 from gwc.errors import ConfigError, DatabaseError
+from gwc.soak.private_config import write_config
 
 HOSTS = [{"name": "h1", "address": "127.0.0.1"}, {"name": "h2", "address": "198.51.100.7"}]
 

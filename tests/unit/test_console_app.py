@@ -9,11 +9,12 @@ from typing import Any
 
 from textual.widgets import DataTable
 
-from gwc.config import Config, private_bus
+from gwc.config import Config
 from gwc.console import views
 from gwc.console.app import ConsoleApp
 from gwc.console.views import Confirm, LiveTable, MachinesView, fill_table
 from gwc.log import open_log
+from gwc.soak.private_config import private_bus
 from tests.conftest import make_config
 from tests.harness import until
 

@@ -241,3 +241,18 @@ def test_key_rotate_keeps_each_key_files_mode_and_group(tmp_path: Path) -> None:
     lot.chmod(0o666)  # never made readable by others, whatever it was
     keys.rotate(cfg, overlap=10, take_up=3)
     assert stat.S_IMODE(lot.stat().st_mode) == 0o660
+
+
+def test_the_seals_macs_cover_the_bytes_docs_protocol_md_says(tmp_path: Path) -> None:
+    """docs/protocol.md, *Seal*: the lot MAC over the datagram less its last 32 bytes, the module MAC
+    over it less its last 16, each a keyed BLAKE2b of 16 bytes; the seal is 61 bytes after the body."""
+    import hashlib
+
+    cfg = cfg_in(tmp_path)
+    _, cell = keys.load(cfg, "module")
+    lot_key = max((k for k in cell.keys if k.role == "lot"), key=lambda k: k.id).secret
+    module_key = max((k for k in cell.keys if k.role == "module"), key=lambda k: k.id).secret
+    data = guard(cfg, "ms").seal(body())
+    assert len(data) == len(body()) + 61 and data[: len(body())] == body()
+    assert data[-32:-16] == hashlib.blake2b(data[:-32], key=lot_key, digest_size=16).digest()
+    assert data[-16:] == hashlib.blake2b(data[:-16], key=module_key, digest_size=16).digest()

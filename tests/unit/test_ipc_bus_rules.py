@@ -176,7 +176,7 @@ def test_a_late_reply_to_an_ended_conversation_is_logged_and_dropped(caplog: Any
         await inc.send(message("Pong", n=1))
         await until(lambda: a.stats["late"] == 1, "the late reply to be noticed")
         assert await a.first_message(0.2) is None, "a late reply never opens a new conversation"
-        await until(lambda: not b._pending, "the late reply to be acknowledged all the same")
+        await until(lambda: not b.outbox.pending, "the late reply to be acknowledged all the same")
 
     with caplog.at_level(logging.WARNING):
         run(t)
@@ -191,12 +191,12 @@ def test_a_module_that_drops_an_interest_is_not_waited_for() -> None:
         await until(lambda: "UPD_ME_ST" not in a.peers()["b"].interest, "a to hear b's new interest")
         conv = await a.start("UPD_ME_ST", message("Update_ME_Status", machine_id="x", status="Idle"))
         conv.end()
-        assert not a._pending, "nobody listens: nothing to wait for"
+        assert not a.outbox.pending, "nobody listens: nothing to wait for"
         b.set_interest(("UPD_ME_ST",))
         await until(lambda: "UPD_ME_ST" in a.peers()["b"].interest, "a to hear b listens again")
         await a.start("UPD_ME_ST", message("Update_ME_Status", machine_id="y", status="Idle"))
         b.set_interest(())  # b loses interest before it could ack (its hello tells a)
-        await until(lambda: not a._pending, "a to stop waiting for b")
+        await until(lambda: not a.outbox.pending, "a to stop waiting for b")
 
     run(t)
 
@@ -216,7 +216,9 @@ def test_a_module_hears_a_class_about_its_subjects_only_and_is_waited_for_only_t
         read = lot.stats["msg"] - lot.stats["duplicates"]  # (a retransmission under load is read again)
         for m in ("wc1", "wc2", "wc3", "wc2"):
             sent = await ms.start("UPD_ME_ST", message("Update_ME_Status", machine_id=m, status="Idle"))
-            assert set(ms._pending[max(ms._pending)].waiting) == ({"lot:1", "msched"} if m != "wc2" else {"msched"})
+            assert set(ms.outbox.pending[max(ms.outbox.pending)].waiting) == (
+                {"lot:1", "msched"} if m != "wc2" else {"msched"}
+            )
             sent.end()
         heard = []
         for _ in range(2):
@@ -227,12 +229,12 @@ def test_a_module_hears_a_class_about_its_subjects_only_and_is_waited_for_only_t
         assert heard == ["wc1", "wc3"] and await lot.first_message(0.2) is None
         got = [(await whole.first_message(5)) for _ in range(4)]
         assert [c.first.first.machine_id for c in got if c and c.first] == ["wc1", "wc2", "wc3", "wc2"]
-        await until(lambda: not ms._pending, "every ack")
+        await until(lambda: not ms.outbox.pending, "every ack")
         if TRANSPORT == "udp":  # the kernel kept wc2's news from the lot: it read two msgs, not four
             assert lot.stats["msg"] - lot.stats["duplicates"] - read == 2
         await ms.start("UPD_ME_ST", message("Update_ME_Status", machine_id="wc3", status="Setup"))
         lot.set_interest(("MOD_DIED",), subjects={"UPD_ME_ST": ("wc1",)})  # before it could ack: its hello tells
-        await until(lambda: not ms._pending, "ms to stop waiting for lot:1 about wc3")
+        await until(lambda: not ms.outbox.pending, "ms to stop waiting for lot:1 about wc3")
         assert ms.stats["gave_up"] == 0
 
     run(t)
@@ -267,7 +269,7 @@ def test_many_messages_received_then_one_sent_back_still_fits_a_datagram() -> No
         incoming = [await b.first_message(5) for _ in range(300)]
         await incoming[0].send(message("Pong", n=0))
         assert (await convs[0].next_message(5)).first.n == 0
-        await until(lambda: not a._pending, "all 300 to be acknowledged")
+        await until(lambda: not a.outbox.pending, "all 300 to be acknowledged")
 
     run(t, ack_timeout=0.2)  # acks pile up before the flush
 
@@ -280,7 +282,7 @@ def test_a_restart_is_reported_with_the_new_incarnation_and_an_old_bye_is_ignore
         a.peer_listeners.append(lambda name, peer: events.append((name, peer.inc if peer else None)))
         old_inc = b.inc
         b._heartbeat.cancel()  # the old one dies without a word (its last beats may still be on their way) ...
-        b._transport.close()
+        b.transport.close()
         b._open = False
         b2 = Bus("b", cfg, logging.getLogger("gwc.test.b2"), ("PING",), transport_for(cfg))
         await b2.sign_on()
@@ -290,7 +292,7 @@ def test_a_restart_is_reported_with_the_new_incarnation_and_an_old_bye_is_ignore
             await asyncio.sleep(3 * cfg.heartbeat)  # beats read meanwhile, the dead one's too: b2 stays
             assert a.peers()["b"].inc == b2.inc and events == [("b", b2.inc)]
             old_bye = wire.encode(wire.Envelope(kind="bye", src="b", inc=old_inc))
-            a._handle(a._guard.seal(old_bye))  # ... and a stray bye of the old incarnation changes nothing
+            a._handle(a.guard.seal(old_bye))  # ... and a stray bye of the old incarnation changes nothing
             assert "b" in a.peers()
         finally:
             await b2.close()
@@ -374,7 +376,7 @@ def test_invalid_message_in_a_batch_drops_the_batch_not_the_stream(caplog: Any) 
             fields={"n": "three"},
         )
         a._seq += 2
-        a._out[conv.id].next_idx = 3
+        a.outbox.outgoing(conv.id, 0).next_idx = 3
         a._transmit(wire.encode(bad))
         a._transmit(wire.encode(bad2))
         await conv.send(message("Ping", n=4))
@@ -410,10 +412,10 @@ def test_a_broadcast_waits_for_the_listener_it_names_though_it_does_not_track_it
             assert heard is not None, f"runs {sorted(set(range(20)) - got)} never reached the lot"
             got.add(heard.first.first.machine_run_id)
             heard.end()
-        await until(lambda: not wc._pending, "the lot's acks for all of them")
+        await until(lambda: not wc.outbox.pending, "the lot's acks for all of them")
         assert wc.stats["gave_up"] == 0 and wc.stats["retransmitted"] > 0  # the drops were made good
         unnamed = await wc.start("RUN_COMPL", done(99))
-        assert not wc._pending  # nobody it tracks listens: nothing to wait for
+        assert not wc.outbox.pending  # nobody it tracks listens: nothing to wait for
         unnamed.end()
 
     def done(n: int) -> Any:
@@ -493,7 +495,7 @@ def test_a_datagram_that_breaks_the_receive_path_stops_no_heartbeat_work(caplog:
         def broken(*args: Any) -> None:
             raise MemoryError
 
-        b._guard.open = broken  # type: ignore[method-assign]
+        b.guard.open = broken  # type: ignore[method-assign]
         await until(lambda: "ms" not in b.peers(), "b to expire the peer it can no longer hear")
         await until(lambda: b.stats["failed_opening a beat"] >= 3, "three beats to fail")
         assert "msched" in a.peers()  # b's beats went on all along

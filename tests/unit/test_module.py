@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pytest
 
-from gwc.config import private_bus
 from gwc.errors import DatabaseError, DatabaseUnavailable
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.module import Module
 from gwc.retry import Deadline
+from gwc.soak.private_config import private_bus
 from tests.conftest import make_config
 
 

@@ -14,8 +14,9 @@ from pathlib import Path
 import pytest
 
 from gwc import cell, private
-from gwc.config import Config, write_config
+from gwc.config import Config
 from gwc.private import NotPrivate
+from gwc.soak.private_config import write_config
 
 NOBODY = 65534
 as_root = pytest.mark.skipif(os.geteuid() != 0, reason="makes files as another user")
