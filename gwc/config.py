@@ -555,7 +555,9 @@ def dump_toml(doc: dict[str, Any]) -> str:
 
 
 def write_config(path: Path, doc: dict[str, Any]) -> Config:
-    """Write a cell configuration (for tests, benchmarks and private cells) and load it back."""
+    """Write a cell configuration (for tests, benchmarks and private cells) and load it back. Such a cell
+    runs as whoever starts it (`[cell] user = ""`, gwc.hostuser) unless `doc` names its user."""
+    doc = {**doc, "cell": {"user": "", **doc.get("cell", {})}}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(dump_toml(doc))
     cfg = load_config(path)
