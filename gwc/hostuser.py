@@ -244,6 +244,13 @@ def lot_user(cfg: Config) -> LotUser | None:
     return LotUser(user.pw_uid, user.pw_gid, name)
 
 
+def lot_uid(cfg: Config) -> int | None:
+    """The uid lot scripts of another user than the caller run as (whether or not it may start them)."""
+    name = lot_user_name(cfg)
+    user = _user(name) if name else None
+    return None if user is None or user.pw_uid == os.geteuid() else user.pw_uid
+
+
 def lot_user_wanted_but_unusable(cfg: Config) -> str | None:
     """Why lot scripts will run as the cell's user although `[lots] user` names another (None: they won't)."""
     name = lot_user_name(cfg)

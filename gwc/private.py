@@ -163,8 +163,7 @@ def not_the_cells(cfg: Config, pid: int) -> str | None:
         environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
     except OSError as e:
         return f"pid {pid} cannot be looked at ({e.strerror})"
-    lot = hostuser.lot_user(cfg)
-    if lot is not None and uid == lot.uid:  # a lot script: its environment is not ours to read
+    if uid == hostuser.lot_uid(cfg):  # a lot script: its environment is not ours to read
         return _a_lot_script_of(cfg, pid)
     if uid != os.geteuid():
         return f"pid {pid} belongs to uid {uid}, not to the cell's user (uid {os.geteuid()})"
