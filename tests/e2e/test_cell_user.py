@@ -22,7 +22,7 @@ import psycopg
 import pytest
 
 from gwc import db
-from gwc.config import Config, private_bus, write_config
+from gwc.config import PROJECT_ROOT, Config, private_bus, write_config
 from gwc.hostuser import AGENT_CAPS, CELL_USER, LOT_USER
 from tests.conftest import TEST_PG_SETTINGS
 from tests.e2e.lotkit import default_machines
@@ -280,3 +280,33 @@ def _log(cfg: Config, entity: int) -> str:
 def _query(cfg: Config, sql: str, *params: Any) -> list[tuple[Any, ...]]:
     with psycopg.connect(db.database_url(cfg)) as conn:
         return conn.execute(sql, params).fetchall()
+
+
+@pytest.mark.soak
+def test_the_quick_start_works_from_a_fresh_clone_as_root() -> None:
+    """README's Quick start, `bin/demo`, as root in a fresh clone of this commit (a new .venv, the users
+    already there or made): the demonstration succeeds, and it ran as `gwc` (var/demo is `gwc`'s). In
+    a network namespace of its own: the demo's fixed bus port meets nobody else's."""
+    base = Path(tempfile.mkdtemp(prefix="gwc-clone-", dir="/var/tmp"))
+    base.chmod(0o755)
+    clone = base / "gwc"
+    try:
+        head = subprocess.run(["git", "-C", str(PROJECT_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True)
+        subprocess.run(["git", "clone", "-q", str(PROJECT_ROOT), str(clone)], check=True, timeout=120)
+        subprocess.run(["git", "-C", str(clone), "checkout", "-q", head.stdout.strip()], check=True)
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("GWC_", "VIRTUAL_ENV"))}
+        demo = subprocess.run(
+            ["unshare", "--net", "sh", "-c", "ip link set lo up && exec bin/demo"],
+            cwd=clone,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
+        out = demo.stdout + demo.stderr
+        assert demo.returncode == 0, out[-6000:]
+        assert "demonstration succeeded" in out
+        gwc_user, _ = _users()  # type: ignore[misc]
+        assert (clone / "var" / "demo").stat().st_uid == gwc_user.pw_uid
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
