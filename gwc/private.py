@@ -160,11 +160,11 @@ def not_the_cells(cfg: Config, pid: int) -> str | None:
         return f"pid {pid} is never the cell's"
     try:
         uid = os.stat(f"/proc/{pid}").st_uid
+        if uid == hostuser.lot_uid(cfg):  # a lot script: its environment is not ours to read
+            return _a_lot_script_of(cfg, pid)
         environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
     except OSError as e:
         return f"pid {pid} cannot be looked at ({e.strerror})"
-    if uid == hostuser.lot_uid(cfg):  # a lot script: its environment is not ours to read
-        return _a_lot_script_of(cfg, pid)
     if uid != os.geteuid():
         return f"pid {pid} belongs to uid {uid}, not to the cell's user (uid {os.geteuid()})"
     env = dict(item.decode(errors="replace").partition("=")[::2] for item in environ if b"=" in item)

@@ -10,6 +10,7 @@ import json
 import os
 import pwd
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -146,7 +147,10 @@ def cell_processes(cfg: Config) -> dict[int, str]:
     """Every process of this cell: those with its var/ in their environment or command line, and the
     embedded cluster's postmaster and all its children."""
     var = str(cfg.var).encode()
-    postmaster = int((cfg.pg_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    try:
+        postmaster = int((cfg.pg_dir / "postmaster.pid").read_text().split("\n", 1)[0])
+    except (OSError, ValueError):
+        postmaster = -1  # stopped
     found = {}
     for d in Path("/proc").iterdir():
         if not d.name.isdigit() or int(d.name) == os.getpid():
@@ -270,6 +274,18 @@ def test_a_lot_script_runs_as_the_lot_user_with_the_lot_key_alone_and_makes_the_
     assert _query(cfg, "SELECT count(*) FROM machine_run_result WHERE machine_id = 'cmm_wc'")[0][0] >= 1
     checked = gwc(env, "check")
     assert checked.returncode == 0, checked.stdout + checked.stderr
+    # With its agent killed, `gwc stop` as root still stops a waiting script of the lot user's (CAP_KILL;
+    # known as this cell's by its command line), and nothing of the cell is left.
+    made = json.loads(ok("order", "new", "--customer", "NJIT", "probe_set=1", "--json"))
+    (waiting,) = [e for lot in made["lots"] for e in lot["entities"]]
+    pid = wait_for(lambda: _script_pid(cfg, waiting), 30, f"lot:{waiting} running")
+    os.kill(agent, signal.SIGKILL)
+    wait_for(lambda: not Path(f"/proc/{agent}").exists() or "Z" in Path(f"/proc/{agent}/stat").read_text(), 10)
+    stopped = gwc(env, "stop", timeout=120)
+    assert stopped.returncode == 0 and "refused" not in stopped.stdout, stopped.stdout + stopped.stderr
+    assert f"lot:{waiting}: stopped" in stopped.stdout or f"lot:{waiting}: killed" in stopped.stdout, stopped.stdout
+    assert not Path(f"/proc/{pid}").exists(), "the lot script outlived `gwc stop`"
+    assert not cell_processes(cfg), cell_processes(cfg)
 
 
 def _script_pid(cfg: Config, entity: int) -> int | None:

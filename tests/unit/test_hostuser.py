@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from gwc import hostuser
+from gwc import hostuser, private
 from gwc.config import Config, write_config
 
 as_root = pytest.mark.skipif(os.geteuid() != 0, reason="becomes another user")
@@ -149,3 +149,28 @@ def test_a_missing_cell_user_is_refused_with_what_to_do(tmp_path: Path) -> None:
     cfg = config(tmp_path, cell={"name": "t", "user": "gwc-nobody-here"})
     with pytest.raises(hostuser.HostUserError, match="bin/setup"):
         hostuser.become_cell_user(cfg)
+
+
+@as_root
+@needs_users
+def test_gwc_stop_knows_a_lot_script_of_the_lot_user_by_its_command_line(reachable: Path) -> None:
+    cfg = config(reachable, cell={"name": "t", "var": str(reachable / "var"), "user": "gwc"})
+    (reachable / "other").mkdir()
+    other = config(reachable / "other", cell={"name": "t", "var": str(reachable / "other" / "var"), "user": "gwc"})
+    lot = pwd.getpwnam(hostuser.LOT_USER)
+    nap = [sys.executable, "-c", "import time; time.sleep(60)", "gwc.lot.run", "--entity", "1", "--var"]
+    ours = subprocess.Popen([*nap, str(cfg.var)], user=lot.pw_uid, group=lot.pw_gid, extra_groups=[])
+    theirs = subprocess.Popen([*nap, str(other.var)], user=lot.pw_uid, group=lot.pw_gid, extra_groups=[])
+    try:
+
+        def judged() -> list[str | None]:
+            hostuser.become_cell_user(cfg, hostuser.STOP_CAPS)
+            return [private.not_the_cells(cfg, ours.pid), private.not_the_cells(cfg, theirs.pid)]
+
+        mine, not_mine = in_child(judged)
+        assert mine is None
+        assert not_mine is not None and "not a lot script of this cell" in not_mine, not_mine
+    finally:
+        for p in (ours, theirs):
+            p.kill()
+            p.wait()
