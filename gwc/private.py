@@ -2,8 +2,10 @@
 processes `gwc stop` may signal (docs/security.md, Local users).
 
 A local user must be unable to make anything the cell later trusts. So var/ and var/run are the
-cell user's own, open to nobody else (0700; 0710 with the embedded cluster's group when root runs
-the cell, so that the `postgres` user can reach its own folders and nothing more); a folder of
+cell user's own, open to nobody else (0700; 0710 with the lot user's group when lot scripts run as
+a user of their own, gwc.hostuser, who may then pass through to what is made for them; 0710 with
+the embedded cluster's group when root runs the cell itself, so that the `postgres` user can reach
+its own folders and nothing more); a folder of
 another owner, or a link where a folder should be, is refused, never used. Files the cell makes
 there are made exclusively and never through a link (O_EXCL, O_NOFOLLOW); a pid file or lock that
 another user owns or may write is refused. And before `gwc stop` signals a process a pid file names,
