@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import pwd
+import re
 import shutil
 import signal
 import subprocess
@@ -274,6 +275,12 @@ def test_a_lot_script_runs_as_the_lot_user_with_the_lot_key_alone_and_makes_the_
     assert _query(cfg, "SELECT count(*) FROM machine_run_result WHERE machine_id = 'cmm_wc'")[0][0] >= 1
     checked = gwc(env, "check")
     assert checked.returncode == 0, checked.stdout + checked.stderr
+    # The agent reaped each exec'd script as it does a fork: its exit status and whole CPU logged.
+    text = next(cfg.log_dir.glob("agent-*.log")).read_text()
+    for e in entities:
+        cpu = re.search(rf"lot:{e}: RUNNING -> STOPPED .*exited 0, (\d+) ms of CPU: its work is done", text)
+        assert cpu, f"lot:{e} not logged as ended"
+        print(f"lot:{e} as {LOT_USER}, exec'd: {cpu.group(1)} ms of CPU")
     # With its agent killed, `gwc stop` as root still stops a waiting script of the lot user's (CAP_KILL;
     # known as this cell's by its command line), and nothing of the cell is left.
     made = json.loads(ok("order", "new", "--customer", "NJIT", "probe_set=1", "--json"))
@@ -322,6 +329,9 @@ def test_the_quick_start_works_from_a_fresh_clone_as_root() -> None:
         subprocess.run(["git", "clone", "-q", str(PROJECT_ROOT), str(clone)], check=True, timeout=120)
         subprocess.run(["git", "-C", str(clone), "checkout", "-q", head.stdout.strip()], check=True)
         env = {k: v for k, v in os.environ.items() if not k.startswith(("GWC_", "VIRTUAL_ENV"))}
+        # bin/demo sets up first: the new .venv's packages need the network, the demo must not have it
+        setup = subprocess.run(["bin/setup"], cwd=clone, env=env, capture_output=True, text=True, timeout=900)
+        assert setup.returncode == 0, (setup.stdout + setup.stderr)[-6000:]
         demo = subprocess.run(
             ["unshare", "--net", "sh", "-c", "ip link set lo up && exec bin/demo"],
             cwd=clone,
