@@ -174,3 +174,18 @@ def test_gwc_stop_knows_a_lot_script_of_the_lot_user_by_its_command_line(reachab
         for p in (ours, theirs):
             p.kill()
             p.wait()
+
+
+def test_a_traveller_is_never_read_through_a_link(tmp_path: Path) -> None:
+    """var/lots is the lot user's to write: a link it plants must not have the cell read (and show) a
+    file of the cell's own."""
+    from gwc.lot.model import read_traveller, traveller_path
+
+    cfg = config(tmp_path)
+    secret = tmp_path / "secret.json"
+    secret.write_text('{"entity_id": 7, "key": "the cell key"}')
+    traveller_path(cfg, 7).parent.mkdir(parents=True)
+    traveller_path(cfg, 7).symlink_to(secret)
+    assert read_traveller(cfg, 7) is None
+    traveller_path(cfg, 8).write_text('{"entity_id": 8}')
+    assert read_traveller(cfg, 8) == {"entity_id": 8}
