@@ -27,6 +27,7 @@ from gwc import db
 from gwc.agent import control as agent_control
 from gwc.config import Config
 from gwc.errors import ConfigError, ModuleError
+from gwc.hostuser import AGENT_CAPS, ambient
 from gwc.ipc import BlockingBus, Bus, keys
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
@@ -141,9 +142,14 @@ def process_env(cfg: Config) -> dict[str, str]:
 
 
 def spawn_process(
-    cfg: Config, proc: Proc, extra_env: dict[str, str] | None = None, pass_fds: tuple[int, ...] = ()
+    cfg: Config,
+    proc: Proc,
+    extra_env: dict[str, str] | None = None,
+    pass_fds: tuple[int, ...] = (),
+    user: tuple[int, int] | None = None,
 ) -> subprocess.Popen[bytes]:
     """Start one module in a session of its own, with its pid file; output before its log opens goes to .out.
+    `user`: (uid, gid) it runs as, with no other group (a lot script as the lot user: gwc.hostuser).
 
     The caller is its parent: the agent keeps the Popen to reap it; a command that exits leaves it to init."""
     secure_var(cfg)
@@ -159,6 +165,9 @@ def spawn_process(
             start_new_session=True,
             cwd=str(cfg.var.resolve()),
             pass_fds=pass_fds,
+            user=user[0] if user else None,
+            group=user[1] if user else None,
+            extra_groups=[] if user else None,
         )
     write_pid_file(cfg, proc.name, child.pid, proc.argv)
     return child
@@ -275,7 +284,8 @@ def start_agent(cfg: Config, say: Callable[[str], None], timeout: float = UP_TIM
     """Start this host's agent unless one runs (it adopts whatever modules are still running)."""
     if agent_control.running(cfg):
         return
-    pid = spawn(cfg, AGENT)
+    with ambient(AGENT_CAPS):  # the few it keeps of root's (gwc.hostuser): it clears them for what it starts
+        pid = spawn(cfg, AGENT)
     say(f"agent: spawned (pid {pid})")
     deadline = Deadline(timeout)
     while not agent_control.running(cfg):
@@ -319,6 +329,8 @@ def signal_cells(cfg: Config, pid: int, sig: int) -> str | None:
             os.kill(pid, sig)
     except ProcessLookupError:
         pass
+    except PermissionError:  # a lot script of the lot user, and no CAP_KILL (`gwc stop` as the cell's user)
+        return f"pid {pid} may not be signalled by uid {os.geteuid()}: stop the cell as root, or through its agent"
     return None
 
 

@@ -32,6 +32,7 @@ COMMANDS = {
     "monitor": "gwc.hi.monitor",  # the conversation monitor
     "console": "gwc.console.command",  # the operator's console (all the screens above, live)
     "key": "gwc.hi.key",  # the cell's keys
+    "host": "gwc.hi.host",  # the host's OS users for the cell and its lot scripts
     "check": "gwc.hi.check",  # cell invariants
     "soak": "gwc.hi.soak",  # the chaos soak
     "demo": "gwc.hi.demo",  # section 7's demonstration

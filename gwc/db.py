@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import grp
 import logging
 import os
 import pwd
@@ -32,10 +33,11 @@ from urllib.parse import quote, urlsplit, urlunsplit
 import psycopg
 from psycopg import sql
 
+from gwc import hostuser
 from gwc.budget import MAX_CONNECTIONS, plan
 from gwc.config import Config, HostSpec, shipped
 from gwc.errors import DatabaseError, DatabaseUnavailable
-from gwc.private import PG_OS_USER, open_lock, secure_var, traversable_by
+from gwc.private import PG_OS_USER, open_lock, private_dir, secure_var, traversable_by
 from gwc.retry import Backoff
 
 T = TypeVar("T")
@@ -195,11 +197,13 @@ def _write_settings(cfg: Config, owner: pwd.struct_passwd | None) -> None:
     settings.update(
         listen_addresses=host.address if host else "", unix_socket_directories=str(socket_dir(cfg)), port=_port(cfg)
     )
-    if host is not None:
-        _write_hba(cfg, host, owner)
-        if _tls(cfg):
-            _make_certificate(cfg, host, owner)
-            settings.update(ssl=True, ssl_cert_file="server.crt", ssl_key_file="server.key")
+    lots = _lot_access(cfg) if owner is None else None
+    if lots is not None:  # its socket open to the lot user's group; who logs in as whom: _write_hba
+        settings.update(unix_socket_group=lots[0], unix_socket_permissions="0770")
+    _write_hba(cfg, host, owner, lots)
+    if host is not None and _tls(cfg):
+        _make_certificate(cfg, host, owner)
+        settings.update(ssl=True, ssl_cert_file="server.crt", ssl_key_file="server.key")
     lines = ["# Written by gwc.db at every start; edit etc/cell.toml [database.settings] instead."]
     lines += [f"{k} = {_conf_value(v)}" for k, v in settings.items()]
     conf = cfg.pg_dir / "gwc.conf"
@@ -265,16 +269,34 @@ def _set_role_passwords(cur: psycopg.Cursor[Any], cfg: Config) -> None:
         _write_secret(_passwords_file(cfg), "".join(f"{r} {p}\n" for r, p in passwords.items()))
 
 
-def _write_hba(cfg: Config, host: HostSpec, owner: pwd.struct_passwd | None) -> None:
-    """Local connections as before; from the network only the cell's subnet, each role by password."""
-    allow = cfg.raw.get("database", {}).get("allow") or f"{host.address.rsplit('.', 1)[0]}.0/24"
-    kind = "hostssl" if _tls(cfg) else "host"
+def _lot_access(cfg: Config) -> tuple[str, str] | None:
+    """(group, user) of the lot scripts' OS user when they run as one (gwc.hostuser) and so must reach
+    the socket; None when only the cell's user does."""
+    gid = hostuser.lot_group(cfg)
+    if gid is None:
+        return None
+    return grp.getgrgid(gid).gr_name, hostuser.lot_user_name(cfg)
+
+
+def _write_hba(
+    cfg: Config, host: HostSpec | None, owner: pwd.struct_passwd | None, lots: tuple[str, str] | None = None
+) -> None:
+    """Local connections: trusted while only the cell's user can reach the socket; once the lot user
+    can, by the kernel's word on who connects (peer): the cell's user and root as the cell's superuser
+    or the lots' role, the lot user as the lots' role alone. From the network only the cell's subnet,
+    each role by password."""
+    lines = ["# Written by gwc.db at every start; edit etc/cell.toml [database] allow/tls instead."]
+    lines.append("local all all peer map=cell" if lots else "local all all trust")
+    if host is not None:
+        allow = cfg.raw.get("database", {}).get("allow") or f"{host.address.rsplit('.', 1)[0]}.0/24"
+        lines.append(f"{'hostssl' if _tls(cfg) else 'host'} {DB_NAME} all {allow} scram-sha-256")
     hba = cfg.pg_dir / "pg_hba.conf"
-    hba.write_text(
-        "# Written by gwc.db at every start; edit etc/cell.toml [database] allow/tls instead.\n"
-        "local all all trust\n"
-        f"{kind} {DB_NAME} all {allow} scram-sha-256\n"
-    )
+    hba.write_text("\n".join(lines) + "\n")
+    if lots is not None:
+        me = pwd.getpwuid(os.geteuid()).pw_name
+        pairs = [(who, role) for who in dict.fromkeys((me, "root")) for role in (SUPERUSER, f"gwc_{LOT_ROLE}")]
+        pairs.append((lots[1], f"gwc_{LOT_ROLE}"))
+        (cfg.pg_dir / "pg_ident.conf").write_text("".join(f"cell {who} {role}\n" for who, role in pairs))
     if owner is not None:
         os.chown(hba, owner.pw_uid, owner.pw_gid)
 
@@ -317,6 +339,9 @@ def _prepare_dirs(cfg: Config) -> pwd.struct_passwd | None:
         )
     if not _as_root():
         cfg.pg_dir.chmod(0o700)
+        lots = hostuser.lot_group(cfg)
+        if lots is not None:  # lot scripts of their own user reach the socket (its auth: _write_hba)
+            private_dir(socket_dir(cfg), lots)
         return None
     user = _pg_user()
     _check_traversable(cfg.pg_dir, user)

@@ -2,8 +2,10 @@
 processes `gwc stop` may signal (docs/security.md, Local users).
 
 A local user must be unable to make anything the cell later trusts. So var/ and var/run are the
-cell user's own, open to nobody else (0700; 0710 with the embedded cluster's group when root runs
-the cell, so that the `postgres` user can reach its own folders and nothing more); a folder of
+cell user's own, open to nobody else (0700; 0710 with the lot user's group when lot scripts run as
+a user of their own, gwc.hostuser, who may then pass through to what is made for them; 0710 with
+the embedded cluster's group when root runs the cell itself, so that the `postgres` user can reach
+its own folders and nothing more); a folder of
 another owner, or a link where a folder should be, is refused, never used. Files the cell makes
 there are made exclusively and never through a link (O_EXCL, O_NOFOLLOW); a pid file or lock that
 another user owns or may write is refused. And before `gwc stop` signals a process a pid file names,
@@ -22,6 +24,7 @@ import stat
 from pathlib import Path
 from typing import Any
 
+from gwc import hostuser
 from gwc.config import Config
 from gwc.errors import GwcError
 
@@ -36,11 +39,12 @@ class NotPrivate(GwcError):
     exit_code = 2
 
 
-def private_dir(path: Path, group: int | None = None) -> Path:
-    """Make `path` (and its parents) a folder of the cell's own: 0700, or 0710 for `group`.
+def private_dir(path: Path, group: int | None = None, mode: int | None = None) -> Path:
+    """Make `path` (and its parents) a folder of the cell's own: 0700, or 0710 (or `mode`) for `group`.
 
     A folder of another owner, or a link, is refused (NotPrivate), never changed or followed."""
-    mode = 0o710 if group is not None else 0o700
+    if mode is None:
+        mode = 0o710 if group is not None else 0o700
     try:
         path.mkdir(mode=mode, parents=True)
     except FileExistsError:
@@ -78,8 +82,22 @@ def secure_var(cfg: Config) -> None:
     if os.geteuid() == 0 and cfg.embedded:  # the cluster runs as `postgres`: it may pass through, no more
         with contextlib.suppress(KeyError):
             group = pwd.getpwnam(PG_OS_USER).pw_gid
-    private_dir(cfg.var, group)
-    private_dir(cfg.run_dir, group)
+    lots = hostuser.lot_group(cfg) if group is None else None
+    private_dir(cfg.var, group if lots is None else lots)
+    private_dir(cfg.run_dir, group if lots is None else lots)
+    if lots is not None:
+        share_with_lot_user(cfg, lots)
+
+
+def share_with_lot_user(cfg: Config, gid: int) -> None:
+    """What lot scripts of another user (gwc.hostuser) need of var/, and nothing more: to pass through
+    var/secrets to lot.key (0640) and var/log to their own logs (made for them); to write their
+    travellers in var/lots (1770: sticky, so none replaces a file it does not own)."""
+    for folder, mode in ((cfg.var / "secrets", 0o710), (cfg.log_dir, 0o710), (cfg.var / "lots", 0o1770)):
+        private_dir(folder, gid, mode)
+    lot_key = Path(cfg.bus.lot_key_file or cfg.var / "secrets" / "lot.key")
+    if lot_key.exists():
+        hostuser.share_with_lots(lot_key, gid, 0o640)
 
 
 def _owned(fd: int, path: Path) -> None:
@@ -144,6 +162,8 @@ def not_the_cells(cfg: Config, pid: int) -> str | None:
         return f"pid {pid} is never the cell's"
     try:
         uid = os.stat(f"/proc/{pid}").st_uid
+        if uid == hostuser.lot_uid(cfg):  # a lot script: its environment is not ours to read
+            return _a_lot_script_of(cfg, pid)
         environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
     except OSError as e:
         return f"pid {pid} cannot be looked at ({e.strerror})"
@@ -156,11 +176,37 @@ def not_the_cells(cfg: Config, pid: int) -> str | None:
     return f"pid {pid} was not started for this cell ({cfg.var}): no GWC_VAR or GWC_CONFIG of it"
 
 
+def _a_lot_script_of(cfg: Config, pid: int) -> str | None:
+    """Why a process of the lot user is not one of this cell's lot scripts (None if it is): its command
+    line (readable by all) must be `... -m gwc.lot.run --entity E --var <this cell's var/>`."""
+    try:
+        argv = [a.decode(errors="replace") for a in Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")]
+    except OSError as e:
+        return f"pid {pid} cannot be looked at ({e.strerror})"
+    if (
+        "gwc.lot.run" in argv
+        and "--var" in argv[:-1]
+        and Path(argv[argv.index("--var") + 1]).resolve() == cfg.var.resolve()
+    ):
+        return None
+    return f"pid {pid} is the lot user's but not a lot script of this cell ({cfg.var})"
+
+
+def cell_owner() -> tuple[int, int]:
+    """The cell's user and group: this process's, or, in a lot script the agent started as the lot
+    user, the agent's (told in GWC_CELL_UID, "uid:gid")."""
+    told = os.environ.get(hostuser.CELL_UID_ENV, "")
+    uid, _, gid = told.partition(":")
+    if uid.isdigit() and gid.isdigit():
+        return int(uid), int(gid)
+    return os.geteuid(), os.getegid()
+
+
 def check_trusted_file(path: Path, what: str = "file") -> None:
     """Refuse (NotPrivate) a file the cell would run as code unless only the cell's user or root could
     have written it: it and every folder above it owned by one of them, and writable by nobody else (a
     sticky folder, /tmp, protects the entries of its other users, so it may be writable by all)."""
-    me = os.geteuid()
+    me, my_group = cell_owner()
     path = Path(os.path.abspath(path))
     for p in (path, *path.parents):
         try:
@@ -168,7 +214,7 @@ def check_trusted_file(path: Path, what: str = "file") -> None:
         except OSError as e:
             raise NotPrivate(f"{what} {path}: cannot look at {p}: {e.strerror}") from None
         writable_by_others = st.st_mode & 0o002 and not (st.st_mode & stat.S_ISVTX and p != path)
-        writable_by_group = st.st_mode & 0o020 and st.st_gid not in (0, os.getegid())
+        writable_by_group = st.st_mode & 0o020 and st.st_gid not in (0, my_group)
         if st.st_uid not in (0, me) or writable_by_others or writable_by_group:
             raise NotPrivate(
                 f"{what} {path}: {p} is {stat.filemode(st.st_mode)}, owner uid {st.st_uid}, group {st.st_gid}: "

@@ -42,13 +42,14 @@ from gwc.budget import plan
 from gwc.cell import cell_procs, hold_startup, lot_proc, pid_file, read_pid, spawn_process, write_pid_file
 from gwc.config import Config
 from gwc.errors import ConfigError, GwcError, ModuleError
+from gwc.hostuser import cell_user_name, clear_ambient, lot_user, lot_user_wanted_but_unusable
 from gwc.ipc import eventloop
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.names import Conv, Msg
 from gwc.log import TRACE
 from gwc.lot.admission import LotQueue
-from gwc.lot.run import Forked, fork_lot_script
+from gwc.lot.run import Forked, exec_lot_script, fork_lot_script
 from gwc.module import ask, module_name
 from gwc.private import open_lock, secure_var
 from gwc.retry import Deadline
@@ -98,8 +99,13 @@ def agent_name(host: str | None = None) -> str:
 
 def systemd_unit(cfg: Config) -> str:
     """A unit for this host's agent (docs/deploying.md): the agent is supervised by systemd, the modules
-    by the agent; KillMode=process, so restarting the unit does not take the modules with it."""
+    by the agent; KillMode=process, so restarting the unit does not take the modules with it. It runs
+    as the cell's user with the few capabilities the agent keeps (gwc.hostuser: it starts lot scripts
+    as their user and stops them), none of which it passes on."""
     env = {"GWC_CONFIG": cfg.path.resolve(), "GWC_VAR": cfg.var.resolve(), "GWC_HOST": cfg.host}
+    user = cell_user_name(cfg)
+    caps = "CAP_SETUID CAP_SETGID CAP_KILL CAP_SYS_NICE"
+    run_as = [f"User={user}", f"Group={user}", f"AmbientCapabilities={caps}"] if user and user != "root" else []
     lines = [
         "[Unit]",
         f"Description=GWC cell {cfg.cell_name}: the agent of host {cfg.host or socket.gethostname()}",
@@ -110,6 +116,11 @@ def systemd_unit(cfg: Config) -> str:
         "Type=simple",
         *(f"Environment={k}={v}" for k, v in env.items() if v),
         f"ExecStart={sys.executable} -m gwc agent",
+        *run_as,
+        f"CapabilityBoundingSet={caps}",
+        "NoNewPrivileges=yes",
+        "UMask=0027",
+        "ProtectSystem=full",
         "Restart=always",
         "RestartSec=2",
         "KillMode=process",
@@ -136,6 +147,7 @@ class Agent(Server):
         self._blocked_said = 0.0  # when the log last said the queue waits for a place
         self._stop = asyncio.Event()
         self._stopping = False
+        self.lot_user = lot_user(cfg)  # whom lot scripts run as: None, the agent's user (gwc.hostuser)
 
     async def ask(
         self,
@@ -152,6 +164,7 @@ class Agent(Server):
     # ----------------------------------------------------------------- the agent's life
 
     async def run(self) -> int:
+        clear_ambient()  # capabilities `gwc start` handed it: for it alone, never for what it execs
         secure_var(self.cfg)
         with os.fdopen(open_lock(self.cfg.run_dir / "agent.lock"), "w") as lock:
             try:
@@ -167,6 +180,10 @@ class Agent(Server):
                 loop.add_signal_handler(sig, lambda: self.spawn(self.stop_all(exit_after=True)))
             self.log.info("agent %s (pid %d) supervising %d modules", self.name, os.getpid(), len(self.children))
             self.log.info("lot scripts: %s", self.budget.describe())
+            if self.lot_user is not None:
+                self.log.info("lot scripts run as user %s (uid %d)", self.lot_user.name, self.lot_user.uid)
+            elif why := lot_user_wanted_but_unusable(self.cfg):
+                self.log.warning("lot scripts run as the cell's user (uid %d): %s", os.geteuid(), why)
             self._adopt()
             self.spawn(self._start_all_logged())
             try:
@@ -245,7 +262,9 @@ class Agent(Server):
             env = {READY_FD: str(ready_w)} if ready_w is not None else None
             fds = (ready_w,) if ready_w is not None else ()
             popen: Process
-            if child.proc.kind == "lot":  # a fork of the agent, which imported what a lot script needs
+            if child.proc.kind == "lot" and self.lot_user is not None:  # exec'd: a fork would hold our keys
+                popen = exec_lot_script(self.cfg, int(child.proc.machine or 0), self.lot_user)
+            elif child.proc.kind == "lot":  # a fork of the agent, which imported what a lot script needs
                 popen = fork_lot_script(self.cfg, int(child.proc.machine or 0))
             else:
                 popen = spawn_process(self.cfg, child.proc, env, pass_fds=fds)

@@ -15,6 +15,7 @@ from gwc import db
 from gwc.cell import hi_bus
 from gwc.config import Config, load_config
 from gwc.errors import GwcError
+from gwc.hostuser import become_cell_user
 from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import Message
 from gwc.log import open_log
@@ -37,9 +38,11 @@ __all__ = [
 ]
 
 
-def context(name: str = "hi") -> tuple[Config, logging.Logger]:
-    """The configuration and a client's log (var/log/<name>.log)."""
+def context(name: str = "hi", caps: tuple[int, ...] = ()) -> tuple[Config, logging.Logger]:
+    """The configuration and a client's log (var/log/<name>.log). Run as root, the command first becomes
+    the cell's user, keeping capabilities `caps` alone (gwc.hostuser)."""
     cfg = load_config()
+    become_cell_user(cfg, caps)
     return cfg, open_log(name, cfg.log_dir, cfg.level_of(name))
 
 

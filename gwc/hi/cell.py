@@ -9,7 +9,9 @@ import click
 from gwc import cell, db
 from gwc.agent import control as agent_control
 from gwc.agent.agent import agent_name, run_agent, systemd_unit
+from gwc.config import load_config
 from gwc.hi import context, json_option, table
+from gwc.hostuser import AGENT_CAPS, STOP_CAPS, become_cell_user
 from gwc.log import cap_output, open_log
 from gwc.module import BUS_MODULES, MACHINE_PROCESSES, run_module
 
@@ -60,7 +62,7 @@ def db_url() -> None:
 @click.command("start")
 def start() -> None:
     """Start the cell: database, then this host's agent, which starts every module and keeps it running."""
-    cfg, log = context()
+    cfg, log = context(caps=AGENT_CAPS)
     cell.start_cell(cfg, log, say=click.echo)
     click.echo("cell started")
 
@@ -69,7 +71,7 @@ def start() -> None:
 @click.option("--keep-db", is_flag=True, help="Leave the embedded database running.")
 def stop(keep_db: bool) -> None:
     """Stop lot scripts, then every module through the agent (SIGTERM, then SIGKILL), the agent, the database."""
-    cfg, log = context()
+    cfg, log = context(caps=STOP_CAPS)
     cell.stop_cell(cfg, log, say=click.echo, database=not keep_db)
     click.echo("cell stopped")
 
@@ -103,7 +105,7 @@ def restart(modules: tuple[str, ...]) -> None:
 def agent(unit: bool) -> None:
     """Run this host's agent in the foreground (`gwc start` starts it detached): it starts the host's
     modules, restarts the ones that die, and stops them on SIGTERM."""
-    cfg, _ = context()
+    cfg, _ = context(caps=AGENT_CAPS)
     if unit:
         click.echo(systemd_unit(cfg), nl=False)
         return
@@ -126,6 +128,7 @@ def run(module: str, machine: str | None, start_now: bool, clean: bool) -> None:
     options = {"clean": True} if clean else None
     if clean and module != "msched":
         raise click.UsageError("--clean applies to msched only")
+    become_cell_user(load_config())  # run by hand as root: as the cell's user all the same
     sys.exit(run_module(module, machine, start=start_now, options=options))
 
 

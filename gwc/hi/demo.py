@@ -33,6 +33,7 @@ from gwc.client.orders import decide, enter_order, read_traveller
 from gwc.client.session import hi_bus
 from gwc.config import Config, load_config, shipped
 from gwc.errors import GwcError
+from gwc.hostuser import AGENT_CAPS, become_cell_user
 from gwc.ipc import BlockingBus, keys
 from gwc.ipc.codes import LotState
 from gwc.log import open_log
@@ -334,6 +335,7 @@ def demo(config_path: Path, chess: int, pawns: int, timeout: float, keep: bool, 
     if chess < 0 or pawns < 0 or chess + pawns == 0:
         raise GwcError("order at least one chess set or pawn (--chess N, --pawns N)")
     cfg = load_config(config_path)
+    become_cell_user(cfg, AGENT_CAPS)  # as root: the cell's user, keeping what its agent needs (gwc.hostuser)
     mills = [m.id for m in cfg.machines if m.kind == "dummy"]
     if not any(m.id == "cmm_wc" for m in cfg.machines) or len(mills) < 2:
         raise GwcError(f"{config_path}: the demonstration needs machine cmm_wc and two dummy machines")

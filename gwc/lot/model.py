@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -257,10 +258,15 @@ def forget_previous_traveller(cfg: Config, entity_id: int) -> None:
 
 
 def read_traveller(cfg: Config, entity_id: int) -> dict[str, Any] | None:
+    """The entity's traveller; never through a link (var/lots is the lot user's to write: a link there
+    must not have the cell read, and show, a file of its own)."""
     try:
-        return json.loads(traveller_path(cfg, entity_id).read_text())
+        fd = os.open(traveller_path(cfg, entity_id), os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
+        with os.fdopen(fd, "rb") as f:
+            found = json.loads(f.read(16 * 1024 * 1024))
     except (OSError, ValueError):
         return None
+    return found if isinstance(found, dict) else None
 
 
 def now_text() -> str:

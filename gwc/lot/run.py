@@ -20,21 +20,23 @@ import importlib.util
 import json
 import os
 import signal
+import subprocess
 import sys
 import traceback
 from pathlib import Path
 from types import FrameType, ModuleType
 from typing import NoReturn
 
-from gwc.cell import lot_proc, out_file, pid_file, process_env, write_pid_file
+from gwc.cell import Proc, lot_proc, out_file, pid_file, process_env, spawn_process, write_pid_file
 from gwc.config import PROJECT_ROOT, Config, load_config
-from gwc.errors import GwcError
-from gwc.log import cap_output, open_log, open_out
+from gwc.errors import ConfigError, GwcError
+from gwc.hostuser import CELL_UID_ENV, LotUser, make_lot_file
+from gwc.log import MAX_LOG_BYTES, CappedFileHandler, cap_output, log_file_name, open_log, open_out
 from gwc.lot.entity import OperationEntity
 from gwc.lot.errors import LotError, ScriptStopped
 from gwc.lot.spawn import spawn_lot_script as spawn_lot_script  # (re-exported: gwc.client.orders, gwc.soak, gwc.bench)
 from gwc.lot.spawn import spawn_lot_scripts as spawn_lot_scripts
-from gwc.private import NotPrivate, check_trusted_file
+from gwc.private import NotPrivate, check_trusted_file, secure_var
 
 SWITCH_INTERVAL = 0.0005  # seconds
 PR_SET_NAME = 15  # prctl(2): the process's name in /proc/PID/comm, ps -e and top
@@ -79,17 +81,41 @@ def load_script(path: Path) -> ModuleType:
 
 
 class Forked:
-    """A lot script process this one forked, waited for as a Popen is; its CPU known once it ended."""
+    """A lot script process this one started (forked, or exec'd: `popen`), waited for as a Popen is;
+    its CPU known once it ended."""
 
-    def __init__(self, pid: int) -> None:
+    def __init__(self, pid: int, popen: subprocess.Popen[bytes] | None = None) -> None:
         self.pid = pid
+        self.popen = popen  # held, so that no Popen finalizer reaps it first
         self.cpu_s: float | None = None
 
     def wait(self) -> int:
         """Reap it (blocks while it runs); its exit code, minus the signal that killed it."""
         _, status, usage = os.wait4(self.pid, 0)
         self.cpu_s = usage.ru_utime + usage.ru_stime
-        return os.waitstatus_to_exitcode(status)
+        code = os.waitstatus_to_exitcode(status)
+        if self.popen is not None:
+            self.popen.returncode = code
+        return code
+
+
+def exec_lot_script(cfg: Config, entity_id: int, user: LotUser) -> Forked:
+    """Start entity E's lot script as the lot user (gwc.hostuser): a fresh `python -m gwc.lot.run`, exec'd,
+    holding nothing of the agent's (a fork would carry the module key in its memory), its uid and gid
+    the lot user's and no other group. What it writes is made for it first: its log (0660, the lot
+    user's group; moved aside past the cap, which the script cannot do in var/log) and its .out (opened
+    here); var/ passable, lot.key readable, var/lots writable (gwc.private.share_with_lot_user)."""
+    base = lot_proc(entity_id)
+    proc = Proc(base.kind, base.machine, command=(*base.command, "--var", str(cfg.var.resolve())))
+    secure_var(cfg)
+    log = cfg.log_dir / log_file_name(proc.name)
+    with contextlib.suppress(FileNotFoundError):
+        if log.lstat().st_size >= MAX_LOG_BYTES:
+            log.replace(log.with_name(log.name + ".1"))
+    make_lot_file(log, user.gid)
+    env = {CELL_UID_ENV: f"{os.geteuid()}:{os.getegid()}"}
+    popen = spawn_process(cfg, proc, env, user=(user.uid, user.gid))
+    return Forked(popen.pid, popen)
 
 
 def fork_lot_script(cfg: Config, entity_id: int) -> Forked:
@@ -172,6 +198,10 @@ def _stop(signum: int, frame: FrameType | None) -> None:
 def run_entity(cfg: Config, entity_id: int) -> int:
     """Run entity E's lot script to its end; the process's exit code."""
     log = open_log(f"lot:{entity_id}", cfg.log_dir, cfg.level_of(f"lot:{entity_id}"))
+    if not os.access(cfg.log_dir, os.W_OK):  # the lot user: the agent moves its log aside at its start
+        for handler in log.handlers:
+            if isinstance(handler, CappedFileHandler):
+                handler.maxBytes = 0
     cap_output()
     log.info("lot script process for entity %d starting (pid %d)", entity_id, os.getpid())
     signal.signal(signal.SIGTERM, _stop)
@@ -209,9 +239,12 @@ def _forget_pid_file(cfg: Config, entity_id: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m gwc.lot.run", description=__doc__.split("\n\n")[0])
     parser.add_argument("--entity", type=int, required=True, help="the operation entity (LOT_STATUS.entity_id)")
+    parser.add_argument("--var", help="the cell's var/ (the agent names it: `gwc stop` knows its scripts by it)")
     args = parser.parse_args(argv)
     try:
         cfg = load_config()
+        if args.var and Path(args.var).resolve() != cfg.var.resolve():
+            raise ConfigError(f"--var {args.var} is not this cell's var/ ({cfg.var})")
     except GwcError as e:
         print(f"gwc.lot.run: {e}", file=sys.stderr)
         return e.exit_code

@@ -14,7 +14,9 @@ from gwc.ipc import keys
 
 def write_config(path: Path, doc: dict[str, Any]) -> Config:
     """Write a cell configuration (for tests, benchmarks and private cells), give its cell keys of its
-    own if it has none, and load it back."""
+    own if it has none, and load it back. Such a cell runs as whoever starts it (`[cell] user = ""`,
+    gwc.hostuser) unless `doc` names its user."""
+    doc = {**doc, "cell": {"user": "", **doc.get("cell", {})}}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(dump_toml(doc))
     cfg = load_config(path)

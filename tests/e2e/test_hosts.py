@@ -51,7 +51,7 @@ class HostCell:
             *({"id": m, "kind": "dummy", "run_time": 1.5} for m in ("wc1", "wc2", "wc3")),
         ]
         self.doc: dict[str, Any] = {
-            "cell": {"name": "hosts"},
+            "cell": {"name": "hosts", "user": ""},
             "bus": bus,
             "database": {"host": "h1", "tls": True, "settings": {"fsync": False}},
             "log": {"level": "note"},
@@ -62,7 +62,7 @@ class HostCell:
         for h in hosts.hosts:  # written, not loaded: which host a cell.toml is for is known only on that host
             self.config_path(h.name).parent.mkdir(parents=True)
             self.config_path(h.name).write_text(
-                dump_toml({**self.doc, "cell": {"name": "hosts", "var": str(self.var(h.name))}})
+                dump_toml({**self.doc, "cell": {"name": "hosts", "user": "", "var": str(self.var(h.name))}})
             )
 
     def var(self, host: str) -> Path:
