@@ -70,6 +70,7 @@ from gwc.lot.model import (
     verdict,
 )
 from gwc.lot.resume import EntityResume
+from gwc.lot.runs import Sheets
 from gwc.module import ask
 
 
@@ -236,6 +237,7 @@ class OperationEntity(EntityResume):
         alternatives: Sequence[Sequence[str]] | None = None,
         recipes: str | dict[str, str] | None = None,
         priority: int | None = None,
+        sheet: Sheets | None = None,
     ) -> Operation:
         """One operation, start to end: reserve machines, run, unreserve, read the results (they are in
         the tables: the machines need not wait for the entity to read them).
@@ -248,6 +250,7 @@ class OperationEntity(EntityResume):
 
         In a lot script restarted after its process was killed, an operation done before is not done
         again and one whose run was under way is taken up where it is (gwc/lot/resume.py).
+        `sheet(machine, recipe)`: each run's sheet of offsets (gwc/quality), asked once the machine is known.
         """
         step, entry, resumed = self._resume_point(op_type)
         if isinstance(resumed, Operation):
@@ -262,7 +265,7 @@ class OperationEntity(EntityResume):
                 self._record_step(step, res, recipes, attempt, None)
             try:
                 todo = None if taken_up is None else {m: self._take_up(m, res.machine_run_id) for m in res.machines}
-                chosen, codes = self._run(res, recipes, todo)
+                chosen, codes = self._run(res, recipes, todo, sheet)
             except MachineLost as e:
                 lost = e
                 self.log.warning("%s (try %d of %d): unreserving and asking again", e, attempt, self.max_tries)

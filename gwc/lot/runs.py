@@ -4,7 +4,8 @@ finding the machine lost), and the run's results (see gwc/lot/entity.py, docs/lo
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from gwc.errors import DatabaseError, GwcError
 from gwc.ipc.catalogue import Message, message
@@ -13,6 +14,9 @@ from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import MachineDied, MachineLost, RunFailed, RunInDoubt
 from gwc.lot.model import ENDED, RELEASES, SHUT, Reservation, Run, S, now_text
 from gwc.lot.reserve import EntityReserve
+
+# A lot script's run sheets (gwc/quality/sheet.py): (machine, recipe) -> the SETUP_RUN field `sheet`, or None.
+Sheets = Callable[[str, str], "dict[str, Any] | None"]
 
 
 class EntityRuns(EntityReserve):
@@ -31,7 +35,13 @@ class EntityRuns(EntityReserve):
         return str(rows[0][0])
 
     def setup_run(
-        self, machine_id: str, recipe_id: str | None, op_type: str, machine_run_id: int, start: bool = False
+        self,
+        machine_id: str,
+        recipe_id: str | None,
+        op_type: str,
+        machine_run_id: int,
+        start: bool = False,
+        sheet: dict[str, Any] | None = None,
     ) -> str:
         """SETUP_RUN to the machine's WC: recipe downloaded, machine set up (the CMM is homed first).
         With no recipe_id the WC sets up its machine's recipe for the op type (recipe_for); returns the
@@ -57,6 +67,7 @@ class EntityRuns(EntityReserve):
             machine_run_id=machine_run_id,
             entity_id=self.entity_id,
             start=start or None,
+            sheet=sheet,
         )
         if start:
             timeout = self.timeouts.setup + self.timeouts.answer
@@ -371,17 +382,23 @@ class EntityRuns(EntityReserve):
         reservation: Reservation,
         recipes: str | dict[str, str] | None,
         todo: dict[str, str] | None = None,
+        sheet: Sheets | None = None,
     ) -> tuple[dict[str, str], dict[str, str]]:
         """run_on without reading the results: the recipe and the ack code of each machine's run. A run
         a restarted script takes up is set up, started or only waited for on each machine as `todo`
-        says ("setup", "start", "wait": as far as it went there, resume.py)."""
+        says ("setup", "start", "wait": as far as it went there, resume.py). `sheet(machine, recipe)`
+        gives each machine's run sheet (gwc/quality: the feedback's offsets), or None."""
         run_id, op_type = reservation.machine_run_id, reservation.op_type
         chosen = {}
         for m in reservation.machines:
             recipe = recipes.get(m) if isinstance(recipes, dict) else recipes
             step = (todo or {}).get(m, "setup")
             if step == "setup":
-                chosen[m] = self.setup_run(m, recipe, op_type, run_id, start=True)
+                lines = None
+                if sheet is not None:
+                    recipe = recipe or self.recipe_for(m, op_type)
+                    lines = sheet(m, recipe)
+                chosen[m] = self.setup_run(m, recipe, op_type, run_id, start=True, sheet=lines)
                 continue
             chosen[m] = recipe or self.recipe_for(m, op_type)
             if step == "start":

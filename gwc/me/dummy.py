@@ -12,6 +12,9 @@ behave like a real machine that needs an operator or goes wrong:
                                 # true: every run fails
     fail_start = true           # refuse ME_START (homing fails): the WC answers Start_Fail
     results = { DIAMETER = "25.02" }   # extra param/value pairs in every results file
+    process = { seed = 7, wear = { DIAMETER = 0.0005 }, sigma = { DIAMETER = 0.006 } }
+                                # a mill with a process: each run cuts a part of the recipe's FEATUREs
+                                # (gwc/quality/process.py, docs/quality.md)
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError
 from gwc.ipc.codes import AckCode
 from gwc.me.machine import MachineSide, Refusal, RunOutcome
+from gwc.quality.process import MillProcess, Tool, read_part, write_part
+from gwc.quality.recipe import Feature, features_of
 
 
 class DummyMachine(MachineSide):
@@ -45,12 +50,17 @@ class DummyMachine(MachineSide):
         self.fail_runs: bool | set[int] = fail if isinstance(fail, bool) else set(fail)
         self.extra = {str(k): str(v) for k, v in self.options.get("results", dict, {}).items()}
         self._ends_at = 0.0
+        self.process = MillProcess.from_options(spec.id, spec.options.get("process"))
+        self.tool = Tool(self.memory) if self.process is not None else None
+        self.features: list[Feature] = []
 
     def home(self) -> None:
         if self.fail_start:
             raise Refusal(AckCode.START_FAIL, "the machine failed to home (fail_start)")
 
     def load(self, recipe_id: str, path: Path) -> None:
+        if self.process is not None:
+            self.features = features_of(path.read_text(errors="replace"))
         if self.setup_time:
             time.sleep(self.setup_time)
 
@@ -63,7 +73,22 @@ class DummyMachine(MachineSide):
         fails = self.fail_runs is True or (isinstance(self.fail_runs, set) and self.run_no in self.fail_runs)
         if fails:
             return RunOutcome(AckCode.RUN_FAIL, {"RESULT": "FAIL", **self.extra}, note="configured to fail")
-        return RunOutcome(AckCode.ACK_OK, {"RESULT": "PASS", "PARTS": "1", **self.extra})
+        return RunOutcome(AckCode.ACK_OK, {"RESULT": "PASS", "PARTS": "1", **self.extra, **self._cut()})
+
+    def _cut(self) -> dict[str, str]:
+        """A mill with a process cuts the part of its recipe's features and leaves it for the CMM."""
+        if self.process is None or self.tool is None or not self.features:
+            return {}
+        sheet = self.sheet
+        if sheet is not None and self.tool.seen(sheet.tool):
+            self.log.info("tool change %d seen: wear starts again", sheet.tool)
+        old = read_part(self.cfg.var, sheet.workpiece) if sheet is not None and sheet.workpiece else None
+        before = self.tool.cut_one()
+        part = self.process.cut(self.features, sheet, before, self.run_no, old)
+        if sheet is not None and sheet.machine_run_id:
+            write_part(self.cfg.var, sheet.machine_run_id, part)
+        self.log.info("cut part %d since the tool change: %s", before + 1, part)
+        return {"TOOL_PARTS": str(before + 1)}
 
     def abort(self, why: str) -> None:
         self.log.warning("run %d abandoned: %s", self.run_no, why)

@@ -15,6 +15,7 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.mq import MeMessage, MessageId
 from gwc.ipc.names import Conv, Msg
+from gwc.quality.sheet import with_sheet
 from gwc.servers.recipe import RECIPE_ID
 from gwc.wc.base import ALL_OPERATIONS, SERVER_RESTART, SERVER_TIMEOUT, S
 from gwc.wc.device import WCDevice
@@ -172,7 +173,10 @@ class WCSteps(WCDevice):
         accept = asyncio.ensure_future(self.set_accept_types([]))
         await asyncio.sleep(0)  # each sends its request in its first step
         try:
-            refusal = await self._set_up_on_me(recipe, self._recipe(recipe, version, checksum))
+            fetch = self._recipe(recipe, version, checksum)
+            if req.sheet is not None:  # the run's offsets after the approved recipe (gwc/quality/sheet.py)
+                fetch = with_sheet(fetch, req.sheet, req.machine_run_id)
+            refusal = await self._set_up_on_me(recipe, fetch)
         finally:
             set_up = await status
         if refusal is None and not set_up:
