@@ -4,12 +4,17 @@ from the recipe's tolerances, and SPC's alarm on a step shift, all in one privat
 
 from __future__ import annotations
 
+import os
 import re
+import signal
+import time
 from pathlib import Path
 from typing import Any
 
-from tests.e2e.lotkit import cell_with_machines, gwc, import_export_all, ok, order, state
-from tests.harness import CellHarness
+import pytest
+
+from tests.e2e.lotkit import cell_with_machines, gwc, import_export_all, ok, order, script_pid, state, wait_state
+from tests.harness import CellHarness, wait_for
 
 FEATURES = "FEATURE DIAMETER 25.00 0.05\nFEATURE HEIGHT 40.00 0.10\n"
 SIGMA = 0.005  # the mill's noise on DIAMETER: the step shift is 2 sigma
@@ -72,3 +77,97 @@ def test_features_are_measured_stored_and_a_two_sigma_step_shift_is_alarmed_with
     # `gwc spc` shows the chart, the rule and Cpk.
     out = ok(gwc(cell, "spc", "--machine", "mazak", "--feature", "DIAMETER"))
     assert "DIAMETER" in out and "Cpk" in out and "WE" in out, out
+
+
+def mill_offsets(cell: CellHarness) -> list[tuple[int, float, int]]:
+    """(run, DIAMETER offset, parts since the tool change) of the mazak's first cuts, in run order."""
+    rows = cell.query(
+        "SELECT f.machine_run_id, f.offset_used, r.value::int FROM run_features f JOIN machine_run_result r "
+        "ON r.machine_run_id = f.machine_run_id AND r.machine_id = f.machine_id AND r.param = 'TOOL_PARTS' "
+        "WHERE f.machine_id = 'mazak' AND f.feature = 'DIAMETER' AND f.workpiece IS NULL ORDER BY 1"
+    )
+    return [(int(a), float(b), int(c)) for a, b, c in rows]
+
+
+def mazak_runs(cell: CellHarness) -> int:
+    return int(cell.query("SELECT count(*) FROM machine_run_outcome WHERE machine_id = 'mazak'")[0][0])
+
+
+@pytest.mark.soak  # ~85 s: 12 parts milled one after the other, a kill -9 of each kind, a tool change
+def test_feedback_survives_kill_9_and_a_worn_tool_stops_the_mill_until_the_change_is_confirmed(
+    lot_cell: Any, tmp_path: Path
+) -> None:
+    # The tool wears 0.005 per part over a bias of 0.005: the feedback follows it (steps of at most 0.02)
+    # until the offset needed passes 0.04, when the tool is worn out.
+    process = {"seed": 5, "bias": {"DIAMETER": 0.005}, "wear": {"DIAMETER": 0.005}, "sigma": {"DIAMETER": 0.001}}
+    machines = quality_machines(process)
+    machines[0]["run_time"] = 0.8
+    cell = cell_with_machines(lot_cell(machines=machines), "cmm_wc", "mazak")
+    feature = "FEATURE DIAMETER 25.00 0.05\n"
+    add_recipe(cell, tmp_path, "mill_pawn", "# mill_pawn v2\n" + feature + "FEEDBACK EWMA 0.5 STEP 0.02 LIMIT 0.04\n")
+    add_recipe(cell, tmp_path, "alum_chess_set", "# alum_chess_set v2\n" + feature)
+
+    # Two parts measured, then kill -9 of the lot script whose part is being milled, and of MSCHED.
+    first = order(cell, "milled_pawn=6")
+    for e in first:
+        wait_state(cell, e, "waiting_import")
+    ok(gwc(cell, "import", "--all"))
+    milling = wait_for(lambda: len(mill_offsets(cell)) >= 2 and milling_entity(cell), 60, "a third part milling")
+    before = mill_offsets(cell)
+    os.kill(script_pid(cell, milling) or 0, signal.SIGKILL)
+    kill9_and_restart_msched(cell)
+    wait_state(cell, milling, "failed")
+    import_export_all(cell, [e for e in first if e != milling], timeout=60)
+    after = mill_offsets(cell)[len(before) :]
+    assert after and all(o < -0.001 for _, o, _ in after), ("from the stored history, not from zero", before, after)
+    for (_r, prev, _p), (_r2, nxt, _p2) in zip(mill_offsets(cell), mill_offsets(cell)[1:], strict=False):
+        assert abs(nxt - prev) <= 0.02 + 1e-6, "each step bounded"
+    assert after[-1][1] < -0.01, ("the offsets follow the wear across the kills", after)
+
+    # More parts: the wear passes the limit, TOOL_CHANGE is raised and the mill shut down ...
+    second = order(cell, "milled_pawn=6")
+    for e in second:
+        wait_state(cell, e, "waiting_import")
+    ok(gwc(cell, "import", "--all"))
+    wait_for(
+        lambda: cell.query("SELECT 1 FROM alarms WHERE alarm_id = 'TOOL_CHANGE' AND machine_id = 'mazak'"),
+        60,
+        "TOOL_CHANGE",
+    )
+    wait_for(lambda: status(cell, "mazak") == "Shutdown", 20, "the mazak shut down")
+    # ... and takes no new run until the operator confirms the change (watched for 2 s).
+    runs = mazak_runs(cell)
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        assert mazak_runs(cell) == runs and status(cell, "mazak") == "Shutdown"
+        time.sleep(0.1)
+    worn = mill_offsets(cell)
+    assert min(o for _, o, _ in worn) >= -0.04 - 1e-9, "the offset never passes the limit"
+    ok(gwc(cell, "tool", "change", "mazak", "--by", "test operator"))
+    assert not cell.query("SELECT 1 FROM alarms WHERE alarm_id = 'TOOL_CHANGE' AND cleared_at IS NULL")
+    import_export_all(cell, second, timeout=90)
+    fresh = mill_offsets(cell)[len(worn) :]
+    assert fresh and fresh[0][1] == 0.0 and fresh[0][2] == 1, ("offsets and wear start again from zero", fresh)
+
+
+def status(cell: CellHarness, machine_id: str) -> str:
+    return str(cell.query("SELECT status FROM machine_status WHERE machine_id = %s", machine_id)[0][0])
+
+
+def milling_entity(cell: CellHarness) -> int | None:
+    rows = cell.query(
+        "SELECT entity_id FROM reserved_machines r JOIN machine_status s USING (machine_id) "
+        "WHERE r.machine_id = 'mazak' AND s.status = 'Running'"
+    )
+    return int(rows[0][0]) if rows else None
+
+
+def kill9_and_restart_msched(cell: CellHarness) -> None:
+    old = cell.bus.peers()["msched"].inc
+    cell.kill("msched")
+    cell.start("msched")
+    wait_for(
+        lambda: (p := cell.bus.peers().get("msched")) is not None and p.inc != old and "SHUTDOWN" in p.interest,
+        20,
+        "the restarted msched",
+    )
