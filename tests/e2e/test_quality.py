@@ -4,6 +4,7 @@ from the recipe's tolerances, and SPC's alarm on a step shift, all in one privat
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -73,6 +74,14 @@ def test_features_are_measured_stored_and_a_two_sigma_step_shift_is_alarmed_with
     at = int(re.search(r"at part (\d+)", diameter[0]).group(1))  # type: ignore[union-attr]
     assert 10 < at <= 20, diameter
     assert all(r[3] for r in rows), "a 2 sigma shift leaves the parts in tolerance"
+
+    # Each part's genealogy names its offsets and measurements, as numbers; `gwc lots` shows them too.
+    tr = json.loads(ok(gwc(cell, "trace", "entity", str(pawns[0]), "--json")))
+    feats = {s["machine_id"]: {f["feature"]: f for f in s["features"]} for s in tr["steps"]}
+    assert feats["mazak"]["DIAMETER"]["offset"] == 0.0 and feats["mazak"]["DIAMETER"]["measured"] is None, tr
+    assert isinstance(feats["cmm_wc"]["HEIGHT"]["measured"], float) and feats["cmm_wc"]["HEIGHT"]["in_tol"], tr
+    shown = ok(gwc(cell, "lots", str(pawns[0])))
+    assert "OFFSET.DIAMETER=0.000000" in shown and re.search(r" DIAMETER=2\d\.\d{6}", shown), shown
 
     # `gwc spc` shows the chart, the rule and Cpk.
     out = ok(gwc(cell, "spc", "--machine", "mazak", "--feature", "DIAMETER"))
