@@ -20,7 +20,7 @@ from typing import Any, Protocol
 from gwc.config import Config
 from gwc.errors import ConfigError, GwcError
 from gwc.lot.errors import MachineLost
-from gwc.lot.model import Operation
+from gwc.lot.model import UP, Operation
 from gwc.lot.runs import Sheets
 from gwc.quality import spc, store
 from gwc.quality.feedback import feed_forward, next_offset
@@ -66,6 +66,7 @@ class Quality:
         self.entity = entity
         self.read: Reader = entity.read
         self.rules, self.baseline, self.window = spc_settings(entity.cfg)
+        self.yield_window = int(entity.cfg.raw.get("quality", {}).get("yield_window", 20))
         self.offsets: dict[int, dict[str, float]] = {}  # offsets given, by machine_run_id (for the log)
 
     # ----------------------------------------------------------------- run sheets
@@ -115,6 +116,35 @@ class Quality:
             for r in self.features_of(measured)
             if r["measured"] is not None
         }
+
+    # ----------------------------------------------------------------- which machine is better
+
+    def preferred(self, op_type: str) -> list[list[str]] | None:
+        """The machines qualified for op_type that are up, one alternative each, the best yield first (6.1:
+        "the results from machine M1 are better than those from machine M2"): MSCHED binds, of the
+        alternatives free at once, the first asked for, and never leaves the lot waiting for a busy
+        one while another is free. None (the entity's own choice) when no machine has a history yet.
+        Ties: the machine with fewer parts measured first (so each is tried), then by name."""
+        machines = [
+            str(m)
+            for (m,) in self.read(
+                "SELECT DISTINCT r.machine_id FROM op_machine_recipe r JOIN machine_status s USING (machine_id) "
+                "WHERE r.op_type = %s AND s.status = ANY(%s) ORDER BY 1",
+                (op_type, list(UP)),
+            )
+        ]
+        if len(machines) < 2:
+            return None
+        ys = store.yields(self.read, op_type, machines, self.yield_window)
+        if not any(y.parts for y in ys.values()):
+            return None
+        order = sorted(machines, key=lambda m: (-ys[m].rate, ys[m].parts, m))
+        self.entity.log.info(
+            "%s: machines by yield %s",
+            op_type,
+            ", ".join(f"{m} {ys[m].good}/{ys[m].parts}" for m in order),
+        )
+        return [[m] for m in order]
 
     # ----------------------------------------------------------------- verdict, SPC
 

@@ -127,3 +127,35 @@ def pending_alarm(read: Reader, machine_id: str, alarm_id: str, text_like: str =
         (machine_id, alarm_id, text_like),
     )
     return bool(rows)
+
+
+@dataclass(frozen=True)
+class Yield:
+    machine_id: str
+    parts: int  # first cuts measured, of the last `window`
+    good: int  # of them, every feature within tolerance
+
+    @property
+    def rate(self) -> float:
+        """good / parts; a machine never measured counts as perfect, so that it is tried."""
+        return self.good / self.parts if self.parts else 1.0
+
+
+def yields(read: Reader, op_type: str, machines: Sequence[str], window: int = 20) -> dict[str, Yield]:
+    """Each machine's yield for the operation: of its last `window` first cuts with a recipe for op_type
+    (measured), how many had every feature within tolerance."""
+    rows = read(
+        "SELECT machine_id, count(*), count(*) FILTER (WHERE ok) FROM ("
+        "  SELECT mk.machine_id, mk.machine_run_id, bool_and(m.in_tol) AS ok, "
+        "    row_number() OVER (PARTITION BY mk.machine_id ORDER BY mk.machine_run_id DESC) AS n "
+        "  FROM run_features mk JOIN run_features m ON m.workpiece = mk.machine_run_id AND m.feature = mk.feature "
+        "    AND m.measured IS NOT NULL "
+        "  WHERE mk.machine_id = ANY(%s) AND mk.workpiece IS NULL AND mk.measured IS NULL "
+        "    AND EXISTS (SELECT 1 FROM op_machine_recipe o WHERE o.machine_id = mk.machine_id "
+        "      AND o.recipe_id = mk.recipe_id AND o.op_type = %s) "
+        "  GROUP BY mk.machine_id, mk.machine_run_id) p "
+        "WHERE n <= %s GROUP BY machine_id",
+        (list(machines), op_type, window),
+    )
+    found = {str(m): Yield(str(m), int(n), int(g)) for m, n, g in rows}
+    return {m: found.get(m, Yield(m, 0, 0)) for m in machines}

@@ -14,6 +14,9 @@ from typing import Any
 
 import pytest
 
+from gwc.client.orders import decide
+from gwc.lot.entity import create_lot
+from gwc.lot.run import spawn_lot_script
 from tests.e2e.lotkit import cell_with_machines, gwc, import_export_all, ok, order, script_pid, state, wait_state
 from tests.harness import CellHarness, wait_for
 
@@ -180,3 +183,78 @@ def kill9_and_restart_msched(cell: CellHarness) -> None:
         20,
         "the restarted msched",
     )
+
+
+def make_one_at_a_time(cell: CellHarness, n: int) -> list[int]:
+    """n parts, each lot started, imported and exported before the next (both mills free at each request)."""
+    made = []
+    for _ in range(n):
+        _, (e,) = create_lot(cell.bus, "milled_pawn", 1, owner="test")
+        spawn_lot_script(cell.cfg, e)
+        for action, st in (("import", "waiting_import"), ("export", "waiting_export")):
+            wait_state(cell, e, st, timeout=30)
+            decide(cell.bus, e, action, "test operator")
+        wait_state(cell, e, "exported")
+        made.append(e)
+    return made
+
+
+def first_mills(cell: CellHarness, entities: list[int]) -> dict[int, str]:
+    rows = cell.query(
+        "SELECT h.entity_id, h.machine_id FROM machine_state_history h WHERE h.entity_id = ANY(%s) "
+        "AND h.status = 'Running' AND h.machine_id IN ('mazak', 'wc2') ORDER BY h.at",
+        entities,
+    )
+    first: dict[int, str] = {}
+    for e, m in rows:
+        first.setdefault(int(e), str(m))
+    return first
+
+
+@pytest.mark.soak  # ~60 s: 20 parts one at a time, then 6 at once
+def test_the_better_mill_gets_the_parts_when_both_are_free_and_no_lot_waits_for_it(
+    lot_cell: Any, tmp_path: Path
+) -> None:
+    # mazak (first by name, so the entity's own choice) makes 25% of its parts out of tolerance, wc2 2%.
+    machines = quality_machines({"seed": 2, "bias": {"DIAMETER": 0.04}, "sigma": {"DIAMETER": 0.015}})
+    machines.insert(
+        1, {"id": "wc2", "kind": "dummy", "run_time": 0.05, "process": {"seed": 3, "sigma": {"DIAMETER": 0.0215}}}
+    )
+    cell = cell_with_machines(lot_cell(machines=machines), "cmm_wc", "mazak", "wc2")
+    add_recipe(cell, tmp_path, "mill_pawn", "# mill_pawn v2\nFEATURE DIAMETER 25.00 0.05\n")
+    add_recipe(cell, tmp_path, "alum_chess_set", "# alum_chess_set v2\nFEATURE DIAMETER 25.00 0.05\n")
+
+    parts = make_one_at_a_time(cell, 20)
+    mills = first_mills(cell, parts)
+    better = sum(1 for m in mills.values() if m == "wc2")
+    assert len(mills) == 20 and better >= 16, mills  # at least 80% to the better mill
+
+    # Six at once: whenever a request waits, no mill it could use is free (sampled from the database).
+    pawns = order(cell, "milled_pawn=6")
+    for e in pawns:
+        wait_state(cell, e, "waiting_import")
+    ok(gwc(cell, "import", "--all"))
+    seen: dict[tuple[int, str], int] = {}
+    waited = 0
+
+    def sample() -> bool:
+        nonlocal waited
+        now = cell.query(
+            "SELECT q.request_key, s.machine_id FROM request_machines q JOIN machine_status s USING (machine_id) "
+            "WHERE q.op_type = 'mill_chess' AND s.status = 'Idle' "
+            "AND NOT EXISTS (SELECT 1 FROM reserved_machines r WHERE r.machine_id = s.machine_id)"
+        )
+        for key in [(int(k), str(m)) for k, m in now]:
+            seen[key] = seen.get(key, 0) + 1
+            if seen[key] == 3:  # the same request, the same free mill, three samples running: it waited
+                waited += 1
+        for key in set(seen) - {(int(k), str(m)) for k, m in now}:
+            del seen[key]
+        states = {state(cell, e)[0] for e in pawns}
+        if "waiting_export" in states:
+            ok(gwc(cell, "export", "--all"))
+        return states == {"exported"}
+
+    wait_for(sample, 90, "six parts", interval=0.1)
+    assert waited == 0
+    assert set(first_mills(cell, pawns).values()) == {"mazak", "wc2"}, "both mills worked"

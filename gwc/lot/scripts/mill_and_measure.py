@@ -11,7 +11,8 @@ Where the mill's recipe declares FEATUREs (docs/quality.md), each milling carrie
 offsets of the run-to-run feedback (a recipe with FEEDBACK), and for a re-milling the correction the
 part's own measurement asks for (feed forward); the measurement names the part it measures, the
 verdict follows from the measured features' tolerances, and the mill's control charts are checked
-(SPC_RULE) after each first measurement.
+(SPC_RULE) after each first measurement. The mills are asked for best yield first (6.1: "machine M1
+is better than M2"): when both are free the better one mills the part.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ def main(entity: OperationEntity) -> None:
     result = ""
     made = measured = None  # the last milling and its measurement: a re-milling works on that part
     for attempt in range(1, MAX_MILLS + 1):
-        mill = entity.operate(MILL, sheet=quality.mill_sheet(remill=made, measured=measured))
+        mill = entity.operate(MILL, quality.preferred(MILL), sheet=quality.mill_sheet(remill=made, measured=measured))
         if not mill.ok:
             entity.log.warning(
                 "milling run %d on %s failed (%s): milling again",
