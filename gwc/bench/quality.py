@@ -36,6 +36,7 @@ from gwc.client.recipes import approve_recipe, store_recipe
 from gwc.client.session import context
 from gwc.errors import GwcError, ModuleError
 from gwc.ipc.codes import LotState
+from gwc.ipc.names import Conv
 from gwc.lot.entity import create_lot
 from gwc.lot.run import spawn_lot_script
 from gwc.quality import spc
@@ -117,7 +118,7 @@ class QualityBench:
             with_ = self._phase("with", self.parts)
             self._recipes(feedback=False)
             assert self.cell.bus is not None
-            shutdown(self.cell.bus, "wc:mazak", "ME_SHUT")
+            shutdown(self.cell.bus, "wc:mazak", Conv.ME_SHUT)
             self._start("wc2")
             alarm = self._shift()
             return {
@@ -136,7 +137,7 @@ class QualityBench:
 
     def _start(self, machine: str) -> None:
         assert self.cell.bus is not None
-        startup(self.cell.bus, f"wc:{machine}", "ME_START", timeout=60)
+        startup(self.cell.bus, f"wc:{machine}", Conv.ME_START, timeout=60)
 
     def _recipes(self, feedback: bool) -> None:
         assert self.cell.bus is not None
