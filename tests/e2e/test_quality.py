@@ -45,12 +45,12 @@ def add_recipe(cell: CellHarness, tmp: Path, recipe_id: str, body: str) -> None:
 def test_features_are_measured_stored_and_a_two_sigma_step_shift_is_alarmed_within_10_parts(
     lot_cell: Any, tmp_path: Path
 ) -> None:
-    process = {"seed": 11, "sigma": {"DIAMETER": SIGMA, "HEIGHT": 0.01}, "shift": {"after": 10, "DIAMETER": 2 * SIGMA}}
-    cell = lot_cell(machines=quality_machines(process), sections={"quality": {"spc_baseline": 10}})
+    process = {"seed": 11, "sigma": {"DIAMETER": SIGMA, "HEIGHT": 0.01}, "shift": {"after": 8, "DIAMETER": 2 * SIGMA}}
+    cell = lot_cell(machines=quality_machines(process), sections={"quality": {"spc_baseline": 8}})
     cell = cell_with_machines(cell, "cmm_wc", "mazak")
     add_recipe(cell, tmp_path, "mill_pawn", "# mill_pawn v2\nPROFILE pawn\n" + FEATURES)
     add_recipe(cell, tmp_path, "alum_chess_set", "# alum_chess_set v2: CMM part program\nPART pawn\n" + FEATURES)
-    pawns = order(cell, "milled_pawn=20")
+    pawns = order(cell, "milled_pawn=16")
     import_export_all(cell, pawns, timeout=120)
 
     # Every part measured: each feature's value a number with its measuring run, the part's milling named.
@@ -70,12 +70,12 @@ def test_features_are_measured_stored_and_a_two_sigma_step_shift_is_alarmed_with
         st, reason = state(cell, e)
         assert st == "exported" and reason is not None and "within tolerance: DIAMETER" in reason, (e, reason)
 
-    # The shift (from the mill's 11th part on) is alarmed by SPC within 10 parts, before any part fails.
+    # The shift (from the mill's 9th part on) is alarmed by SPC within 10 parts, before any part fails.
     alarms = cell.query("SELECT alarm_text FROM alarms WHERE alarm_id = 'SPC_RULE' AND machine_id = 'mazak'")
     diameter = [t for (t,) in alarms if " DIAMETER " in t]
     assert diameter, alarms
     at = int(re.search(r"at part (\d+)", diameter[0]).group(1))  # type: ignore[union-attr]
-    assert 10 < at <= 20, diameter
+    assert 8 < at <= 16, diameter
     assert all(r[3] for r in rows), "a 2 sigma shift leaves the parts in tolerance"
 
     # Each part's genealogy names its offsets and measurements, as numbers; `gwc lots` shows them too.
