@@ -15,7 +15,6 @@ from gwc.client.machines import START_TIMEOUT, start_machine
 from gwc.client.session import hi_bus, hi_conn, rows_of
 from gwc.hi import context, json_option
 from gwc.quality import spc, store
-from gwc.quality.lot import spc_settings
 
 
 def _reader(conn: Any) -> store.Reader:
@@ -29,7 +28,7 @@ def _reader(conn: Any) -> store.Reader:
 
 def charts(read: store.Reader, cfg: Any, machine: str | None, feature: str | None) -> list[dict[str, Any]]:
     """One chart per machine, recipe and feature measured: limits, rules broken, Cp, Cpk, the points."""
-    rules, baseline, window = spc_settings(cfg)
+    rules, baseline, window = spc.settings(cfg)
     pts = store.points(read, machine_id=machine, feature=feature, limit=window)
     out = []
     for key in sorted({(p.machine_id, p.recipe_id, p.feature) for p in pts}):

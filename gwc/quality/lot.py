@@ -18,13 +18,14 @@ import time
 from typing import Any, Protocol
 
 from gwc.config import Config
-from gwc.errors import ConfigError, GwcError
+from gwc.errors import GwcError
 from gwc.lot.errors import MachineLost
 from gwc.lot.model import UP, Operation
 from gwc.lot.runs import Sheets
 from gwc.quality import spc, store
 from gwc.quality.feedback import feed_forward, next_offset
 from gwc.quality.sheet import RunSheet
+from gwc.quality.spc import settings as spc_settings
 from gwc.quality.store import Reader
 
 WORN_WAIT = 15.0  # s: how long a worn tool's machine is given to go down after TOOL_CHANGE
@@ -46,19 +47,6 @@ class ToolWorn(MachineLost):
     """The machine's tool is worn out: TOOL_CHANGE raised, the machine going down until the operator
     confirms the change (`gwc tool change`); the operation is asked again (another alternative, or
     this machine once it is back)."""
-
-
-def spc_settings(cfg: Config) -> tuple[tuple[str, ...], int, int]:
-    """etc/cell.toml [quality]: spc_rules (which rules alarm), spc_baseline (points the limits come
-    from), spc_window (points charted); ConfigError for a wrong one."""
-    section = cfg.raw.get("quality", {})
-    rules = tuple(section.get("spc_rules", spc.DEFAULT_RULES))
-    baseline, window = section.get("spc_baseline", 20), section.get("spc_window", 100)
-    if set(rules) - set(spc.RULES):
-        raise ConfigError(f"[quality] spc_rules: unknown rule(s); known: {', '.join(spc.RULES)}")
-    if not isinstance(baseline, int) or not isinstance(window, int) or not 2 <= baseline < window:
-        raise ConfigError("[quality] spc_baseline and spc_window: counts of points, 2 <= baseline < window")
-    return rules, baseline, window
 
 
 class Quality:

@@ -14,6 +14,9 @@ import math
 import statistics
 from dataclasses import dataclass, field
 
+from gwc.config import Config
+from gwc.errors import ConfigError
+
 D2 = 1.128  # d2 for moving ranges of two
 D4 = 3.267  # the moving-range chart's upper limit factor
 
@@ -64,6 +67,19 @@ class Chart:
     violations: list[Violation] = field(default_factory=list)
     cp: float | None = None
     cpk: float | None = None
+
+
+def settings(cfg: Config) -> tuple[tuple[str, ...], int, int]:
+    """etc/cell.toml [quality]: spc_rules (which rules alarm), spc_baseline (points the limits come
+    from), spc_window (points charted); ConfigError for a wrong one."""
+    section = cfg.raw.get("quality", {})
+    rules = tuple(section.get("spc_rules", DEFAULT_RULES))
+    baseline, window = section.get("spc_baseline", 20), section.get("spc_window", 100)
+    if set(rules) - set(RULES):
+        raise ConfigError(f"[quality] spc_rules: unknown rule(s); known: {', '.join(RULES)}")
+    if not isinstance(baseline, int) or not isinstance(window, int) or not 2 <= baseline < window:
+        raise ConfigError("[quality] spc_baseline and spc_window: counts of points, 2 <= baseline < window")
+    return rules, baseline, window
 
 
 def limits(values: list[float], baseline: int) -> Limits | None:

@@ -86,9 +86,14 @@ def test_features_are_measured_stored_and_a_two_sigma_step_shift_is_alarmed_with
     shown = ok(gwc(cell, "lots", str(pawns[0])))
     assert "OFFSET.DIAMETER=0.000000" in shown and re.search(r" DIAMETER=2\d\.\d{6}", shown), shown
 
-    # `gwc spc` shows the chart, the rule and Cpk.
+    # `gwc spc` shows the chart, the rule and Cpk; so does the record's HTML report.
     out = ok(gwc(cell, "spc", "--machine", "mazak", "--feature", "DIAMETER"))
     assert "DIAMETER" in out and "Cpk" in out and "WE" in out, out
+    charts = json.loads(ok(gwc(cell, "spc", "--json")))
+    assert {(c["machine_id"], c["feature"]) for c in charts} == {("mazak", "DIAMETER"), ("mazak", "HEIGHT")}
+    page = tmp_path / "record.html"
+    ok(gwc(cell, "report", "html", "--out", str(page)))
+    assert "Control charts (SPC)" in page.read_text() and "mazak mill_pawn DIAMETER" in page.read_text()
 
 
 def mill_offsets(cell: CellHarness) -> list[tuple[int, float, int]]:
