@@ -28,6 +28,7 @@ from textual.widgets import Footer, Header, RichLog, Static, TabbedContent, TabP
 from gwc.config import Config
 from gwc.console.link import VIEWS_OF, Answer, CellLink, console_log
 from gwc.console.record import RecordView
+from gwc.console.spc import SpcView
 from gwc.console.views import (
     MONITOR_LINES,
     RELOAD_EVERY,
@@ -78,6 +79,7 @@ class ConsoleApp(App[None]):
         ("modules", "7 Modules"),
         ("monitor", "8 Monitor"),
         ("record", "0 Record"),
+        ("spc", "- SPC"),
     ]
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("q", "quit", "Quit"),
@@ -118,6 +120,7 @@ class ConsoleApp(App[None]):
                 "modules": ModulesView(),
                 "monitor": MonitorView(),
                 "record": RecordView(),
+                "spc": SpcView(),
             }
             for name, title in self.VIEWS:
                 with TabPane(title, id=name):
