@@ -348,8 +348,9 @@ def screenshot_every_view(folder: Path) -> Callable[[Pilot[object]], Coroutine[A
     async def shoot(pilot: Pilot[object]) -> None:
         app = pilot.app
         assert isinstance(app, ConsoleApp)
-        for i, (name, _) in enumerate(app.VIEWS, 1):
-            await pilot.press(str(i))
+        for name, title in app.VIEWS:
+            key = title.split()[0]
+            await pilot.press({"-": "minus"}.get(key, key))  # the view's own key, as its binding has it
             view = app.views()[name]
             deadline = time.monotonic() + SCREENSHOT_WAIT
             await pilot.pause(RELOAD_EVERY)
