@@ -36,7 +36,6 @@ import contextlib
 import json
 import logging
 import os
-import random
 import select
 import shutil
 import socket
@@ -55,7 +54,7 @@ from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError, LineError
 from gwc.me.line import LineLost, RecordStream, escaped, kermit, open_serial, serial_stream
 from gwc.me.parts import PartError, is_tar, part_tar, program_from
-from gwc.quality.process import read_part
+from gwc.quality.process import measure, read_part
 from gwc.quality.recipe import features_of
 from gwc.quality.sheet import read_sheet
 
@@ -397,13 +396,9 @@ class CmmSimulator:
             return None
         sheet = read_sheet(text)
         part = read_part(self.cfg.var, sheet.workpiece) if sheet is not None and sheet.workpiece else None
-        rng = random.Random(f"{self.seed}:{self.measured}")
-        records, passed = [], True
-        for f in feats:
-            value = round((part or {}).get(f.name, f.nominal) + rng.gauss(0.0, self.gauge_sigma), 6)
-            passed = passed and f.passes(value)
-            records.append(f"MEAS {f.name} {value:.6f}!")
-        return records, passed
+        values = measure(feats, part, f"{self.seed}:{self.measured}", self.gauge_sigma)
+        records = [f"MEAS {name} {value:.6f}!" for name, value in values.items()]
+        return records, all(f.passes(values[f.name]) for f in feats)
 
     def handle(self, rec: str, line: RecordStream) -> None:
         """One command from the ME (the branches of Listing 9's listen())."""

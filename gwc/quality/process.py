@@ -163,3 +163,9 @@ def write_part(var: Path, machine_run_id: int, part: dict[str, float]) -> Path:
     tmp.write_text(json.dumps(part))
     tmp.replace(path)
     return path
+
+
+def measure(features: list[Feature], part: dict[str, float] | None, seed: str, gauge_sigma: float) -> dict[str, float]:
+    """A gauge's reading of each feature of `part` (a nominal part if None): the value plus the gauge's noise."""
+    rng = random.Random(seed)
+    return {f.name: round((part or {}).get(f.name, f.nominal) + rng.gauss(0.0, gauge_sigma), 6) for f in features}

@@ -12,11 +12,15 @@ from typing import Any
 import pytest
 
 from gwc.errors import ConfigError
+from gwc.ipc.codes import AckCode
+from gwc.ipc.mq import MessageId
+from gwc.me.results import read_results
 from gwc.quality import spc
 from gwc.quality.feedback import feed_forward, next_offset
 from gwc.quality.process import MillProcess, Tool, read_part, write_part
 from gwc.quality.recipe import Feature, FeedbackSettings, features_of, feedback_of
 from gwc.quality.sheet import RunSheet, from_message, read_sheet, sheet_of, with_sheet, write_sheet
+from tests.unit.test_me import Running, machine, recipe  # noqa: F401 (machine: the fixture of real MEs)
 
 RECIPE = (
     "# mill_pawn\nFEATURE DIAMETER 25.00 0.05\nFEATURE HEIGHT 40 0.1\nFEATURE bad x 1\n"
@@ -185,3 +189,59 @@ def test_a_runs_features_are_stored_as_numbers_with_it_by_the_wcs_own_statement(
         (2, "DIAMETER", 25.061, None, 1, False),  # HEIGHT "oops" is no number: left out, the results kept
     ]
     assert db_conn.execute("SELECT count(*) FROM machine_run_result WHERE machine_run_id = 2").fetchone()[0] == 4
+
+
+# ----------------------------------------------------------------------------- the machines (real MEs, threads)
+
+SHEET = "# run sheet (gwc): this run's own lines; the recipe above is the approved version\n"
+
+
+def run_once(m: Running, tmp_path: Path, text: str) -> dict[str, str]:
+    """ME_START, SETUP_RUN with this recipe copy, START_RUN, wait for RUN_COMPL: the results file."""
+    if m.me is not None and m.me.state.value == "shutdown":
+        assert m.ask(MessageId.ME_START).ack_code == AckCode.ACK_OK
+    assert m.ask(MessageId.SETUP_RUN, file_name=recipe(tmp_path, text), recipe_id="r").ack_code == AckCode.ACK_OK
+    out = tmp_path / "results" / f"run-{m.seq}.txt"
+    assert m.ask(MessageId.START_RUN, file_name=str(out), recipe_id="r").ack_code == AckCode.ACK_OK
+    while True:
+        msg = m.wc.receive(15)
+        if msg.message_id == MessageId.RUN_COMPL:
+            assert msg.ack_code == AckCode.ACK_OK, msg
+            return read_results(out)
+
+
+def test_a_mill_with_a_process_cuts_the_part_and_reports_its_offsets(machine: Any, tmp_path: Path) -> None:
+    m = machine(
+        kind="dummy", run_time=0.01, process={"seed": 1, "bias": {"DIAMETER": 0.02}, "wear": {"DIAMETER": 0.01}}
+    )
+    text = "FEATURE DIAMETER 25.00 0.05\n" + SHEET + "RUN 5\nTOOL 0\nOFFSET DIAMETER -0.010000\n"
+    first = run_once(m, tmp_path, text)
+    assert first["OFFSET.DIAMETER"] == "-0.010000" and first["TOOL_PARTS"] == "1" and "DIAMETER" not in first
+    assert read_part(m.cfg.var, 5) == {"DIAMETER": 25.01}  # 25 - 0.01 + 0.02, no wear on the first part
+    run_once(m, tmp_path, text.replace("RUN 5", "RUN 6"))
+    assert read_part(m.cfg.var, 6) == {"DIAMETER": 25.02}  # one part's wear
+    assert run_once(m, tmp_path, text.replace("RUN 5", "RUN 7").replace("TOOL 0", "TOOL 1"))["TOOL_PARTS"] == "1"
+    assert read_part(m.cfg.var, 7) == {"DIAMETER": 25.01}, "a tool change: wear from zero"
+
+
+def test_the_cmm_sends_each_measured_feature_over_the_serial_line(machine: Any, tmp_path: Path) -> None:
+    m = machine(
+        kind="cmm",
+        homing_alarm=False,
+        serial={"port": "sim", "baudrate": 9600, "timeout": 5.0},
+        sim={"measure_time": 0.05, "gauge_sigma": 0.0},
+    )
+    write_part(m.cfg.var, 5, {"DIAMETER": 25.07, "HEIGHT": 40.01})
+    text = "FEATURE DIAMETER 25.00 0.05\nFEATURE HEIGHT 40.00 0.10\n" + SHEET + "RUN 9\nWORKPIECE 5\nTOOL 0\n"
+    results = run_once(m, tmp_path, text)
+    assert (results["DIAMETER"], results["HEIGHT"]) == ("25.070000", "40.010000")
+    assert results["RESULT"] == "FAIL" and results["WORKPIECE"] == "5", "the verdict from the tolerances"
+    assert run_once(m, tmp_path, "FEATURE DIAMETER 25.00 0.05\n")["DIAMETER"] == "25.000000"  # a nominal part
+
+
+def test_a_dummy_without_a_process_measures_the_part_it_is_given(machine: Any, tmp_path: Path) -> None:
+    m = machine(kind="dummy", run_time=0.01, gauge_sigma=0.0)
+    write_part(m.cfg.var, 3, {"DIAMETER": 25.01})
+    results = run_once(m, tmp_path, "FEATURE DIAMETER 25.00 0.05\n" + SHEET + "RUN 4\nWORKPIECE 3\n")
+    assert results["DIAMETER"] == "25.010000" and results["RESULT"] == "PASS" and results["WORKPIECE"] == "3"
+    assert "DIAMETER" not in run_once(m, tmp_path, "# dummy_recipe\nRUN\n"), "today's dummy where nothing is given"
