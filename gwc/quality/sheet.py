@@ -6,7 +6,7 @@ as a CNC's operator keys tool offsets in beside the program (gwc/wc/steps.py, `s
     # run sheet (gwc): this run's own lines; the recipe above is the approved version
     RUN 123                       the machine_run_id
     WORKPIECE 120                 the run that made the part this run works on (measures, re-mills)
-    TOOL 2                        tool changes confirmed on the machine (docs/quality.md)
+    TOOL 1795865532123            the machine's last tool change or maintenance, ms since the epoch
     OFFSET DIAMETER -0.0123       added to the feature's nominal by a machine that makes it
 
 The ME puts WORKPIECE and each OFFSET.<feature> in its results, so they are stored with the run.

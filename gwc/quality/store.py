@@ -48,9 +48,21 @@ def feedback(read: Reader, recipe_id: str) -> FeedbackSettings | None:
     return FeedbackSettings(*(float(v) for v in rows[0]))
 
 
+# The machine's last tool change: the operator's confirmation (`gwc tool change`) or a maintenance
+# (MAINT_DONE, in the production record), whichever is later.
+LAST_CHANGE = (
+    "(SELECT max(t) FROM (SELECT max(changed_at) AS t FROM tool_changes WHERE machine_id = %s "
+    "UNION ALL SELECT max(at) FROM machine_state_history WHERE machine_id = %s AND cause = 'maintenance') c)"
+)
+
+
 def tool_changes(read: Reader, machine_id: str) -> int:
-    """How many tool changes the operator confirmed on the machine."""
-    return int(read("SELECT count(*) FROM tool_changes WHERE machine_id = %s", (machine_id,))[0][0])
+    """The machine's last tool change (or maintenance) as milliseconds since the epoch, 0 if none: the run
+    sheet's TOOL, which only grows, so that a simulated mill sees each change once."""
+    rows = read(
+        f"SELECT coalesce(floor(extract(epoch FROM {LAST_CHANGE}) * 1000), 0)::bigint", (machine_id, machine_id)
+    )
+    return int(rows[0][0])
 
 
 def history(read: Reader, machine_id: str, recipe_id: str, feature: str, limit: int = 100) -> list[tuple[float, float]]:
@@ -62,9 +74,9 @@ def history(read: Reader, machine_id: str, recipe_id: str, feature: str, limit: 
         "  AND m.feature = mk.feature AND m.measured IS NOT NULL ORDER BY m.at DESC LIMIT 1) m ON true "
         "WHERE mk.machine_id = %s AND mk.recipe_id = %s AND mk.feature = %s AND mk.workpiece IS NULL "
         "  AND mk.offset_used IS NOT NULL AND mk.measured IS NULL "
-        "  AND mk.at > coalesce((SELECT max(changed_at) FROM tool_changes WHERE machine_id = %s), '-infinity') "
+        f"  AND mk.at > coalesce({LAST_CHANGE}, '-infinity') "
         "ORDER BY mk.machine_run_id DESC LIMIT %s",
-        (machine_id, recipe_id, feature, machine_id, limit),
+        (machine_id, recipe_id, feature, machine_id, machine_id, limit),
     )
     return [(float(u), float(e)) for u, e in reversed(rows)]
 

@@ -245,3 +245,26 @@ def test_a_dummy_without_a_process_measures_the_part_it_is_given(machine: Any, t
     results = run_once(m, tmp_path, "FEATURE DIAMETER 25.00 0.05\n" + SHEET + "RUN 4\nWORKPIECE 3\n")
     assert results["DIAMETER"] == "25.010000" and results["RESULT"] == "PASS" and results["WORKPIECE"] == "3"
     assert "DIAMETER" not in run_once(m, tmp_path, "# dummy_recipe\nRUN\n"), "today's dummy where nothing is given"
+
+
+def test_the_last_tool_change_or_maintenance_starts_the_history_again(db_conn: Any) -> None:
+    def read(sql: str, params: Any = ()) -> list[tuple[Any, ...]]:
+        rows = db_conn.execute(sql, tuple(params)).fetchall()
+        db_conn.commit()
+        return list(rows)
+
+    from gwc.quality import store
+
+    test_a_runs_features_are_stored_as_numbers_with_it_by_the_wcs_own_statement(db_conn)
+    assert store.tool_changes(read, "mazak") == 0
+    # run 1 milled on the mazak with offset -0.01, its part measured by run 2: 25.061, 0.061 off
+    assert store.history(read, "mazak", "mill_pawn", "DIAMETER") == [(-0.01, pytest.approx(0.061))]
+    db_conn.execute(
+        "INSERT INTO machine_state_history (machine_id, status, cause) VALUES ('mazak', 'Idle', 'maintenance')"
+    )
+    db_conn.commit()
+    first = store.tool_changes(read, "mazak")
+    assert first > 0 and store.history(read, "mazak", "mill_pawn", "DIAMETER") == [], "from zero after it"
+    db_conn.execute("INSERT INTO tool_changes (machine_id, confirmed_by) VALUES ('mazak', 'op')")
+    db_conn.commit()
+    assert store.tool_changes(read, "mazak") >= first
