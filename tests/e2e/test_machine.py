@@ -655,7 +655,9 @@ def test_kill_9_of_the_wc_after_it_read_run_compl_the_restarted_wc_completes_the
     wait_for(lambda: status(cell, "wc2")[0] == "Idle", T, "Idle again")
     pending_alarm(cell, "RUN_FAIL", "wc2")
     # Idle is written before the resumed WC serves (until then it answers Notnow, as it should): wait.
-    story(cell, "wc:wc2", "resumed: Idle", "run 428: no results file", r"run 428 complete \(Run_Fail\)", "resumed: Idle")
+    story(
+        cell, "wc:wc2", "resumed: Idle", "run 428: no results file", r"run 428 complete \(Run_Fail\)", "resumed: Idle"
+    )
     assert setup_run(cell, "wc2", 429).ack_code == OK  # and it serves the cell again
 
 
