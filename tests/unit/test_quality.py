@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import logging
 import random
 from pathlib import Path
 from typing import Any
@@ -14,9 +15,11 @@ import pytest
 from gwc.errors import ConfigError
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import MessageId
+from gwc.lot.model import Operation, Run
 from gwc.me.results import read_results
 from gwc.quality import spc
 from gwc.quality.feedback import feed_forward, next_offset
+from gwc.quality.lot import Quality, ToolWorn
 from gwc.quality.process import MillProcess, Tool, read_part, write_part
 from gwc.quality.recipe import Feature, FeedbackSettings, features_of, feedback_of
 from gwc.quality.sheet import RunSheet, from_message, read_sheet, sheet_of, with_sheet, write_sheet
@@ -268,3 +271,66 @@ def test_the_last_tool_change_or_maintenance_starts_the_history_again(db_conn: A
     db_conn.execute("INSERT INTO tool_changes (machine_id, confirmed_by) VALUES ('mazak', 'op')")
     db_conn.commit()
     assert store.tool_changes(read, "mazak") >= first
+
+
+class FakeEntity:
+    """What Quality needs of an OperationEntity, on the test's database: reads, and alarms recorded."""
+
+    def __init__(self, db_conn: Any, tmp_path: Path) -> None:
+        from tests.conftest import make_config
+
+        self.entity_id = 1
+        self.cfg = make_config(tmp_path, None)
+        self.log = logging.getLogger("test.quality")
+        self.conn = db_conn
+        self.alarms: list[tuple[str, str, str]] = []
+
+    def read(self, sql: str, params: Any = ()) -> list[tuple[Any, ...]]:
+        rows = self.conn.execute(sql, tuple(params)).fetchall()
+        self.conn.commit()
+        return list(rows)
+
+    def raise_alarm(self, alarm_id: str, machine_id: str, text: str) -> int | None:
+        self.alarms.append((alarm_id, machine_id, text))
+        return len(self.alarms)
+
+
+def _op(op_type: str, run: int, machine: str, recipe: str) -> Operation:
+    return Operation(op_type, run, [Run(machine, recipe, run, "ACK_OK", {})])
+
+
+def _approve(db_conn: Any, recipe_id: str, content: bytes) -> None:
+    db_conn.execute("UPDATE recipe_versions SET approved = false WHERE recipe_id = %s", (recipe_id,))
+    db_conn.execute(
+        "INSERT INTO recipe_versions (recipe_id, version, content, checksum, approved) "
+        "SELECT %s, max(version) + 1, %s, encode(sha256(%s), 'hex'), true FROM recipe_versions WHERE recipe_id = %s",
+        (recipe_id, content, content, recipe_id),
+    )
+    db_conn.commit()
+
+
+def test_the_lot_scripts_quality_feedback_feed_forward_tool_change_and_preference(db_conn: Any, tmp_path: Path) -> None:
+    _approve(db_conn, "mill_pawn", b"FEATURE DIAMETER 25.00 0.05\nFEEDBACK EWMA 0.5 STEP 0.02 LIMIT 0.03\n")
+    _approve(db_conn, "alum_chess_set", b"FEATURE DIAMETER 25.00 0.05\n")
+    _store_run(db_conn, 1, "mazak", {"RECIPE": "mill_pawn", "OFFSET.DIAMETER": "-0.010000"})
+    _store_run(db_conn, 2, "cmm_wc", {"RECIPE": "alum_chess_set", "WORKPIECE": "1", "DIAMETER": "25.061"})
+    entity = FakeEntity(db_conn, tmp_path)
+    q = Quality(entity)
+    mill, measured = _op("mill_chess", 1, "mazak", "mill_pawn"), _op("alum_chess", 2, "cmm_wc", "alum_chess_set")
+
+    assert q.verdict(measured) == (False, "FAIL: DIAMETER 25.0610 (25 +/- 0.05)")
+    assert q.measure_sheet(mill) is not None and q.measure_sheet(measured) is not None
+    # Feed forward: the part sent back is given its own correction, -0.01 - 0.061.
+    again = q.mill_sheet(remill=mill, measured=measured)("mazak", "mill_pawn")
+    assert again is not None and again["workpiece"] == 1 and again["offsets"]["DIAMETER"] == pytest.approx(-0.071)
+    # Feedback: the estimate asks for -0.0355 (0.5 * 0.071), past LIMIT 0.03: TOOL_CHANGE, the operation asked again.
+    db_conn.execute("UPDATE machine_status SET status = 'Shutdown' WHERE machine_id = 'mazak'")
+    db_conn.commit()
+    with pytest.raises(ToolWorn, match="mazak tool worn out"):
+        q.mill_sheet()("mazak", "mill_pawn")
+    assert [a[:2] for a in entity.alarms] == [("TOOL_CHANGE", "mazak")]
+    # Another mill with no history yet: tried first (an untried machine counts as perfect).
+    db_conn.execute("UPDATE machine_status SET status = 'Idle' WHERE machine_id IN ('mazak', 'wc2')")
+    db_conn.commit()
+    assert q.preferred("mill_chess") == [["wc2"], ["mazak"]]
+    assert q.preferred("dummy_op") is None, "no history for the operation: the entity's own choice"
