@@ -38,6 +38,7 @@ COMMANDS = {
     "demo": "gwc.hi.demo",  # section 7's demonstration
     "bench": "gwc.hi.bench",  # benchmarks
     **dict.fromkeys(["report", "trace", "downtime"], "gwc.hi.record"),  # the production record
+    **dict.fromkeys(["spc", "tool"], "gwc.hi.quality"),  # quality: control charts, tool changes (docs/quality.md)
 }
 
 

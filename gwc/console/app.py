@@ -28,6 +28,7 @@ from textual.widgets import Footer, Header, RichLog, Static, TabbedContent, TabP
 from gwc.config import Config
 from gwc.console.link import VIEWS_OF, Answer, CellLink, console_log
 from gwc.console.record import RecordView
+from gwc.console.spc import SpcView
 from gwc.console.views import (
     MONITOR_LINES,
     RELOAD_EVERY,
@@ -79,6 +80,7 @@ class ConsoleApp(App[None]):
         ("modules", "7 Modules"),
         ("monitor", "8 Monitor"),
         ("record", "0 Record"),
+        ("spc", "- SPC"),
     ]
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("q", "quit", "Quit"),
@@ -119,6 +121,7 @@ class ConsoleApp(App[None]):
                 "modules": ModulesView(),
                 "monitor": MonitorView(),
                 "record": RecordView(),
+                "spc": SpcView(),
             }
             for name, title in self.VIEWS:
                 with TabPane(title, id=name):
@@ -346,8 +349,9 @@ def screenshot_every_view(folder: Path) -> Callable[[Pilot[object]], Coroutine[A
     async def shoot(pilot: Pilot[object]) -> None:
         app = pilot.app
         assert isinstance(app, ConsoleApp)
-        for i, (name, _) in enumerate(app.VIEWS, 1):
-            await pilot.press(str(i))
+        for name, title in app.VIEWS:
+            key = title.split()[0]
+            await pilot.press({"-": "minus"}.get(key, key))  # the view's own key, as its binding has it
             view = app.views()[name]
             deadline = Deadline(SCREENSHOT_WAIT)
             await pilot.pause(RELOAD_EVERY)

@@ -62,7 +62,7 @@ VIEWS_OF: dict[str, tuple[str, ...]] = {
     Conv.MAINT_DONE: ("machines",),
     Conv.SETUP_RUN: ("machines",),
     Conv.START_RUN: ("machines",),
-    Conv.RUN_COMPL: ("machines", "lots", "record"),
+    Conv.RUN_COMPL: ("machines", "lots", "record", "spc"),
     Conv.MACH_REQ: ("requests", "lots"),
     Conv.CANCEL_RE: ("requests", "lots"),
     Conv.UNRESERVE: ("requests", "lots"),

@@ -18,6 +18,7 @@ BENCH_MODULES = [
     "gwc.bench.cell",
     "gwc.bench.order",
     "gwc.bench.opcua",
+    "gwc.bench.quality",
     "gwc.console.cost",
 ]
 

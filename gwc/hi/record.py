@@ -91,6 +91,7 @@ def report_oee(machines: tuple[str, ...], since: str, until: str, as_json: bool,
 def report_html(out: Path, machines: tuple[str, ...], since: str, until: str) -> None:
     """One self-contained page (no network needed): a state timeline per machine, OEE per machine and a
     downtime Pareto, above the tables."""
+    from gwc.quality import spc
     from gwc.record.html import render
 
     cfg, log = context()
@@ -98,7 +99,15 @@ def report_html(out: Path, machines: tuple[str, ...], since: str, until: str) ->
         cfg.machine(m)
     a, b = _window(since, until, cfg.record.timezone)
     with hi_conn(cfg, log) as conn:
-        page = render(conn, cfg.record, cfg.cell_name, a, b, list(machines) or [m.id for m in cfg.machines] or None)
+        page = render(
+            conn,
+            cfg.record,
+            cfg.cell_name,
+            a,
+            b,
+            list(machines) or [m.id for m in cfg.machines] or None,
+            spc.settings(cfg),
+        )
     try:
         out.write_text(page, encoding="utf-8")
     except OSError as e:

@@ -192,13 +192,15 @@ MESSAGE_CLASSES: dict[str, MessageClass] = {
         _msg(
             "Setup_Run",
             "download a recipe and set the machine up for a run (no recipe_id: the machine's for op_type; "
-            "start: and start the run once set up, as a Start_Run would)",
+            "start: and start the run once set up, as a Start_Run would; sheet: the run's own lines after "
+            "the recipe, {workpiece, tool, offsets}: docs/quality.md)",
             machine_id="str",
             recipe_id="str?",
             op_type="str",
             machine_run_id="int",
             entity_id="int?",
             start="bool?",
+            sheet="dict?",
         ),
         _msg(
             "Setup_Run_Ack", "recipe_id: the recipe set up (with start: and the run started)", recipe_id="str?", **ACK
@@ -509,7 +511,8 @@ def sequence(cls: str) -> str:
 # downloads to and uploads from a machine reserved to E; the ERS stores a proposed version only of a
 # recipe for a machine reserved to E, unapproved; the Lot Server makes a lot created by E E's child;
 # the Machine Server takes E's scrap report in E's name only; the Lot Server lets E divide itself and
-# merge its own children into itself.
+# merge its own children into itself; the Cell Alarm Server takes quality's alarms (SPC_RULE, TOOL_CHANGE)
+# from E in E's name only.
 LOT_CLASSES = frozenset(
     {
         "MACH_REQ",
@@ -524,6 +527,7 @@ LOT_CLASSES = frozenset(
         "CREATE_LOT",
         "SCRAP_RPT",
         "DIV_MERGE",
+        "ALARM_SEND",
     }
 )
 

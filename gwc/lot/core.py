@@ -78,6 +78,11 @@ class LotReads:
             with contextlib.suppress(psycopg.Error):
                 conn.close()
 
+    def read(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
+        """Rows of a read of the tables (role gwc_lot: reads only), asked again while the database is away:
+        for library code beside the entity (gwc.quality.store)."""
+        return self.query(sql, *params)
+
     def query_one(self, sql: str, *params: Any) -> tuple[Any, ...] | None:
         rows = self.query(sql, *params)
         return rows[0] if rows else None

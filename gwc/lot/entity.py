@@ -70,7 +70,7 @@ from gwc.lot.model import (
 )
 from gwc.lot.reserve import MachineRequests
 from gwc.lot.resume import Resumption
-from gwc.lot.runs import MachineRuns
+from gwc.lot.runs import MachineRuns, Sheets
 from gwc.lot.state import EntityState, Shared
 from gwc.lot.talk import BusLink
 from gwc.retry import Deadline
@@ -254,6 +254,7 @@ class OperationEntity:
         alternatives: Sequence[Sequence[str]] | None = None,
         recipes: str | dict[str, str] | None = None,
         priority: int | None = None,
+        sheet: Sheets | None = None,
     ) -> Operation:
         """One operation, start to end: reserve machines, run, unreserve, read the results (they are in
         the tables: the machines need not wait for the entity to read them).
@@ -266,6 +267,7 @@ class OperationEntity:
 
         In a lot script restarted after its process was killed, an operation done before is not done
         again and one whose run was under way is taken up where it is (gwc/lot/resume.py).
+        `sheet(machine, recipe)`: each run's sheet of offsets (gwc/quality), asked once the machine is known.
         """
         step, entry, resumed = self.resume.point(op_type)
         if isinstance(resumed, Operation):
@@ -282,7 +284,7 @@ class OperationEntity:
                 todo = (
                     None if taken_up is None else {m: self.resume.take_up(m, res.machine_run_id) for m in res.machines}
                 )
-                chosen, codes = self.runs.run(res, recipes, todo)
+                chosen, codes = self.runs.run(res, recipes, todo, sheet)
             except MachineLost as e:
                 lost = e
                 self.facts.log.warning(
@@ -432,6 +434,14 @@ class OperationEntity:
     def wait_for_children(self, children: Sequence[int], timeout: float | None = None) -> dict[int, str]:
         """Wait until every child is done (Holdings.wait_for_children): each one's state."""
         return self.holdings.wait_for_children(children, timeout)
+
+    def raise_alarm(self, alarm_id: str, machine_id: str, text: str) -> int | None:
+        """ALARM_SEND in the lot's name (Holdings.raise_alarm: quality's SPC_RULE, TOOL_CHANGE): its number."""
+        return self.holdings.raise_alarm(alarm_id, machine_id, text)
+
+    def read(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
+        """Rows of a read of the tables, asked again while the database is away (LotReads.read)."""
+        return self.reads.read(sql, params)
 
 
 __all__ = [

@@ -98,6 +98,15 @@ class Holdings:
         self._checked(Conv.SCRAP_RPT, self.link.ask(Conv.SCRAP_RPT, msg, "ms"), f"run {machine_run_id} on {machine_id}")
         self.facts.log.info("scrap: %d part(s) of run %d on %s (%s)", parts, machine_run_id, machine_id, reason or "-")
 
+    def raise_alarm(self, alarm_id: str, machine_id: str, text: str) -> int | None:
+        """ALARM_SEND to the Cell Alarm Server in the lot's name (quality: SPC_RULE, TOOL_CHANGE); its number."""
+        msg = message(
+            Msg.ALARM_SEND, alarm_id=alarm_id, alarm_text=text[:500], machine_id=machine_id, raised_by=self.facts.name
+        )
+        ack = self._checked(Conv.ALARM_SEND, self.link.ask(Conv.ALARM_SEND, msg, "cas"), f"alarm {alarm_id}")
+        self.facts.log.warning("alarm %s raised on %s (no. %s): %s", alarm_id, machine_id, ack.alarm_no, text)
+        return None if ack.alarm_no is None else int(ack.alarm_no)
+
     # ----------------------------------------------------------------- children
 
     def start_child(self, product_id: str, quantity: int = 1, script_id: str | None = None) -> list[int]:

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from gwc.errors import DatabaseError, GwcError
 from gwc.ipc import Bus
@@ -21,6 +22,9 @@ from gwc.lot.model import ENDED, RELEASES, SHUT, UP, Reservation, Run, WcCall, n
 from gwc.lot.state import EntityState
 from gwc.lot.talk import BusLink
 from gwc.retry import Deadline
+
+# A lot script's run sheets (gwc/quality/sheet.py): (machine, recipe) -> the SETUP_RUN field `sheet`, or None.
+Sheets = Callable[[str, str], "dict[str, Any] | None"]
 
 
 class MachineRuns:
@@ -46,7 +50,13 @@ class MachineRuns:
         return str(rows[0][0])
 
     def setup_run(
-        self, machine_id: str, recipe_id: str | None, op_type: str, machine_run_id: int, start: bool = False
+        self,
+        machine_id: str,
+        recipe_id: str | None,
+        op_type: str,
+        machine_run_id: int,
+        start: bool = False,
+        sheet: dict[str, Any] | None = None,
     ) -> str:
         """SETUP_RUN to the machine's WC: recipe downloaded, machine set up (the CMM is homed first).
         With no recipe_id the WC sets up its machine's recipe for the op type (recipe_for); returns the
@@ -73,6 +83,7 @@ class MachineRuns:
             machine_run_id=machine_run_id,
             entity_id=self.facts.entity_id,
             start=start or None,
+            sheet=sheet,
         )
         if start:
             timeout = self.facts.timeouts.setup + self.facts.timeouts.answer
@@ -394,17 +405,23 @@ class MachineRuns:
         reservation: Reservation,
         recipes: str | dict[str, str] | None,
         todo: dict[str, str] | None = None,
+        sheet: Sheets | None = None,
     ) -> tuple[dict[str, str], dict[str, str]]:
         """run_on without reading the results: the recipe and the ack code of each machine's run. A run
         a restarted script takes up is set up, started or only waited for on each machine as `todo`
-        says ("setup", "start", "wait": as far as it went there, resume.py)."""
+        says ("setup", "start", "wait": as far as it went there, resume.py). `sheet(machine, recipe)`
+        gives each machine's run sheet (gwc/quality: the feedback's offsets), or None."""
         run_id, op_type = reservation.machine_run_id, reservation.op_type
         chosen = {}
         for m in reservation.machines:
             recipe = recipes.get(m) if isinstance(recipes, dict) else recipes
             step = (todo or {}).get(m, "setup")
             if step == "setup":
-                chosen[m] = self.setup_run(m, recipe, op_type, run_id, start=True)
+                lines = None
+                if sheet is not None:
+                    recipe = recipe or self.recipe_for(m, op_type)
+                    lines = sheet(m, recipe)
+                chosen[m] = self.setup_run(m, recipe, op_type, run_id, start=True, sheet=lines)
                 continue
             chosen[m] = recipe or self.recipe_for(m, op_type)
             if step == "start":

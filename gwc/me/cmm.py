@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import shutil
 import threading
 import time
@@ -66,6 +67,8 @@ T = TypeVar("T")
 VERDICTS = ("PASS!", "FAIL!")
 TRANSFERS = ("line", "kermit")
 KERMIT_TIMEOUT = 60.0  # longest one Kermit transfer may take
+MEAS_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}$")  # a measured feature's name (MEAS records)
+MEAS_VALUE = re.compile(r"^[-+]?[0-9]+(\.[0-9]*)?$")
 QUIET = 0.1  # resynchronising without STATUS (Kermit devices): the line must be quiet this long
 
 
@@ -117,6 +120,7 @@ class CmmMachine(MachineSide):
         self._ready = ""  # the answer due to the STATUS out
         self._next_probe = 0.0
         self._backoff = self.reprobe_min
+        self._measured: dict[str, str] = {}  # MEAS records of the run in progress: feature -> value
 
     # ----------------------------------------------------------------- the line
 
@@ -333,6 +337,7 @@ class CmmMachine(MachineSide):
         return path
 
     def begin(self) -> None:
+        self._measured = {}
         self._exchange("start of the run", lambda line: line.write_record("START RUN !"))
         self._run_deadline = time.monotonic() + self.run_timeout
 
@@ -352,9 +357,22 @@ class CmmMachine(MachineSide):
                     LineTimeout("no verdict"), f"no verdict from the CMM within {self.run_timeout:g}s: run given up"
                 )
             return None
+        if rec.startswith("MEAS "):  # a feature's measured value, before the verdict (docs/quality.md)
+            words = rec[:-1].split()
+            if (
+                len(words) == 3
+                and MEAS_NAME.match(words[1])
+                and MEAS_VALUE.match(words[2])
+                and words[1] not in self._measured
+            ):
+                self._measured[words[1]] = words[2]
+                return None
+            return self._run_failed(Garbage(rec), f"the CMM sent a bad measurement {escaped(rec.encode())}")
         if rec in VERDICTS:
-            self.log.info("the CMM answered %s", rec)
-            return RunOutcome(AckCode.ACK_OK, {"PART": self.recipe_id, "RESULT": rec[:-1]})
+            self.log.info(
+                "the CMM answered %s%s", rec, f" ({len(self._measured)} features measured)" if self._measured else ""
+            )
+            return RunOutcome(AckCode.ACK_OK, {**self._measured, "PART": self.recipe_id, "RESULT": rec[:-1]})
         return self._run_failed(Garbage(rec), f"the CMM answered {escaped(rec.encode())} instead of a verdict")
 
     def _run_failed(self, error: LineError, note: str) -> RunOutcome:

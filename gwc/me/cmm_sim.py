@@ -54,6 +54,9 @@ from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError, LineError
 from gwc.me.line import LineLost, RecordStream, escaped, kermit, open_serial, serial_stream
 from gwc.me.parts import PartError, is_tar, part_tar, program_from
+from gwc.quality.process import measure, read_part
+from gwc.quality.recipe import features_of
+from gwc.quality.sheet import read_sheet
 
 ANSWER_TIMEOUT = 5.0  # longest wait for the rest of a multi-record command
 IDLE_WAIT = 0.2
@@ -222,6 +225,12 @@ class CmmSimulator:
         # A device server speaks what the ME's URL says: raw bytes (socket://) or RFC 2217 (rfc2217://).
         self.rfc2217 = isinstance(serial_port, dict) and str(serial_port.get("port", "")).startswith("rfc2217://")
         self.bang = bool(sim.get("bang", True))
+        try:  # measuring a part program's FEATUREs: the gauge's own noise, seeded
+            self.gauge_sigma = float(sim.get("gauge_sigma", 0.0005))
+            self.seed = int(sim.get("seed", 1))
+        except (TypeError, ValueError):
+            raise ConfigError(f"machine {spec.id}: sim.gauge_sigma and sim.seed must be numbers") from None
+        self._measures: list[str] = []
         self.kermit = spec.options.get("transfer", "line") == "kermit"
         self.store = cfg.var / "cmmsim" / spec.id  # the CMM's /usr/avail/part (Kermit files land here)
         self.programs: dict[str, bytes] = {}
@@ -374,7 +383,22 @@ class CmmSimulator:
                 self.log.warning("sending garbage instead of %s: %s", verdict, escaped(junk))
                 line.write_bytes(junk)
                 return
+            for rec in self._measures:  # each feature's value, then the verdict (docs/quality.md)
+                line.write_record(rec)
             line.write_bytes(verdict.encode("ascii") if self.bang else verdict[:-1].encode("ascii"))
+
+    def _measure(self, program: bytes) -> tuple[list[str], bool] | None:
+        """The features of the part program measured on the part its run sheet names (the simulated mill
+        left it in var/sim/parts), or on a nominal part: `MEAS <feature> <value>!` records and the verdict."""
+        text = program.decode("utf-8", "replace")
+        feats = features_of(text)
+        if not feats:
+            return None
+        sheet = read_sheet(text)
+        part = read_part(self.cfg.var, sheet.workpiece) if sheet is not None and sheet.workpiece else None
+        values = measure(feats, part, f"{self.seed}:{self.measured}", self.gauge_sigma)
+        records = [f"MEAS {name} {value:.6f}!" for name, value in values.items()]
+        return records, all(f.passes(values[f.name]) for f in feats)
 
     def handle(self, rec: str, line: RecordStream) -> None:
         """One command from the ME (the branches of Listing 9's listen())."""
@@ -397,6 +421,11 @@ class CmmSimulator:
             letter = self.pattern[self.measured % len(self.pattern)]
             self.measured += 1
             self._verdict = "PASS!" if letter == "P" else "FAIL!"
+            self._measures = []
+            measured = self._measure(self.programs.get(self.part, b""))
+            if measured is not None:  # a part program with FEATUREs: measured, the verdict from the tolerances
+                self._measures, passed = measured
+                self._verdict = "PASS!" if passed else "FAIL!"
             wait, self._delay = (self.measure_time if self._delay is None else self._delay), None
             self._verdict_at = time.monotonic() + wait
             self.log.info("measuring part %s (%d): %.1fs", self.part, self.measured, wait)

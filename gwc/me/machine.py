@@ -40,6 +40,7 @@ from gwc.files import rewrite
 from gwc.ipc.codes import AckCode
 from gwc.ipc.mq import ALARM_TEXT_SIZE, Channel, MeMessage, MessageId
 from gwc.me.results import write_results
+from gwc.quality.sheet import RunSheet, sheet_of
 
 RUN_NO_FILE = "run_no"  # in the machine's memory directory: the last run number given
 
@@ -119,6 +120,7 @@ class MachineSide:
         self.channel = Channel(cfg.ipc_prefix, spec.id, "me", log)
         self.state = MeState.SHUTDOWN
         self.recipe_id = ""
+        self.sheet: RunSheet | None = None
         self.results_path: Path | None = None
         self.memory = cfg.var / "me" / spec.id  # the machine's own recipe store (download/upload)
         self.run_no = self._last_run_no()  # runs of this machine, across ME restarts
@@ -387,6 +389,7 @@ class MachineSide:
     def _setup_run(self, msg: MeMessage) -> None:
         self._need(MeState.IDLE, MeState.SETUP, what="set up a run")
         path = self._recipe_path(msg)
+        self.sheet = sheet_of(path)  # the run's offsets and workpiece, if the lot gave any (gwc/quality)
         self.load(msg.recipe_id, path)
         self.recipe_id = msg.recipe_id
         self.state = MeState.SETUP
@@ -422,6 +425,7 @@ class MachineSide:
             "RECIPE": self.recipe_id,
             "RUN_NO": str(self.run_no),
             "RUN_TIME": f"{time.monotonic() - self.run_started:.3f}",
+            **(self.sheet.results() if self.sheet is not None else {}),
             **outcome.results,
         }
         if outcome.note:

@@ -14,6 +14,8 @@ from typing import Any
 import psycopg
 
 from gwc.config import RecordConfig
+from gwc.quality import spc
+from gwc.quality import store as quality_store
 from gwc.record import store
 
 COLOURS = {
@@ -128,6 +130,66 @@ def _table(rows: list[dict[str, Any]], cols: list[str], left: tuple[str, ...] = 
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
+def _spc_svg(c: spc.Chart, title: str, lsl: float, usl: float) -> str:
+    """One control chart (docs/quality.md): the points, the centre line and 3-sigma limits, the tolerance,
+    a point that broke a rule in red."""
+    w, h, pad = 640, 160, 8
+    values = c.values
+    if c.limits is None or not values:
+        return f"<p>{escape(title)}: too few points for limits</p>"
+    lim = c.limits
+    lo, hi = min(min(values), lim.lcl, lsl), max(max(values), lim.ucl, usl)
+    span = (hi - lo) or 1.0
+
+    def y(v: float) -> float:
+        return pad + (hi - v) / span * (h - 2 * pad)
+
+    def x(i: int) -> float:
+        return pad + i * (w - 2 * pad) / max(1, len(values) - 1)
+
+    lines = "".join(
+        f'<line x1="{pad}" x2="{w - pad}" y1="{y(v):.1f}" y2="{y(v):.1f}" stroke="{colour}" stroke-dasharray="{dash}">'
+        f"<title>{name} {v:.4f}</title></line>"
+        for name, v, colour, dash in (
+            ("UCL", lim.ucl, "#c33", "4 3"),
+            ("CL", lim.center, "#393", ""),
+            ("LCL", lim.lcl, "#c33", "4 3"),
+            ("USL", usl, "#999", "1 3"),
+            ("LSL", lsl, "#999", "1 3"),
+        )
+    )
+    path = " ".join(f"{x(i):.1f},{y(v):.1f}" for i, v in enumerate(values))
+    bad = {v.index: v.text for v in c.violations}
+    dots = "".join(
+        f'<circle cx="{x(i):.1f}" cy="{y(v):.1f}" r="{3 if i in bad else 2}" fill="{"#d00" if i in bad else "#333"}">'
+        f"<title>part {i + 1}: {v:.4f}{escape(' - ' + bad[i]) if i in bad else ''}</title></circle>"
+        for i, v in enumerate(values)
+    )
+    cpk = "-" if c.cpk is None else f"{c.cpk:.2f}"
+    return (
+        f"<h3>{escape(title)} &middot; Cpk {cpk} &middot; {len(c.violations)} rule(s) broken</h3>"
+        f'<svg width="{w}" height="{h}" role="img">{lines}<polyline points="{path}" fill="none" stroke="#333" '
+        f'stroke-width="1"/>{dots}</svg>'
+    )
+
+
+def spc_section(conn: psycopg.Connection[Any], settings: tuple[tuple[str, ...], int, int], ids: list[str]) -> str:
+    """The control charts of the machines' measured features, or nothing where none were measured."""
+    rules, baseline, window = settings
+
+    def read(sql: str, params: Any = ()) -> list[tuple[Any, ...]]:
+        return list(conn.execute(sql, tuple(params)).fetchall())
+
+    points = [p for p in quality_store.points(read, limit=window) if p.machine_id in ids]
+    charts = []
+    for key in sorted({(p.machine_id, p.recipe_id, p.feature) for p in points}):
+        series = [p for p in points if (p.machine_id, p.recipe_id, p.feature) == key]
+        lsl, usl = series[-1].nominal - series[-1].tol, series[-1].nominal + series[-1].tol
+        c = spc.chart(key[2], [p.value for p in series], lsl, usl, rules, baseline)
+        charts.append(_spc_svg(c, f"{key[0]} {key[1]} {key[2]}", lsl, usl))
+    return "<h2>Control charts (SPC)</h2>" + "".join(charts) if charts else ""
+
+
 def render(
     conn: psycopg.Connection[Any],
     rec: RecordConfig,
@@ -135,8 +197,9 @@ def render(
     since: datetime,
     until: datetime,
     machines: list[str] | None = None,
+    spc_settings: tuple[tuple[str, ...], int, int] | None = None,
 ) -> str:
-    """The page, as text."""
+    """The page, as text (with `spc_settings`, the control charts of measured features: docs/quality.md)."""
     rep = store.oee(conn, rec, since, until, machines)
     ids = [m["machine_id"] for m in rep["machines"]]
     timelines = "".join(_timeline_svg(mid, store.timeline(conn, rec, mid, since, until), since, until) for mid in ids)
@@ -176,5 +239,6 @@ def render(
             ("machine_id", "started_at", "ended_at", "cause", "reason", "e10_state"),
         )
     }
+{spc_section(conn, spc_settings, ids) if spc_settings else ""}
 </body></html>
 """

@@ -356,7 +356,12 @@ def trace_entity(conn: psycopg.Connection[Any], entity_id: int) -> dict[str, Any
     steps = conn.execute(
         "select h.machine_id, h.recipe_id, h.recipe_version, h.recipe_checksum, h.machine_run_id, h.at, o.ended_at, "
         "  o.ack_code, coalesce((select jsonb_object_agg(r.param, r.value) from machine_run_result r "
-        "            where r.machine_run_id = h.machine_run_id and r.machine_id = h.machine_id), '{}'::jsonb) "
+        "            where r.machine_run_id = h.machine_run_id and r.machine_id = h.machine_id), '{}'::jsonb), "
+        # quality (docs/quality.md): each feature measured or offset given, as numbers
+        "  coalesce((select jsonb_agg(jsonb_build_object('feature', f.feature, 'measured', f.measured, "
+        "    'nominal', f.nominal, 'tol', f.tol, 'offset', f.offset_used, 'workpiece', f.workpiece, "
+        "    'in_tol', f.in_tol) order by f.feature) from run_features f "
+        "    where f.machine_run_id = h.machine_run_id and f.machine_id = h.machine_id), '[]'::jsonb) "
         "from machine_state_history h left join machine_run_outcome o "
         "  on o.machine_run_id = h.machine_run_id and o.machine_id = h.machine_id "
         "where h.entity_id = %s and h.status = 'Running' order by h.at, h.id",
@@ -366,7 +371,7 @@ def trace_entity(conn: psycopg.Connection[Any], entity_id: int) -> dict[str, Any
         "select action, by, at from operator_actions where entity_id = %s order by at, id", (entity_id,)
     ).fetchall()
     out_steps = []
-    for machine, recipe, version, checksum, run, started, ended, code, results in steps:
+    for machine, recipe, version, checksum, run, started, ended, code, results, features in steps:
         res = {str(k): str(v) for k, v in (results or {}).items()}
         out_steps.append(
             {
@@ -378,6 +383,7 @@ def trace_entity(conn: psycopg.Connection[Any], entity_id: int) -> dict[str, Any
                 "ended_at": _iso(ended),
                 "results": res,
                 "verdict": verdict(code, res),
+                "features": list(features or []),
                 "_checksum": checksum,  # for the table (removed from --json)
             }
         )

@@ -45,6 +45,9 @@ OUTAGE_ALARM = "DB_DOWN"
 OUTAGE_ALARM_S = 10.0  # a database away longer than this is an alarm ([database] outage_alarm_s)
 
 
+LOT_ALARMS = ("SPC_RULE", "TOOL_CHANGE")  # what a lot script may raise (gwc/quality/lot.py)
+
+
 class AlarmServer(Server, Module):
     role = "cas"
     ignored_peers = NOT_LOTS
@@ -76,6 +79,11 @@ class AlarmServer(Server, Module):
         req = self.request(conv)
         if not req.alarm_id.strip() or not req.raised_by.strip():
             return await self.answer(conv, Msg.ALARM_ACK, AckCode.BAD_MESSAGE, "alarm_id and raised_by must be given")
+        if conv.initiator.startswith("lot:") and (req.alarm_id not in LOT_ALARMS or req.raised_by != conv.initiator):
+            # A lot script raises quality's alarms only, in its own name (docs/quality.md).
+            return await self.answer(
+                conv, Msg.ALARM_ACK, AckCode.NOT_AUTH, f"a lot raises only {', '.join(LOT_ALARMS)}, in its own name"
+            )
 
         no, known = await self.record(req.alarm_id, req.alarm_text, req.machine_id, req.raised_by)
         await self.answer(conv, Msg.ALARM_ACK, AckCode.ACK_OK, alarm_no=no, known=known)

@@ -16,6 +16,7 @@ from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.mq import MeMessage, MessageId
+from gwc.quality.sheet import with_sheet
 from gwc.servers.recipe import RECIPE_ID
 from gwc.wc.base import ABANDONED_S, ALL_OPERATIONS, SETUP_CHECK_S, MachineState, ServerCalls, WcHost
 from gwc.wc.me_side import MeSide
@@ -154,7 +155,10 @@ class Steps:
         accept = asyncio.ensure_future(self.servers.set_accept_types([]))
         await asyncio.sleep(0)  # each sends its request in its first step
         try:
-            refusal = await self._set_up_on_me(recipe, self._recipe(recipe, version, checksum))
+            fetch = self._recipe(recipe, version, checksum)
+            if req.sheet is not None:  # the run's offsets after the approved recipe (gwc/quality/sheet.py)
+                fetch = with_sheet(fetch, req.sheet, req.machine_run_id)
+            refusal = await self._set_up_on_me(recipe, fetch)
         finally:
             set_up = await status
         if refusal is None and not set_up:

@@ -236,3 +236,26 @@ def test_new_rows_far_below_the_screen_are_added_as_the_table_scrolls_near_them(
             await pilot.press("q")
 
     asyncio.run(drive())
+
+
+def test_the_spc_screen_lists_the_charts_and_draws_the_highlighted_one(tmp_path: Path) -> None:
+    async def drive() -> None:
+        app = _app(tmp_path)
+        async with app.run_test(size=(160, 50)) as pilot:
+            await pilot.pause()
+            await pilot.press("minus")  # the SPC screen's key
+            await pilot.pause()
+            assert app.shown_view() == "spc"
+            view = app.views()["spc"]
+            view.fill([])
+            assert "no measured features" in str(view.query_one("#spc-drawing").render())
+            view.rows = [
+                {"chart": "mazak mill_pawn DIAMETER", "points": 30, "cpk": "1.90", "rules": "WE2", "drawing": "o o x"},
+                {"chart": "mazak mill_pawn HEIGHT", "points": 30, "cpk": "2.10", "rules": "-", "drawing": "o o o"},
+            ]
+            view.fill(view.rows)
+            await pilot.pause()
+            assert "mazak mill_pawn DIAMETER\no o x" in str(view.query_one("#spc-drawing").render())
+            await pilot.press("q")
+
+    asyncio.run(drive())

@@ -6,11 +6,19 @@ to be re-milled or discarded as scrap." Two operations, each on any machine qual
 is up (alternatives: the Mazak, or another mill): if a mill shuts down while the lot waits, MSCHED
 serves it from the other alternative; if it shuts down mid-run, the step is asked again. The
 tolerance decision is made from the measuring run's MACHINE_RUN_RESULT (thesis 3.2.3).
+
+Where the mill's recipe declares FEATUREs (docs/quality.md), each milling carries a run sheet: the
+offsets of the run-to-run feedback (a recipe with FEEDBACK), and for a re-milling the correction the
+part's own measurement asks for (feed forward); the measurement names the part it measures, the
+verdict follows from the measured features' tolerances, and the mill's control charts are checked
+(SPC_RULE) after each first measurement. The mills are asked for best yield first (6.1: "machine M1
+is better than M2"): when both are free the better one mills the part.
 """
 
 from __future__ import annotations
 
 from gwc.lot import OperationEntity, verdict
+from gwc.quality.lot import Quality
 
 MILL = "mill_chess"
 MEASURE = "alum_chess"
@@ -19,9 +27,11 @@ MAX_MILLS = 3  # the first milling and up to two re-millings; then the part is s
 
 def main(entity: OperationEntity) -> None:
     entity.wait_for_import()
+    quality = Quality(entity)
     result = ""
+    made = measured = None  # the last milling and its measurement: a re-milling works on that part
     for attempt in range(1, MAX_MILLS + 1):
-        mill = entity.operate(MILL)
+        mill = entity.operate(MILL, quality.preferred(MILL), sheet=quality.mill_sheet(remill=made, measured=measured))
         if not mill.ok:
             entity.log.warning(
                 "milling run %d on %s failed (%s): milling again",
@@ -32,7 +42,7 @@ def main(entity: OperationEntity) -> None:
             result = f"milling failed on {mill.machines[0]}"
             continue
         for _ in range(MAX_MILLS):  # a measuring run that failed measured nothing: measure again, not mill
-            measure = entity.operate(MEASURE)
+            measure = entity.operate(MEASURE, sheet=quality.measure_sheet(mill))
             if measure.ok:
                 break
             entity.log.warning(
@@ -40,7 +50,10 @@ def main(entity: OperationEntity) -> None:
                 measure.machine_run_id,
                 "; ".join(r.note for r in measure.runs if r.note) or "no reason recorded",
             )
-        ok, why = verdict(measure.results) if measure.ok else (False, "measuring runs failed")
+        from_features = quality.verdict(measure) if measure.ok else None
+        if from_features is not None and made is None:
+            quality.check_spc(mill)  # the first milling's part only: a re-milled part is not the process's
+        ok, why = from_features or (verdict(measure.results) if measure.ok else (False, "measuring runs failed"))
         entity.log.info(
             "mill %d on %s (run %d), measured on %s (run %d): %s",
             attempt,
@@ -54,6 +67,7 @@ def main(entity: OperationEntity) -> None:
             result = f"PASS after {attempt} milling(s): milled on {mill.machines[0]}, {why}"
             break
         result = f"{why} after milling {attempt} on {mill.machines[0]}"
+        made, measured = mill, measure
         if attempt < MAX_MILLS:
             entity.log.warning("part out of tolerance: re-milling (%d of %d)", attempt + 1, MAX_MILLS)
     else:
