@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import grp
 import os
 import pwd
 import shutil
@@ -164,9 +165,18 @@ def ambient(caps: Iterable[int]) -> Iterator[None]:
 # ----------------------------------------------------------------------------- becoming the cell's user
 
 
-def _reachable(path: Path, user: pwd.struct_passwd, what: str) -> None:
-    from gwc.private import traversable_by
+def traversable_by(path: Path, user: pwd.struct_passwd) -> bool:
+    """Whether `user` may search (x) directory `path`, by its mode bits."""
+    st = path.stat()
+    gids = {user.pw_gid} | {g.gr_gid for g in grp.getgrall() if user.pw_name in g.gr_mem}
+    if st.st_uid == user.pw_uid:
+        return bool(st.st_mode & stat.S_IXUSR)
+    if st.st_gid in gids:
+        return bool(st.st_mode & stat.S_IXGRP)
+    return bool(st.st_mode & stat.S_IXOTH)
 
+
+def _reachable(path: Path, user: pwd.struct_passwd, what: str) -> None:
     for parent in reversed([path, *path.parents] if path.is_dir() else list(path.parents)):
         if parent.exists() and not traversable_by(parent, user):
             raise HostUserError(

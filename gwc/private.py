@@ -16,7 +16,6 @@ configuration in its environment.
 from __future__ import annotations
 
 import contextlib
-import grp
 import json
 import os
 import pwd
@@ -27,6 +26,7 @@ from typing import Any
 from gwc import hostuser
 from gwc.config import Config
 from gwc.errors import GwcError
+from gwc.hostuser import traversable_by as traversable_by  # (re-exported: gwc.db)
 
 PG_OS_USER = "postgres"  # who runs initdb/postgres when we are root: Debian's package creates it
 PID_MODE = 0o640
@@ -62,17 +62,6 @@ def private_dir(path: Path, group: int | None = None, mode: int | None = None) -
     if stat.S_IMODE(st.st_mode) != mode:
         os.chmod(path, mode)
     return path
-
-
-def traversable_by(path: Path, user: pwd.struct_passwd) -> bool:
-    """Whether `user` may search (x) directory `path`, by its mode bits."""
-    st = path.stat()
-    gids = {user.pw_gid} | {g.gr_gid for g in grp.getgrall() if user.pw_name in g.gr_mem}
-    if st.st_uid == user.pw_uid:
-        return bool(st.st_mode & stat.S_IXUSR)
-    if st.st_gid in gids:
-        return bool(st.st_mode & stat.S_IXGRP)
-    return bool(st.st_mode & stat.S_IXOTH)
 
 
 def secure_var(cfg: Config) -> None:

@@ -41,7 +41,8 @@ EXPORTS = [
     "verdict",
 ]
 
-# OperationEntity's calls and their signatures before the recut (main at a70ee41: the six-class chain).
+# OperationEntity's calls and their signatures before the recut (main at a70ee41: the six-class chain),
+# and the calls added since (marked).
 SIGNATURES = {
     "__enter__": "(self) -> 'OperationEntity'",
     "__exit__": "(self, exc_type: 'type[BaseException] | None', exc: 'BaseException | None', tb: 'Any') -> 'None'",
@@ -55,9 +56,12 @@ SIGNATURES = {
     "lot_completed": "(self, result: 'str | None' = None) -> 'None'",
     "merge": "(self, child: 'int') -> 'None'",
     "open": "(self) -> 'None'",
-    "operate": "(self, op_type: 'str', alternatives: 'Sequence[Sequence[str]] | None' = None, recipes: 'str | dict[str, str] | None' = None, priority: 'int | None' = None) -> 'Operation'",  # noqa: E501
+    # issue 35 added `sheet` (gwc/quality: a run's offsets), keyword and optional: a script of before runs unchanged
+    "operate": "(self, op_type: 'str', alternatives: 'Sequence[Sequence[str]] | None' = None, recipes: 'str | dict[str, str] | None' = None, priority: 'int | None' = None, sheet: 'Sheets | None' = None) -> 'Operation'",  # noqa: E501
     "propose_recipe": "(self, recipe_id: 'str', content: 'str') -> 'int'",
     "qualified_machines": "(self, op_type: 'str', up_only: 'bool' = True) -> 'list[str]'",
+    "raise_alarm": "(self, alarm_id: 'str', machine_id: 'str', text: 'str') -> 'int | None'",  # issue 35
+    "read": "(self, sql: 'str', params: 'Sequence[Any]' = ()) -> 'list[tuple[Any, ...]]'",  # issue 35
     "read_state": "(self) -> 'str | None'",
     "recipe_for": "(self, machine_id: 'str', op_type: 'str') -> 'str'",
     "report": "(self, action: 'str') -> 'None'",
