@@ -32,6 +32,8 @@ COMMAND_MODULES = [
     "gwc.hi.demo",  # section 7's demonstration
     "gwc.hi.bench",  # benchmarks
     "gwc.hi.record",  # the production record: report oee/html, trace, downtime
+    "gwc.hi.user",  # the cell's users and their roles
+    "gwc.hi.audit",  # the audit trail
 ]
 
 
@@ -40,7 +42,12 @@ class GwcGroup(click.Group):
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
-            return super().invoke(ctx)
+            if ctx.parent is not None:  # a subgroup: the top-level group has checked the whole line
+                return super().invoke(ctx)
+            from gwc.hi.door import gwc_door  # the role table and the audit trail (docs/users.md)
+
+            with gwc_door([*getattr(ctx, "_protected_args", []), *ctx.args]):
+                return super().invoke(ctx)
         except GwcError as e:
             click.echo(f"gwc: {e}", err=True)
             ctx.exit(e.exit_code)

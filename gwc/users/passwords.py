@@ -1,0 +1,26 @@
+"""People's passwords: argon2id, salted and slow (argon2-cffi's defaults: 64 MiB, 3 passes), so a
+copy of the users table gives no password away cheaply."""
+
+from __future__ import annotations
+
+from argon2 import PasswordHasher
+from argon2.exceptions import InvalidHashError, VerificationError
+
+_hasher = PasswordHasher()
+MIN_LENGTH = 8
+# A hash to check against when no such user exists, so a wrong name costs what a wrong password does.
+_DUMMY = _hasher.hash("gwc-no-such-user")
+
+
+def hash_password(password: str) -> str:
+    if len(password) < MIN_LENGTH:
+        raise ValueError(f"a password needs {MIN_LENGTH} characters or more")
+    return _hasher.hash(password)
+
+
+def verify(stored: str | None, given: str) -> bool:
+    """Whether `given` is the password `stored` is the hash of (None: no such user, same cost)."""
+    try:
+        return _hasher.verify(stored or _DUMMY, given) and stored is not None
+    except (VerificationError, InvalidHashError):
+        return False
