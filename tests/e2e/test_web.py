@@ -6,6 +6,7 @@ an audit row. One cell for the module (tests/e2e/webkit.py)."""
 from __future__ import annotations
 
 import contextlib
+import os
 import ssl
 import time
 from collections.abc import Iterator
@@ -14,7 +15,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.e2e.webkit import PASSWORD, audit_rows, client, logged_in, web_cell
+from tests.e2e.webkit import ARTIFACTS, PASSWORD, audit_rows, client, logged_in, web_cell
 from tests.harness import CellHarness, wait_for
 
 pytestmark = pytest.mark.e2e
@@ -39,7 +40,7 @@ def test_operator_logs_in_sees_every_machine_and_starts_one_over_https(web: tupl
     c, csrf = logged_in(base, "otto")
     with contextlib.closing(c):
         machines = c.get("/api/machines").json()
-        assert {m["machine_id"] for m in machines} == {"wc1", "wc2"}
+        assert {m["machine_id"] for m in machines} == {"wc1", "wc2", "cmm_wc"}
         assert all(m["status"] == "Shutdown" for m in machines)
         r = c.post("/api/machines/wc1/start", headers={"X-CSRF-Token": csrf})
         assert r.status_code == 200 and r.json()["ok"], r.text
@@ -133,3 +134,112 @@ def test_ten_wrong_passwords_lock_the_login_for_a_while(web: tuple[CellHarness, 
         assert time.monotonic() - locked_at >= 2.0
     logins = [r for r in audit_rows(cell, "emma") if r[3] == "login"]
     assert [r[5] for r in logins].count("refused") >= 11 and logins[-1][5] == "ok"
+
+
+# ---------------------------------------------------------------------------------------- in a browser
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+
+
+def lot_state(cell: CellHarness, entity: int) -> str:
+    return str(cell.query("select state from lot_status where entity_id = %s", entity)[0][0])
+
+
+@pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="Debian's chromium is not installed (bin/setup)")
+def test_operator_in_chromium_starts_a_machine_clears_an_alarm_and_enters_an_order(
+    web: tuple[CellHarness, str],
+) -> None:
+    """Headless Chromium (Debian's) driven by Playwright: the operator logs in, sees every machine,
+    starts one and sees it Idle without a reload within 2 s, starts the CMM and clears its homing
+    alarm, enters an order, imports its lot and exports it when done. Screenshots in ARTIFACTS."""
+    from playwright.sync_api import expect, sync_playwright
+
+    cell, base = web
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    shots = []
+
+    def shot(page: Any, name: str) -> None:
+        path = ARTIFACTS / f"{len(shots) + 1:02d}-{name}.png"
+        page.screenshot(path=str(path), full_page=True)
+        shots.append(path)
+
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        try:
+            context = browser.new_context(ignore_https_errors=True, viewport={"width": 1280, "height": 900})
+            page = context.new_page()
+            page.goto(base)
+            page.fill("#login-user", "otto")
+            page.fill("#login-password", PASSWORD["otto"])
+            page.click("#login button[type=submit]")
+            expect(page.locator("#user")).to_have_text("otto (operator)")
+            expect(page.locator("#login")).to_be_hidden()
+            expect(page.locator("#machine-wc1")).to_be_visible()  # Idle or not: the API test may have started it
+            for m in ("wc2", "cmm_wc"):
+                expect(page.locator(f"#machine-{m}")).to_have_attribute("data-status", "Shutdown")
+            expect(page.locator("#live")).to_have_text("live")
+            shot(page, "machines")
+
+            page.evaluate("window.__no_reload = 1")
+            clicked = time.monotonic()
+            page.locator("#machine-wc2 button", has_text="Start").click()
+            expect(page.locator("#machine-wc2")).to_have_attribute("data-status", "Idle", timeout=2000)
+            seen = time.monotonic() - clicked
+            assert page.evaluate("window.__no_reload") == 1, "the page was reloaded"
+            assert status(cell, "wc2") == "Idle"
+            shot(page, "wc2-idle")
+
+            page.locator("#machine-cmm_wc button", has_text="Start").click()  # it waits to be homed
+            page.click("#tabs button[data-tab=alarms]")
+            row = page.locator("#alarm-table tr", has_text="HOME_CMM")
+            expect(row).to_have_count(1, timeout=10000)
+            shot(page, "home-alarm")
+            row.locator("button", has_text="Clear").click()
+            expect(row).to_have_count(0, timeout=10000)
+            expect(page.locator("#machine-cmm_wc")).to_have_attribute("data-status", "Idle", timeout=10000)
+
+            page.click("#tabs button[data-tab=orders]")
+            page.select_option("#order-customer", "NJIT")
+            page.select_option("#order-product", "milled_pawn")
+            page.fill("#order-quantity", "1")
+            page.click("#order-form button[type=submit]")
+            expect(page.locator("#message")).to_contain_text("work order", timeout=30000)
+            (entity,) = [e for (e,) in cell.query("select entity_id from lot_status order by entity_id")]
+            page.click("#tabs button[data-tab=lots]")
+            lot_row = page.locator("#lot-table tr", has=page.locator(f"td:text-is('{entity}')"))
+            lot_row.locator("button", has_text="Import").click(timeout=30000)
+            shot(page, "imported")
+            lot_row.locator("button", has_text="Export").click(timeout=60000)
+            expect(lot_row).to_contain_text("exported", timeout=10000)
+            shot(page, "exported")
+            page.click("#tabs button[data-tab=orders]")
+            expect(page.locator("#order-table")).to_contain_text("DONE")
+            shot(page, "order-done")
+        finally:
+            browser.close()
+    assert lot_state(cell, entity) == "exported"
+    assert seen <= 2.0, f"wc2 showed Idle {seen:.2f} s after the click"
+    acts = [(r[3], r[4], r[5]) for r in audit_rows(cell, "otto")]
+    for act in (
+        ("machine.start", "wc2", "ok"),
+        ("machine.start", "cmm_wc", "ok"),
+        ("order.enter", "new order", "ok"),
+        ("lot.import", str(entity), "ok"),
+        ("lot.export", str(entity), "ok"),
+    ):
+        assert act in acts, act
+    assert any(a == "alarm.clear" and o == "ok" for a, _, o in acts)
+    cleared_by = cell.query("select cleared_by from alarms where alarm_id = 'HOME_CMM'")[0][0]
+    assert cleared_by == "web:otto"
+    for p in shots:
+        assert p.stat().st_size > 10_000, f"{p} looks blank"
+    print(f"wc2 Idle on the page {seen:.2f} s after the click; screenshots: {', '.join(p.name for p in shots)}")

@@ -16,9 +16,15 @@ from typing import Any
 import httpx
 from psycopg import sql
 
+from gwc import db
+from gwc.users import Role, store
+from gwc.users.passwords import hash_password
+from tests.e2e.lotkit import default_machines
 from tests.harness import SERVERS, CellHarness
 
-MACHINES = [{"id": "wc1", "kind": "dummy", "run_time": 0.3}, {"id": "wc2", "kind": "dummy", "run_time": 0.3}]
+MACHINES = default_machines(run_time=0.3, measure_time=0.3)  # wc1, wc2 (dummy mills), cmm_wc (CMM simulator)
+# Where the browser tests keep their screenshots: var/test-artifacts/web/ of the checkout (git-ignored).
+ARTIFACTS = Path(__file__).parents[2] / "var" / "test-artifacts" / "web"
 PASSWORD = {"ada": "admin-pass-1", "vera": "viewer-pass-1", "otto": "operator-pass-1", "emma": "engineer-pass-1"}
 ROLE = {"ada": "admin", "vera": "viewer", "otto": "operator", "emma": "engineer"}
 
@@ -60,10 +66,10 @@ def web_cell(xprocess: Any, pg_cluster: Any, **web: Any) -> Iterator[tuple[CellH
         sections={"web": {"listen": f"127.0.0.1:{port}", "lockout_s": 3.0, **web}},
     )
     try:
-        for user, password in PASSWORD.items():
-            unix = ["--unix", "root"] if user == "ada" else []
-            added = gwc_as(cell, None, "user", "add", user, "--role", ROLE[user], *unix, stdin=password + "\n")
-            assert added.returncode == 0, added.stderr
+        with db.connect(cell.cfg, role="hi") as conn:  # as `gwc user add` does (tests/unit/test_users.py runs it)
+            for user, password in PASSWORD.items():
+                unix = "root" if user == "ada" else user
+                store.add_user(conn, user, Role[ROLE[user]], hash_password(password), unix, "test")
         cell.start_servers()
         for m in MACHINES:
             cell.start_machine_processes(m["id"])
