@@ -272,6 +272,7 @@ def build_app(web: Web) -> Starlette:
             return _error(403, str(e))
         except (GwcError, ValueError) as e:
             return _error(400, str(e))
+        await write_audit(who, Action.AUDIT_READ, user or "", "ok", f"{len(rows)} rows")
         out = [{**r.__dict__, "at": r.at.isoformat() if r.at else None} for r in rows]
         return JSONResponse(out, headers={"Cache-Control": "no-store"})
 

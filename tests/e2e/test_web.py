@@ -5,17 +5,21 @@ an audit row. One cell for the module (tests/e2e/webkit.py)."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import os
 import ssl
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
 
-from tests.e2e.webkit import ARTIFACTS, PASSWORD, audit_rows, client, logged_in, web_cell
+from gwc.console.link import CellLink
+from gwc.log import open_log
+from tests.e2e.webkit import ARTIFACTS, PASSWORD, ROLE, audit_rows, client, gwc_as, logged_in, start_gateway, web_cell
 from tests.harness import CellHarness, wait_for
 
 pytestmark = pytest.mark.e2e
@@ -243,3 +247,127 @@ def test_operator_in_chromium_starts_a_machine_clears_an_alarm_and_enters_an_ord
     for p in shots:
         assert p.stat().st_size > 10_000, f"{p} looks blank"
     print(f"wc2 Idle on the page {seen:.2f} s after the click; screenshots: {', '.join(p.name for p in shots)}")
+
+
+# ---------------------------------------------------------------------------------------- door by door
+
+# One action at each boundary of the role table (docs/users.md), as each door spells it: alarm.clear
+# (operator and up), request.cancel (engineer and up), audit.read (admin). Each is asked of a number
+# nothing has (alarm 999, request 999), so an allowed act reaches its module and fails there ("failed"),
+# and a refused one never leaves the door ("refused").
+BOUNDARY = {"alarm.clear": "operator", "request.cancel": "engineer", "audit.read": "admin"}
+RANK = ["viewer", "operator", "engineer", "admin"]
+
+
+def may(user: str, action: str) -> bool:
+    return RANK.index(ROLE[user]) >= RANK.index(BOUNDARY[action])
+
+
+def opcua_calls(cell: CellHarness, certs: Path) -> dict[tuple[str, str], str]:
+    """ClearAlarm(999) and CancelRequest(999) by each cell user over a SignAndEncrypt channel: the
+    status name each call answered."""
+    from asyncua import Client, ua
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    endpoint = cell.cfg.raw["opcua"]["endpoint"]
+    out: dict[tuple[str, str], str] = {}
+
+    async def run() -> None:
+        cert, key = certs / "client-cert.der", certs / "client-key.pem"
+        await setup_self_signed_certificate(
+            key, cert, "urn:gwc:test:client", "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "t"}
+        )
+        for user in PASSWORD:
+            client = Client(endpoint, timeout=30)
+            client.application_uri = "urn:gwc:test:client"
+            await client.set_security(
+                SecurityPolicyBasic256Sha256, str(cert), str(key), mode=ua.MessageSecurityMode.SignAndEncrypt
+            )
+            client.set_user(user)
+            client.set_password(PASSWORD[user])
+            await client.connect()
+            try:
+                ns = await client.get_namespace_index("urn:gwc:cell")
+                cell_node = client.get_node(ua.NodeId("cell", ns))
+                for action, method in (("alarm.clear", "ClearAlarm"), ("request.cancel", "CancelRequest")):
+                    try:
+                        await cell_node.call_method(
+                            ua.NodeId(f"cell/{method}", ns), ua.Variant(999, ua.VariantType.Int64)
+                        )
+                        out[(user, action)] = "Good"
+                    except ua.UaStatusCodeError as e:
+                        out[(user, action)] = type(e).__name__
+            finally:
+                await client.disconnect()
+
+    asyncio.run(run())
+    return out
+
+
+def test_the_role_table_holds_door_by_door_each_refusal_said_and_audited(
+    web: tuple[CellHarness, str], tmp_path: Path, monkeypatch: Any
+) -> None:
+    cell, base = web
+    before = len(audit_rows(cell))
+    # the web: alarm.clear and audit.read (the web has no request.cancel)
+    for user in PASSWORD:
+        c, csrf = logged_in(base, user)
+        with contextlib.closing(c):
+            r = c.post("/api/alarms/999/clear", headers={"X-CSRF-Token": csrf})
+            if may(user, "alarm.clear"):
+                assert r.status_code == 409, (user, r.text)  # the CAS: no such alarm
+            else:
+                assert r.status_code == 403 and f"{user} (viewer) may not clear an alarm" in r.json()["error"]
+            r = c.get("/api/audit")
+            assert r.status_code == (200 if may(user, "audit.read") else 403), (user, r.text)
+    # `gwc`: each login through sudo (SUDO_USER), ada as root itself
+    for user in PASSWORD:
+        login = None if user == "ada" else user
+        for action, args in (
+            ("alarm.clear", ("alarm", "clear", "999")),
+            ("request.cancel", ("cancel", "999")),
+            ("audit.read", ("audit",)),
+        ):
+            done = gwc_as(cell, login, *args)
+            if may(user, action):
+                assert "may not" not in done.stderr, (user, action, done.stderr)
+            else:
+                assert done.returncode == 8 and f"{user} ({ROLE[user]}) may not" in done.stderr, (user, done.stderr)
+    # the console: its link, as `gwc console` acts (the person found from the login, as for gwc)
+    for user in PASSWORD:
+        monkeypatch.setenv("SUDO_USER", "root" if user == "ada" else user)
+        link = CellLink(cell.cfg, open_log("console", cell.cfg.log_dir, "note"))
+        link.open()
+        try:
+            for action, answer in (
+                ("alarm.clear", link.clear_alarm(999)),
+                ("request.cancel", link.cancel_request(999)),
+            ):
+                assert not answer.ok
+                refused = "may not" in answer.text
+                assert refused != may(user, action), (user, action, answer.text)
+        finally:
+            link.close()
+    monkeypatch.delenv("SUDO_USER")
+    # OPC UA: the cell users log in by name and password
+    start_gateway(cell)
+    calls = opcua_calls(cell, tmp_path)
+    for (user, action), status in calls.items():
+        assert (status != "BadUserAccessDenied") == may(user, action), (user, action, status)
+
+    rows = audit_rows(cell)[before:]
+    for door in ("web", "gwc", "console", "opcua"):
+        for user in PASSWORD:
+            for action in BOUNDARY:
+                if door in ("console", "opcua") and action == "audit.read":
+                    continue
+                mine = [r for r in rows if (r[0], r[2], r[3]) == (user, door, action)]
+                if door == "web" and action == "request.cancel":
+                    continue
+                assert mine, (door, user, action)
+                outcome = mine[-1][5]
+                assert (outcome == "refused") != may(user, action), (door, user, action, outcome)
+                if outcome == "refused":
+                    assert "may not" in mine[-1][6]

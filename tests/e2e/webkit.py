@@ -21,6 +21,7 @@ from gwc.users import Role, store
 from gwc.users.passwords import hash_password
 from tests.e2e.lotkit import default_machines
 from tests.harness import SERVERS, CellHarness
+from tests.leaks import unmarked
 
 MACHINES = default_machines(run_time=0.3, measure_time=0.3)  # wc1, wc2 (dummy mills), cmm_wc (CMM simulator)
 # Where the browser tests keep their screenshots: var/test-artifacts/web/ of the checkout (git-ignored).
@@ -48,8 +49,8 @@ def gwc_as(cell: CellHarness, login: str | None, *args: str, stdin: str = "") ->
 
 @contextlib.contextmanager
 def web_cell(xprocess: Any, pg_cluster: Any, **web: Any) -> Iterator[tuple[CellHarness, str]]:
-    """A private cell with its web module up and a user of each role (unix logins of the same names;
-    root is `ada`, the admin). Yields the cell and the web's base URL."""
+    """A private cell with its web module and OPC UA gateway up and a user of each role (unix logins of
+    the same names; root is `ada`, the admin). Yields the cell and the web's base URL."""
     name = f"gwc_t_{uuid.uuid4().hex[:12]}"
     with pg_cluster.admin() as conn:
         conn.execute(
@@ -62,8 +63,11 @@ def web_cell(xprocess: Any, pg_cluster: Any, **web: Any) -> Iterator[tuple[CellH
         var,
         pg_cluster.url(name),
         machines=MACHINES,
-        modules=(*SERVERS, "web"),
-        sections={"web": {"listen": f"127.0.0.1:{port}", "lockout_s": 3.0, **web}},
+        modules=(*SERVERS, "web", "opcua"),
+        sections={
+            "web": {"listen": f"127.0.0.1:{port}", "lockout_s": 3.0, **web},
+            "opcua": {"endpoint": f"opc.tcp://127.0.0.1:{free_port()}/gwc/", "anonymous": False, "refresh": 2.0},
+        },
     )
     try:
         with db.connect(cell.cfg, role="hi") as conn:  # as `gwc user add` does (tests/unit/test_users.py runs it)
@@ -73,13 +77,20 @@ def web_cell(xprocess: Any, pg_cluster: Any, **web: Any) -> Iterator[tuple[CellH
         cell.start_servers()
         for m in MACHINES:
             cell.start_machine_processes(m["id"])
-        cell.start("web")
+        cell.start("web")  # the OPC UA gateway is started by the test that needs it (start_gateway)
         yield cell, f"https://127.0.0.1:{port}"
     finally:
         cell.close()
         with pg_cluster.admin() as conn:
             conn.execute(sql.SQL("drop database if exists {} with (force)").format(sql.Identifier(name)))
         subprocess.run(["rm", "-rf", str(var)], check=False)
+
+
+def start_gateway(cell: CellHarness) -> None:
+    """The OPC UA gateway of the web cell, once: its address space takes seconds to build (49 s at load 50).
+    It is the module's cell's, stopped with it: started without the test's leak mark."""
+    with unmarked():
+        cell.start("opcua", timeout=120)
 
 
 def client(base: str) -> httpx.Client:
