@@ -19,6 +19,7 @@ BENCH_MODULES = [
     "gwc.bench.order",
     "gwc.bench.opcua",
     "gwc.console.cost",
+    "gwc.hi.webbench",  # what open browsers on the web HMI cost
 ]
 
 
