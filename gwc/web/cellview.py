@@ -16,8 +16,9 @@ import psycopg
 from gwc import db
 from gwc.client.alarms import alarm_rows
 from gwc.client.machines import machine_rows
-from gwc.client.orders import list_lots, list_orders
+from gwc.client.orders import LOTS_SQL, list_orders, script_alive
 from gwc.client.requests import request_tables
+from gwc.client.session import rows_of
 from gwc.config import Config
 from gwc.errors import DatabaseError, DatabaseUnavailable
 
@@ -71,9 +72,11 @@ def read_view(cfg: Config, log: logging.Logger, conn: psycopg.Connection[Any], t
         return _plain(machine_rows(conn, cfg, peers))
     if topic == "alarms":
         return _plain(alarm_rows(conn))
-    if topic == "lots":
-        rows = list_lots(cfg, log, conn=conn)
-        return _plain(rows[-LOTS_SHOWN:])
+    if topic == "lots":  # the dispatch list's newest LOTS_SHOWN entities (list_lots reads them all)
+        rows = rows_of(conn, LOTS_SQL + " ORDER BY s.entity_id DESC LIMIT %s", LOTS_SHOWN)
+        for r in rows:
+            r["script"] = script_alive(cfg, r["entity"], r.pop("script_pid"))
+        return _plain(rows[::-1])
     if topic == "orders":
         return _plain(list_orders(cfg, log, conn=conn))
     if topic == "requests":

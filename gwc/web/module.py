@@ -37,6 +37,9 @@ LISTENS: dict[str, tuple[str, ...]] = {
     Conv.LOT_MOVED: ("lots", "orders", "requests"),
 }
 STOP_GRACE = 2  # s the HTTPS server has to close its connections at shutdown
+# Broadcasts come in bursts (a lot's step is several): a read follows the first at once, the rest of a
+# burst waits until this long after it, and is read together. Pages then change at most this often.
+COALESCE_S = 0.5
 
 
 class WebModule(Module):
@@ -128,12 +131,15 @@ class WebModule(Module):
     async def _refresh_loop(self) -> None:
         """Each topic re-read when a broadcast touches it, and all every `refresh` seconds, while a page
         is open; what changed goes to the pages."""
-        last_full = 0.0
+        last_full = last_read = 0.0
         while True:
             try:
                 await asyncio.wait_for(self._wake.wait(), timeout=self.settings.refresh)
             except TimeoutError:
                 pass
+            since = time.monotonic() - last_read
+            if since < COALESCE_S:
+                await asyncio.sleep(COALESCE_S - since)
             self._wake.clear()
             if not self.live.streams:
                 self._dirty.clear()
@@ -142,6 +148,7 @@ class WebModule(Module):
                 self._dirty.update(TOPICS)
                 last_full = time.monotonic()
             what, self._dirty = self._dirty, set()
+            last_read = time.monotonic()
             self.live.publish("modules", self.modules())
             for topic in sorted(what):
                 try:

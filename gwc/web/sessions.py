@@ -12,7 +12,7 @@ import hmac
 import secrets
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from gwc.users import Person
 
@@ -22,8 +22,8 @@ class Session:
     token: str
     person: Person
     csrf: str
-    made: float = field(default_factory=time.monotonic)
-    used: float = field(default_factory=time.monotonic)
+    made: float = 0.0
+    used: float = 0.0
 
 
 class Sessions:
@@ -33,7 +33,8 @@ class Sessions:
         self._by_token: dict[str, Session] = {}
 
     def open(self, person: Person) -> Session:
-        s = Session(secrets.token_urlsafe(32), person, secrets.token_urlsafe(32))
+        now = time.monotonic()
+        s = Session(secrets.token_urlsafe(32), person, secrets.token_urlsafe(32), now, now)
         self._by_token[s.token] = s
         return s
 
