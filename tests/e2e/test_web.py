@@ -371,3 +371,20 @@ def test_the_role_table_holds_door_by_door_each_refusal_said_and_audited(
                 assert (outcome == "refused") != may(user, action), (door, user, action, outcome)
                 if outcome == "refused":
                     assert "may not" in mine[-1][6]
+
+
+@pytest.mark.soak
+@pytest.mark.timeout(600)
+@pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="Debian's chromium is not installed (bin/setup)")
+def test_bench_web_compares_the_cell_with_and_without_browsers_open(tmp_path: Path, database_url: str) -> None:
+    """`gwc bench web`: one pair of rounds on a real cell with the web module, two browsers in the second."""
+    from tests.e2e.test_bench_cell import bench
+
+    args = ("web", "--machines", "2", "--lots", "5", "--pairs", "1", "--browsers", "2")
+    result = bench(tmp_path, database_url, *args, timeout=580)
+    assert [r["browsers"] for r in result["rounds"]] == [0, 2]
+    without, with_browsers = result["median_without_browsers"], result["median_with_browsers"]
+    assert without["lots_per_s"] > 0 and with_browsers["lots_per_s"] > 0
+    assert without["browsers_cpu_ms_per_lot"] == 0 < with_browsers["browsers_cpu_ms_per_lot"]  # they were open
+    assert with_browsers["web_cpu_ms_per_lot"] > 0
+    assert result["check_held"] is True, result["check_breaches"]
