@@ -294,7 +294,7 @@ def build_app(web: Web) -> Starlette:
                         item = await asyncio.wait_for(q.get(), KEEPALIVE)
                     except TimeoutError:
                         item = ("", "")
-                    if item is None or web.sessions.get(s.token) is None:
+                    if item is None or not web.sessions.alive(s.token):
                         yield "event: logout\ndata: {}\n\n"
                         return
                     topic, text = item

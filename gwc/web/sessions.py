@@ -52,6 +52,13 @@ class Sessions:
         s.used = now
         return s
 
+    def alive(self, token: str) -> bool:
+        """Whether a session still lives, without counting this as its use (an open event stream
+        must not keep an unattended page's session alive for ever)."""
+        s = self._by_token.get(token)
+        now = time.monotonic()
+        return s is not None and now - s.used <= self.idle and now - s.made <= self.longest
+
     def close(self, token: str) -> None:
         self._by_token.pop(token, None)
 

@@ -37,8 +37,12 @@ def test_a_session_ends_when_idle_too_long_or_at_logout(monkeypatch: Any) -> Non
     assert sessions.get(s.token) is s and len(s.csrf) >= 40 and s.csrf != s.token
     assert Sessions.csrf_ok(s, s.csrf) and not Sessions.csrf_ok(s, "x") and not Sessions.csrf_ok(s, None)
     now[0] += 59
+    assert sessions.alive(s.token)  # looked at, not used (an event stream does this)
     assert sessions.get(s.token) is s  # used: idle again from now
-    now[0] += 61
+    now[0] += 30
+    assert sessions.alive(s.token)
+    now[0] += 31
+    assert not sessions.alive(s.token)
     assert sessions.get(s.token) is None
     t = sessions.open(Person("ann", Role.operator, "web"))
     for _ in range(10):
