@@ -74,7 +74,7 @@ class WebModule(Module):
 
     def modules(self) -> list[dict[str, Any]]:
         return [
-            {"module": name, "started": "SHUTDOWN" in p.interest or "ME_SHUT" in p.interest}
+            {"module": name, "started": Conv.SHUTDOWN in p.interest or Conv.ME_SHUT in p.interest}
             for name, p in sorted(self.bus.peers().items())
         ]
 
