@@ -26,7 +26,7 @@ from typing import Any
 from gwc import db
 from gwc.agent import control as agent_control
 from gwc.config import Config
-from gwc.errors import ConfigError, GwcError, ModuleError
+from gwc.errors import ConfigError, ModuleError
 from gwc.ipc import keys
 from gwc.ipc.bus import BlockingBus, Bus
 from gwc.ipc.catalogue import message
@@ -36,6 +36,7 @@ from gwc.log import log_file_name, open_out
 from gwc.me.cmm_sim import simulated
 from gwc.module import module_name
 from gwc.private import NotPrivate, not_the_cells, pid_info, secure_var, write_new
+from gwc.retry import Deadline
 
 GRACE = 5.0
 REFUSED = "refused"  # how stop_proc's answer begins when a pid file named what is not the cell's
@@ -190,8 +191,8 @@ def _out_tail(cfg: Config, name: str, lines: int = 5) -> str:
 
 def wait_on_bus(cfg: Config, bus: BlockingBus, name: str, timeout: float = UP_TIMEOUT) -> None:
     """Wait until module `name` says hello on the bus, failing early if its process died."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    deadline = Deadline(timeout)
+    while not deadline.expired:
         if name in bus.peers():
             return
         st = read_pid(cfg, name)
@@ -277,11 +278,11 @@ def start_agent(cfg: Config, say: Callable[[str], None], timeout: float = UP_TIM
         return
     pid = spawn(cfg, AGENT)
     say(f"agent: spawned (pid {pid})")
-    deadline = time.monotonic() + timeout
+    deadline = Deadline(timeout)
     while not agent_control.running(cfg):
         if not read_pid(cfg, AGENT.name).alive:
             raise ModuleError(f"the agent died at start: {_out_tail(cfg, AGENT.name) or 'see ' + str(cfg.log_dir)}")
-        if time.monotonic() > deadline:
+        if deadline.expired:
             raise ModuleError(f"the agent did not answer within {timeout:.0f}s (see {cfg.log_dir})")
         time.sleep(0.05)
 
@@ -340,14 +341,14 @@ def stop_proc(cfg: Config, name: str, grace: float = GRACE) -> str:
     if why is not None:
         path.unlink(missing_ok=True)
         return f"{REFUSED}: not signalled: {why} (pid file removed)"
-    deadline = time.monotonic() + grace
-    while time.monotonic() < deadline and read_pid(cfg, name).alive:
+    deadline = Deadline(grace)
+    while not deadline.expired and read_pid(cfg, name).alive:
         time.sleep(0.05)
     if read_pid(cfg, name).alive:
         how = "killed"
         signal_cells(cfg, st.pid, signal.SIGKILL)
-        deadline = time.monotonic() + grace
-        while time.monotonic() < deadline and read_pid(cfg, name).alive:
+        deadline = Deadline(grace)
+        while not deadline.expired and read_pid(cfg, name).alive:
             time.sleep(0.05)
     path.unlink(missing_ok=True)
     return how
@@ -362,8 +363,8 @@ def _wait_gone(cfg: Config, st: ProcStatus, grace: float = GRACE) -> str:
     def alive() -> bool:
         return ticks is not None and _proc_start_ticks(pid) == ticks and not _zombie(pid)
 
-    deadline = time.monotonic() + grace
-    while alive() and time.monotonic() < deadline:
+    deadline = Deadline(grace)
+    while alive() and not deadline.expired:
         time.sleep(0.05)
     if not alive():
         return "stopped"
@@ -435,8 +436,3 @@ def cell_status(cfg: Config) -> tuple[dict[str, Any] | None, list[dict[str, Any]
         return None, [{**r, "alive": "yes" if r["state"] == "RUNNING" else "no"} for r in rows]
     rows = [{**r, "alive": "yes" if r["state"] in ("RUNNING", "STARTING") else "no"} for r in answer["modules"]]
     return answer["agent"], rows
-
-
-def check_alive(cfg: Config, name: str) -> None:
-    if not read_pid(cfg, name).alive:
-        raise GwcError(f"{name} is not running (start it with `gwc start`)")

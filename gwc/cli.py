@@ -15,38 +15,61 @@ import click
 
 from gwc.errors import GwcError
 
-# Each module exposes `commands`, a list of click commands added to the top-level group.
-COMMAND_MODULES = [
-    "gwc.hi.cell",  # db, start, stop, status, run (STRT)
-    "gwc.hi.machine",  # machine start/stop/status (MSTT)
-    "gwc.hi.requests",  # machine requests and cancel (MREQ, Listing 8)
-    "gwc.hi.orders",  # work orders (WOEN, WOSU), dispatch list, import/export (DISP, IMPL), lots
-    "gwc.hi.lots",  # lots divide/merge/destroy (1.4.4), around the dispatch list: after gwc.hi.orders
-    "gwc.hi.alarm",  # alarms and their clearing, the status line
-    "gwc.hi.recipe",  # the recipe library (ERS)
-    "gwc.hi.monitor",  # the conversation monitor
-    "gwc.console.command",  # the operator's console (all the screens above, live)
-    "gwc.hi.key",  # the cell's keys
-    "gwc.hi.check",  # cell invariants
-    "gwc.hi.soak",  # the chaos soak
-    "gwc.hi.demo",  # section 7's demonstration
-    "gwc.hi.bench",  # benchmarks
-    "gwc.hi.record",  # the production record: report oee/html, trace, downtime
-    "gwc.hi.user",  # the cell's users and their roles
-    "gwc.hi.audit",  # the audit trail
-]
+# Each command's module, which exposes `commands`, a list of click commands. A command line loads
+# only the module of its own command: a new `gwc` process imports 0.2 s (the benches, OPC UA and the
+# console) to 0.9 s of CPU less, seconds of a test suite that runs `gwc` hundreds of times, and of an
+# agent's restart on a loaded machine (docs/reliability.md, *How long detection takes*). `gwc --help`
+# loads them all. tests/unit/test_cli.py checks this table against the modules.
+COMMANDS = {
+    **dict.fromkeys(["db", "start", "stop", "status", "restart", "agent", "run"], "gwc.hi.cell"),  # STRT
+    "machine": "gwc.hi.machine",  # MSTT
+    **dict.fromkeys(["requests", "cancel", "unreserve"], "gwc.hi.requests"),  # MREQ, Listing 8
+    # work orders (WOEN, WOSU), import/export (IMPL) and the masters
+    **dict.fromkeys(["order", "import", "export", "release", "customer", "product", "script"], "gwc.hi.orders"),
+    "lots": "gwc.hi.lots",  # the dispatch list (DISP) and lots divide/merge/destroy (1.4.4)
+    **dict.fromkeys(["alarm", "status-line"], "gwc.hi.alarm"),  # alarms, their clearing, the status line
+    "recipe": "gwc.hi.recipe",  # the recipe library (ERS)
+    "monitor": "gwc.hi.monitor",  # the conversation monitor
+    "console": "gwc.console.command",  # the operator's console (all the screens above, live)
+    "key": "gwc.hi.key",  # the cell's keys
+    "check": "gwc.hi.check",  # cell invariants
+    "soak": "gwc.hi.soak",  # the chaos soak
+    "demo": "gwc.hi.demo",  # section 7's demonstration
+    "bench": "gwc.hi.bench",  # benchmarks
+    **dict.fromkeys(["report", "trace", "downtime"], "gwc.hi.record"),  # the production record
+    "user": "gwc.hi.user",  # the cell's users and their roles
+    "audit": "gwc.hi.audit",  # the audit trail
+}
+
+# The commands of which some act on the cell: only their lines load the door (gwc/hi/door.py,
+# COMMAND_ACTIONS: tests/unit/test_users.py checks the two agree).
+ACTING = frozenset(
+    {"machine", "alarm", "order", "customer", "import", "export", "release", "lots", "cancel", "unreserve"}
+    | {"recipe", "script", "downtime"}
+)
 
 
 class GwcGroup(click.Group):
-    """A group that reports GwcError as one line and its exit code."""
+    """A group that reports GwcError as one line and its exit code, and loads a command's module only
+    when the command is asked for (click's lazy group)."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        module = COMMANDS.get(cmd_name)
+        if module is None:
+            return None
+        return {c.name: c for c in importlib.import_module(module).commands}.get(cmd_name)
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
-            if ctx.parent is not None:  # a subgroup: the top-level group has checked the whole line
-                return super().invoke(ctx)
+            words = [*getattr(ctx, "_protected_args", []), *ctx.args]
+            if ctx.parent is not None or not words or words[0] not in ACTING:
+                return super().invoke(ctx)  # nothing the role table names: no import of the door
             from gwc.hi.door import gwc_door  # the role table and the audit trail (docs/users.md)
 
-            with gwc_door([*getattr(ctx, "_protected_args", []), *ctx.args]):
+            with gwc_door(words):
                 return super().invoke(ctx)
         except GwcError as e:
             click.echo(f"gwc: {e}", err=True)
@@ -67,23 +90,6 @@ def cli(host: str | None) -> None:
     """
     if host:  # through the environment, so the modules `gwc start` spawns know it too
         os.environ["GWC_HOST"] = host
-
-
-# The processes the agent spawns at every (re)start load only their own commands: the console, the
-# benches and OPC UA cost a new process 0.55 s of CPU more to import, seconds of a restart on a loaded
-# machine (docs/reliability.md, *How long detection takes*).
-PROCESS_COMMANDS = {"run": "gwc.hi.cell", "agent": "gwc.hi.cell"}
-
-
-def command_modules(argv: list[str]) -> list[str]:
-    """The command modules to load for this command line: all of them, but for `gwc run` and `gwc agent`."""
-    fast = PROCESS_COMMANDS.get(argv[1]) if len(argv) > 1 else None
-    return [fast] if fast else COMMAND_MODULES
-
-
-for _name in command_modules(sys.argv):
-    for _cmd in importlib.import_module(_name).commands:
-        cli.add_command(_cmd)
 
 
 def main() -> None:

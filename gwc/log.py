@@ -56,10 +56,6 @@ def conversation(conv_id: str, cls: str = "") -> Iterator[None]:
         _conversation.reset(token)
 
 
-def current_conversation() -> str:
-    return _conversation.get()
-
-
 # Every control character (C0, DEL, C1), \n and \r among them, as a visible escape: a field that
 # came from outside (a conversation id, a sender's name, a note) can neither start a forged log line
 # nor send a terminal its control sequences (docs/security.md).

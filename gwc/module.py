@@ -27,7 +27,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, TypeVar
 
 import psycopg
@@ -213,6 +213,12 @@ class Module:
 
     def idle_interest(self) -> set[str]:
         return {self.start_class, *self.always}
+
+    def spawn(self, coro: Coroutine[Any, Any, object]) -> None:
+        """Run work in the background, owned by the module (cancelled when it stops); its result is dropped."""
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     def busy_interest(self) -> set[str]:
         return {self.start_class, self.stop_class, *self.always, *self.handlers()}

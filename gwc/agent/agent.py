@@ -51,9 +51,9 @@ from gwc.lot.admission import LotQueue
 from gwc.lot.run import Forked, fork_lot_script
 from gwc.module import ask, module_name
 from gwc.private import open_lock, secure_var
+from gwc.retry import Deadline
 from gwc.servers.common import Server
 
-S = ProcessState
 OFF_BUS = ("me", "cmmsim")  # proven ready by staying alive; their WC proves the rest
 BLOCKED_SAY_S = 30.0  # s: how often the log says queued lot scripts wait for a place
 START_BOOST = 5  # a process starting is scheduled ahead of the cell (niceness this much lower) until ready
@@ -222,7 +222,7 @@ class Agent(Server):
             pid = st.pid
             ours = child.attach(pid, None, self._exited, still_ours=functools.partial(_names, self.cfg, child, pid))
             if ours:
-                child.change_state(S.STARTING, "adopted: left running by an earlier agent")
+                child.change_state(ProcessState.STARTING, "adopted: left running by an earlier agent")
                 child.ready = asyncio.get_running_loop().create_task(self._probe(child, None))
 
     async def _start_all_logged(self) -> None:
@@ -258,7 +258,7 @@ class Agent(Server):
                 os.close(ready_w)
         child.attach(popen.pid, popen, self._exited)
         self._boost(popen.pid, START_BOOST)  # until it is ready: the 3 s a restart has are mostly its CPU
-        child.change_state(S.STARTING, why)
+        child.change_state(ProcessState.STARTING, why)
         probe = self._probe(child, old.inc if old else None, ready_r)
         child.ready = asyncio.get_running_loop().create_task(probe)
         if ready_r is not None:  # closed however the probe ends, even cancelled before its first step
@@ -290,11 +290,11 @@ class Agent(Server):
         except GwcError as e:
             why = str(e)
         else:
-            if child.pid == pid and child.state == S.STARTING:
+            if child.pid == pid and child.state == ProcessState.STARTING:
                 self._boost(pid, 0)
-                child.change_state(S.RUNNING, how)
+                child.change_state(ProcessState.RUNNING, how)
             return
-        if child.pid == pid and child.state == S.STARTING:
+        if child.pid == pid and child.state == ProcessState.STARTING:
             self.log.error("%s (pid %s): %s: killing it", child.name, pid, why)
             child.last_exit = why
             child.signal_group(signal.SIGKILL)
@@ -302,17 +302,21 @@ class Agent(Server):
     async def bring_up(self, child: Child, say: Callable[[str], None]) -> None:
         """Start a module that is not running (an operator's start: FATAL and BACKOFF try again at once)
         and wait until it is RUNNING or FATAL."""
-        if child.state == S.STOPPING:
-            await self._wait(child, (S.STOPPED,), self.policy.grace * 3)
-        if child.state in (S.STOPPED, S.FATAL, S.BACKOFF):
+        if child.state == ProcessState.STOPPING:
+            await self._wait(child, (ProcessState.STOPPED,), self.policy.grace * 3)
+        if child.state in (ProcessState.STOPPED, ProcessState.FATAL, ProcessState.BACKOFF):
             child.fails = 0
             self._spawn(child, "started")
             say(f"{child.name}: spawned (pid {child.pid})")
-        elif child.state == S.RUNNING:
+        elif child.state == ProcessState.RUNNING:
             say(f"{child.name}: already running (pid {child.pid})")
             return
-        await self._wait(child, (S.RUNNING, S.FATAL), self.policy.start_timeout * (self.policy.start_retries + 1))
-        if child.state == S.FATAL:
+        await self._wait(
+            child,
+            (ProcessState.RUNNING, ProcessState.FATAL),
+            self.policy.start_timeout * (self.policy.start_retries + 1),
+        )
+        if child.state == ProcessState.FATAL:
             raise ModuleError(f"{child.name} is FATAL: {child.last_exit} (see {self.cfg.log_dir})")
         say(f"{child.name}: {child.state} (pid {child.pid})")
 
@@ -334,7 +338,9 @@ class Agent(Server):
 
     def _lots_running(self) -> int:
         """Lot scripts holding a place: running, starting, or waiting to be restarted (BACKOFF)."""
-        return sum(1 for c in self.children.values() if c.proc.kind == "lot" and c.state in (*LIVE, S.BACKOFF))
+        return sum(
+            1 for c in self.children.values() if c.proc.kind == "lot" and c.state in (*LIVE, ProcessState.BACKOFF)
+        )
 
     def _admit(self) -> None:
         """Start queued lot scripts, oldest first, while fewer than the budget's run. A script that cannot be
@@ -396,20 +402,22 @@ class Agent(Server):
             if named := json.loads(pid_file(self.cfg, child.name).read_text())["pid"] == pid:
                 pid_file(self.cfg, child.name).unlink()
         lot = child.proc.kind == "lot"
-        if child.state == S.STOPPING or (lot and not _killed(child.last_code, named)):
+        if child.state == ProcessState.STOPPING or (lot and not _killed(child.last_code, named)):
             if isinstance(process, Forked) and process.cpu_s is not None:
                 how += f", {process.cpu_s * 1000:.0f} ms of CPU"
-            child.change_state(S.STOPPED, how if child.state == S.STOPPING else f"{how}: its work is done")
+            child.change_state(
+                ProcessState.STOPPED, how if child.state == ProcessState.STOPPING else f"{how}: its work is done"
+            )
             if lot:
                 self.children.pop(child.name, None)
                 self._admit()  # its place goes to the next queued script
             return
-        if child.state == S.RUNNING and time.monotonic() - child.running_at >= self.policy.start_secs:
+        if child.state == ProcessState.RUNNING and time.monotonic() - child.running_at >= self.policy.start_secs:
             child.fails = 0
         child.fails += 1
         delay: float | None = None
         if child.fails >= self.policy.start_retries:
-            child.change_state(S.FATAL, f"{how}; {child.fails} failed starts in a row")
+            child.change_state(ProcessState.FATAL, f"{how}; {child.fails} failed starts in a row")
             text = f"{child.name} failed {child.fails} times in a row ({how}): left down"
             self.spawn(self.raise_alarm("MODULE_FATAL", text, child.proc.machine))
             if lot:
@@ -417,7 +425,7 @@ class Agent(Server):
         else:
             pause = self.policy.backoff * 2 ** (child.fails - 2)
             delay = 0.0 if child.fails == 1 else min(pause, self.policy.backoff_max)
-            child.change_state(S.BACKOFF, f"{how}; restart in {delay:g}s")
+            child.change_state(ProcessState.BACKOFF, f"{how}; restart in {delay:g}s")
         # The announcement's task is scheduled before the restart's timer: it goes out first.
         self.spawn(self._announce(child, pid, how, delay))
         if delay is not None:
@@ -425,7 +433,7 @@ class Agent(Server):
 
     def _restart(self, child: Child) -> None:
         child.retry = None
-        if child.state != S.BACKOFF or self._stopping:
+        if child.state != ProcessState.BACKOFF or self._stopping:
             return
         child.restarts += 1
         try:
@@ -433,7 +441,7 @@ class Agent(Server):
         except OSError as e:  # cannot even fork/exec: counts as a failed start
             self.log.error("%s: could not spawn: %s", child.name, e)
             child.fails += 1
-            child.change_state(S.FATAL, f"spawn failed: {e}")
+            child.change_state(ProcessState.FATAL, f"spawn failed: {e}")
 
     async def _announce(self, child: Child, pid: int | None, how: str, delay: float | None) -> None:
         try:
@@ -460,20 +468,20 @@ class Agent(Server):
         if child.retry is not None:
             child.retry.cancel()
             child.retry = None
-        if child.state in (S.BACKOFF, S.FATAL):
-            child.change_state(S.STOPPED, "stopped")
-        if child.state == S.STOPPED:
+        if child.state in (ProcessState.BACKOFF, ProcessState.FATAL):
+            child.change_state(ProcessState.STOPPED, "stopped")
+        if child.state == ProcessState.STOPPED:
             return
-        if child.state != S.STOPPING:
-            child.change_state(S.STOPPING, "stop")
+        if child.state != ProcessState.STOPPING:
+            child.change_state(ProcessState.STOPPING, "stop")
             if child.ready is not None:
                 child.ready.cancel()
             child.signal_group(signal.SIGTERM)
         how = "stopped"
-        if not await self._wait(child, (S.STOPPED,), self.policy.grace):
+        if not await self._wait(child, (ProcessState.STOPPED,), self.policy.grace):
             how = "killed"
             child.signal_group(signal.SIGKILL)
-            await self._wait(child, (S.STOPPED,), self.policy.grace)
+            await self._wait(child, (ProcessState.STOPPED,), self.policy.grace)
         say(f"{child.name}: {how}")
 
     async def stop_all(self, exit_after: bool, say: Callable[[str], None] | None = None) -> None:
@@ -492,10 +500,10 @@ class Agent(Server):
         await asyncio.gather(*(self.stop_child(c, say) for c in lots))
 
     async def _wait(self, child: Child, states: Iterable[ProcessState], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
+        deadline = Deadline(timeout)
         wanted = tuple(states)
         while child.state not in wanted:
-            left = deadline - time.monotonic()
+            left = deadline.left()
             if left <= 0:
                 return False
             child.changed.clear()

@@ -25,16 +25,21 @@ class ProcessState(enum.Enum):
         return self.value
 
 
-S = ProcessState
 MOVES: dict[ProcessState, frozenset[ProcessState]] = {
-    S.STOPPED: frozenset({S.STARTING}),
-    S.STARTING: frozenset({S.RUNNING, S.BACKOFF, S.STOPPING, S.FATAL, S.STOPPED}),
-    S.RUNNING: frozenset({S.STARTING, S.BACKOFF, S.STOPPING, S.FATAL, S.STOPPED}),
-    S.BACKOFF: frozenset({S.STARTING, S.STOPPED, S.FATAL}),
-    S.STOPPING: frozenset({S.STOPPED}),
-    S.FATAL: frozenset({S.STARTING, S.STOPPED}),
+    ProcessState.STOPPED: frozenset({ProcessState.STARTING}),
+    ProcessState.STARTING: frozenset(
+        {ProcessState.RUNNING, ProcessState.BACKOFF, ProcessState.STOPPING, ProcessState.FATAL, ProcessState.STOPPED}
+    ),
+    ProcessState.RUNNING: frozenset(
+        {ProcessState.STARTING, ProcessState.BACKOFF, ProcessState.STOPPING, ProcessState.FATAL, ProcessState.STOPPED}
+    ),
+    ProcessState.BACKOFF: frozenset({ProcessState.STARTING, ProcessState.STOPPED, ProcessState.FATAL}),
+    ProcessState.STOPPING: frozenset({ProcessState.STOPPED}),
+    ProcessState.FATAL: frozenset({ProcessState.STARTING, ProcessState.STOPPED}),
 }
-LIVE = frozenset({S.STARTING, S.RUNNING, S.STOPPING})  # a process exists in these states
+LIVE = frozenset(
+    {ProcessState.STARTING, ProcessState.RUNNING, ProcessState.STOPPING}
+)  # a process exists in these states
 
 
 class BadMove(RuntimeError):

@@ -47,6 +47,7 @@ from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.names import Conv, Msg
 from gwc.ipc.transport import open_socket
+from gwc.retry import Deadline
 
 SERVER = "bench.srv"
 MODES = ("bare", "asyncio", "bus")  # the floor, the floor plus one asyncio loop a side, the bus
@@ -189,14 +190,14 @@ class _BareClient:
                 return int.from_bytes(data[5:13], "big")
 
     async def ready(self) -> None:
-        deadline = time.monotonic() + 20
+        deadline = Deadline(20)
         while True:
             try:
                 self._ping(0)
                 self._pong()
                 return
             except TimeoutError:
-                if time.monotonic() > deadline:
+                if deadline.expired:
                     raise GwcError("bare bench server did not answer within 20s") from None
 
     async def ping(self, i: int) -> None:
@@ -246,13 +247,13 @@ class _AsyncioClient:
     async def ready(self) -> None:
         self.sock = open_socket(self.cfg)
         self.endpoint = await _endpoint(self.sock, self._on_datagram)
-        deadline = time.monotonic() + 20
+        deadline = Deadline(20)
         while True:
             try:
                 await self.ping(0, 0.5)
                 return
             except TimeoutError:
-                if time.monotonic() > deadline:
+                if deadline.expired:
                     raise GwcError("asyncio bench server did not answer within 20s") from None
 
     async def ping(self, i: int, timeout: float = 2.0) -> None:
@@ -285,9 +286,9 @@ class _BusClient:
 
     async def ready(self) -> None:
         await self.bus.sign_on(settle=0)
-        deadline = time.monotonic() + 20
+        deadline = Deadline(20)
         while SERVER not in self.bus.peers():
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise GwcError("bench server did not appear on the bus within 20s")
             await asyncio.sleep(0.01)
 

@@ -39,6 +39,7 @@ from gwc.ipc.bus import BlockingBus
 from gwc.ipc.names import Conv
 from gwc.log import log_file_name
 from gwc.module import module_name
+from gwc.retry import Deadline
 
 # Ten variables of each machine, the status first: what a dashboard of the cell would watch.
 WATCHED = (
@@ -68,11 +69,11 @@ def _cpu_seconds(pid: int) -> float:
 
 
 def _wait(predicate: Any, timeout: float, what: str, proc: subprocess.Popen[bytes]) -> Any:
-    deadline = time.monotonic() + timeout
+    deadline = Deadline(timeout)
     while not (value := predicate()):
         if proc.poll() is not None:
             raise GwcError(f"gwc bench cell ended (exit {proc.returncode}) before {what}")
-        if time.monotonic() > deadline:
+        if deadline.expired:
             raise GwcError(f"timed out after {timeout:.0f}s waiting for {what}")
         time.sleep(0.2)
     return value
@@ -128,13 +129,13 @@ def latencies(
 
 async def _client(endpoint: str, machines: list[str], items: int, interval: float, done: Any) -> Notified:
     client = Client(endpoint, timeout=30, watchdog_intervall=5.0)
-    deadline = time.monotonic() + UP
+    deadline = Deadline(UP)
     while True:
         try:
             await client.connect()
             break
         except (OSError, TimeoutError, ua.UaError):
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise GwcError(f"the gateway did not listen at {endpoint} within {UP:.0f}s") from None
             await asyncio.sleep(0.5)
     try:

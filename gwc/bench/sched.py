@@ -45,6 +45,7 @@ from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.log import open_log
+from gwc.retry import Deadline
 
 OP = "dummy_op"
 T = 60.0
@@ -214,9 +215,9 @@ async def _run(
     bench = Bench(bus, machines, random.Random(5))
     tasks: list[asyncio.Task[None]] = []
     try:
-        deadline = time.monotonic() + T
+        deadline = Deadline(T)
         while Conv.SHUTDOWN not in getattr(bus.peers().get("msched"), "interest", ()):
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise GwcError("bench: msched did not start (see the bench's var/log)")
             await asyncio.sleep(0.05)
         # Holders take every machine.
@@ -234,9 +235,9 @@ async def _run(
             task = asyncio.create_task(bench.life(entity, alts, bench.rng.randint(1, 40)))
             task.add_done_callback(bench.check)
             tasks.append(task)
-        deadline = time.monotonic() + 600
+        deadline = Deadline(600)
         while bench.acked < queued + n_machines:
-            if time.monotonic() > deadline or bench.errors:
+            if deadline.expired or bench.errors:
                 raise GwcError(
                     f"bench: only {bench.acked - n_machines} of {queued} requests were queued "
                     f"({bench.errors[0] if bench.errors else 'too slow'})"

@@ -18,6 +18,7 @@ from gwc.errors import GwcError
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.catalogue import Message
 from gwc.log import open_log
+from gwc.retry import Deadline
 
 ON_BUS_WAIT = 3.0  # how long to wait to see a server on the bus before saying it is not running
 ANSWER = 10.0  # a server's answer to one question
@@ -66,9 +67,9 @@ def rows_of(conn: psycopg.Connection[Any], sql: str, *params: Any) -> list[dict[
 
 def on_bus(bus: BlockingBus, name: str, timeout: float = ON_BUS_WAIT) -> bool:
     """Whether module `name` is (or, within `timeout`, comes) on the bus."""
-    deadline = time.monotonic() + timeout
+    deadline = Deadline(timeout)
     while name not in bus.peers():
-        if time.monotonic() > deadline:
+        if deadline.expired:
             return False
         time.sleep(0.05)
     return True

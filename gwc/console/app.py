@@ -43,6 +43,7 @@ from gwc.console.views import (
     later,
 )
 from gwc.errors import GwcError
+from gwc.retry import Deadline
 
 TICK = 0.1  # how often the console takes what it heard on the bus
 PEERS_EVERY = 0.5  # how often the bus's membership is looked at (in memory, no traffic)
@@ -348,9 +349,9 @@ def screenshot_every_view(folder: Path) -> Callable[[Pilot[object]], Coroutine[A
         for i, (name, _) in enumerate(app.VIEWS, 1):
             await pilot.press(str(i))
             view = app.views()[name]
-            deadline = time.monotonic() + SCREENSHOT_WAIT
+            deadline = Deadline(SCREENSHOT_WAIT)
             await pilot.pause(RELOAD_EVERY)
-            while getattr(view, "_loading", False) and time.monotonic() < deadline:
+            while getattr(view, "_loading", False) and not deadline.expired:
                 await pilot.pause(TICK)
             await pilot.pause(TICK)
             app.save_screenshot(f"console-{name}.svg", path=str(folder))

@@ -33,6 +33,7 @@ from gwc.ipc.auth import Guard
 from gwc.ipc.conversation import initiator
 from gwc.ipc.transport import open_socket
 from gwc.log import escape
+from gwc.retry import Deadline
 
 SEEN_MAX = 100_000
 
@@ -252,7 +253,7 @@ def monitor(
     if unknown:
         raise GwcError(f"unknown conversation class(es): {', '.join(sorted(unknown))}")
     cfg, _ = context()
-    deadline = time.monotonic() + duration if duration is not None else None
+    deadline = Deadline(duration)  # None: never
     shown = 0
     machine_convs: set[str] = set()
 
@@ -281,7 +282,7 @@ def monitor(
             shown += 1
 
     def stop() -> bool:
-        return (count is not None and shown >= count) or (deadline is not None and time.monotonic() > deadline)
+        return (count is not None and shown >= count) or deadline.expired
 
     def ready() -> None:
         click.echo(f"monitoring bus {cfg.bus.name} ({cfg.bus.group}:{cfg.bus.port}); Ctrl-C stops", err=True)

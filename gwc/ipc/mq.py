@@ -42,7 +42,11 @@ RECIPE_ID_SIZE = 32
 ACK_CODE_SIZE = 12
 ALARM_TEXT_SIZE = 80
 TRACE = 5  # gwc.log's Trace level: every record sent and received
-MAX_MESSAGES = 10  # Linux's default per-queue limit (/proc/sys/fs/mqueue/msg_max) for ordinary users
+# Records a queue holds. The WC asks one request at a time and the ME keeps what does not fit in its
+# outbox, so a few suffice. The kernel charges each queue's whole capacity (about 2.6 kB at 5, 5.1 kB
+# at 10) against the user's RLIMIT_MSGQUEUE (819,200 bytes by default): at 10 one user's cells stopped
+# at about 150 queues (75 machines); at 5 the host's queues_max (256) binds first, 128 machines.
+MAX_MESSAGES = 5
 
 # Big-endian, no padding: magic, version, message_id, seq, ack_code, recipe_id, file_name, alarm_text.
 _BODY = struct.Struct(f"!4sHHI{ACK_CODE_SIZE}s{RECIPE_ID_SIZE}s{FILE_NAME_SIZE}s{ALARM_TEXT_SIZE}s")

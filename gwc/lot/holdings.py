@@ -11,6 +11,7 @@ lets it divide itself and merge its own children, the Machine Server books scrap
 
 from __future__ import annotations
 
+import secrets
 import time
 from collections.abc import Sequence
 
@@ -20,18 +21,26 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv, Msg
 from gwc.lot.errors import LotError, LotTimeout, StepRefused
-from gwc.lot.runs import EntityRuns
+from gwc.lot.runs import MachineRuns
+from gwc.lot.spawn import spawn_lot_scripts  # the HI's way: one path (and queue) for every lot script
+from gwc.lot.state import EntityState
+from gwc.lot.talk import BusLink
 from gwc.module import ask
+from gwc.retry import Deadline
 
 # A child entity is done when it is in one of these: it no longer works in the cell.
 CHILD_DONE = frozenset({LotState.COMPLETED, LotState.WAITING_EXPORT, LotState.EXPORTED, LotState.FAILED})
 CHILD_POLL = 0.5  # s between reads of the children's states while waiting for them
 
 
-class EntityHoldings(EntityRuns):
-    """Recipes to, from and for the entity's machines; the entity's children."""
+class Holdings:
+    """Recipes to, from and for the entity's machines; its scrap; the entity's children."""
 
-    _children_asked = 0  # start_child calls in this process: the n-th asks with request id ...child.n
+    def __init__(self, facts: EntityState, link: BusLink, runs: MachineRuns) -> None:
+        self.facts = facts
+        self.link = link
+        self.runs = runs
+        self._children_asked = 0  # start_child calls in this process: the n-th asks with request id ...child.n
 
     # ----------------------------------------------------------------- recipes
 
@@ -40,40 +49,35 @@ class EntityHoldings(EntityRuns):
         version from the ERS and gives it to the machine. The machine must be reserved to this entity
         (StepRefused Not_Auth otherwise) and Idle."""
         self._wc_step(Conv.DNLD_ME, message(Msg.DOWNLOAD_ME, machine_id=machine_id, recipe_id=recipe_id))
-        self.log.info("recipe %s downloaded to %s", recipe_id, machine_id)
+        self.facts.log.info("recipe %s downloaded to %s", recipe_id, machine_id)
 
     def upload_recipe(self, machine_id: str, recipe_id: str) -> int:
         """Listing 1's ers_upload: UPLD_ME to the machine's WC, which reads the machine's copy of the
         recipe and has the ERS store it; returns its version (a new, unapproved one if the machine's
         copy changed, else the version it equals). The machine must be reserved to this entity."""
         ack = self._wc_step(Conv.UPLD_ME, message(Msg.UPLOAD_ME, machine_id=machine_id, recipe_id=recipe_id))
-        self.log.info("recipe %s uploaded from %s: version %s (%s)", recipe_id, machine_id, ack.version, ack.note or "")
+        self.facts.log.info(
+            "recipe %s uploaded from %s: version %s (%s)", recipe_id, machine_id, ack.version, ack.note or ""
+        )
         return int(ack.version or 0)
 
     def propose_recipe(self, recipe_id: str, content: str) -> int:
         """RECIPE_PUT to the ERS: `content` stored as a new version of the recipe, unapproved (nothing
         runs it until the operator approves it: `gwc recipe approve`). Only a known recipe of a machine
         reserved to this entity (StepRefused Not_Auth otherwise). Returns the version."""
-        msg = message(Msg.RECIPE_STORE, recipe_id=recipe_id, content=content, by=self.name)
-        ack = self._checked(Conv.RECIPE_PUT, self._once(Conv.RECIPE_PUT, msg, "ers"), f"recipe {recipe_id}")
-        self.log.info("recipe %s v%s proposed (%s)", recipe_id, ack.version, ack.note or "new")
+        msg = message(Msg.RECIPE_STORE, recipe_id=recipe_id, content=content, by=self.facts.name)
+        ack = self._checked(Conv.RECIPE_PUT, self.link.ask_once(Conv.RECIPE_PUT, msg, "ers"), f"recipe {recipe_id}")
+        self.facts.log.info("recipe %s v%s proposed (%s)", recipe_id, ack.version, ack.note or "new")
         return int(ack.version or 0)
 
     def _wc_step(self, cls: str, first: Message) -> Message:
         """DNLD_ME / UPLD_ME: asked once (a download is not repeated blindly), given up if the machine is lost."""
-        ack = self._ask_wc(cls, first, str(first.machine_id), 0, self.timeouts.setup)
+        ack = self.runs.ask_wc(cls, first, str(first.machine_id), 0, self.facts.timeouts.setup)
         return self._checked(cls, ack, str(first.machine_id))
-
-    def _once(self, cls: str, first: Message, to: str) -> Message:
-        if self._bus is None:
-            raise LotError(f"entity {self.entity_id} is not open")
-        conv, batch = self._bus.request(cls, first, to=to, timeout=self.timeouts.answer)
-        conv.end()
-        return batch.first
 
     def _checked(self, cls: str, ack: Message, what: str) -> Message:
         if ack.ack_code != AckCode.ACK_OK:
-            self.log.error("%s for %s refused: %s %s", cls, what, ack.ack_code, ack.note or "")
+            self.facts.log.error("%s for %s refused: %s %s", cls, what, ack.ack_code, ack.note or "")
             raise StepRefused(cls, str(ack.ack_code), f"{cls} for {what} refused: {ack.ack_code} ({ack.note or '-'})")
         return ack
 
@@ -85,14 +89,14 @@ class EntityHoldings(EntityRuns):
         repeat is counted once)."""
         msg = message(
             Msg.SCRAP_REPORT,
-            entity_id=self.entity_id,
+            entity_id=self.facts.entity_id,
             machine_id=machine_id,
             machine_run_id=machine_run_id,
             parts=parts,
             reason=reason[:500] if reason else None,
         )
-        self._checked(Conv.SCRAP_RPT, self._ask(Conv.SCRAP_RPT, msg, "ms"), f"run {machine_run_id} on {machine_id}")
-        self.log.info("scrap: %d part(s) of run %d on %s (%s)", parts, machine_run_id, machine_id, reason or "-")
+        self._checked(Conv.SCRAP_RPT, self.link.ask(Conv.SCRAP_RPT, msg, "ms"), f"run {machine_run_id} on {machine_id}")
+        self.facts.log.info("scrap: %d part(s) of run %d on %s (%s)", parts, machine_run_id, machine_id, reason or "-")
 
     # ----------------------------------------------------------------- children
 
@@ -104,28 +108,23 @@ class EntityHoldings(EntityRuns):
         The n-th call of a script's run asks with the same request id every time, so a script its agent
         restarted gets the children its first run made, not new ones (and their scripts, running, are
         left as they are)."""
-        from gwc.lot.entity import create_lot
-        from gwc.lot.run import spawn_lot_scripts  # the HI's way: one path (and queue) for every lot script
-
-        if self._bus is None:
-            raise LotError(f"entity {self.entity_id} is not open")
         self._children_asked += 1
-        request_id = f"{self.name}.child.{self._children_asked}"
+        request_id = f"{self.facts.name}.child.{self._children_asked}"
         try:
             lot_id, children = create_lot(
-                self._bus,
+                self.link.need(),
                 product_id,
                 quantity,
                 script_id=script_id,
-                priority=self.priority,
-                timeout=self.timeouts.answer,
-                within=self.timeouts.retry,
+                priority=self.facts.priority,
+                timeout=self.facts.timeouts.answer,
+                within=self.facts.timeouts.retry,
                 request_id=request_id,
             )
         except LotError as e:
             raise StepRefused(Conv.CREATE_LOT, _code_of(str(e)), str(e)) from e
-        started = spawn_lot_scripts(self.cfg, children)
-        self.log.info(
+        started = spawn_lot_scripts(self.facts.cfg, children)
+        self.facts.log.info(
             "lot %d of %d %s started as children: entities %s (pids %s)",
             lot_id,
             quantity,
@@ -133,54 +132,48 @@ class EntityHoldings(EntityRuns):
             ", ".join(map(str, children)),
             ", ".join(str(started[c] or "queued") for c in children),
         )
-        self.traveller.setdefault("children", []).extend(children)
-        self._save()
+        self.facts.traveller.setdefault("children", []).extend(children)
+        self.facts.save()
         return children
 
     def divide(self, quantity: int = 1, start_scripts: bool = True) -> list[int]:
         """The Lot Server's division (1.4.4): `quantity` new entities split off this one, in its lot and
         state (only while it is created or imported), each its child; their lot scripts started as
         start_child's are, unless `start_scripts` is false. Returns the new entities."""
-        from gwc.lot.run import spawn_lot_scripts  # the HI's way: one path (and queue) for every lot script
-
-        if self._bus is None:
-            raise LotError(f"entity {self.entity_id} is not open")
         try:
-            new = divide_entity(self._bus, self.entity_id, quantity, self.timeouts.answer)
+            new = divide_entity(self.link.need(), self.facts.entity_id, quantity, self.facts.timeouts.answer)
         except GwcError as e:
             raise StepRefused(Conv.DIV_MERGE, str(getattr(e, "ack_code", AckCode.UNKNOWN)), str(e)) from e
-        self.log.info("divided: new entities %s", ", ".join(map(str, new)))
+        self.facts.log.info("divided: new entities %s", ", ".join(map(str, new)))
         if start_scripts and new:
-            spawn_lot_scripts(self.cfg, new)
+            spawn_lot_scripts(self.facts.cfg, new)
         return new
 
     def merge(self, child: int) -> None:
         """The Lot Server's merger (1.4.4): a child of this entity (divided or started by it), of its lot
         and state, folded into it (the child is destroyed; its script, if any, fails on its next step)."""
-        if self._bus is None:
-            raise LotError(f"entity {self.entity_id} is not open")
         try:
-            merge_entities(self._bus, self.entity_id, child, self.timeouts.answer)
+            merge_entities(self.link.need(), self.facts.entity_id, child, self.facts.timeouts.answer)
         except GwcError as e:
             raise StepRefused(Conv.DIV_MERGE, str(getattr(e, "ack_code", AckCode.UNKNOWN)), str(e)) from e
-        self.log.info("merged entity %d into this one", child)
+        self.facts.log.info("merged entity %d into this one", child)
 
     def wait_for_children(self, children: Sequence[int], timeout: float | None = None) -> dict[int, str]:
         """Wait until every child is done (completed, waiting for or past export, or failed), reading
         their states from the Lot Server (ENTITY_REQ state) every half second. Returns each one's state;
         LotTimeout past `timeout` (Timeouts.run by default). A failed child is for the script to judge."""
-        deadline = time.monotonic() + (self.timeouts.run if timeout is None else timeout)
+        deadline = Deadline(self.facts.timeouts.run if timeout is None else timeout)
         states: dict[int, str] = {}
         while True:
             for child in children:
                 if states.get(child) not in CHILD_DONE:
                     states[child] = self._child_state(child)
             if all(s in CHILD_DONE for s in states.values()):
-                self.log.info("children done: %s", ", ".join(f"{c} {s}" for c, s in states.items()))
+                self.facts.log.info("children done: %s", ", ".join(f"{c} {s}" for c, s in states.items()))
                 return states
-            if time.monotonic() >= deadline:
+            if deadline.expired:
                 raise LotTimeout(
-                    f"entity {self.entity_id}: children not done in time: "
+                    f"entity {self.facts.entity_id}: children not done in time: "
                     + ", ".join(f"{c} {s}" for c, s in states.items())
                 )
             time.sleep(CHILD_POLL)
@@ -188,11 +181,11 @@ class EntityHoldings(EntityRuns):
     def _child_state(self, child: int) -> str:
         msg = message(Msg.ENTITY_REQUEST, entity_id=child, action="state")
         try:
-            ack = self._ask(Conv.ENTITY_REQ, msg, "ls")
+            ack = self.link.ask(Conv.ENTITY_REQ, msg, "ls")
         except GwcError as e:
-            raise LotError(f"entity {self.entity_id}: state of child {child} not read: {e}") from e
+            raise LotError(f"entity {self.facts.entity_id}: state of child {child} not read: {e}") from e
         if ack.ack_code != AckCode.ACK_OK or ack.state is None:
-            raise LotError(f"entity {self.entity_id}: child {child}: {ack.ack_code} {ack.note or ''}")
+            raise LotError(f"entity {self.facts.entity_id}: child {child}: {ack.ack_code} {ack.note or ''}")
         return str(ack.state)
 
 
@@ -205,6 +198,55 @@ def _code_of(text: str) -> str:
 
 
 # ----------------------------------------------------------------------------- the Lot Server's 1.4.4
+
+
+def create_lot(
+    bus: BlockingBus,
+    product_id: str,
+    quantity: int,
+    *,
+    work_order_id: int | None = None,
+    owner: str | None = None,
+    priority: int | None = None,
+    script_id: str | None = None,
+    lot_type: str | None = None,
+    timeout: float = 10.0,
+    within: float = 60.0,
+    request_id: str | None = None,
+) -> tuple[int, list[int]]:
+    """CREATE_LOT: ask the Lot Server for a lot of `quantity` entities. Returns (lot_id, entity_ids).
+
+    A Lot Server that does not answer (it died after creating the lot, or is restarting) is asked
+    again for up to `within` seconds with the same request_id, so the lot is made once: a repeat is
+    answered with what the first request made. Give request_id to make it survive this call too.
+    """
+    request_id = request_id or f"{bus.bus.name}.{secrets.token_hex(8)}"
+    ack = bus.run(
+        ask(
+            bus.bus,
+            Conv.CREATE_LOT,
+            message(
+                Msg.CREATE_LOT_ENTITY,
+                product_id=product_id,
+                quantity=quantity,
+                work_order_id=work_order_id,
+                owner=owner,
+                priority=priority,
+                script_id=script_id,
+                lot_type=lot_type,
+                request_id=request_id,
+            ),
+            "ls",
+            timeout,
+            within=within,
+        )
+    )
+    if ack.ack_code != AckCode.ACK_OK or ack.lot_id is None:
+        raise LotError(
+            f"the Lot Server refused to create a lot of {quantity} {product_id}: {ack.ack_code}"
+            + (f" ({ack.note})" if ack.note else "")
+        )
+    return int(ack.lot_id), [int(e) for e in ack.entity_ids or []]
 
 
 def _lot_server(bus: BlockingBus, first: Message, timeout: float, what: str) -> Message:

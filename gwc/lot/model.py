@@ -20,7 +20,6 @@ from gwc.ipc.names import Conv
 from gwc.retry import Backoff
 
 T = TypeVar("T")
-S = LotState
 # In the cell an entity hears every module's death (MOD_DIED), and the machines' news (UPD_ME_ST, RUN_COMPL)
 # about the machines it is bound to only (ABOUT_MACHINES, narrowed to them at each binding and unreserve:
 # docs/protocol.md, "Subjects"): another machine's run is no business of this lot, and with 50 machines
@@ -32,8 +31,8 @@ ABOUT_MACHINES = (Conv.RUN_COMPL, Conv.UPD_ME_ST)
 # (LOT_MOVED) come addressed to it, not broadcast to every lot (gwc/servers/lot.py).
 WAITING_LISTENS: tuple[str, ...] = ()
 UP = (MachineStatus.IDLE.value, MachineStatus.SETUP.value, MachineStatus.RUNNING.value)
-FINISHED = (S.COMPLETED, S.WAITING_EXPORT, S.EXPORTED, S.FAILED)
-IMPORTED = (S.IMPORTED, S.WAITING_MACHINE, S.RUNNING, *FINISHED)
+FINISHED = (LotState.COMPLETED, LotState.WAITING_EXPORT, LotState.EXPORTED, LotState.FAILED)
+IMPORTED = (LotState.IMPORTED, LotState.WAITING_MACHINE, LotState.RUNNING, *FINISHED)
 FOREVER = 10.0**7  # a conversation MSCHED answers when it can: its own deadline is the caller's
 BOUND_AT_ONCE = 0.01  # s: a request granted within this after its Machine_Req_Ack never waited
 POLL = 1.0  # fallback asks (the Lot Server) and reads (MACHINE_STATUS) while waiting for a broadcast
@@ -42,7 +41,7 @@ SHUT = (MachineStatus.SHUTDOWN.value,)
 ENDED = (MachineStatus.SHUTDOWN.value, MachineStatus.IDLE.value)  # a machine in these runs nothing
 # ENTITY_REQ actions whose repeat (its first answer was lost) may find the operator already moved the
 # entity on: the Lot Server then answers Notnow with the state the first request led to.
-ALREADY = {"import": (S.IMPORTED,), "export": (S.EXPORTED,)}
+ALREADY = {"import": (LotState.IMPORTED,), "export": (LotState.EXPORTED,)}
 # What the operator may do with a held entity (RELEASE_LOT, `gwc release`): ask for the operation again
 # (retry and reroute alike: the script's alternatives, whichever machine is up), or fail it.
 RELEASES = ("retry", "reroute", "fail")

@@ -25,59 +25,76 @@ set up) are given back. Only `operate()` resumes: a script made of the lower-lev
 from __future__ import annotations
 
 import os
-import time
 from typing import Any
 
 from gwc.errors import GwcError
-from gwc.ipc.codes import MachineStatus
-from gwc.lot.holdings import EntityHoldings
-from gwc.lot.model import Operation, Reservation, Run, S, read_traveller
+from gwc.ipc.codes import LotState, MachineStatus
+from gwc.lot.core import Heard, LotReads
+from gwc.lot.model import Operation, Reservation, Run, read_traveller
+from gwc.lot.reserve import MachineRequests
+from gwc.lot.runs import MachineRuns
+from gwc.lot.state import EntityState
+from gwc.lot.talk import BusLink
 
-M = MachineStatus
-RUNNING = (M.RUNNING.value, M.RUN_SHUT.value)
-SET_UP = (M.SETUP.value, M.SETUP_SHUT.value)
+RUNNING = (MachineStatus.RUNNING.value, MachineStatus.RUN_SHUT.value)
+SET_UP = (MachineStatus.SETUP.value, MachineStatus.SETUP_SHUT.value)
 
 
-class EntityResume(EntityHoldings):
+class Resumption:
     """The operation steps' record, and taking a killed script's entity up again from it."""
 
-    _step = 0  # the next operation step of this process
-    _replay: list[dict[str, Any]] | None = None  # the steps a dead process of this entity recorded
+    def __init__(
+        self,
+        facts: EntityState,
+        reads: LotReads,
+        heard: Heard,
+        link: BusLink,
+        requests: MachineRequests,
+        runs: MachineRuns,
+    ) -> None:
+        self.facts = facts
+        self.reads = reads
+        self.heard = heard
+        self.link = link
+        self.requests = requests
+        self.runs = runs
+        self._step = 0  # the next operation step of this process
+        self._replay: list[dict[str, Any]] | None = None  # the steps a dead process of this entity recorded
 
-    def _resume_after_restart(self) -> None:
+    def after_restart(self) -> None:
         """(at open, attached) A traveller of another process of this entity: take its record over, and
         clean up what the dead process left in MSCHED that no record names."""
-        old = read_traveller(self.cfg, self.entity_id)
+        old = read_traveller(self.facts.cfg, self.facts.entity_id)
         # Completed and waiting to be exported too: its operations are replayed, not asked for again.
-        if not old or old.get("pid") in (None, os.getpid()) or self.state is None:
+        if not old or old.get("pid") in (None, os.getpid()) or self.facts.state is None:
             return
         self._replay = list(old.get("operations") or [])
-        self.traveller.update(old)
-        self.traveller["restarts"] = int(old.get("restarts") or 0) + 1
-        self.result = old.get("result")
-        self.log.warning(
+        self.facts.traveller.update(old)
+        self.facts.traveller["restarts"] = int(old.get("restarts") or 0) + 1
+        self.facts.result = old.get("result")
+        self.facts.log.warning(
             "entity %d resumes after its lot script (pid %s) ended: %d operation(s) recorded",
-            self.entity_id,
+            self.facts.entity_id,
             old.get("pid"),
             len(self._replay),
         )
-        if self.state in (S.CREATED, S.WAITING_IMPORT):
+        if self.facts.state in (LotState.CREATED, LotState.WAITING_IMPORT):
             return  # it had asked MSCHED for nothing yet
-        self._cancel_leftovers("by the dead script")
+        self.requests.cancel_leftovers("by the dead script")
         open_runs = {int(op["machine_run_id"]) for op in self._replay if op.get("codes") is None}
-        for machine_id, run in self._query(
-            "SELECT machine_id, machine_run_id FROM reserved_machines WHERE entity_id = %s", self.entity_id
+        for machine_id, run in self.reads.query(
+            "SELECT machine_id, machine_run_id FROM reserved_machines WHERE entity_id = %s", self.facts.entity_id
         ):
             if int(run) not in open_runs:
-                self.log.warning(
+                self.facts.log.warning(
                     "%s was bound (run %s) after the dead script's last record: giving it back", machine_id, run
                 )
                 try:
-                    self.unreserve(machine_id, within=self.timeouts.cleanup)
+                    self.requests.unreserve(machine_id, within=self.facts.timeouts.cleanup)
                 except GwcError as e:
-                    self.log.error("could not give %s back: %s", machine_id, e)
+                    self.facts.log.error("could not give %s back: %s", machine_id, e)
 
-    def _resume_point(self, op_type: str) -> tuple[int, dict[str, Any] | None, Operation | Reservation | None]:
+    def point(self, op_type: str) -> tuple[int, dict[str, Any] | None, Operation | Reservation | None]:
         """This operation's step, its record from a dead process (if any), and what is left of it: the
         Operation if it was done, the Reservation if its run is to be taken up, else None."""
         step, self._step = self._step, self._step + 1
@@ -85,7 +102,7 @@ class EntityResume(EntityHoldings):
             return step, None, None
         entry = self._replay[step]
         if entry.get("op_type") != op_type:
-            self.log.error(
+            self.facts.log.error(
                 "the script asks for %s at operation %d, where its record has %s: no more replays",
                 op_type,
                 step + 1,
@@ -96,17 +113,17 @@ class EntityResume(EntityHoldings):
         run, machines = int(entry["machine_run_id"]), list(entry["machines"])
         codes = entry.get("codes")
         if codes is None:
-            codes = self._run_outcomes(run, machines)
+            codes = self.runs.run_outcomes(run, machines)
             if len(codes) == len(machines):  # it completed while no script ran: the run counts
-                self.log.warning("run %d of %s completed while the lot script was down: %s", run, op_type, codes)
-                self.unreserve(within=self.timeouts.cleanup)
+                self.facts.log.warning("run %d of %s completed while the lot script was down: %s", run, op_type, codes)
+                self.requests.unreserve(within=self.facts.timeouts.cleanup)
                 entry["codes"] = codes
-                self._save()
+                self.facts.save()
             else:
                 codes = None
         if codes is not None:
-            runs = [Run(m, self._recipe(entry, m), run, str(codes[m]), self.run_results(m, run)) for m in machines]
-            self.log.info(
+            runs = [Run(m, self._recipe(entry, m), run, str(codes[m]), self.runs.run_results(m, run)) for m in machines]
+            self.facts.log.info(
                 "operation %d (%s) was done before the restart: run %d on %s, not run again",
                 step + 1,
                 op_type,
@@ -116,21 +133,21 @@ class EntityResume(EntityHoldings):
             return step, entry, Operation(op_type, run, runs, int(entry.get("tries") or 1))
         held = {
             r[0]
-            for r in self._query(
+            for r in self.reads.query(
                 "SELECT machine_id FROM reserved_machines WHERE entity_id = %s AND machine_run_id = %s",
-                self.entity_id,
+                self.facts.entity_id,
                 run,
             )
         }
         if held == set(machines):
-            self.log.warning(
+            self.facts.log.warning(
                 "operation %d (%s): run %d on %s is taken up where it is", step + 1, op_type, run, ", ".join(machines)
             )
-            self._watch(machines)
+            self.link.watch(machines)
             return step, entry, Reservation(op_type, run, entry.get("request_key"), machines)
         if held:
-            self.unreserve(within=self.timeouts.cleanup)
-        self.log.warning(
+            self.requests.unreserve(within=self.facts.timeouts.cleanup)
+        self.facts.log.warning(
             "operation %d (%s): run %d was given up before the restart: asking again", step + 1, op_type, run
         )
         return step, entry, None
@@ -138,14 +155,14 @@ class EntityResume(EntityHoldings):
     def _recipe(self, entry: dict[str, Any], machine_id: str) -> str:
         recipes = entry.get("recipes")
         recipe = recipes.get(machine_id) if isinstance(recipes, dict) else recipes
-        return str(recipe or self.recipe_for(machine_id, entry["op_type"]))
+        return str(recipe or self.runs.recipe_for(machine_id, entry["op_type"]))
 
-    def _record_step(
+    def record_step(
         self, step: int, res: Reservation, recipes: Any, tries: int, codes: dict[str, str] | None, save: bool = True
     ) -> None:
         """The step's record: bound (codes None: written before its first SETUP_RUN), or done (saved with
         the operation's own record: a restart between the two finds the run's outcome stored anyway)."""
-        ops: list[dict[str, Any]] = self.traveller.setdefault("operations", [])
+        ops: list[dict[str, Any]] = self.facts.traveller.setdefault("operations", [])
         entry = {
             "op_type": res.op_type,
             "machine_run_id": res.machine_run_id,
@@ -159,18 +176,20 @@ class EntityResume(EntityHoldings):
         if self._replay is not None:
             self._replay[step : step + 1] = [entry]
         if save:
-            self._save()
+            self.facts.save()
 
-    def _take_up(self, machine_id: str, machine_run_id: int) -> str:
+    def take_up(self, machine_id: str, machine_run_id: int) -> str:
         """(a resumed run) What is left to do on the machine: "wait" (Running, or Shutdown with the run:
         in doubt), "start" (set up for it) or "setup" (not begun there)."""
-        row = self._query_one("SELECT status, machine_run_id FROM machine_status WHERE machine_id = %s", machine_id)
+        row = self.reads.query_one(
+            "SELECT status, machine_run_id FROM machine_status WHERE machine_id = %s", machine_id
+        )
         status, run = (row[0], row[1]) if row else (None, None)
-        if run is None or int(run) != machine_run_id or status not in (*RUNNING, *SET_UP, M.SHUTDOWN.value):
+        if run is None or int(run) != machine_run_id or status not in (*RUNNING, *SET_UP, MachineStatus.SHUTDOWN.value):
             return "setup"
-        with self._cond:
-            self._began[(machine_id, machine_run_id)] = (time.monotonic(), self._peer_inc.get(f"wc:{machine_id}"))
-            if status == M.SHUTDOWN.value:
-                self._note(machine_id, status, machine_run_id)
-        self.log.info("run %d is %s on %s", machine_run_id, status, machine_id)
+        self.heard.begin(machine_id, machine_run_id)
+        with self.heard.cond:
+            if status == MachineStatus.SHUTDOWN.value:
+                self.heard.note(machine_id, status, machine_run_id)
+        self.facts.log.info("run %d is %s on %s", machine_run_id, status, machine_id)
         return "start" if status in SET_UP else "wait"

@@ -26,13 +26,14 @@ from pathlib import Path
 from types import FrameType, ModuleType
 from typing import NoReturn
 
-from gwc.agent import control as agent_control
-from gwc.cell import lot_proc, out_file, pid_file, process_env, spawn, write_pid_file
+from gwc.cell import lot_proc, out_file, pid_file, process_env, write_pid_file
 from gwc.config import PROJECT_ROOT, Config, load_config
 from gwc.errors import GwcError
 from gwc.log import cap_output, open_log, open_out
 from gwc.lot.entity import OperationEntity
 from gwc.lot.errors import LotError, ScriptStopped
+from gwc.lot.spawn import spawn_lot_script as spawn_lot_script  # (re-exported: gwc.client.orders, gwc.soak, gwc.bench)
+from gwc.lot.spawn import spawn_lot_scripts as spawn_lot_scripts
 from gwc.private import NotPrivate, check_trusted_file
 
 SWITCH_INTERVAL = 0.0005  # seconds
@@ -75,23 +76,6 @@ def load_script(path: Path) -> ModuleType:
     if not callable(getattr(module, "main", None)):
         raise LotError(f"lot script {path} has no main(entity) function")
     return module
-
-
-def spawn_lot_script(cfg: Config, entity_id: int) -> int | None:
-    """Start the entity's lot script process with a pid file (so `gwc stop` stops it too): by this host's
-    agent when one runs, which restarts it if it is killed (docs/reliability.md) and queues it while the
-    most scripts it runs at once are running (None: queued, gwc/lot/admission.py); else detached."""
-    return spawn_lot_scripts(cfg, [entity_id])[entity_id]
-
-
-def spawn_lot_scripts(cfg: Config, entities: list[int]) -> dict[int, int | None]:
-    """spawn_lot_script for many entities in one call to the agent: entity -> pid, None if queued."""
-    try:
-        answer = agent_control.call(cfg, "lots", entities=entities, timeout=30.0)
-    except agent_control.NoAgent:
-        return {e: spawn(cfg, lot_proc(e)) for e in entities}
-    pids = answer["pids"]
-    return {e: None if pids[str(e)] is None else int(pids[str(e)]) for e in entities}
 
 
 class Forked:

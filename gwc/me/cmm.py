@@ -60,6 +60,7 @@ from gwc.me.line import (
 )
 from gwc.me.machine import MachineSide, Refusal, RunOutcome
 from gwc.me.parts import PartError, part_tar, program_from
+from gwc.retry import Deadline
 
 T = TypeVar("T")
 VERDICTS = ("PASS!", "FAIL!")
@@ -124,9 +125,9 @@ class CmmMachine(MachineSide):
         if port != "sim":
             return port
         link = sim_link(self.cfg, self.spec.id)
-        deadline = time.monotonic() + (self.open_timeout if wait else 0.0)
+        deadline = Deadline(self.open_timeout if wait else 0.0)
         while not link.exists():  # the simulator may still be starting, or its line is down
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise LineLost(f"no CMM simulator: {link} does not exist (is `gwc run cmmsim` running?)")
             time.sleep(0.05)
         return os.path.realpath(link)
@@ -215,9 +216,9 @@ class CmmMachine(MachineSide):
                 self._stale(junk.decode("ascii", "backslashreplace"), "before the exchange")
             return
         ready = self._ask_status(line)
-        deadline = time.monotonic() + self.answer_timeout
+        deadline = Deadline(self.answer_timeout)
         while True:
-            rec = line.next_record(max(0.0, deadline - time.monotonic()), bare_verdict=True)
+            rec = line.next_record(deadline.left(), bare_verdict=True)
             if rec is None:
                 raise LineTimeout(f"the CMM did not answer STATUS within {self.answer_timeout:.1f}s")
             if rec == ready:

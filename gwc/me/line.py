@@ -26,6 +26,7 @@ from typing import Any
 import serial
 
 from gwc.errors import ConfigError, LineError
+from gwc.retry import Deadline
 
 END = b"!"
 MAX_RECORD = 125  # Listing 9's BUF_SIZE: a longer record is garbage on the line
@@ -171,12 +172,12 @@ class RecordStream:
 
         `bare_verdict`: a verdict is expected, so `PASS`/`FAIL` without `!` is one.
         """
-        deadline = time.monotonic() + timeout
+        deadline = Deadline(timeout)
         while True:
             rec = self._take_record(bare_verdict)
             if rec is not None:
                 return rec
-            left = deadline - time.monotonic()
+            left = deadline.left()
             if left <= 0:
                 return None
             self._fill(min(left, VERDICT_QUIET) if bare_verdict else left)
@@ -197,9 +198,9 @@ class RecordStream:
         return rec
 
     def read_bytes(self, n: int, timeout: float) -> bytes:
-        deadline = time.monotonic() + timeout
+        deadline = Deadline(timeout)
         while len(self._buf) < n:
-            left = deadline - time.monotonic()
+            left = deadline.left()
             if left <= 0:
                 raise LineTimeout(f"{self.name}: {len(self._buf)} of {n} bytes within {timeout:.1f}s")
             self._fill(left)
@@ -225,8 +226,8 @@ class RecordStream:
         exchange left on the line, thrown away before the next."""
         junk = bytearray(self._buf)
         self._buf.clear()
-        deadline = time.monotonic() + limit
-        while time.monotonic() < deadline:
+        deadline = Deadline(limit)
+        while not deadline.expired:
             data = self._read(quiet)
             if not data:
                 break
@@ -242,7 +243,7 @@ def serial_stream(ser: serial.SerialBase, name: str) -> RecordStream:
     """
 
     def read_some(timeout: float) -> bytes:
-        deadline = time.monotonic() + timeout
+        deadline = Deadline(timeout)
         while True:
             data = ser.read(ser.in_waiting or 1)
             if data:
@@ -250,7 +251,7 @@ def serial_stream(ser: serial.SerialBase, name: str) -> RecordStream:
                 while waiting := ser.in_waiting:
                     data += ser.read(waiting)
                 return bytes(data)
-            if time.monotonic() >= deadline:
+            if deadline.expired:
                 return b""
 
     return RecordStream(read_some, ser.write, name)
@@ -272,7 +273,7 @@ def kermit(line: RecordStream, args: Sequence[str], cwd: Path, timeout: float) -
     assert proc.stdin is not None and proc.stdout is not None and proc.stderr is not None
     out = proc.stdout.fileno()
     os.set_blocking(out, False)
-    deadline = time.monotonic() + timeout
+    deadline = Deadline(timeout)
     try:
         while True:
             ready, _, _ = select.select([out], [], [], 0)
@@ -286,7 +287,7 @@ def kermit(line: RecordStream, args: Sequence[str], cwd: Path, timeout: float) -
                 break  # gkermit closed its output: it is done
             if proc.poll() is not None:
                 break
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise LineTimeout(f"Kermit transfer ({' '.join(args)}) took longer than {timeout:.0f}s")
             data = line.read_raw(0.01)
             if data:
@@ -295,7 +296,7 @@ def kermit(line: RecordStream, args: Sequence[str], cwd: Path, timeout: float) -
                     proc.stdin.flush()
                 except BrokenPipeError:
                     pass
-        code = proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+        code = proc.wait(timeout=max(0.1, deadline.left()))
     except subprocess.TimeoutExpired:
         raise LineTimeout(f"Kermit transfer ({' '.join(args)}) did not end within {timeout:.0f}s") from None
     finally:

@@ -119,7 +119,6 @@ class MachineSide:
         self.channel = Channel(cfg.ipc_prefix, spec.id, "me", log)
         self.state = MeState.SHUTDOWN
         self.recipe_id = ""
-        self.recipe_file: Path | None = None
         self.results_path: Path | None = None
         self.memory = cfg.var / "me" / spec.id  # the machine's own recipe store (download/upload)
         self.run_no = self._last_run_no()  # runs of this machine, across ME restarts
@@ -313,7 +312,7 @@ class MachineSide:
             self.answer(msg, AckCode.NOTNOW, alarm_text="the machine is shut down")
             return
         # A started ME tells its state, and while running the results file of its run: a restarted
-        # WC learns whether the run it resumes is still going (gwc.wc.wc.WC._resume).
+        # WC learns whether the run it resumes is still going (gwc.wc.me_side.MeSide._resume).
         running = self.state == MeState.RUNNING and self.results_path is not None
         self.answer(
             msg,
@@ -326,7 +325,7 @@ class MachineSide:
     def _me_start(self, msg: MeMessage) -> None:
         if self.state == MeState.RUNNING:
             raise Refusal(AckCode.NOTNOW, f"run {self.run_no} is in progress: start again when it is over")
-        self.recipe_id, self.recipe_file, self.lost = "", None, None
+        self.recipe_id, self.lost = "", None
         if self.homing_alarm:
             # Listing 3: the first answer to ME_START is the alarm asking the operator to home the machine.
             self.state = MeState.HOMING
@@ -373,7 +372,7 @@ class MachineSide:
             self.log.warning("ME_SHUT during run %d: the run is abandoned", self.run_no)
             self.abort("ME_SHUT received")
         self.state, self._start_req, self.lost = MeState.SHUTDOWN, None, None
-        self.recipe_id, self.recipe_file = "", None
+        self.recipe_id = ""
         self.log.info("machine shut down")
         self.answer(msg, AckCode.ACK_OK, message_id=MessageId.ME_SHUT_C)
 
@@ -389,7 +388,7 @@ class MachineSide:
         self._need(MeState.IDLE, MeState.SETUP, what="set up a run")
         path = self._recipe_path(msg)
         self.load(msg.recipe_id, path)
-        self.recipe_id, self.recipe_file = msg.recipe_id, path
+        self.recipe_id = msg.recipe_id
         self.state = MeState.SETUP
         self.log.info("set up with recipe %s (%s)", msg.recipe_id, path)
         self.answer(msg, AckCode.ACK_OK)

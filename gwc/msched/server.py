@@ -92,8 +92,7 @@ class Msched(Module):
 
     async def on_bus(self) -> None:
         self._kick = asyncio.Event()
-        worker = asyncio.get_running_loop().create_task(self._worker())
-        self._tasks.add(worker)  # cancelled with the module's other tasks when it stops
+        self.spawn(self._worker())  # cancelled with the module's other tasks when it stops
 
     def on_connect(self, conn: Any) -> None:
         """One MSCHED per database: a session lock, freed by PostgreSQL when its holder dies. Taken
@@ -394,9 +393,7 @@ class Msched(Module):
                 waiter.set_result(o)  # its MACH_REQ task is still here: it tells
             elif o.reply_to and o.reply_conv:
                 conv = self.bus.resume(o.reply_conv, Conv.MACH_REQ, o.reply_to)
-                task = asyncio.get_running_loop().create_task(self._tell(conv, o))
-                self._tasks.add(task)
-                task.add_done_callback(self._tasks.discard)
+                self.spawn(self._tell(conv, o))
             else:
                 self.log.warning(
                     "request %d has no conversation to answer in: outcome %s not told", o.request_key, o.ack_code

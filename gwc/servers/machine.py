@@ -38,17 +38,26 @@ from gwc.module import DATABASE_OUTAGE_S, Handler, Module
 from gwc.record.calendar import is_planned
 from gwc.servers.common import Pruner, Server
 
-S = MachineStatus
 # 6.3.2: where each status may go. Shutdown is always reachable (operator, ME death, liveness).
 TRANSITIONS: dict[MachineStatus, frozenset[MachineStatus]] = {
-    S.SHUTDOWN: frozenset({S.SHUTDOWN, S.IDLE}),
-    S.IDLE: frozenset({S.IDLE, S.SETUP, S.SHUTDOWN}),
-    S.SETUP: frozenset({S.SETUP, S.IDLE, S.RUNNING, S.SETUP_SHUT, S.SHUTDOWN}),
-    S.SETUP_SHUT: frozenset({S.SETUP_SHUT, S.RUN_SHUT, S.SHUTDOWN}),
-    S.RUNNING: frozenset({S.RUNNING, S.IDLE, S.RUN_SHUT, S.SHUTDOWN}),
-    S.RUN_SHUT: frozenset({S.RUN_SHUT, S.SHUTDOWN}),
+    MachineStatus.SHUTDOWN: frozenset({MachineStatus.SHUTDOWN, MachineStatus.IDLE}),
+    MachineStatus.IDLE: frozenset({MachineStatus.IDLE, MachineStatus.SETUP, MachineStatus.SHUTDOWN}),
+    MachineStatus.SETUP: frozenset(
+        {
+            MachineStatus.SETUP,
+            MachineStatus.IDLE,
+            MachineStatus.RUNNING,
+            MachineStatus.SETUP_SHUT,
+            MachineStatus.SHUTDOWN,
+        }
+    ),
+    MachineStatus.SETUP_SHUT: frozenset({MachineStatus.SETUP_SHUT, MachineStatus.RUN_SHUT, MachineStatus.SHUTDOWN}),
+    MachineStatus.RUNNING: frozenset(
+        {MachineStatus.RUNNING, MachineStatus.IDLE, MachineStatus.RUN_SHUT, MachineStatus.SHUTDOWN}
+    ),
+    MachineStatus.RUN_SHUT: frozenset({MachineStatus.RUN_SHUT, MachineStatus.SHUTDOWN}),
 }
-RUNNING = (S.RUNNING, S.RUN_SHUT)
+RUNNING = (MachineStatus.RUNNING, MachineStatus.RUN_SHUT)
 
 # The production record (docs/record.md), in the same statement as the change it records: a row of
 # machine_state_history for a status that changed, with its cause (given, or told by the transition);
@@ -180,8 +189,10 @@ class MachineServer(Server, Module):
             ).fetchall()
 
         now = time.monotonic()
-        self.machines = {mid: _Watch(S(status), float(live), now) for mid, status, live in self.transaction(load)}
-        up = sorted(m for m, w in self.machines.items() if w.status != S.SHUTDOWN)
+        self.machines = {
+            mid: _Watch(MachineStatus(status), float(live), now) for mid, status, live in self.transaction(load)
+        }
+        up = sorted(m for m, w in self.machines.items() if w.status != MachineStatus.SHUTDOWN)
         self.log.info("watching %d machines%s", len(self.machines), f" ({', '.join(up)} up)" if up else "")
         return AckCode.ACK_OK
 
@@ -198,7 +209,7 @@ class MachineServer(Server, Module):
             if peer is not None:
                 w.last_seen = max(w.last_seen, peer.last_seen)
             silent = now - w.last_seen
-            if w.status != S.SHUTDOWN and silent > w.liveness:
+            if w.status != MachineStatus.SHUTDOWN and silent > w.liveness:
                 await self.machine_silent(mid, silent)
 
     async def machine_silent(self, machine_id: str, silent: float) -> None:
@@ -229,8 +240,15 @@ class MachineServer(Server, Module):
         w = self.machines[machine_id]
         self.log.error("%s", note)
 
-        changed = self._change(machine_id, S.SHUTDOWN, set(S) - {S.SHUTDOWN}, note=note, cause=cause, reason=alarm_id)
-        w.status = S.SHUTDOWN
+        changed = self._change(
+            machine_id,
+            MachineStatus.SHUTDOWN,
+            set(MachineStatus) - {MachineStatus.SHUTDOWN},
+            note=note,
+            cause=cause,
+            reason=alarm_id,
+        )
+        w.status = MachineStatus.SHUTDOWN
         if changed is None or not changed[2]:  # no such machine, or Shutdown already
             return
         previous, run, _ = changed
@@ -239,7 +257,7 @@ class MachineServer(Server, Module):
             message(
                 Msg.UPDATE_ME_STATUS,
                 machine_id=machine_id,
-                status=S.SHUTDOWN.value,
+                status=MachineStatus.SHUTDOWN.value,
                 previous=previous,
                 machine_run_id=run,
                 note=note,
@@ -259,20 +277,26 @@ class MachineServer(Server, Module):
         run alone: the second, only after a refusal, reads a snapshot of its own, as it did in one
         read-committed step."""
         params = {"recipe_id": None, "run": None, "note": None, "cause": None, "reason": None} | fields
-        if status == S.SHUTDOWN and params["cause"] is None and str(params["note"] or "").startswith("operator"):
+        if (
+            status == MachineStatus.SHUTDOWN
+            and params["cause"] is None
+            and str(params["note"] or "").startswith("operator")
+        ):
             params["cause"] = "operator_stop"  # the WC's ME_SHUT (gwc/wc/wc.py)
         params |= {
             "status": status.value,
             "machine_id": machine_id,
             "from": [s.value for s in allowed],
             "record": self.cfg.record.history,
-            "e10": self._e10(machine_id, params["reason"]) if status == S.SHUTDOWN else "unscheduled_downtime",
+            "e10": self._e10(machine_id, params["reason"])
+            if status == MachineStatus.SHUTDOWN
+            else "unscheduled_downtime",
         }
         row = self.transaction(Statement(_UPDATE, params))
         if row is not None:
-            return S(row[0]), row[1], True
+            return MachineStatus(row[0]), row[1], True
         now = self.transaction(Statement("select status from machine_status where machine_id = %s", (machine_id,)))
-        return None if now is None else (S(now[0]), None, False)
+        return None if now is None else (MachineStatus(now[0]), None, False)
 
     # ----------------------------------------------------------------- conversations
 
@@ -281,17 +305,17 @@ class MachineServer(Server, Module):
         req = self.request(conv)
         ack = Msg.CHANGE_STATUS_ACK
         try:
-            status = S(req.status)
-            expect = None if req.expect is None else {S(s) for s in req.expect}
+            status = MachineStatus(req.status)
+            expect = None if req.expect is None else {MachineStatus(s) for s in req.expect}
         except (ValueError, TypeError):
             return await self.answer(
                 conv,
                 ack,
                 AckCode.BAD_MESSAGE,
-                f"status {req.status!r} or expect {req.expect!r} is not a machine status ({', '.join(S)})",
+                f"status {req.status!r} or expect {req.expect!r} is not a machine status ({', '.join(MachineStatus)})",
             )
 
-        reachable = {c for c in S if status in TRANSITIONS[c]}
+        reachable = {c for c in MachineStatus if status in TRANSITIONS[c]}
         fields = {"recipe_id": req.recipe_id, "run": req.machine_run_id, "note": req.note}
         result = self._change(req.machine_id, status, reachable & expect if expect else reachable, **fields)
         if result is None:
@@ -306,7 +330,7 @@ class MachineServer(Server, Module):
         w = self.machines.get(req.machine_id)
         if w is None:  # a machine registered after we started
             w = self.machines[req.machine_id] = _Watch(status, self._liveness(req.machine_id), time.monotonic())
-        if previous == S.SHUTDOWN or conv.peer == f"wc:{req.machine_id}":
+        if previous == MachineStatus.SHUTDOWN or conv.peer == f"wc:{req.machine_id}":
             w.last_seen = time.monotonic()  # the watch starts (again) now
         w.status = status
         self.log.info("%s: %s -> %s%s", req.machine_id, previous, status, f" ({req.note})" if req.note else "")

@@ -43,6 +43,7 @@ from gwc.errors import GwcError, ModuleError
 from gwc.ipc.bus import BlockingBus
 from gwc.ipc.mq import queue_exists, queue_names
 from gwc.ipc.names import Conv
+from gwc.retry import Deadline
 
 UP_TIMEOUT = 30.0  # a restarted module must be back on the bus within this (machines are shared and busy)
 HI_TIMEOUT = 60.0  # one `gwc machine start|stop` command
@@ -170,8 +171,8 @@ class PrivateCell:
             os.killpg(st.pid, signal.SIGKILL)
         except ProcessLookupError:
             return st.pid
-        deadline = time.monotonic() + 10
-        while (now := read_pid(self.cfg, name)).alive and now.pid == st.pid and time.monotonic() < deadline:
+        deadline = Deadline(10)
+        while (now := read_pid(self.cfg, name)).alive and now.pid == st.pid and not deadline.expired:
             time.sleep(0.02)
         if read_pid(self.cfg, name).pid == st.pid:  # not the pid file of an agent's restart since
             pid_file(self.cfg, name).unlink(missing_ok=True)
@@ -197,12 +198,12 @@ class PrivateCell:
         pid = spawn(self.cfg, Proc(kind, machine or None), extra)
         if kind in ("me", "cmmsim"):
             return pid
-        deadline = time.monotonic() + UP_TIMEOUT
+        deadline = Deadline(UP_TIMEOUT)
         while True:  # the new incarnation, not the dead one the bus still remembers
             peer = self.bus.peers().get(name)
             if peer is not None and (old is None or peer.inc != old.inc):
                 break
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise ModuleError(f"{name} (pid {pid}) did not come back on the bus within {UP_TIMEOUT:.0f}s")
             if not read_pid(self.cfg, name).alive:
                 wait_on_bus(self.cfg, self.bus, name, 0.0)  # raises with the tail of its .out

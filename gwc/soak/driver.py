@@ -44,6 +44,7 @@ from gwc.ipc.bus import BlockingBus
 from gwc.ipc.codes import LotState, MachineStatus
 from gwc.ipc.names import Conv
 from gwc.lot.run import spawn_lot_script
+from gwc.retry import Deadline
 from gwc.soak.cell import PrivateCell
 from gwc.soak.plan import FAULTS, Action, LotSpec, Plan, make_plan
 
@@ -530,8 +531,8 @@ class Soak:
     def _drain(self) -> None:
         """Order what the desk held back (max_active), then wait for every lot to finish."""
         assert self.conn is not None
-        deadline = time.monotonic() + self.opts.drain_timeout
-        while time.monotonic() < deadline:
+        deadline = Deadline(self.opts.drain_timeout)
+        while not deadline.expired:
             self._order_lots(until=float("inf"))
             self._operate()
             if self.next_lot == len(self.plan.lots) and self._active() == 0:

@@ -23,35 +23,31 @@ A WC restarted (kill -9) while MACHINE_STATUS says its machine is up serves noth
 has checked, first, that its ME is still the started ME (a fresh ME, or none, means the machine is
 down: Shutdown until ME_START) and, second, what became of the run the status names: the results
 file of run N (the WC chose its path, results_dir/run-N.txt) outlives a RUN_COMPL the dead WC read
-and never handled, and the ME says whether it is still running it (see _resume).
+and never handled, and the ME says whether it is still running it (gwc/wc/me_side.py, MeSide._resume).
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
-import math
-import os
-import time
+from collections.abc import Coroutine
+from typing import Any
 
-from gwc.cell import read_pid
 from gwc.config import Config
-from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, QueueError, QueueNotOurs
+from gwc.errors import QueueNotOurs
+from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
-from gwc.ipc.codes import AckCode
-from gwc.ipc.mq import Channel, MeMessage, MessageId
+from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.names import Conv, Msg
-from gwc.me.machine import MeState
-from gwc.module import Handler, module_name
-from gwc.wc.base import ABANDONED_S, ALL_OPERATIONS, ME_DEADLINE, ME_PING, SETUP_CHECK_S, S
-from gwc.wc.link import MeDied, MeLink
-from gwc.wc.runs import StartCancelled
-from gwc.wc.steps import WCSteps
+from gwc.module import Handler, Module
+from gwc.wc.base import MachineState, ServerCalls
+from gwc.wc.me_side import MeSide
+from gwc.wc.steps import Steps
 
 
-class WC(WCSteps):
-    """A machine's WC. Its parts: WCBase (state, the servers), WCRuns (the ME, a run's end), WCSteps (the
-    conversations served); here its life: start, shutdown, resume after a restart, the idle watch."""
+class WC(Module):
+    """A machine's WC: a Module whose conversation handlers are here. It holds its parts: the machine's
+    state (MachineState), its calls to the servers (ServerCalls), its ME side (MeSide: the queue link,
+    a run's end, the machine lost and back, a restart taken up) and its steps' work (Steps)."""
 
     role = "wc"
     start_class = Conv.ME_START
@@ -66,26 +62,12 @@ class WC(WCSteps):
 
     def __init__(self, cfg: Config, name: str, log: logging.Logger, machine_id: str) -> None:
         # Before the base's __init__: it asks idle_interest(), which depends on the status.
-        self.status = S.SHUTDOWN  # our copy of MACHINE_STATUS.status; the Machine Server holds the truth
+        self.state = MachineState(machine_id, cfg.var / "recipes" / machine_id, cfg.results_dir / machine_id)
         super().__init__(cfg, name, log)
-        self.machine_id = machine_id
-        self.machine_run_id = None
-        self.recipe_id = None
-        self.me = MeLink(Channel(cfg.ipc_prefix, machine_id, "wc", log), log, self._from_me)
-        self.recipe_dir = cfg.var / "recipes" / machine_id
-        self.results_dir = cfg.results_dir / machine_id
-        self._state_lock = asyncio.Lock()  # one status-changing step at a time
-        self._accept_lock = asyncio.Lock()  # accept-type changes reach MSCHED one at a time, in order
-        self._accepting_none: asyncio.Future[bool] | None = None  # a setup's accepts-nothing, unanswered yet
-        self._alarm_waits = {}
-        self._cleared = set()  # alarm numbers seen cleared (a clear may beat our wait for it)
-        self._alarm_pending = 0  # alarms of ours waiting for the operator: ME answers may take that long
-        self._set_up_for = None
+        self.servers = ServerCalls(self, self.state)
+        self.me_side = MeSide(self, self.state, self.servers)
+        self.steps = Steps(self, self.state, self.servers, self.me_side)
         self._start_note: str | None = None  # why the last ME_START failed, for ME_Ready's note
-        self._resuming = False  # a restarted WC checking its ME and its run: nothing served meanwhile
-        self._setup_checked = 0.0  # when the run set up was last found reserved (or not) ...
-        self._unreserved_since: float | None = None  # ... and since when it is not
-        self._me_pidfd: int | None = None  # the ME's process, watched for its exit
 
     # ----------------------------------------------------------------- module hooks
 
@@ -100,277 +82,184 @@ class WC(WCSteps):
 
     def serves(self, cls: str) -> bool:
         # A machine set up before a shutdown request may still start its run (Setup_Shut, 6.3.2.4).
-        return super().serves(cls) or (cls == Conv.START_RUN and self.status == S.SETUP_SHUT)
+        return super().serves(cls) or (cls == Conv.START_RUN and self.state.status == MachineStatus.SETUP_SHUT)
 
     def idle_interest(self) -> set[str]:
-        extra = {Conv.START_RUN} if self.status == S.SETUP_SHUT else set()
+        extra = {Conv.START_RUN} if self.state.status == MachineStatus.SETUP_SHUT else set()
         return super().idle_interest() | extra
 
     def startup_complete(self, code: str) -> Message:
-        return message(Msg.ME_READY, machine_id=self.machine_id, ack_code=code, note=self._start_note)
+        return message(Msg.ME_READY, machine_id=self.state.machine_id, ack_code=code, note=self._start_note)
 
     def shutdown_complete(self, note: str | None) -> Message:
-        return message(Msg.ME_STOPPED, machine_id=self.machine_id, ack_code=AckCode.ACK_OK, note=note)
+        return message(Msg.ME_STOPPED, machine_id=self.state.machine_id, ack_code=AckCode.ACK_OK, note=note)
 
     async def run(self, start: bool = False) -> int:
         try:
             return await super().run(start)
         finally:
-            self._unwatch_me_process()
-            self.me.stop()
-
-    def _watch_me_process(self) -> None:
-        """Watch the ME's process by its pid file (written by whoever started it): the kernel tells its
-        exit at once (a pidfd), and the next heartbeat pings the ME to confirm, so the idle pings
-        (ME_PING) are left to find an ME that hangs. No pid file: the pings alone, as before."""
-        self._unwatch_me_process()
-        name = module_name("me", self.machine_id)
-        st = read_pid(self.cfg, name)
-        if not st.alive or st.pid is None:
-            return
-        try:
-            fd = os.pidfd_open(st.pid)
-        except OSError:
-            return
-        if read_pid(self.cfg, name).pid != st.pid:  # the pid file changed meanwhile: not that process
-            os.close(fd)
-            return
-        self._me_pidfd = fd
-        self._loop.add_reader(fd, self._me_process_exited, st.pid)
-
-    def _unwatch_me_process(self) -> None:
-        fd, self._me_pidfd = self._me_pidfd, None
-        if fd is not None:
-            if not self._loop.is_closed():
-                self._loop.remove_reader(fd)
-            os.close(fd)
-
-    def _me_process_exited(self, pid: int) -> None:
-        self._unwatch_me_process()
-        self.log.warning("the ME's process (pid %d) exited: pinging it at the next heartbeat", pid)
-        self.me.heard = -math.inf
+            self.me_side.stop()
 
     async def on_bus(self) -> None:
-        self.status, self.machine_run_id, self.recipe_id = self._read_status()
+        state = self.state
+        state.status, state.machine_run_id, state.recipe_id = self.servers.read_status()
         # What the ME sent while no WC listened is read now (a RUN_COMPL is completed by its own task,
-        # which takes the state lock before _resume looks at the run).
+        # which takes the state lock before the resume looks at the run).
         try:
-            self.me.start(self._loop)
+            self.me_side.start()
         except QueueNotOurs as e:  # someone else's queue under our name: said to the operator, never used
             self.log.error("%s", e)
-            await self.raise_alarm("IPC_FOREIGN", f"{self.machine_id}: {e}"[:200], wait=False)
+            await self.servers.raise_alarm("IPC_FOREIGN", f"{state.machine_id}: {e}"[:200], wait=False)
             raise
-        self._watch_me_process()
-        if self.status != S.SHUTDOWN:
+        if state.status != MachineStatus.SHUTDOWN:
             self.log.warning(
-                "machine %s is %s (run %s): resuming it", self.machine_id, self.status, self.machine_run_id
+                "machine %s is %s (run %s): resuming it", state.machine_id, state.status, state.machine_run_id
             )
-            self._resuming = True
-            self._spawn(self._resume())
-
-    async def _resume(self) -> None:
-        """A WC restarted while its machine was up: check the ME, then the run, then serve again.
-
-        Until this is done the WC is not started, so what the cell asks meanwhile (SETUP_RUN from a
-        scheduler that still sees the machine Idle) is answered Notnow, never passed to an ME that
-        cannot serve it.
-        """
-        try:
-            answer: MeMessage | None
-            try:
-                answer = await self.me_request(MeMessage(MessageId.NO_MESSAGE), timeout=ME_DEADLINE)
-            except (MeDied, QueueError) as e:
-                answer, why = None, f"no ME answers: {e}"
-            else:
-                why = (
-                    f"the ME answers that it is shut down ({answer.alarm_text or answer.ack_code}): it was "
-                    "restarted and lost the machine's state"
-                )
-            async with self._state_lock:
-                if answer is None or answer.ack_code != AckCode.ACK_OK:
-                    if self.status != S.SHUTDOWN:  # (a RUN_COMPL that waited may have shut it down)
-                        await self.me_died(why)
-                    return
-                await self._reconcile_run(answer)
-                self.started = self.status in (S.IDLE, S.SETUP, S.RUNNING)
-                self.bus.set_interest(self.busy_interest() if self.started else self.idle_interest())
-                self.log.info(
-                    "machine %s resumed: %s, the ME is %s", self.machine_id, self.status, answer.alarm_text or "up"
-                )
-        finally:
-            self._resuming = False
-            self.me.heard = time.monotonic()
-
-    async def _reconcile_run(self, me: MeMessage) -> None:
-        """The run MACHINE_STATUS says is running, as it really is (the ME is up and answered `me`).
-
-        Its results file exists: the run ended and its RUN_COMPL was read by the WC that died (or
-        never handled): complete it from the file. The ME runs it: its RUN_COMPL will come. Neither,
-        but the dead WC stored the run (MACHINE_RUN_OUTCOME): announce it as stored. Else the results
-        are lost: complete it without them, so the lot hears and the machine is Idle again.
-        """
-        run_id = self.machine_run_id
-        if self.status not in (S.RUNNING, S.RUN_SHUT) or run_id is None:
-            return
-        path = self._results_path(run_id)
-        shutdown = "shutdown after run" if self.status == S.RUN_SHUT else None
-        if path.exists():
-            code, note = self._outcome_in(path)
-            self.log.warning(
-                "run %d ended while no WC handled it: completing it from its results file %s", run_id, path
-            )
-            await self._finish_run(run_id, code, path, note, shutdown)
-        elif me.alarm_text == MeState.RUNNING and me.file_name == str(path):
-            self.log.info("run %d is still in progress on the ME", run_id)
-        elif (stored := self._stored_outcome(run_id)) is not None:
-            self.log.warning("run %d: stored (%s) before the WC died, not announced: completing it", run_id, stored[0])
-            await self._finish_run(run_id, stored[0], None, stored[1], shutdown)
-        else:
-            self.log.error(
-                "run %d: no results file and the ME is %s with no run: the results are lost",
-                run_id,
-                me.alarm_text or "up",
-            )
-            await self._finish_run(
-                run_id, AckCode.RUN_FAIL, None, "results lost: the run ended while its WC was down", shutdown
-            )
+            self.me_side.resume_soon()
 
     async def on_startup(self) -> str:
         """6.3.2.1: ME_START to the ME (homing alarm passed on and cleared), Idle, all operations."""
-        code, self._start_note = await self._startup_machine()
+        code, self._start_note = await self.me_side.start_machine()
         if code != AckCode.ACK_OK:
-            self.log.error("machine %s not started: %s (%s)", self.machine_id, code, self._start_note)
+            self.log.error("machine %s not started: %s (%s)", self.state.machine_id, code, self._start_note)
         return code
+
+    def cancel_start(self) -> Coroutine[Any, Any, str] | None:
+        """A stop while ME_START is out (the machine waits to be homed): the start is cancelled."""
+        return self.me_side.cancel_start()
 
     async def still_up(self) -> bool:
         """A WC the Machine Server shut down while it could not hear it (a cut cable, a long freeze) still
         counts itself Idle: on ME_START it asks, learns the machine is Shutdown, and starts it again."""
-        if self.status != S.IDLE:
+        state = self.state
+        if state.status != MachineStatus.IDLE:
             return True  # in a run: its end's status change is refused and brings the Shutdown home
-        try:
-            reply = await self.ask(Conv.GET_STATUS, message(Msg.GET_STATUS, machine_id=self.machine_id), "ms")
-        except ConversationTimeout:
+        reply = await self.servers.machine_server_status()
+        if reply is None or reply.status != MachineStatus.SHUTDOWN:
             return True
-        if reply.status != S.SHUTDOWN:
-            return True
-        self.log.warning("the Machine Server has %s Shutdown (%s): starting it again", self.machine_id, reply.note)
-        self.status, self.started = S.SHUTDOWN, False
+        self.log.warning("the Machine Server has %s Shutdown (%s): starting it again", state.machine_id, reply.note)
+        state.status, self.started = MachineStatus.SHUTDOWN, False
         self.bus.set_interest(self.idle_interest())
         return False
 
-    async def _startup_machine(self) -> tuple[str, str | None]:
-        if self.status != S.SHUTDOWN:
-            return AckCode.NOTNOW, f"the machine is {self.status}, not Shutdown"
-        self.log.info("starting machine %s: ME_START to the ME", self.machine_id)
-        try:
-            answer = await self._start_on_me()
-        except StartCancelled as e:
-            return AckCode.REQ_CANCEL, str(e)
-        except (MeDied, QueueError) as e:
-            await self.raise_alarm(
-                "ME_DIED", f"machine side of {self.machine_id} did not answer ME_START: {e}", wait=False
-            )
-            return AckCode.START_FAIL, f"the ME did not start: {e}"
-        if answer.ack_code != AckCode.ACK_OK:
-            # Listing 3's MESTRT_FAIL ("See Error Log"), 3.2.2's alarm to turn the machine on: the operator
-            # learns that the machine did not start, and why, where every alarm goes.
-            why = f"{answer.ack_code} {answer.alarm_text or ''}".strip()
-            await self.raise_alarm("MESTRT_FAIL", f"{self.machine_id} refused to start: {why}", wait=False)
-            return AckCode.START_FAIL, f"the ME refused ME_START: {why}"
-        if not await self.change_status(S.IDLE, expect=[S.SHUTDOWN]):
-            return AckCode.START_FAIL, "the Machine Server refused the change to Idle"
-        if not await self.set_accept_types(ALL_OPERATIONS):
-            await self.change_status(S.SHUTDOWN, note="MSCHED did not take the accept types")
-            return AckCode.START_FAIL, "MSCHED did not take the accept types"
-        self.me.heard = time.monotonic()
-        self._watch_me_process()  # a restarted ME has another process
-        self.log.info("machine %s is Idle and accepts all its operations", self.machine_id)
-        return AckCode.ACK_OK, None
-
     async def on_shutdown(self) -> str | None:
         """6.3.2.2: Idle shuts down at once; Setup and Running shut down when their run is over."""
-        async with self._state_lock:
-            await self.set_accept_types([])
-            if self.status == S.SETUP:
-                await self.change_status(S.SETUP_SHUT, expect=[S.SETUP])
+        state, servers = self.state, self.servers
+        async with state.lock:
+            await servers.set_accept_types([])
+            if state.status == MachineStatus.SETUP:
+                await servers.change_status(MachineStatus.SETUP_SHUT, expect=[MachineStatus.SETUP])
                 self.bus.set_interest(self.idle_interest())
                 self.log.info("shutdown pending: the machine is set up; it shuts down after its run")
                 return "shutdown pending: the machine is set up; it shuts down after its run"
-            if self.status == S.RUNNING:
-                await self.change_status(S.RUN_SHUT, expect=[S.RUNNING])
+            if state.status == MachineStatus.RUNNING:
+                await servers.change_status(MachineStatus.RUN_SHUT, expect=[MachineStatus.RUNNING])
                 self.log.info("shutdown pending: the machine shuts down when its run completes")
                 return "shutdown pending: the machine shuts down when its run completes"
-            if self.status in (S.SETUP_SHUT, S.RUN_SHUT):
+            if state.status in (MachineStatus.SETUP_SHUT, MachineStatus.RUN_SHUT):
                 return "shutdown already pending"
-            await self._go_shutdown("operator shutdown")
+            await self.me_side.go_shutdown("operator shutdown")
             return None
 
     async def on_idle(self) -> None:
         """Give up an abandoned setup; watch the ME: ping it when quiet; declare it dead when a ping goes
         unanswered."""
-        await self._give_up_abandoned_setup()
-        if self._resuming or not self._me_up or self.me.busy or time.monotonic() - self.me.heard < ME_PING:
-            return
-        try:
-            answer = await self.me_request(MeMessage(MessageId.NO_MESSAGE), timeout=ME_DEADLINE)
-        except (MeDied, QueueError) as e:
-            if self._me_up:
-                await self.me_died(str(e))
-            return
-        if answer.ack_code != AckCode.ACK_OK and self._me_up:
-            await self.me_died(
-                f"the ME answers that it is shut down ({answer.alarm_text or answer.ack_code}): "
-                "it was restarted and lost the machine's state"
-            )
+        await self.steps.give_up_abandoned_setup()
+        await self.me_side.ping_if_quiet()
 
-    @property
-    def _me_up(self) -> bool:
-        """The ME should be up and is watched: the machine is, or it is lost (its ME looks for it)."""
-        return self.status != S.SHUTDOWN or self.lost is not None
+    # ----------------------------------------------------------------- the conversations served
 
-    async def _give_up_abandoned_setup(self) -> None:
-        """A machine set up for a run that MSCHED no longer reserves for it goes Idle again.
+    async def setup_run(self, conv: Conversation) -> None:
+        """6.3.2.3: Idle only; reservation, recipe and op type checked; the approved recipe to the ME;
+        status Setup (asked beside the ME's setup: docs/machine-interface.md, *The order of a run's steps*).
+        A request that names no recipe gets this machine's for the op type (OP_MACHINE_RECIPE), named in
+        the answer. One that says `start` is started as soon as it is set up, as START_RUN would, and
+        answered once Running: the lot's START_RUN round trip saved (docs/lot-scripts.md)."""
+        assert conv.first is not None
+        req = conv.first.first
+        self.log.info(
+            "SETUP_RUN run %d recipe %s op %s%s",
+            req.machine_run_id,
+            req.recipe_id or "(ours)",
+            req.op_type,
+            " and start" if req.start else "",
+        )
+        entity, refusal = self.steps.asking_entity(conv)
+        if refusal is not None:
+            await self.steps.refuse_now(conv, Msg.SETUP_RUN_ACK, *refusal)
+            return
+        if not await self.steps.serve_step(
+            conv, Msg.SETUP_RUN_ACK, (MachineStatus.IDLE,), lambda r: self.steps.setup(r, entity)
+        ):
+            return
+        self.state.set_up_for = (conv.initiator, req.machine_run_id)
+        self.log.info(
+            "set up run %d with recipe %s%s", req.machine_run_id, self.state.recipe_id, ", started" if req.start else ""
+        )
+        await conv.send(message(Msg.SETUP_RUN_ACK, ack_code=AckCode.ACK_OK, recipe_id=self.state.recipe_id))
 
-        The lot that set it up gave up or died between SETUP_RUN and START_RUN, and was unreserved.
-        Nobody will start that run, and the machine serves SETUP_RUN only when Idle: without this it
-        would stay in Setup for good. The run must be missing from RESERVED_MACHINES for ABANDONED_S
-        first, so a reservation is never raced.
-        """
-        run_id, now = self.machine_run_id, time.monotonic()
-        if self.status not in (S.SETUP, S.SETUP_SHUT) or run_id is None:
-            self._unreserved_since = None
+    async def start_run(self, conv: Conversation) -> None:
+        """6.3.2.4: Setup or Setup_Shut only; the ME starts; Running (or Run_Shut)."""
+        assert conv.first is not None
+        req = conv.first.first
+        self.log.info("START_RUN run %d", req.machine_run_id)
+        refusal = await self.steps.not_reserved(conv)
+        if refusal is not None:
+            await self.steps.refuse_now(conv, Msg.START_RUN_ACK, *refusal)
             return
-        if now - self._setup_checked < SETUP_CHECK_S:
+        if not await self.steps.serve_step(
+            conv, Msg.START_RUN_ACK, (MachineStatus.SETUP, MachineStatus.SETUP_SHUT), self.steps.run_on_me
+        ):
             return
-        self._setup_checked = now
-        try:
-            reserved = (
-                self._read(
-                    "SELECT 1 FROM reserved_machines WHERE machine_id = %s AND machine_run_id = %s",
-                    (self.machine_id, run_id),
-                )
-                is not None
+        self.log.info("run %d started", req.machine_run_id)
+        await conv.send(message(Msg.START_RUN_ACK, ack_code=AckCode.ACK_OK))
+
+    async def download(self, conv: Conversation) -> None:
+        """DNLD_ME (5.1.3): a recipe from the cell to the machine. Idle only."""
+        assert conv.first is not None
+        req = conv.first.first
+        refusal = await self.steps.not_held(conv)
+        if refusal is not None:
+            return await self.steps.refuse_now(conv, Msg.DOWNLOAD_ACK, *refusal)
+        if not await self.steps.serve_step(conv, Msg.DOWNLOAD_ACK, (MachineStatus.IDLE,), self.steps.download):
+            return
+        self.log.info("recipe %s downloaded to %s", req.recipe_id, self.state.machine_id)
+        await conv.send(message(Msg.DOWNLOAD_ACK, ack_code=AckCode.ACK_OK))
+
+    async def upload(self, conv: Conversation) -> None:
+        """UPLD_ME (5.1.3): the machine's recipe back to the cell, stored by the ERS as a new version."""
+        assert conv.first is not None
+        req = conv.first.first
+        refusal = await self.steps.not_held(conv)
+        if refusal is not None:
+            return await self.steps.refuse_now(conv, Msg.UPLOAD_ACK, *refusal)
+        async with self.state.lock:
+            refusal = self.steps.check(req, (MachineStatus.IDLE,))
+            content: str | None = None
+            if refusal is None:
+                refusal, content = await self.steps.upload(req)
+        if refusal is not None:
+            return await self.steps.refuse_now(conv, Msg.UPLOAD_ACK, *refusal)
+        assert content is not None
+        by = conv.initiator if conv.initiator.startswith("lot:") else self.name
+        stored = await self.servers.store_recipe(req.recipe_id, content, by)
+        if stored is None:
+            return await self.steps.refuse_now(
+                conv, Msg.UPLOAD_ACK, AckCode.TIMEOUT, "the Equipment Recipe Server did not answer"
             )
-        except DatabaseUnavailable:
-            raise
-        except DatabaseError as e:
-            self.log.warning("cannot check the reservation of run %d: %s", run_id, e)
+        self.log.info(
+            "recipe %s uploaded from %s: ERS says %s, version %s",
+            req.recipe_id,
+            self.state.machine_id,
+            stored.ack_code,
+            stored.version,
+        )
+        await conv.send(message(Msg.UPLOAD_ACK, ack_code=stored.ack_code, version=stored.version, note=stored.note))
+
+    async def alarm_cleared(self, conv: Conversation) -> None:
+        """ALARM_CLE: an alarm cleared; a step of ours waiting for it goes on."""
+        assert conv.first is not None
+        clear = conv.first.first
+        if clear.machine_id not in (None, self.state.machine_id):
             return
-        if reserved or self._unreserved_since is None:
-            self._unreserved_since = None if reserved else now
-            return
-        if now - self._unreserved_since < ABANDONED_S:
-            return
-        async with self._state_lock:
-            if self.status not in (S.SETUP, S.SETUP_SHUT) or self.machine_run_id != run_id:
-                return
-            self.log.warning(
-                "run %d is set up but not reserved any more (its lot gave up or died): giving it up", run_id
-            )
-            self.machine_run_id = self.recipe_id = None
-            self._unreserved_since = None
-            if self.status == S.SETUP_SHUT:
-                await self._go_shutdown(f"shutdown after run {run_id} was given up")
-            else:
-                await self.change_status(S.IDLE, expect=[S.SETUP], note=f"run {run_id} given up: not reserved")
-                await self.set_accept_types(ALL_OPERATIONS)
+        self.servers.done_waiting(clear.alarm_no)

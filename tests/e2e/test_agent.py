@@ -59,6 +59,7 @@ def agent_cell(tmp_path: Path, database_url: str):
         gwc(env, "stop")
 
 
+@pytest.mark.alone  # timed against a bar: run with no other test beside it
 def test_kill_9_of_each_module_kind_is_announced_and_running_again_within_3s(agent_cell) -> None:
     cfg, env = agent_cell([{"id": "wc1", "kind": "dummy", "run_time": 0.1}])
     started = gwc(env, "start")
@@ -127,6 +128,7 @@ def main(entity: OperationEntity) -> None:
 '''
 
 
+@pytest.mark.alone  # timed against a bar: run with no other test beside it
 def test_a_lot_script_killed_9_mid_run_is_running_again_within_3s_and_its_lot_is_done_once(
     agent_cell, tmp_path: Path, database_url: str
 ) -> None:

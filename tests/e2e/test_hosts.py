@@ -155,6 +155,7 @@ def lots_done(cell: HostCell, entities: list[int]) -> bool:
     return len(states) == len(entities) and set(states.values()) == {"exported"}
 
 
+@pytest.mark.alone  # timed against a bar: run with no other test beside it
 def test_a_cell_over_three_hosts_makes_the_chess_order_and_rides_out_a_cut_cable(host_cell: HostCell) -> None:
     cell = host_cell
     cell.gwc("h1", "start", timeout=240)
@@ -246,6 +247,7 @@ def test_a_cell_over_three_hosts_makes_the_chess_order_and_rides_out_a_cut_cable
             assert "SETUP_RUN" in cell.log(host, f"wc:{m}"), f"{host} wc:{m} log"
 
 
+@pytest.mark.alone  # timed against a bar: run with no other test beside it
 def test_bench_bus_between_two_hosts_measures_the_bus_beside_the_bare_floor() -> None:
     out = subprocess.run(
         [sys.executable, "-m", "gwc", "bench", "bus", "--hosts", "-n", "300", "--json"],

@@ -538,7 +538,7 @@ def test_kill_9_of_the_wc_during_a_run_the_restarted_wc_stores_the_run_its_me_fi
     assert not results_file.exists(), "the results file is removed once stored"
     wait_for(lambda: status(cell, "wc6")[0] == after, T, f"{after} after the run")
     if after == "Idle":
-        story(cell, "wc:wc6", "Running \\(run 41\\): resuming it", "41: 5 results stored")
+        story(cell, "wc:wc6", "Running \\(run 41\\): resuming it", "41: 5 results stored", "resumed: Idle")
         assert setup_run(cell, "wc6", 42).ack_code == OK  # and it serves the cell again
     else:
         assert accepts(cell, "wc6") == []
@@ -655,7 +655,9 @@ def test_kill_9_of_the_wc_after_it_read_run_compl_the_restarted_wc_completes_the
     wait_for(lambda: status(cell, "wc2")[0] == "Idle", T, "Idle again")
     pending_alarm(cell, "RUN_FAIL", "wc2")
     # Idle is written before the resumed WC serves (until then it answers Notnow, as it should): wait.
-    story(cell, "wc:wc2", "resumed: Idle", "run 428: no results file", r"run 428 complete \(Run_Fail\)", "resumed: Idle")
+    story(
+        cell, "wc:wc2", "resumed: Idle", "run 428: no results file", r"run 428 complete \(Run_Fail\)", "resumed: Idle"
+    )
     assert setup_run(cell, "wc2", 429).ack_code == OK  # and it serves the cell again
 
 

@@ -58,6 +58,7 @@ def broken_lots(report: SoakReport) -> list[str]:
     return sorted(p.split(" (entity")[0] for p in report.lot_problems if " ran 2 times" in p)
 
 
+@pytest.mark.alone  # timed against a bar: run with no other test beside it
 @pytest.mark.timeout(900)
 def test_short_soak_under_every_kind_of_fault_keeps_every_promise(tmp_path: Path, database_url: str) -> None:
     report = soak(tmp_path / "soak", database_url, seed=2026, minutes=1.0, action_every=(4.0, 8.0))

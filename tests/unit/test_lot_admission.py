@@ -16,7 +16,8 @@ from gwc import db
 from gwc.budget import MIN_RUNNING, OPERATOR_RESERVE, SUPERUSER_RESERVED, plan
 from gwc.errors import ConfigError, DatabaseUnavailable
 from gwc.lot.admission import LotQueue
-from gwc.lot.core import OVER_BUDGET, EntityCore
+from gwc.lot.core import OVER_BUDGET, LotReads
+from gwc.lot.state import EntityState
 from tests.conftest import PgCluster, make_config
 from tests.harness import wait_for
 
@@ -125,12 +126,12 @@ def test_a_lot_whose_role_has_no_connection_left_waits_for_one_and_does_not_fail
 ) -> None:
     cfg = lot_limit
     held = [db.connect(cfg, role="lot", attempts=1) for _ in range(2)]
-    entity = EntityCore(cfg, 1, LOG)
+    reads = LotReads(EntityState(cfg, 1, LOG))
     got: dict[str, Any] = {}
 
     def read() -> None:
         try:
-            got["rows"] = entity._query("select 1", within=0)
+            got["rows"] = reads.query("select 1", within=0)
         except Exception as e:  # the test reports it
             got["error"] = e
 
@@ -145,6 +146,5 @@ def test_a_lot_whose_role_has_no_connection_left_waits_for_one_and_does_not_fail
     t.join(10)
     for c in held:
         c.close()
-    if entity._conn is not None:
-        entity._conn.close()
+    reads.release()
     assert got == {"rows": [(1,)]}

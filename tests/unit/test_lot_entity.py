@@ -514,14 +514,14 @@ def test_a_wc_first_heard_after_its_run_began_is_the_runs_and_its_restart_loses_
 ) -> None:
     # A WC leaves a lot's query to its beat: a lot bound at once may set up on a WC it has not heard of.
     _, entity = fake
-    with entity._cond:
-        entity._peer_inc.pop("wc:m1", None)
-        entity._began[("m1", 5)] = (time.monotonic(), None)
-    assert entity._lost("m1", 5) is None  # not heard of yet, within lost_grace
-    entity._peer_changed("wc:m1", Peer("wc:m1", 7, frozenset(), time.monotonic()))
-    assert entity._lost("m1", 5) is None  # heard of: the run's WC
-    entity._peer_changed("wc:m1", Peer("wc:m1", 8, frozenset(), time.monotonic()))
-    assert entity._lost("m1", 5) == "wc:m1 restarted"
+    with entity.heard.cond:
+        entity.heard.peer_inc.pop("wc:m1", None)
+        entity.heard.began[("m1", 5)] = (time.monotonic(), None)
+    assert entity.heard.lost("m1", 5) is None  # not heard of yet, within lost_grace
+    entity.heard.peer_changed("wc:m1", Peer("wc:m1", 7, frozenset(), time.monotonic()))
+    assert entity.heard.lost("m1", 5) is None  # heard of: the run's WC
+    entity.heard.peer_changed("wc:m1", Peer("wc:m1", 8, frozenset(), time.monotonic()))
+    assert entity.heard.lost("m1", 5) == "wc:m1 restarted"
 
 
 @pytest.mark.parametrize(

@@ -24,7 +24,7 @@ from gwc.config import Config
 from gwc.errors import ConfigError, QueueError, QueueTimeout
 from gwc.files import previous
 from gwc.ipc.codes import AckCode
-from gwc.ipc.mq import Channel, MeMessage, MessageId, remove_queues
+from gwc.ipc.mq import MAX_MESSAGES, Channel, MeMessage, MessageId, remove_queues
 from gwc.me import make_machine
 from gwc.me.cmm_sim import CmmSimulator, fault_file, inject_fault, sim_link
 from gwc.me.line import Garbage, LineTimeout, RecordStream
@@ -207,13 +207,13 @@ def test_dummy_configured_to_fail_a_run_and_to_fail_homing(machine, tmp_path: Pa
 def test_dummy_keeps_answers_while_the_wc_is_away(machine, tmp_path: Path) -> None:
     m = machine(kind="dummy", run_time=0.0)
     start_and_setup(m, tmp_path)
-    for i in range(9):  # fill the WC's queue but one slot
+    for i in range(MAX_MESSAGES - 1):  # fill the WC's queue but one slot
         m.wc.send(MeMessage(MessageId.NO_MESSAGE, seq=1000 + i))
-    wait_for(lambda: m.wc.pending()[1] == 9, 5, "nine ping answers queued")
+    wait_for(lambda: m.wc.pending()[1] == MAX_MESSAGES - 1, 5, "ping answers queued")
     m.wc.send(MeMessage(MessageId.START_RUN, seq=2000, file_name=str(tmp_path / "r")))
     assert m.me is not None
     wait_for(lambda: m.me.waiting == 1, 5, "RUN_COMPL kept in the ME's outbox (START_RUN's answer took the last slot)")
-    got = [m.wc.receive(5) for _ in range(11)]
+    got = [m.wc.receive(5) for _ in range(MAX_MESSAGES + 1)]
     assert got[-2].seq == 2000 and got[-1].message_id == MessageId.RUN_COMPL
 
 

@@ -44,6 +44,13 @@ def test_passwords_are_salted_argon2_and_checked() -> None:
         hash_password("short")
 
 
+def test_the_cli_loads_the_door_for_every_command_that_acts() -> None:
+    from gwc.cli import ACTING
+    from gwc.hi.door import COMMAND_ACTIONS
+
+    assert {words[0] for words in COMMAND_ACTIONS} == ACTING
+
+
 def test_a_command_line_is_its_action_and_target() -> None:
     assert action_of(["machine", "start", "wc1"]) == (Action.MACHINE_START, "wc1")
     assert action_of(["import", "--all"]) == (Action.LOT_IMPORT, "--all")

@@ -1,7 +1,7 @@
 """MSCHED's store, piece by piece against the real database: batched frees, the policy's rank stored
 with each request (and set again when the policy changes), the candidate walk, the statistics refresh.
 
-The random sequences of test_sched_property.py check the pass as a whole; these check the parts the
+The random sequences of test_msched_property.py check the pass as a whole; these check the parts the
 scheduler's speed rests on, which those sequences would only notice indirectly.
 """
 
