@@ -39,7 +39,16 @@ COMMANDS = {
     "bench": "gwc.hi.bench",  # benchmarks
     **dict.fromkeys(["report", "trace", "downtime"], "gwc.hi.record"),  # the production record
     **dict.fromkeys(["spc", "tool"], "gwc.hi.quality"),  # quality: control charts, tool changes (docs/quality.md)
+    "user": "gwc.hi.user",  # the cell's users and their roles
+    "audit": "gwc.hi.audit",  # the audit trail
 }
+
+# The commands of which some act on the cell: only their lines load the door (gwc/hi/door.py,
+# COMMAND_ACTIONS: tests/unit/test_users.py checks the two agree).
+ACTING = frozenset(
+    {"machine", "alarm", "order", "customer", "import", "export", "release", "lots", "cancel", "unreserve"}
+    | {"recipe", "script", "downtime", "tool"}
+)
 
 
 class GwcGroup(click.Group):
@@ -57,7 +66,13 @@ class GwcGroup(click.Group):
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
-            return super().invoke(ctx)
+            words = [*getattr(ctx, "_protected_args", []), *ctx.args]
+            if ctx.parent is not None or not words or words[0] not in ACTING:
+                return super().invoke(ctx)  # nothing the role table names: no import of the door
+            from gwc.hi.door import gwc_door  # the role table and the audit trail (docs/users.md)
+
+            with gwc_door(words):
+                return super().invoke(ctx)
         except GwcError as e:
             click.echo(f"gwc: {e}", err=True)
             ctx.exit(e.exit_code)

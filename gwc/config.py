@@ -27,7 +27,7 @@ from gwc.errors import ConfigError
 PROJECT_ROOT = Path(__file__).resolve().parent.parent  # the checkout; installed, the folder holding gwc/
 PACKAGE_DATA = Path(__file__).resolve().parent / "data"  # sql/ and etc/ as shipped in the package (setup.py)
 SERVER_MODULES = ("cas", "ers", "ms", "ls", "sls", "msched")
-OPTIONAL_MODULES = ("opcua",)  # modules a cell may list, not part of every cell (private cells leave them out)
+OPTIONAL_MODULES = ("opcua", "web")  # modules a cell may list, not part of every cell (private cells leave them out)
 LEVELS = ("trace", "note", "warning", "error")
 
 

@@ -79,3 +79,15 @@ class Refused(GwcError):
         self.detail = detail
         self.fields = fields
         super().__init__(f"refused with {ack_code}" + (f": {detail}" if detail else ""))
+
+
+class Forbidden(GwcError):
+    """A person's role may not do what they asked (gwc/users/roles.py; docs/users.md)."""
+
+    exit_code = 8
+
+
+class NotAuthenticated(GwcError):
+    """A person could not be identified: no such user, a wrong password, or a door locked for a while."""
+
+    exit_code = 8

@@ -69,6 +69,7 @@ BUS_MODULES = {
     "sls": "gwc.servers.status_line:StatusLineServer",
     "wc": "gwc.wc.wc:WC",
     "opcua": "gwc.opcua.gateway:Gateway",
+    "web": "gwc.web.module:WebModule",
 }
 # Processes off the bus, each `main(cfg, machine_id, log, stop) -> int`.
 MACHINE_PROCESSES = {

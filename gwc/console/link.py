@@ -33,13 +33,15 @@ from gwc.client.machines import maintenance_done, start_machine, stop_machine
 from gwc.client.orders import decide, enter_order
 from gwc.client.requests import cancel_request, unreserve_machine
 from gwc.config import Config
-from gwc.errors import GwcError, Refused
+from gwc.errors import Forbidden, GwcError, Refused
 from gwc.hi.monitor import watch
 from gwc.ipc import BlockingBus, Peer
 from gwc.ipc.codes import AckCode, LotState
 from gwc.ipc.names import Conv
 from gwc.log import log_file_name, open_log
 from gwc.module import module_name
+from gwc.users import Action, Person, check, identify_unix
+from gwc.users.doors import audit
 
 T = TypeVar("T")
 
@@ -95,6 +97,10 @@ def in_words(code: str) -> str:
         return str(code)
 
 
+REFUSED = "refused by the role table: "  # the start of a refusal's answer (already audited)
+DECISIONS = {"import": Action.LOT_IMPORT, "export": Action.LOT_EXPORT}
+
+
 def console_log(cfg: Config) -> logging.Logger:
     """The console's log, var/log/console.log (at the HI's level)."""
     return open_log("console", cfg.log_dir, cfg.level_of("hi"))
@@ -124,6 +130,7 @@ class CellLink:
         self._records: collections.deque[dict[str, Any]] = collections.deque(maxlen=RECORDS_MAX)
         self._stop = threading.Event()
         self._listener: threading.Thread | None = None
+        self.person: Person | None = None  # who sits at the console (gwc.users), known at the first action
 
     # ----------------------------------------------------------------- lifetime
 
@@ -206,9 +213,13 @@ class CellLink:
 
     # ----------------------------------------------------------------- actions (worker threads)
 
-    def act(self, what: str, fn: Callable[[], str]) -> Answer:
-        """Run one action; its answer (or why it was refused) as one line, logged to the console's log."""
+    def act(self, what: str, fn: Callable[[], str], action: Action | None = None, target: str = "") -> Answer:
+        """Run one action; its answer (or why it was refused) as one line, logged to the console's log.
+        `action`: what it is in the role table (docs/users.md): checked for the person at the console
+        before it runs, and its outcome appended to the audit trail (gwc.users)."""
         try:
+            if action is not None:
+                self._check(action, target)
             answer = Answer(True, f"{what}: {fn()}")
         except Refused as e:
             answer = Answer(False, f"{what}: refused, {in_words(e.ack_code)}" + _detail(e))
@@ -218,7 +229,41 @@ class CellLink:
             self.log.exception("console: %s failed", what)
             answer = Answer(False, f"{what}: failed, {type(e).__name__}: {e} (see {self.log_path()})")
         self.log.info("%s", answer.text)
+        if action is not None and self.person is not None and not answer.text.startswith(f"{what}: {REFUSED}"):
+            who, outcome = self.person, "ok" if answer.ok else "failed"
+
+            def write(conn: psycopg.Connection[Any]) -> bool:
+                audit(conn, who, action, target, outcome, answer.text)
+                return True
+
+            if self.read(write) is None:
+                self.log.error("console: audit row not written: %s", answer.text)
         return answer
+
+    def _check(self, action: Action, target: str) -> None:
+        """The person at the console (their unix login, as for a `gwc` command, found at the first
+        action) may do `action`, or Forbidden (audited) naming the roles that may. Once known, the
+        person's role is checked here without the database, so that an operator can still stop a
+        machine while the database is away (the audit row is then lost, and logged)."""
+        if self.person is None:
+            found = self.read(lambda conn: identify_unix(conn, "console"))
+            if found is None:
+                raise GwcError(f"cannot tell who you are: the cell database is {self.db_error or 'unreachable'}")
+            self.person = found
+        who = self.person
+        try:
+            check(who.name, who.role, action)
+        except Forbidden as e:
+            why = str(e)
+
+            def write(conn: psycopg.Connection[Any]) -> bool:
+                audit(conn, who, action, target, "refused", why)
+                return True
+
+            if self.read(write) is None:
+                self.log.error("console: audit row not written: %s %s refused to %s", action, target, who.name)
+            self.log.warning("console: %s %s refused to %s: %s", action, target, who.name, e)
+            raise GwcError(f"{REFUSED}{e}") from None
 
     def log_path(self) -> Path:
         return self.cfg.log_dir / log_file_name("console")
@@ -232,7 +277,7 @@ class CellLink:
             lot = decide(self.bus, entity_id, action, operator())
             return f"{in_words(AckCode.ACK_OK)}, lot {lot}"
 
-        return self.act(f"{action} entity {entity_id}", go)
+        return self.act(f"{action} entity {entity_id}", go, DECISIONS[action], str(entity_id))
 
     def decide_all(self, action: str, entities: Iterable[int]) -> list[Answer]:
         return [self.decide(e, action) for e in entities]
@@ -244,7 +289,7 @@ class CellLink:
             assert self.bus is not None
             return start_machine(self.cfg, self.bus, machine_id, self.log.info, START_TIMEOUT)
 
-        return self.act(f"start machine {machine_id} (ME_START)", go)
+        return self.act(f"start machine {machine_id} (ME_START)", go, Action.MACHINE_START, machine_id)
 
     def stop_machine(self, machine_id: str) -> Answer:
         """ME_SHUT, as `gwc machine stop`."""
@@ -253,7 +298,7 @@ class CellLink:
             assert self.bus is not None
             return stop_machine(self.cfg, self.bus, machine_id, STOP_TIMEOUT)
 
-        return self.act(f"stop machine {machine_id} (ME_SHUT)", go)
+        return self.act(f"stop machine {machine_id} (ME_SHUT)", go, Action.MACHINE_STOP, machine_id)
 
     def maintenance_done(self, machine_id: str) -> Answer:
         """MAINT_DONE, as `gwc machine maintenance-done`."""
@@ -264,7 +309,7 @@ class CellLink:
             runs = maintenance_done(self.bus, machine_id)
             return f"{in_words(AckCode.ACK_OK)}: maintained after {runs} run(s), the count starts again"
 
-        return self.act(f"maintenance done on {machine_id}", go)
+        return self.act(f"maintenance done on {machine_id}", go, Action.MACHINE_MAINTAINED, machine_id)
 
     def start_module(self, name: str) -> Answer:
         """A WC: ME_START. A server: through the agent where one runs (as `gwc start`), else its
@@ -283,7 +328,7 @@ class CellLink:
             cell.start_procs(self.cfg, procs, self.bus, said.append)
             return "; ".join(said) or "started"
 
-        return self.act(f"start {name}", go)
+        return self.act(f"start {name}", go, Action.MACHINE_START, name)
 
     def stop_module(self, name: str) -> Answer:
         """A WC: ME_SHUT. A server: the agent stops its process (and keeps it down) where one runs;
@@ -300,7 +345,7 @@ class CellLink:
             self._need(name)
             return cell.shutdown(self.bus, name)
 
-        return self.act(f"stop {name}", go)
+        return self.act(f"stop {name}", go, Action.MACHINE_STOP, name)
 
     def restart_module(self, name: str) -> Answer:
         """Stop and start a module's process through the agent, as `gwc restart`."""
@@ -310,7 +355,7 @@ class CellLink:
             agent_control.call(self.cfg, "restart", say=said.append, names=[name])
             return "; ".join(said) or "restarted"
 
-        return self.act(f"restart {name}", go)
+        return self.act(f"restart {name}", go, Action.MACHINE_START, name)
 
     def start_cell(self) -> Answer:
         """Database, servers and machines' processes, as `gwc start`."""
@@ -319,7 +364,7 @@ class CellLink:
             cell.start_cell(self.cfg, self.log, say=self.log.info)
             return "cell started"
 
-        return self.act("start the cell", go)
+        return self.act("start the cell", go, Action.MACHINE_START, "cell")
 
     def clear_alarm(self, alarm_no: int) -> Answer:
         """ALARM_CLR_REQ, as `gwc alarm clear`."""
@@ -332,7 +377,7 @@ class CellLink:
                 raise Refused(ack.ack_code, ack.note or "")
             return in_words(ack.ack_code)
 
-        return self.act(f"clear alarm {alarm_no}", go)
+        return self.act(f"clear alarm {alarm_no}", go, Action.ALARM_CLEAR, str(alarm_no))
 
     def cancel_request(self, request_key: int) -> Answer:
         """CANCEL_RE, as `gwc cancel`."""
@@ -345,7 +390,7 @@ class CellLink:
                 raise Refused(ack.ack_code, ack.note or "")
             return f"{in_words(ack.ack_code)}: {ack.cancelled} request(s) cancelled, the entity was told REQ_CANCEL"
 
-        return self.act(f"cancel request {request_key}", go)
+        return self.act(f"cancel request {request_key}", go, Action.REQUEST_CANCEL, str(request_key))
 
     def unreserve_machine(self, machine_id: str) -> Answer:
         """UNRESERVE of a machine a dead lot holds, as `gwc unreserve` (refused while its script runs)."""
@@ -356,7 +401,7 @@ class CellLink:
             entity = unreserve_machine(self.cfg, self.bus, machine_id)
             return f"{in_words(AckCode.ACK_OK)}: {machine_id} freed (it was reserved to entity {entity})"
 
-        return self.act(f"unreserve {machine_id}", go)
+        return self.act(f"unreserve {machine_id}", go, Action.MACHINE_UNRESERVE, machine_id)
 
     def enter_order(self, customer: str, items: list[tuple[str, int]]) -> Answer:
         """Work Order Entry, as `gwc order new`: the order, its lots, one lot script per entity."""
@@ -371,7 +416,7 @@ class CellLink:
             )
             return f"work order {made['work_order_id']} entered, {lots}"
 
-        return self.act(f"work order for {customer}", go)
+        return self.act(f"work order for {customer}", go, Action.ORDER_ENTER, customer)
 
     def status_line(self) -> str:
         """The Status Line Server's line (STATUS_LN), as `gwc status-line`."""

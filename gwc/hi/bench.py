@@ -20,6 +20,7 @@ BENCH_MODULES = [
     "gwc.bench.opcua",
     "gwc.bench.quality",
     "gwc.console.cost",
+    "gwc.hi.webbench",  # what open browsers on the web HMI cost
 ]
 
 

@@ -40,6 +40,7 @@ from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module, module_name
 from gwc.opcua import model, record, security, store
 from gwc.opcua.answers import OUT, result
+from gwc.opcua.door import OpcuaDoor
 from gwc.opcua.hi_methods import MAINTENANCE_OUT, UNRESERVE_ARGS, UNRESERVE_OUT, HiMethods
 from gwc.opcua.settings import load_settings
 from gwc.opcua.space import (
@@ -118,6 +119,7 @@ class Gateway(Module):
         self._alarm_template: Any = None
         self._event_lock = asyncio.Lock()
         self.hi = HiMethods(cfg, log, self._converse, self._by())
+        self.door = OpcuaDoor(cfg, log)  # cell users, the role table, the audit trail (docs/users.md)
         self._dirty: set[str] = set()
         self._wake = asyncio.Event()
         self._heard: dict[str, int] = dict.fromkeys(self.machine_ids, 0)  # UPD_ME_ST heard per machine
@@ -156,6 +158,7 @@ class Gateway(Module):
             await self.server.stop()
             self.server = None
             self.log.info("OPC UA server stopped in %.2f s", time.monotonic() - began)
+        await asyncio.to_thread(self.door.close)
         return None
 
     async def on_idle(self) -> None:
@@ -171,7 +174,7 @@ class Gateway(Module):
     async def _open_server(self) -> None:
         """Build the asyncua server: endpoints, security, the address space; then listen."""
         s = self.settings
-        users = security.GatewayUsers(s, self.log)
+        users = security.GatewayUsers(s, self.log, self.door)
         await users.load()
         server = security.GatewayServer(user_manager=users)  # type: ignore[arg-type]
         server.iserver.bind_condition_methods = True  # ConditionRefresh replays the retained conditions
@@ -484,6 +487,7 @@ class Gateway(Module):
             out = result(AckCode.TIMEOUT, str(e))
         except GwcError as e:
             out = result(AckCode.BAD_MESSAGE, str(e))
+        await self.door.done(out)
         code = out.OutputArguments[0].Value if out.OutputArguments else out.StatusCode.name
         self.log.info(
             "OPC UA method %s: %s %s", what, code, out.OutputArguments[1].Value if out.OutputArguments else ""

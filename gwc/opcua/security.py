@@ -42,6 +42,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from gwc.errors import ConfigError
 from gwc.opcua.settings import OpcuaSettings, parse_hash
+from gwc.users import Role
 
 CALL = ua.NodeId(ua.Int32(ua.ObjectIds.CallRequest_Encoding_DefaultBinary))
 WRITE = ua.NodeId(ua.Int32(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary))
@@ -89,10 +90,11 @@ def password_matches(stored: str, given: str) -> bool:
 class GatewayUsers:
     """asyncua's user manager: anonymous (if allowed), a configured password, or a configured certificate."""
 
-    def __init__(self, settings: OpcuaSettings, log: logging.Logger) -> None:
+    def __init__(self, settings: OpcuaSettings, log: logging.Logger, door: Any = None) -> None:
         self.settings = settings
         self.log = log
         self.certificates: dict[bytes, str] = {}
+        self.door = door  # gwc.opcua.door.OpcuaDoor: cell users, their roles, the method rule (docs/users.md)
 
     async def load(self) -> None:
         for name, path in self.settings.user_certificates.items():
@@ -116,9 +118,16 @@ class GatewayUsers:
                 )
                 return None
             stored = self.settings.users.get(username)
-            if stored is None or not password_matches(stored, password or ""):
+            if stored is not None:  # an [opcua] users entry (an MES's account): every method, as before users
+                role = "engineer" if password_matches(stored, password or "") else None
+            else:  # a cell user, with their own role
+                found = self.door.cell_login(username, password or "") if self.door is not None else None
+                role = found.name if found is not None else None
+            if role is None:
                 self.log.warning("OPC UA session refused: wrong user name or password for %r", username)
                 return None
+            if self.door is not None:
+                self.door.roles[username] = Role[role]
             return User(role=UserRole.User, name=username)
         if certificate is not None:
             der = certificate if isinstance(certificate, bytes) else uacrypto.der_from_x509(certificate)
@@ -137,17 +146,18 @@ class GatewayRules(PermissionRuleset):
 
     READ_TYPES = frozenset(ua.NodeId(ua.Int32(t)) for t in USER_TYPES) - {CALL, WRITE}
 
-    def __init__(self, encrypted: bool) -> None:
+    def __init__(self, encrypted: bool, door: Any = None) -> None:
         self.encrypted = encrypted
+        self.door = door  # gwc.opcua.door.OpcuaDoor: which role may call which method
 
     def check_validity(self, user: User, action_type_id: ua.NodeId, body: Buffer) -> bool:
         if action_type_id in self.READ_TYPES:
             return True
         if action_type_id != CALL:
             return False
-        if self.encrypted and user.role in (UserRole.User, UserRole.Admin):
-            return True
         calls = struct_from_binary(ua.CallParameters, body.copy()).MethodsToCall
+        if self.encrypted and user.role in (UserRole.User, UserRole.Admin):
+            return self.door is None or bool(self.door.check(user.name, [c.MethodId for c in calls]))
         return all(c.MethodId in REFRESH for c in calls)
 
 
@@ -240,8 +250,9 @@ class GatewayServer(Server):
 
     async def _setup_server_nodes(self) -> None:
         await super()._setup_server_nodes()
+        door = getattr(self.iserver.user_manager, "door", None)
         for factory in self._policies:
-            factory.permission_ruleset = GatewayRules(factory.mode == ua.MessageSecurityMode.SignAndEncrypt)
+            factory.permission_ruleset = GatewayRules(factory.mode == ua.MessageSecurityMode.SignAndEncrypt, door)
         decrypt = self.iserver.decrypt_user_token
 
         def marked(isession: Any, token: ua.UserNameIdentityToken) -> tuple[str, str]:

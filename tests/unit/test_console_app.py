@@ -15,13 +15,16 @@ from gwc.console.app import ConsoleApp
 from gwc.console.views import Confirm, LiveTable, MachinesView, fill_table
 from gwc.log import open_log
 from gwc.soak.private_config import private_bus
+from gwc.users import Person, Role
 from tests.conftest import make_config
 from tests.harness import until
 
 
 def _app(tmp_path: Path) -> ConsoleApp:
     cfg: Config = make_config(tmp_path, None, bus=private_bus(), machine=[{"id": "wc1", "kind": "dummy"}])
-    return ConsoleApp(cfg, open_log("console", cfg.log_dir, "note"))
+    app = ConsoleApp(cfg, open_log("console", cfg.log_dir, "note"))
+    app.link.person = Person("tester", Role.admin, "console", managed=False)  # no database here to identify by
+    return app
 
 
 def _show_machine(app: ConsoleApp, status: str) -> None:

@@ -1,0 +1,394 @@
+"""The web HMI's HTTP API against a real cell (servers, two dummy machines, the web module as a
+process): log in, see the machines, start one, and the security the issue asks for (CSRF, cookie
+flags, no action on GET, the lockout, a viewer crafting requests), each refusal a clear message and
+an audit row. One cell for the module (tests/e2e/webkit.py)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import ssl
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from click.testing import CliRunner
+
+from gwc.cli import cli
+from gwc.console.link import CellLink
+from gwc.log import open_log
+from tests.e2e.webkit import ARTIFACTS, PASSWORD, ROLE, audit_rows, client, logged_in, start_gateway, web_cell
+from tests.harness import CellHarness, wait_for
+
+pytestmark = pytest.mark.e2e
+
+
+@pytest.fixture(scope="module")
+def web(xprocess: Any, pg_cluster: Any) -> Iterator[tuple[CellHarness, str]]:
+    with web_cell(xprocess, pg_cluster) as made:
+        yield made
+
+
+def status(cell: CellHarness, machine: str) -> str:
+    return str(cell.query("select status from machine_status where machine_id = %s", machine)[0][0])
+
+
+def test_operator_logs_in_sees_every_machine_and_starts_one_over_https(web: tuple[CellHarness, str]) -> None:
+    cell, base = web
+    with pytest.raises(httpx.HTTPError):  # HTTPS only: plain HTTP gets no answer it can read
+        httpx.get(base.replace("https://", "http://") + "/api/machines", timeout=5)
+    cert = ssl.get_server_certificate(("127.0.0.1", int(base.rsplit(":", 1)[1])))
+    assert "BEGIN CERTIFICATE" in cert
+    c, csrf = logged_in(base, "otto")
+    with contextlib.closing(c):
+        machines = c.get("/api/machines").json()
+        assert {m["machine_id"] for m in machines} == {"wc1", "wc2", "cmm_wc"}
+        assert all(m["status"] == "Shutdown" for m in machines)
+        r = c.post("/api/machines/wc1/start", headers={"X-CSRF-Token": csrf})
+        assert r.status_code == 200 and r.json()["ok"], r.text
+        wait_for(lambda: status(cell, "wc1") == "Idle", 5, "wc1 Idle")
+        me = c.get("/api/session").json()
+        assert (me["user"], me["role"]) == ("otto", "operator") and "machine.start" in me["may"]
+        assert "audit.read" not in me["may"]
+        r = c.post("/api/machines/nosuch/start", headers={"X-CSRF-Token": csrf})
+        assert r.status_code == 409 and "nosuch" in r.json()["error"]
+    assert ("otto", "operator", "web", "machine.start", "wc1", "ok") in [row[:6] for row in audit_rows(cell, "otto")]
+
+
+def test_no_action_without_its_csrf_token_on_get_or_from_another_site(web: tuple[CellHarness, str]) -> None:
+    cell, base = web
+    c, csrf = logged_in(base, "otto")
+    with contextlib.closing(c):
+        before = len(audit_rows(cell, "otto"))
+        assert c.get("/api/machines/wc2/start").status_code == 405  # no action on GET
+        for headers in ({}, {"X-CSRF-Token": "forged"}, {"X-CSRF-Token": csrf, "Origin": "https://evil.example"}):
+            r = c.post("/api/machines/wc2/start", headers=headers)
+            assert r.status_code == 403, (headers, r.text)
+            assert "CSRF" in r.json()["error"] or "another site" in r.json()["error"]
+        assert status(cell, "wc2") == "Shutdown"
+        rows = audit_rows(cell, "otto")[before:]
+        assert [(a, t, o) for _, _, _, a, t, o, _ in rows] == [("machine.start", "wc2", "refused")] * 3
+        with client(base) as anon:
+            no_session = anon.post("/api/machines/wc2/start", headers={"X-CSRF-Token": csrf})
+        assert no_session.status_code == 401 and "log in" in no_session.json()["error"]
+
+
+def test_cookies_carry_their_flags_and_a_logged_out_session_is_over(web: tuple[CellHarness, str]) -> None:
+    _, base = web
+    with client(base) as c:
+        assert c.post("/api/login", content=b"user=otto", headers={"Content-Type": "text/plain"}).status_code == 415
+        r = c.post("/api/login", json={"user": "otto", "password": PASSWORD["otto"]})
+        cookie = r.headers["set-cookie"]
+        for flag in ("HttpOnly", "Secure", "SameSite=strict", "Path=/"):
+            assert flag.lower() in cookie.lower(), cookie
+        assert r.headers["content-security-policy"].startswith("default-src 'self'")
+        assert r.headers["x-frame-options"] == "DENY"
+        csrf = r.json()["csrf"]
+        assert c.get("/api/session").status_code == 200
+        assert c.post("/api/logout", headers={"X-CSRF-Token": csrf}).status_code == 200
+        c.cookies.set("gwc_session", cookie.split(";")[0].split("=", 1)[1], domain="127.0.0.1")
+        assert c.get("/api/session").status_code == 401  # the token is dead on the server, not only in the jar
+
+
+def test_a_viewers_session_cannot_act_by_crafting_requests(web: tuple[CellHarness, str]) -> None:
+    cell, base = web
+    c, csrf = logged_in(base, "vera")
+    with contextlib.closing(c):
+        assert c.get("/api/machines").status_code == 200
+        h = {"X-CSRF-Token": csrf}
+        for path, body in (
+            ("/api/machines/wc1/stop", None),
+            ("/api/machines/wc2/start", None),
+            ("/api/alarms/1/clear", None),
+            ("/api/orders", {"customer": "NJIT", "items": "milled_pawn=1"}),
+            ("/api/lots/1/import", None),
+        ):
+            r = c.post(path, headers=h, json=body)
+            assert r.status_code == 403, (path, r.text)
+            assert "vera (viewer) may not" in r.json()["error"], r.text
+        assert c.get("/api/audit").status_code == 403
+        assert status(cell, "wc2") == "Shutdown"
+    refused = [row for row in audit_rows(cell, "vera") if row[5] == "refused"]
+    assert {r[3] for r in refused} >= {"machine.stop", "machine.start", "alarm.clear", "order.enter", "lot.import"}
+    assert all("may not" in r[6] for r in refused)
+    a, _ = logged_in(base, "ada")
+    with contextlib.closing(a):
+        trail = a.get("/api/audit", params={"user": "vera"}).json()
+        assert trail and {t["user_name"] for t in trail} == {"vera"}
+
+
+def test_ten_wrong_passwords_lock_the_login_for_a_while(web: tuple[CellHarness, str]) -> None:
+    cell, base = web
+    with client(base) as c:
+        for _ in range(10):
+            r = c.post("/api/login", json={"user": "emma", "password": "not-her-password"})
+            assert r.status_code == 401 and r.json()["error"] == "wrong user name or password"
+        r = c.post("/api/login", json={"user": "emma", "password": PASSWORD["emma"]})
+        assert r.status_code == 429 and "locked" in r.json()["error"], r.text
+        locked_at = time.monotonic()
+        # [web] lockout_s is 3 s in this cell: then the right password is taken again
+        wait_for(
+            lambda: c.post("/api/login", json={"user": "emma", "password": PASSWORD["emma"]}).status_code == 200,
+            10,
+            "the lockout to end",
+            interval=0.5,
+        )
+        assert time.monotonic() - locked_at >= 2.0
+    logins = [r for r in audit_rows(cell, "emma") if r[3] == "login"]
+    assert [r[5] for r in logins].count("refused") >= 11 and logins[-1][5] == "ok"
+
+
+# ---------------------------------------------------------------------------------------- in a browser
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+
+
+def lot_state(cell: CellHarness, entity: int) -> str:
+    return str(cell.query("select state from lot_status where entity_id = %s", entity)[0][0])
+
+
+@pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="Debian's chromium is not installed (bin/setup)")
+def test_operator_in_chromium_starts_a_machine_clears_an_alarm_and_enters_an_order(
+    web: tuple[CellHarness, str],
+) -> None:
+    """Headless Chromium (Debian's) driven by Playwright: the operator logs in, sees every machine,
+    starts one and sees it Idle without a reload within 2 s, starts the CMM and clears its homing
+    alarm, enters an order, imports its lot and exports it when done. Screenshots in ARTIFACTS."""
+    from playwright.sync_api import expect, sync_playwright
+
+    cell, base = web
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    shots = []
+
+    def shot(page: Any, name: str) -> None:
+        path = ARTIFACTS / f"{len(shots) + 1:02d}-{name}.png"
+        page.screenshot(path=str(path), full_page=True)
+        shots.append(path)
+
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        try:
+            context = browser.new_context(ignore_https_errors=True, viewport={"width": 1280, "height": 900})
+            page = context.new_page()
+            page.goto(base)
+            page.fill("#login-user", "otto")
+            page.fill("#login-password", PASSWORD["otto"])
+            page.click("#login button[type=submit]")
+            expect(page.locator("#user")).to_have_text("otto (operator)")
+            expect(page.locator("#login")).to_be_hidden()
+            expect(page.locator("#machine-wc1")).to_be_visible()  # Idle or not: the API test may have started it
+            for m in ("wc2", "cmm_wc"):
+                expect(page.locator(f"#machine-{m}")).to_have_attribute("data-status", "Shutdown")
+            expect(page.locator("#live")).to_have_text("live")
+            shot(page, "machines")
+
+            page.evaluate("window.__no_reload = 1")
+            clicked = time.monotonic()
+            page.locator("#machine-wc2 button", has_text="Start").click()
+            expect(page.locator("#machine-wc2")).to_have_attribute("data-status", "Idle", timeout=2000)
+            seen = time.monotonic() - clicked
+            assert page.evaluate("window.__no_reload") == 1, "the page was reloaded"
+            assert status(cell, "wc2") == "Idle"
+            shot(page, "wc2-idle")
+
+            page.locator("#machine-cmm_wc button", has_text="Start").click()  # it waits to be homed
+            page.click("#tabs button[data-tab=alarms]")
+            row = page.locator("#alarm-table tr", has_text="HOME_CMM")
+            expect(row).to_have_count(1, timeout=10000)
+            shot(page, "home-alarm")
+            row.locator("button", has_text="Clear").click()
+            expect(row).to_have_count(0, timeout=10000)
+            expect(page.locator("#machine-cmm_wc")).to_have_attribute("data-status", "Idle", timeout=10000)
+
+            page.click("#tabs button[data-tab=orders]")
+            page.select_option("#order-customer", "NJIT")
+            page.select_option("#order-product", "milled_pawn")
+            page.fill("#order-quantity", "1")
+            page.click("#order-form button[type=submit]")
+            expect(page.locator("#message")).to_contain_text("work order", timeout=30000)
+            (entity,) = [e for (e,) in cell.query("select entity_id from lot_status order by entity_id")]
+            page.click("#tabs button[data-tab=lots]")
+            lot_row = page.locator("#lot-table tr", has=page.locator(f"td:text-is('{entity}')"))
+            lot_row.locator("button", has_text="Import").click(timeout=30000)
+            shot(page, "imported")
+            lot_row.locator("button", has_text="Export").click(timeout=60000)
+            expect(lot_row).to_contain_text("exported", timeout=10000)
+            shot(page, "exported")
+            page.click("#tabs button[data-tab=orders]")
+            expect(page.locator("#order-table")).to_contain_text("DONE")
+            shot(page, "order-done")
+        finally:
+            browser.close()
+    assert lot_state(cell, entity) == "exported"
+    assert seen <= 2.0, f"wc2 showed Idle {seen:.2f} s after the click"
+    acts = [(r[3], r[4], r[5]) for r in audit_rows(cell, "otto")]
+    for act in (
+        ("machine.start", "wc2", "ok"),
+        ("machine.start", "cmm_wc", "ok"),
+        ("order.enter", "new order", "ok"),
+        ("lot.import", str(entity), "ok"),
+        ("lot.export", str(entity), "ok"),
+    ):
+        assert act in acts, act
+    assert any(a == "alarm.clear" and o == "ok" for a, _, o in acts)
+    cleared_by = cell.query("select cleared_by from alarms where alarm_id = 'HOME_CMM'")[0][0]
+    assert cleared_by == "web:otto"
+    for p in shots:
+        assert p.stat().st_size > 10_000, f"{p} looks blank"
+    print(f"wc2 Idle on the page {seen:.2f} s after the click; screenshots: {', '.join(p.name for p in shots)}")
+
+
+# ---------------------------------------------------------------------------------------- door by door
+
+# One action at each boundary of the role table (docs/users.md), as each door spells it: alarm.clear
+# (operator and up), request.cancel (engineer and up), audit.read (admin). Each is asked of a number
+# nothing has (alarm 999, request 999), so an allowed act reaches its module and fails there ("failed"),
+# and a refused one never leaves the door ("refused").
+BOUNDARY = {"alarm.clear": "operator", "request.cancel": "engineer", "audit.read": "admin"}
+RANK = ["viewer", "operator", "engineer", "admin"]
+
+
+def may(user: str, action: str) -> bool:
+    return RANK.index(ROLE[user]) >= RANK.index(BOUNDARY[action])
+
+
+def opcua_calls(cell: CellHarness, certs: Path) -> dict[tuple[str, str], str]:
+    """ClearAlarm(999) and CancelRequest(999) by each cell user over a SignAndEncrypt channel: the
+    status name each call answered."""
+    from asyncua import Client, ua
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    endpoint = cell.cfg.raw["opcua"]["endpoint"]
+    out: dict[tuple[str, str], str] = {}
+
+    async def run() -> None:
+        cert, key = certs / "client-cert.der", certs / "client-key.pem"
+        await setup_self_signed_certificate(
+            key, cert, "urn:gwc:test:client", "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "t"}
+        )
+        for user in PASSWORD:
+            client = Client(endpoint, timeout=30)
+            client.application_uri = "urn:gwc:test:client"
+            await client.set_security(
+                SecurityPolicyBasic256Sha256, str(cert), str(key), mode=ua.MessageSecurityMode.SignAndEncrypt
+            )
+            client.set_user(user)
+            client.set_password(PASSWORD[user])
+            await client.connect()
+            try:
+                ns = await client.get_namespace_index("urn:gwc:cell")
+                cell_node = client.get_node(ua.NodeId("cell", ns))
+                for action, method in (("alarm.clear", "ClearAlarm"), ("request.cancel", "CancelRequest")):
+                    try:
+                        await cell_node.call_method(
+                            ua.NodeId(f"cell/{method}", ns), ua.Variant(999, ua.VariantType.Int64)
+                        )
+                        out[(user, action)] = "Good"
+                    except ua.UaStatusCodeError as e:
+                        out[(user, action)] = type(e).__name__
+            finally:
+                await client.disconnect()
+
+    asyncio.run(run())
+    return out
+
+
+def test_the_role_table_holds_door_by_door_each_refusal_said_and_audited(
+    web: tuple[CellHarness, str], tmp_path: Path, monkeypatch: Any
+) -> None:
+    cell, base = web
+    before = len(audit_rows(cell))
+    # the web: alarm.clear and audit.read (the web has no request.cancel)
+    for user in PASSWORD:
+        c, csrf = logged_in(base, user)
+        with contextlib.closing(c):
+            r = c.post("/api/alarms/999/clear", headers={"X-CSRF-Token": csrf})
+            if may(user, "alarm.clear"):
+                assert r.status_code == 409, (user, r.text)  # the CAS: no such alarm
+            else:
+                assert r.status_code == 403 and f"{user} (viewer) may not clear an alarm" in r.json()["error"]
+            r = c.get("/api/audit")
+            assert r.status_code == (200 if may(user, "audit.read") else 403), (user, r.text)
+    # `gwc`: each login through sudo (SUDO_USER), ada as root itself; the command line in this process
+    # (click's runner: the same cli, door and client code as `python -m gwc`, without 12 interpreters)
+    runner = CliRunner()
+    for user in PASSWORD:
+        env = {**cell.env(), "SUDO_USER": None if user == "ada" else user}
+        for action, args in (
+            ("alarm.clear", ("alarm", "clear", "999")),
+            ("request.cancel", ("cancel", "999")),
+            ("audit.read", ("audit",)),
+        ):
+            done = runner.invoke(cli, list(args), env=env)
+            if may(user, action):
+                assert done.exit_code != 8, (user, action, done.output)  # past the door: the cell answered
+            else:
+                assert done.exit_code == 8 and f"{user} ({ROLE[user]}) may not" in done.output, (user, done.output)
+    # the console: its link, as `gwc console` acts (the person found from the login, as for gwc)
+    for user in PASSWORD:
+        monkeypatch.setenv("SUDO_USER", "root" if user == "ada" else user)
+        link = CellLink(cell.cfg, open_log("console", cell.cfg.log_dir, "note"))
+        link.open()
+        try:
+            for action, answer in (
+                ("alarm.clear", link.clear_alarm(999)),
+                ("request.cancel", link.cancel_request(999)),
+            ):
+                assert not answer.ok
+                refused = "may not" in answer.text
+                assert refused != may(user, action), (user, action, answer.text)
+        finally:
+            link.close()
+    monkeypatch.delenv("SUDO_USER")
+    # OPC UA: the cell users log in by name and password
+    start_gateway(cell)
+    calls = opcua_calls(cell, tmp_path)
+    for (user, action), status in calls.items():
+        assert (status != "BadUserAccessDenied") == may(user, action), (user, action, status)
+
+    rows = audit_rows(cell)[before:]
+    for door in ("web", "gwc", "console", "opcua"):
+        for user in PASSWORD:
+            for action in BOUNDARY:
+                if door in ("console", "opcua") and action == "audit.read":
+                    continue
+                mine = [r for r in rows if (r[0], r[2], r[3]) == (user, door, action)]
+                if door == "web" and action == "request.cancel":
+                    continue
+                assert mine, (door, user, action)
+                outcome = mine[-1][5]
+                assert (outcome == "refused") != may(user, action), (door, user, action, outcome)
+                if outcome == "refused":
+                    assert "may not" in mine[-1][6]
+
+
+@pytest.mark.soak
+@pytest.mark.timeout(600)
+@pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="Debian's chromium is not installed (bin/setup)")
+def test_bench_web_compares_the_cell_with_and_without_browsers_open(tmp_path: Path, database_url: str) -> None:
+    """`gwc bench web`: one pair of rounds on a real cell with the web module, two browsers in the second."""
+    from tests.e2e.test_bench_cell import bench
+
+    args = ("web", "--machines", "2", "--lots", "5", "--pairs", "1", "--browsers", "2")
+    result = bench(tmp_path, database_url, *args, timeout=580)
+    assert [r["browsers"] for r in result["rounds"]] == [0, 2]
+    without, with_browsers = result["median_without_browsers"], result["median_with_browsers"]
+    assert without["lots_per_s"] > 0 and with_browsers["lots_per_s"] > 0
+    assert without["browsers_cpu_ms_per_lot"] == 0 < with_browsers["browsers_cpu_ms_per_lot"]  # they were open
+    assert with_browsers["web_cpu_ms_per_lot"] > 0
+    assert result["check_held"] is True, result["check_breaches"]
