@@ -600,7 +600,7 @@ def command(
     of its own."""
     if machines < 1 or lots < 1 or solo < 0 or deaths < 0 or freezes < 0:
         raise click.BadParameter("--machines and --lots must be at least 1, --solo and --deaths at least 0")
-    cfg, log = context()
+    cfg, log = context("bench", drop=False)
     if compare > 0:
         from gwc.bench.history import compare_history
 

@@ -23,7 +23,7 @@ def compare_history(where: Path, machines: int, lots: int, pairs: int, as_json: 
     """`--compare-history N`: the lots phase with the production record off and on, N pairs in one
     sitting (off-on, then on-off, ...), each run a fresh private cell: lots/s and the overhead per lot
     with `machines` lots at once, side by side (docs/record.md, What it costs)."""
-    _, log = context()
+    _, log = context("bench", drop=False)
     say = (lambda s: None) if as_json else click.echo
     runs: dict[str, list[dict[str, Any]]] = {"off": [], "on": []}
     for i in range(pairs):

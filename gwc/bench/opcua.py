@@ -245,7 +245,7 @@ def run(log: logging.Logger, where: Path, machines: int, lots: int, items: int, 
 def command(machines: int, lots: int, items: int, interval: float, where: Path | None, as_json: bool) -> None:
     """The OPC UA gateway's change-to-notification latency (median, p99) for ITEMS monitored items,
     and its CPU, while `gwc bench cell` runs lots through a private cell."""
-    cfg, log = context()
+    cfg, log = context("bench", drop=False)
     logging.getLogger("asyncua").setLevel(logging.ERROR)  # its notes on revised settings are not results
     result = run(log, (where or cfg.var / "bench-opcua").resolve(), machines, lots, items, interval)
     if as_json:

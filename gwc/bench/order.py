@@ -217,7 +217,7 @@ def command(
     """An order of PARTS milled pawns through a private cell of MACHINES machines: the whole cell's peak
     memory, database connections, scripts at once, lots waiting while a machine could serve them, lots
     per second, and `gwc check`. Uses $GWC_DATABASE_URL if set, else an embedded cluster of its own."""
-    cfg, log = context()
+    cfg, log = context("bench", drop=False)
     var = where or cfg.var / "bench-order"
     if var.exists():
         shutil.rmtree(var)

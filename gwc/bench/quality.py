@@ -271,7 +271,7 @@ def command(parts: int, seed: int, at_once: int, where: Path | None, as_json: bo
     alarm. Uses $GWC_DATABASE_URL if set, else an embedded cluster of its own."""
     if parts < 1 or at_once < 1:
         raise click.BadParameter("--parts and --at-once must be at least 1")
-    cfg, log = context()
+    cfg, log = context("bench", drop=False)
     bench = QualityBench(
         where or cfg.var / "bench-quality",
         parts,

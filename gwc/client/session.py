@@ -38,11 +38,14 @@ __all__ = [
 ]
 
 
-def context(name: str = "hi", caps: tuple[int, ...] = ()) -> tuple[Config, logging.Logger]:
+def context(name: str = "hi", caps: tuple[int, ...] = (), drop: bool = True) -> tuple[Config, logging.Logger]:
     """The configuration and a client's log (var/log/<name>.log). Run as root, the command first becomes
-    the cell's user, keeping capabilities `caps` alone (gwc.hostuser)."""
+    the cell's user, keeping capabilities `caps` alone (gwc.hostuser); unless `drop` is False: the
+    benches and the soak, which build private cells of their own that run as whoever starts them
+    (their folders may be where the cell's user cannot go), and log under names of their own."""
     cfg = load_config()
-    become_cell_user(cfg, caps)
+    if drop:
+        become_cell_user(cfg, caps)
     return cfg, open_log(name, cfg.log_dir, cfg.level_of(name))
 
 

@@ -63,7 +63,7 @@ def soak(
     an embedded cluster of its own under the soak's folder. Every fault is logged with its time in
     actions.jsonl; the same seed gives the same faults in the same order.
     """
-    cfg, log = context()
+    cfg, log = context("soak", drop=False)
     options: dict[str, Any] = dict(seed=seed, minutes=minutes, machines=machines, kinds=tuple(kinds), agent=agent)
     if replay is not None:
         h = read_header(replay)

@@ -202,7 +202,7 @@ def command(machines: int, lots: int, pairs: int, browsers: int, where: Path | N
         raise GwcError("gwc bench web needs the playwright package (pip install playwright)") from None
     if not Path(CHROMIUM).exists():
         raise GwcError(f"gwc bench web needs Debian's chromium at {CHROMIUM} (apt-get install chromium)")
-    cfg, log = context()
+    cfg, log = context("bench", drop=False)
     say = (lambda s: None) if as_json else click.echo
     result = WebBench(where or cfg.var / "bench-web", machines, lots, pairs, browsers, log, say).run()
     if as_json:
