@@ -146,7 +146,7 @@ def test_kill_9_of_the_active_msched_and_lot_server_while_lots_run_a_standby_tak
     for name in LEASED:
         wait_for(lambda name=name: standing_by(cell, name, 1), 20, f"a standby {name}")
     epochs = {name: holder(cell, name)[0] for name in LEASED}
-    entities = order(cell, "milled_pawn=6")
+    entities = order(cell, "milled_pawn=3")
     for e in entities:
         wait_state(cell, e, "waiting_import")
     ok(gwc(cell, "import", "--all"))
@@ -212,7 +212,7 @@ def fenced(cell: CellHarness, standbys: Standbys, name: str, old: int) -> None:
         assert proc.returncode == EXIT_DEPOSED
     assert "no longer the active msched" in cell.log_text(name)
     # The new one serves: a lot goes through.
-    entities = order(cell, "milled_pawn=2")
+    entities = order(cell, "milled_pawn=1")
     import_export_all(cell, entities, timeout=60)
     no_run_twice(cell, entities)
     print(f"takeover from a stalled active: {took:.2f}s (ttl {TTL}s)")
