@@ -32,6 +32,7 @@ COMMAND_MODULES = [
     "gwc.hi.demo",  # section 7's demonstration
     "gwc.hi.bench",  # benchmarks
     "gwc.hi.record",  # the production record: report oee/html, trace, downtime
+    "gwc.hi.dbcluster",  # gwc db cluster, gwc db switchover: the database under Patroni
 ]
 
 
