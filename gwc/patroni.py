@@ -50,7 +50,7 @@ def rest_urls(cfg: Config) -> list[str]:
 def primary_url(user: str, password: str, members: list[tuple[str, int]], dbname: str = "gwc") -> str:
     """A libpq URL that reaches whichever member is the primary (read-write) now."""
     hosts = ",".join(f"{h}:{p}" for h, p in members)
-    return f"postgresql://{user}:{password}@{hosts}/{dbname}?target_session_attrs=read-write&connect_timeout=3"
+    return f"postgresql://{user}:{password}@{hosts}/{dbname}?target_session_attrs=read-write&connect_timeout=2"
 
 
 def _call(url: str, method: str = "GET", body: dict[str, Any] | None = None) -> Any:
