@@ -92,9 +92,9 @@ class PatroniCluster:
                 "dcs": {
                     # Failover within about ttl + loop_wait of the primary's death (loop_wait + 2 *
                     # retry_timeout must stay under ttl).
-                    "ttl": 8,
+                    "ttl": 6,
                     "loop_wait": 1,
-                    "retry_timeout": 3,
+                    "retry_timeout": 2,
                     "synchronous_mode": True,  # a commit waits for the sync standby: it survives the primary
                     "postgresql": {"use_pg_rewind": True, "parameters": {"fsync": "off"}},
                 },

@@ -6,14 +6,16 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
 import psycopg
 import pytest
 
 from gwc import db
-from gwc.config import Config
-from gwc.errors import DatabaseUnavailable
+from gwc.cell import cell_procs
+from gwc.config import Config, write_config
+from gwc.errors import ConfigError, DatabaseUnavailable
 from gwc.lease import Claim, Deposed, Lease, LeaseSettings
 
 LOG = logging.getLogger("test.lease")
@@ -131,3 +133,32 @@ def test_a_renewal_on_a_lost_session_is_a_database_error_not_a_silent_success(ce
     ca.close()
     with pytest.raises((psycopg.Error, DatabaseUnavailable)):
         a.renew(ca.cursor())
+
+
+def test_a_standby_host_runs_the_module_too_and_both_instances_are_leased(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    doc: dict[str, Any] = {
+        "cell": {"name": "t", "var": str(tmp_path / "var")},
+        "host": [{"name": "h1", "address": "127.0.0.1"}, {"name": "h2", "address": "198.51.100.7"}],
+        "database": {"host": "h1"},
+        "module": [{"name": "msched", "host": "h1", "standby": ["h2"]}, {"name": "ms", "host": "h1"}],
+    }
+    monkeypatch.setenv("GWC_HOST", "h2")
+    cfg = write_config(tmp_path / "etc" / "cell.toml", doc)
+    assert [p.name for p in cell_procs(cfg)] == ["msched"]  # the standby; ms runs on h1 only
+    assert cfg.leased("msched") and not cfg.leased("ms")
+    monkeypatch.setenv("GWC_HOST", "h1")
+    assert [p.name for p in cell_procs(write_config(tmp_path / "etc" / "cell.toml", doc))] == ["msched", "ms"]
+    doc["module"][0]["standby"] = ["h9"]
+    with pytest.raises(ConfigError, match="standby"):
+        write_config(tmp_path / "etc" / "cell.toml", doc)
+
+
+def test_a_one_host_cell_has_no_lease_unless_asked(tmp_path: Path) -> None:
+    doc: dict[str, Any] = {"cell": {"name": "t", "var": str(tmp_path / "var")}, "module": [{"name": "msched"}]}
+    cfg = write_config(tmp_path / "etc" / "cell.toml", doc)
+    assert Lease.of(cfg, "msched", LOG) is None
+    doc["module"][0]["lease"] = True
+    lease = Lease.of(write_config(tmp_path / "etc" / "cell.toml", doc), "msched", LOG)
+    assert lease is not None and (lease.settings.ttl, lease.settings.deadline) == (3.0, 2.0)
