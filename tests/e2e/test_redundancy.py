@@ -218,8 +218,18 @@ def fenced(cell: CellHarness, standbys: Standbys, name: str, old: int) -> None:
     if proc is not None:
         assert proc.returncode == EXIT_DEPOSED
     assert "no longer the active msched" in cell.log_text(name)
-    # The new one serves: a lot goes through.
-    entities = order(cell, "milled_pawn=1")
+    # The new one serves; then it hands over as an upgrade does (docs/deploying.md, 7): a standby
+    # waits, the active is stopped (SIGTERM, as `gwc restart` does), the standby takes the lease at
+    # once, and a lot ordered across the hand-over goes through.
+    said = cell.log_text(name).count("standby: ")
+    standbys.start(name)
+    wait_for(lambda: standing_by(cell, name, said + 1), 20, "a new standby")
+    entities = order(cell, "milled_pawn=2")
+    inc = cell.bus.peers()[name].inc
+    epoch = holder(cell, name)[0]
+    os.kill(holder_pid(cell, name), signal.SIGTERM)
+    wait_for(lambda: started_anew(cell, name, inc), BAR_S, "the standby to take over from the stopped one")
+    assert cell.query("select how from lease_takeovers where name = %s and epoch = %s", name, epoch + 1) == [("free",)]
     import_export_all(cell, entities, timeout=60)
     no_run_twice(cell, entities)
     print(f"takeover from a stalled active: {took:.2f}s (ttl {TTL}s)")
