@@ -49,6 +49,7 @@ MACHINES = ("wc1", "wc2", "wc3")
 RUN_S = 0.3
 IN_FLIGHT = 3  # lots at work at a time
 SETTLE_S = 2.0  # after a trial, before the next kill: the standbys are back and waiting
+REDECIDE_S = 5.0  # an import/export asked and not done is asked again after this long
 BAR_S = 30.0  # a trial whose production did not resume within this is counted at this
 
 
@@ -71,7 +72,7 @@ class FailoverBench:
         self.standbys: dict[str, subprocess.Popen[bytes]] = {}
         self.conn: psycopg.Connection[Any] | None = None
         self.entities: list[int] = []
-        self.decided: set[tuple[int, str]] = set()
+        self.decided: dict[tuple[int, str], float] = {}  # (entity, import/export) -> when asked
 
     # ----------------------------------------------------------------- the cell
 
@@ -117,23 +118,25 @@ class FailoverBench:
         spawn_lot_script(self.cell.cfg, entities[0])
         self.entities.append(entities[0])
 
-    def _operate(self) -> dict[int, str]:
-        """The operator: import and export what waits; keep IN_FLIGHT lots at work. The lots' states."""
+    def _operate(self, order: bool = True) -> dict[int, str]:
+        """The operator: import and export what waits (asked again after REDECIDE_S, should a server
+        taking over have lost it) and, if `order`, keep IN_FLIGHT lots at work. The lots' states."""
         assert self.cell.bus is not None
         states = {
             int(e): str(s)
             for e, s in self._query("select entity_id, state from lot_status where entity_id = any(%s)", self.entities)
         }
+        now = time.monotonic()
         for e, s in states.items():
             action = {LotState.WAITING_IMPORT.value: "import", LotState.WAITING_EXPORT.value: "export"}.get(s)
-            if action and (e, action) not in self.decided:
+            if action and now - self.decided.get((e, action), -REDECIDE_S) >= REDECIDE_S:
                 try:
                     decide(self.cell.bus, e, action, "bench")
-                    self.decided.add((e, action))
+                    self.decided[(e, action)] = now
                 except GwcError as err:  # a server taking over: asked again at the next look
                     self.log.info("%s of entity %d not taken now: %s", action, e, err)
         at_work = sum(1 for e in self.entities if states.get(e) not in ("exported", "failed"))
-        for _ in range(IN_FLIGHT - at_work):
+        for _ in range(IN_FLIGHT - at_work if order else 0):
             try:
                 self._order()
             except GwcError as err:
@@ -219,7 +222,7 @@ class FailoverBench:
                 setup.append(s)
             deadline = time.monotonic() + 120
             while time.monotonic() < deadline:
-                states = self._operate_drain()
+                states = self._operate(order=False)
                 if all(s in ("exported", "failed") for s in states.values()) and len(states) == len(self.entities):
                     break
                 time.sleep(0.2)
@@ -236,24 +239,6 @@ class FailoverBench:
             if self.conn is not None:
                 self.conn.close()
             self.cell.stop()
-
-    def _operate_drain(self) -> dict[int, str]:
-        """The operator at the end: no new lots, the others taken through."""
-        assert self.cell.bus is not None
-        saved, self.entities = self.entities, list(self.entities)
-        states = {
-            int(e): str(s)
-            for e, s in self._query("select entity_id, state from lot_status where entity_id = any(%s)", saved)
-        }
-        for e, s in states.items():
-            action = {LotState.WAITING_IMPORT.value: "import", LotState.WAITING_EXPORT.value: "export"}.get(s)
-            if action and (e, action) not in self.decided:
-                try:
-                    decide(self.cell.bus, e, action, "bench")
-                    self.decided.add((e, action))
-                except GwcError:
-                    pass
-        return states
 
     def _account(self, bound: list[float], setup: list[float]) -> dict[str, Any]:
         rows = dict(self._query("select entity_id, state from lot_status where entity_id = any(%s)", self.entities))
