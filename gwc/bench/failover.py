@@ -104,8 +104,18 @@ class FailoverBench:
         }
 
     def _standing_by(self) -> bool:
-        """Every module has an instance besides its holder waiting (its process alive, in its log)."""
-        return all(p.poll() is None for p in self.standbys.values()) and len(self._holders()) == len(SERVER_MODULES)
+        """Every module has an instance besides its active one connected, waiting for the lease: two
+        sessions under its role (a standby polls on its own). The agent restarts a killed instance
+        after a backoff that grows with its kills in a row, so a trial waits for it."""
+        sessions = dict(
+            self._query(
+                "select application_name, count(*) from pg_stat_activity where application_name = any(%s) group by 1",
+                [f"gwc_{m}" for m in SERVER_MODULES],
+            )
+        )
+        return all(p.poll() is None for p in self.standbys.values()) and all(
+            sessions.get(f"gwc_{m}", 0) >= 2 for m in SERVER_MODULES
+        )
 
     # ----------------------------------------------------------------- lots
 
