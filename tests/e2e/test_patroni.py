@@ -318,3 +318,119 @@ def test_lots_ride_out_a_switchover_and_the_primary_host_killed(patroni_cell: An
     check = cell.run("check")
     assert check.returncode == 0, check.stdout + check.stderr
     print(f"switchover from {first}; {victim} killed: new leader after {promoted:.1f}s, next binding {resumed:.1f}s")
+
+
+def sql_on(hosts: Hosts, host: str, url: str, text: str) -> list[list[Any]]:
+    """A query through `url`, run on a test host (the test itself is not on the bridge)."""
+    code = (
+        "import json, sys, psycopg\n"
+        "with psycopg.connect(sys.argv[1], autocommit=True) as c:\n"
+        "    cur = c.execute(sys.argv[2])\n"
+        "    print(json.dumps(cur.fetchall() if cur.description else [], default=str))\n"
+    )
+    r = subprocess.run(hosts[host].argv([sys.executable, "-c", code, url, text]), capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    return list(json.loads(r.stdout))
+
+
+def test_the_host_of_the_active_servers_and_the_primary_killed_while_lots_run() -> None:
+    """The issue's topology: h1 the active servers and the database primary, h2 their standbys and the
+    synchronous standby, h3 the machines and a replica, etcd on all three. h1 killed whole while lots
+    run (their scripts ordered on h2): Patroni promotes h2, h2's standbys take every lease, every lot
+    is exported, nothing is milled twice and `gwc check` is clean."""
+    from tests.e2e.test_hosts import HostCell
+
+    base = Path(tempfile.mkdtemp(prefix="gwc-p-", dir="/var/tmp"))
+    base.chmod(0o755)
+    try:
+        with Hosts(3) as hosts:
+            # Apart from the cell's var/ folders, which the cell makes private (root's): the members
+            # run as the postgres user.
+            (base / "patroni").mkdir()
+            cluster = PatroniCluster(hosts, base / "patroni")
+            cell: HostCell | None = None
+            try:
+                cluster.start()
+                url = cluster.url()
+                sql_on(hosts, "h3", url.replace("/gwc?", "/postgres?"), "create database gwc")
+                cell = HostCell(hosts, base)
+                doc = cell.doc
+                doc["database"] = {"url": url, "patroni": [f"http://{a}:8008" for a in cluster.addr.values()]}
+                doc["module"] = [{"name": m, "host": "h1", "standby": ["h2"]} for m in SERVERS]
+                doc["machine"] = [
+                    {**m, "host": "h3", "liveness": 6.0} for m in doc["machine"] if m["id"] in ("cmm_wc", "wc1", "wc2")
+                ]
+                doc["lease"] = {"ttl": 3.0}
+                for h in MEMBERS:
+                    cell.config_path(h).write_text(
+                        dump_toml({**doc, "cell": {"name": "hosts", "var": str(cell.var(h))}})
+                    )
+                walk_h1_killed(hosts, cluster, cell, url)
+            finally:
+                if cell is not None:
+                    for h in ("h3", "h2", "h1"):
+                        try:
+                            cell.run(h, "stop", timeout=60)
+                        except subprocess.TimeoutExpired:
+                            pass
+                for p in cluster.procs:
+                    p.kill()
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+    assert not leftovers(), "test hosts left behind"
+
+
+def walk_h1_killed(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
+    def q(text: str) -> list[list[Any]]:
+        return sql_on(hosts, "h3", url, text)
+
+    cell.gwc("h1", "start", timeout=240)  # the schema, the cell key, the active servers
+    cell.copy_secrets()
+    cell.gwc("h2", "start", timeout=240)
+    cell.gwc("h3", "start", timeout=240)
+    for m in ("cmm_wc", "wc1", "wc2"):
+        t = threading.Thread(target=lambda m=m: cell.gwc("h3", "machine", "start", m))
+        t.start()
+        while t.is_alive():
+            for (no,) in q(f"select alarm_no from alarms where cleared_at is null and machine_id = '{m}' "
+                           "and alarm_id = 'HOME_CMM'"):  # fmt: skip
+                cell.gwc("h3", "alarm", "clear", str(no))
+            t.join(0.3)
+    assert cluster.leader() == "h1"
+    assert {h for (h,) in q("select host from module_leases")} == {"h1"}
+    made = json.loads(cell.gwc("h2", "order", "new", "--customer", "NJIT", "milled_pawn=4", "--json"))
+    entities = [e for lot in made["lots"] for e in lot["entities"]]
+    ids = ",".join(map(str, entities))
+
+    def done() -> bool:
+        states = dict(q(f"select entity_id, state from lot_status where entity_id in ({ids})"))
+        assert "failed" not in states.values(), q("select entity_id, reason from lot_status where state = 'failed'")
+        if "waiting_import" in states.values():
+            cell.gwc("h2", "import", "--all")
+        if "waiting_export" in states.values():
+            cell.gwc("h2", "export", "--all")
+        return len(states) == len(entities) and set(states.values()) == {"exported"}
+
+    def last_binding() -> int:
+        return int(q("select greatest((select max(machine_run_id) from reserved_machines), "
+                     "(select max(machine_run_id) from machine_run_outcome), 0)")[0][0])  # fmt: skip
+
+    wait_for(lambda: done() or q("select 1 from machine_status where status = 'Running'"), 90, "a run", interval=0.3)
+    counts = "select (select count(*) from lot_status), (select count(*) from machine_run_outcome)"
+    committed = q(counts)[0]
+    before = last_binding()
+    cluster.kill_host("h1")
+    killed = time.monotonic()
+    wait_for(lambda: cluster.leader() not in (None, "h1"), 60, "a new primary", interval=0.2)
+    promoted = time.monotonic() - killed
+    wait_for(lambda: done() or last_binding() > before, 60, "the next machine bound", interval=0.2)
+    resumed = time.monotonic() - killed
+    wait_for(lambda: {h for (h,) in q("select host from module_leases")} == {"h2"}, 60, "h2 holding every lease")
+    wait_for(done, 180, "every lot exported", interval=0.5)
+    now = q(counts)[0]
+    assert now[0] == committed[0] and now[1] >= committed[1], (committed, now)
+    milled = q("select count(*) from machine_run_outcome where machine_id <> 'cmm_wc' and ack_code = 'ACK_OK'")
+    assert milled[0][0] == 4, milled
+    check = cell.run("h2", "check")
+    assert check.returncode == 0, check.stdout + check.stderr
+    print(f"h1 killed: new primary after {promoted:.1f}s, next machine bound after {resumed:.1f}s")
