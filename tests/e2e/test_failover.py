@@ -149,13 +149,25 @@ def test_a_host_lost_cut_off_or_killed_does_not_stop_production(redundant: Redun
     took_cut = time.monotonic() - cut_at
     expired = r.query("select count(*) from lease_takeovers where how = 'expired' and host = 'h2'")[0][0]
     assert expired == len(SERVERS), expired
+    # Fenced: no session of h1's is left in the database (the takeovers terminated them), so nothing
+    # h1's instances still try can land.
+    h1, h2 = cell.hosts["h1"].address, cell.hosts["h2"].address
+    sessions_of_h1 = "select count(*) from pg_stat_activity where client_addr = %s::inet"
+    wait_for(lambda: r.query(sessions_of_h1, h1)[0][0] == 0, 10, "h1's sessions ended")
     entities = r.order("h2", "milled_pawn=2")  # production goes on from h2 while h1 is away
     wait_for(lambda: r.done("h2", entities), 90, "the lots made while h1 was cut off")
     wait_for(lambda: all("no longer the active" in cell.log("h1", m) for m in SERVERS), 10, "h1's instances deposed")
+    time.sleep(max(0.0, 30 - (time.monotonic() - cut_at)))  # the issue's 30 s cut, not a wait for a condition
+    assert r.query(sessions_of_h1, h1)[0][0] == 0
     cell.hosts.mend("h1")
     # Back, they stand by: the leases stay with h2, and h1's instances say who is active.
     wait_for(lambda: all("standby: h2:" in cell.log("h1", m) for m in SERVERS), 30, "h1's instances standing by")
     assert set(r.holders().values()) == {"h2"}
+    lock_holders = r.query(
+        "select distinct host(a.client_addr) from pg_locks l join pg_stat_activity a using (pid) "
+        "where l.locktype = 'advisory' and l.classid = 36036 and l.granted"
+    )
+    assert lock_holders == [(h2,)], lock_holders  # h1's sessions are back, none holds a lease
 
     # 2. h2's actives killed -9: h1's standbys take over at once (their sessions are gone).
     r.kill_modules("h2")
@@ -180,4 +192,4 @@ def test_a_host_lost_cut_off_or_killed_does_not_stop_production(redundant: Redun
     assert milled == 6, f"{milled} good milling runs for 6 pawns"
     check = cell.run("h2", "check")
     assert check.returncode == 0, check.stdout + check.stderr
-    print(f"cut: leases on h2 after {took_cut:.1f}s; kill: next binding {resumed:.1f}s after the kill")
+    print(f"cut (30 s): leases on h2 after {took_cut:.1f}s; kill: next binding {resumed:.1f}s after the kill")
