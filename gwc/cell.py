@@ -79,7 +79,7 @@ def machine_procs(cfg: Config, machine_id: str) -> list[Proc]:
 
 def cell_procs(cfg: Config) -> list[Proc]:
     """Every process of the cell on this host, in start order (all of them in a one-host cell)."""
-    procs = [Proc(m.name) for m in cfg.modules if cfg.placed_here(m)]
+    procs = [Proc(m.name) for m in cfg.modules if cfg.placed_here(m) or cfg.standby_here(m)]
     for m in cfg.machines:
         if cfg.placed_here(m):
             procs += machine_procs(cfg, m.id)

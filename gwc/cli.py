@@ -21,7 +21,8 @@ from gwc.errors import GwcError
 # agent's restart on a loaded machine (docs/reliability.md, *How long detection takes*). `gwc --help`
 # loads them all. tests/unit/test_cli.py checks this table against the modules.
 COMMANDS = {
-    **dict.fromkeys(["db", "start", "stop", "status", "restart", "agent", "run"], "gwc.hi.cell"),  # STRT
+    **dict.fromkeys(["start", "stop", "status", "restart", "agent", "run"], "gwc.hi.cell"),  # STRT
+    "db": "gwc.hi.dbcluster",  # the database: gwc.hi.cell's db group, with cluster and switchover (Patroni)
     "machine": "gwc.hi.machine",  # MSTT
     **dict.fromkeys(["requests", "cancel", "unreserve"], "gwc.hi.requests"),  # MREQ, Listing 8
     # work orders (WOEN, WOSU), import/export (IMPL) and the masters

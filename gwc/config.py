@@ -92,6 +92,10 @@ class ModuleSpec:
     name: str
     level: str = "note"
     host: str | None = None
+    # Redundancy (issue 36, docs/deploying.md): the hosts that run a standby of this module. A module
+    # with standbys, or with `lease = true`, decides which instance is active through a database lease.
+    standby: tuple[str, ...] = ()
+    lease: bool = False
 
 
 @dataclass(frozen=True)
@@ -150,6 +154,14 @@ class Config:
     def placed_here(self, spec: ModuleSpec | MachineSpec) -> bool:
         """Whether a module or machine runs on this host (everything does in a one-host cell)."""
         return self.host is None or spec.host == self.host
+
+    def standby_here(self, spec: ModuleSpec) -> bool:
+        """Whether this host runs a standby of the module (a host of a cell with [[host]] tables)."""
+        return self.host is not None and self.host in spec.standby and spec.host != self.host
+
+    def leased(self, name: str) -> bool:
+        """Whether the module decides through a database lease which instance is active (gwc.lease)."""
+        return any(m.name == name and m.lease for m in self.modules)
 
     def machine(self, machine_id: str) -> MachineSpec:
         for m in self.machines:
@@ -245,6 +257,8 @@ def _build(cfg_path: Path, raw: dict[str, Any]) -> Config:
             name=m["name"],
             level=_check_level(m.get("level", default_level), f"module {m['name']}"),
             host=_placed(m.get("host"), hosts, f"module {m['name']}"),
+            standby=tuple(_placed(h, hosts, f"module {m['name']}'s standby") or h for h in m.get("standby", ())),
+            lease=bool(m.get("lease", False) or m.get("standby")),
         )
         for m in raw.get("module", [])
     )

@@ -33,6 +33,7 @@ from typing import Any, TypeVar
 import psycopg
 
 from gwc import db
+from gwc.agent.control import notify_ready
 from gwc.config import Config, load_config
 from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, GwcError, Refused
 from gwc.ipc import catalogue, eventloop
@@ -40,6 +41,7 @@ from gwc.ipc.bus import Bus, Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
+from gwc.lease import EXIT_DEPOSED, Deposed, Lease
 from gwc.log import cap_output, conversation, open_log
 from gwc.retry import Backoff, Deadline
 
@@ -157,6 +159,10 @@ class Module:
         self._database_why = ""
         self._database_up = asyncio.Event()
         self._database_used = 0.0  # monotonic time of the last step, for the probe
+        # Redundancy (gwc/lease.py): the lease that makes this instance the active one, when cell.toml
+        # runs the module with standbys; `fenced` once it lost it (it then serves nothing and exits).
+        self.lease = Lease.of(cfg, name, log)
+        self.fenced = False
 
     # ----------------------------------------------------------------- what subclasses declare
 
@@ -239,7 +245,11 @@ class Module:
             )
         try:
             conn = db.connect(self.cfg, role=self.role, log=self.log, attempts=1)
+            self._lease_on_connect(conn)
             self.on_connect(conn)
+        except Deposed as e:
+            self._deposed(str(e))
+            raise
         except DatabaseUnavailable as e:
             self._database_lost(e)
             raise
@@ -310,7 +320,12 @@ class Module:
                 self._database_why = str(e)
             else:
                 try:
+                    self._lease_on_connect(conn)
                     self.on_connect(conn)
+                except Deposed as e:
+                    conn.close()
+                    self._deposed(str(e))
+                    return
                 except DatabaseUnavailable as e:
                     conn.close()
                     self._database_why = str(e)
@@ -341,6 +356,69 @@ class Module:
         if conn is None or conn.closed or _readable(conn.fileno()):
             self.transaction(db.Statement("select 1", fetch=None))
 
+    # ----------------------------------------------------------------- the lease (gwc/lease.py)
+
+    def _lease_on_connect(self, conn: psycopg.Connection) -> None:
+        """A new connection of the active instance takes its lease again (same epoch), or Deposed."""
+        if self.lease is not None and self.lease.epoch:
+            self.lease.claim(conn)
+
+    async def _stand_by(self) -> None:
+        """Off the bus until this instance holds its module's lease; then its connection is the one
+        that holds it, and the module starts at once, carrying on from the tables."""
+        assert self.lease is not None
+        self.log.info("redundant: waiting for the lease of %s", self.name)
+        conn = await self.lease.wait(lambda: db.connect(self.cfg, self.role, self.log, 1), notify_ready)
+        self._conn = conn
+        self._database_used = time.monotonic()
+        try:
+            self.on_connect(conn)
+        except DatabaseUnavailable as e:  # (MSCHED's own lock: its predecessor's session is going)
+            self.log.warning("after taking the lease: %s", e)
+            conn.close()
+            self._conn = None
+
+    async def _until_stopped(self, work: Awaitable[None]) -> bool:
+        """Do `work` unless the module is stopped first (SIGTERM): whether it was done."""
+        done = asyncio.ensure_future(work)
+        stop = asyncio.ensure_future(self._stop.wait())
+        try:
+            await asyncio.wait({done, stop}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stop.cancel()
+        if not done.done():
+            done.cancel()
+            return False
+        done.result()
+        return True
+
+    def _keep_lease(self) -> None:
+        """At each heartbeat: renew the lease when due; depose this instance when it could not for
+        the lease's deadline (a standby may fence it soon) or the lease is not its own any more."""
+        lease = self.lease
+        if lease is None or not lease.active or self.fenced:
+            return
+        try:
+            if lease.overdue():
+                lease.depose(f"the lease of {self.name} was not renewed for {lease.settings.deadline:.1f}s")
+            if lease.due():
+                self.transaction(lease.renew)
+        except Deposed as e:
+            self._deposed(str(e))
+
+    def _deposed(self, why: str) -> None:
+        """Fenced: serve nothing more, leave the bus and exit; the agent starts this a standby again."""
+        if self.fenced:
+            return
+        self.fenced = True
+        self.started = False
+        self.bus.set_interest(set())
+        self.log.error("%s: no longer the active %s, leaving the bus to stand by again", why, self.name)
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        self.stop(EXIT_DEPOSED)
+
     # ----------------------------------------------------------------- running
 
     def stop(self, code: int = 0) -> None:
@@ -348,6 +426,11 @@ class Module:
         self._stop.set()
 
     async def run(self, start: bool = False) -> int:
+        if self.lease is not None:
+            if not await self._until_stopped(self._stand_by()):
+                self.log.info("Stopped while standing by")
+                return self.exit_code
+            start = True  # the active instance of a redundant module starts itself
         await self.bus.sign_on()
         await self.on_bus()
         self.log.info("Starting: listening for %s", ", ".join(sorted(self.bus.interests)))
@@ -356,6 +439,8 @@ class Module:
         gc.freeze()
         if start:
             await self._start()
+            if self.lease is not None:
+                notify_ready()
         loop = asyncio.get_running_loop()
         idle = loop.create_task(self._idle_loop())
         accept = loop.create_task(self._accept())
@@ -368,7 +453,7 @@ class Module:
                 await self._shutdown_work()
             for t in list(self._tasks):
                 t.cancel()
-            await self.bus.close()
+            await self.bus.close(flush=0.0 if self.fenced else 1.0)
             if self._conn is not None:
                 self._conn.close()
             self.log.info("Stopped (exit %d)", self.exit_code)
@@ -393,6 +478,9 @@ class Module:
             await beat.wait()
             beat.clear()
             try:
+                self._keep_lease()
+                if self.fenced:
+                    return
                 self._probe_database()
                 await self.on_idle()
             except DatabaseUnavailable:
@@ -406,7 +494,9 @@ class Module:
             head = conv.first.first
             opener = catalogue.CONVERSATION_CLASSES[conv.cls].messages[0]
             try:
-                if head.name != opener:
+                if self.fenced:
+                    self.log.info("ignored %s from %s: deposed", head.name, conv.first.sender)
+                elif head.name != opener:
                     self.log.info(
                         "ignored %s from %s: not the opening of a conversation here", head.name, conv.first.sender
                     )

@@ -47,6 +47,7 @@ from gwc.ipc import eventloop
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.names import Conv, Msg
+from gwc.lease import EXIT_DEPOSED
 from gwc.log import TRACE
 from gwc.lot.admission import LotQueue
 from gwc.lot.run import Forked, exec_lot_script, fork_lot_script
@@ -257,7 +258,7 @@ class Agent(Server):
             child.retry.cancel()
             child.retry = None
         old = self.bus.peers().get(child.name)
-        ready_r, ready_w = os.pipe() if child.proc.kind in OFF_BUS else (None, None)
+        ready_r, ready_w = os.pipe() if self._ready_by_pipe(child) else (None, None)
         try:
             env = {READY_FD: str(ready_w)} if ready_w is not None else None
             fds = (ready_w,) if ready_w is not None else ()
@@ -292,7 +293,7 @@ class Agent(Server):
         how = "ready"
         try:
             async with asyncio.timeout(self.policy.start_timeout):
-                if kind in OFF_BUS:
+                if self._ready_by_pipe(child):
                     if ready_fd is not None:
                         await _read_ready(ready_fd)
                 else:
@@ -317,6 +318,12 @@ class Agent(Server):
             self.log.error("%s (pid %s): %s: killing it", child.name, pid, why)
             child.last_exit = why
             child.signal_group(signal.SIGKILL)
+
+    def _ready_by_pipe(self, child: Child) -> bool:
+        """Whether the process proves itself ready through the pipe: one off the bus, and an instance
+        of a redundant module, which is off the bus while it stands by (gwc/lease.py) and starts
+        itself when it becomes the active one."""
+        return child.proc.kind in OFF_BUS or (child.proc.machine is None and self.cfg.leased(child.proc.kind))
 
     async def bring_up(self, child: Child, say: Callable[[str], None]) -> None:
         """Start a module that is not running (an operator's start: FATAL and BACKOFF try again at once)
@@ -433,9 +440,13 @@ class Agent(Server):
             return
         if child.state == ProcessState.RUNNING and time.monotonic() - child.running_at >= self.policy.start_secs:
             child.fails = 0
-        child.fails += 1
+        deposed = child.last_code == EXIT_DEPOSED  # lost its lease: back at once as a standby, not a failure
+        child.fails += 0 if deposed else 1
         delay: float | None = None
-        if child.fails >= self.policy.start_retries:
+        if deposed:
+            delay = 0.0
+            child.change_state(ProcessState.BACKOFF, f"{how}: deposed; again as a standby")
+        elif child.fails >= self.policy.start_retries:
             child.change_state(ProcessState.FATAL, f"{how}; {child.fails} failed starts in a row")
             text = f"{child.name} failed {child.fails} times in a row ({how}): left down"
             self.spawn(self.raise_alarm("MODULE_FATAL", text, child.proc.machine))

@@ -604,7 +604,9 @@ def command(
     if compare > 0:
         from gwc.bench.history import compare_history
 
-        return compare_history(cfg.var / "bench-cell" if where is None else where, machines, lots, compare, as_json)
+        return compare_history(
+            CellBench, cfg.var / "bench-cell" if where is None else where, machines, lots, compare, as_json
+        )
     bench = CellBench(
         where or cfg.var / "bench-cell",
         machines,

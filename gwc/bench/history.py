@@ -10,16 +10,20 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from gwc.bench import brief
-from gwc.bench.cell import CellBench
 from gwc.client.session import context
 
+if TYPE_CHECKING:  # the bench is handed in: gwc.bench.cell imports this module when asked to compare
+    from gwc.bench.cell import CellBench
 
-def compare_history(where: Path, machines: int, lots: int, pairs: int, as_json: bool) -> None:
+
+def compare_history(
+    bench_class: type[CellBench], where: Path, machines: int, lots: int, pairs: int, as_json: bool
+) -> None:
     """`--compare-history N`: the lots phase with the production record off and on, N pairs in one
     sitting (off-on, then on-off, ...), each run a fresh private cell: lots/s and the overhead per lot
     with `machines` lots at once, side by side (docs/record.md, What it costs)."""
@@ -30,7 +34,7 @@ def compare_history(where: Path, machines: int, lots: int, pairs: int, as_json: 
         for history in (False, True) if i % 2 == 0 else (True, False):
             label = "on" if history else "off"
             say(f"pair {i + 1}: history {label}")
-            bench = CellBench(
+            bench = bench_class(
                 where, machines, lots, 0, 0, os.environ.get("GWC_DATABASE_URL"), log, say, idle_s=0, history=history
             )
             r = bench.run()

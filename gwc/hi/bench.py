@@ -16,6 +16,7 @@ BENCH_MODULES = [
     "gwc.bench.mq",
     "gwc.bench.sched",
     "gwc.bench.cell",
+    "gwc.bench.failover",
     "gwc.bench.order",
     "gwc.bench.opcua",
     "gwc.bench.quality",

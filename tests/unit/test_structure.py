@@ -262,21 +262,6 @@ def ancestry(qualname: str, infos: dict[str, ClassInfo]) -> list[ClassInfo]:
 
 # ----------------------------------------------------------------------------- the rules
 
-# Private attributes reached into across packages that issue 37b (gwc/ipc's named seams: `conv.sent`
-# for `conv._idx`) removes; listed exactly, so that no new one passes. Remove the entries when it lands.
-PRIVATE_ALLOWED_37B = {
-    ("gwc/module.py", "conv._idx"),
-    ("gwc/servers/common.py", "conv._idx"),
-}
-# Import cycles issue 37b removes (bus.py's bottom-of-file re-export of BlockingBus; config.py and
-# gwc.ipc.keys importing each other for write_config; the cell bench and its history); listed exactly.
-CYCLES_ALLOWED_37B = [
-    ["gwc.config", "gwc.ipc.keys"],
-    ["gwc.ipc.blocking", "gwc.ipc.bus"],
-    ["gwc.bench.cell", "gwc.bench.history"],
-]
-
-
 # Classes over the bound when it was first counted over the ancestry (issue 37), not yet cut into parts:
 # each may shrink, none may grow (its count here is its ceiling), and none joins them. The servers'
 # count includes gwc.module.Module's 34 methods: cutting Module's database half into a part (as the WC's
@@ -318,7 +303,7 @@ def test_no_import_cycle_at_run_time() -> None:
     graph = {
         name: runtime_imports(tree, name, path.name == "__init__.py", known) for name, (path, tree) in trees.items()
     }
-    cycles = [c for c in import_cycles(graph) if c not in CYCLES_ALLOWED_37B]
+    cycles = import_cycles(graph)
     assert not cycles, "import cycles (move what both need below both):\n" + "\n".join(" <-> ".join(c) for c in cycles)
 
 
@@ -368,7 +353,7 @@ def private_reaches(
 def test_no_private_attribute_of_another_packages_class_is_reached() -> None:
     """Files talk through public interfaces (docs/architecture.md): no module reads or writes a private
     attribute of a class of another package (its own package's are its own business)."""
-    reaches = [r for r in private_reaches(classes(), parsed()) if (r[0], r[2]) not in PRIVATE_ALLOWED_37B]
+    reaches = private_reaches(classes(), parsed())
     assert not reaches, "private attributes of another package's class:\n" + "\n".join(
         f"{f}:{line}: {expr}" for f, line, expr in reaches
     )
