@@ -163,6 +163,7 @@ class Module:
         # runs the module with standbys; `fenced` once it lost it (it then serves nothing and exits).
         self.lease = Lease.of(cfg, name, log)
         self.fenced = False
+        self.holding = LeaseHolding(self)
 
     # ----------------------------------------------------------------- what subclasses declare
 
@@ -245,10 +246,10 @@ class Module:
             )
         try:
             conn = db.connect(self.cfg, role=self.role, log=self.log, attempts=1)
-            self._lease_on_connect(conn)
+            self.holding.on_connect(conn)
             self.on_connect(conn)
         except Deposed as e:
-            self._deposed(str(e))
+            self.holding.deposed(str(e))
             raise
         except DatabaseUnavailable as e:
             self._database_lost(e)
@@ -320,11 +321,11 @@ class Module:
                 self._database_why = str(e)
             else:
                 try:
-                    self._lease_on_connect(conn)
+                    self.holding.on_connect(conn)
                     self.on_connect(conn)
                 except Deposed as e:
                     conn.close()
-                    self._deposed(str(e))
+                    self.holding.deposed(str(e))
                     return
                 except DatabaseUnavailable as e:
                     conn.close()
@@ -356,69 +357,6 @@ class Module:
         if conn is None or conn.closed or _readable(conn.fileno()):
             self.transaction(db.Statement("select 1", fetch=None))
 
-    # ----------------------------------------------------------------- the lease (gwc/lease.py)
-
-    def _lease_on_connect(self, conn: psycopg.Connection) -> None:
-        """A new connection of the active instance takes its lease again (same epoch), or Deposed."""
-        if self.lease is not None and self.lease.epoch:
-            self.lease.claim(conn)
-
-    async def _stand_by(self) -> None:
-        """Off the bus until this instance holds its module's lease; then its connection is the one
-        that holds it, and the module starts at once, carrying on from the tables."""
-        assert self.lease is not None
-        self.log.info("redundant: waiting for the lease of %s", self.name)
-        conn = await self.lease.wait(lambda: db.connect(self.cfg, self.role, self.log, 1), notify_ready)
-        self._conn = conn
-        self._database_used = time.monotonic()
-        try:
-            self.on_connect(conn)
-        except DatabaseUnavailable as e:  # (MSCHED's own lock: its predecessor's session is going)
-            self.log.warning("after taking the lease: %s", e)
-            conn.close()
-            self._conn = None
-
-    async def _until_stopped(self, work: Awaitable[None]) -> bool:
-        """Do `work` unless the module is stopped first (SIGTERM): whether it was done."""
-        done = asyncio.ensure_future(work)
-        stop = asyncio.ensure_future(self._stop.wait())
-        try:
-            await asyncio.wait({done, stop}, return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            stop.cancel()
-        if not done.done():
-            done.cancel()
-            return False
-        done.result()
-        return True
-
-    def _keep_lease(self) -> None:
-        """At each heartbeat: renew the lease when due; depose this instance when it could not for
-        the lease's deadline (a standby may fence it soon) or the lease is not its own any more."""
-        lease = self.lease
-        if lease is None or not lease.active or self.fenced:
-            return
-        try:
-            if lease.overdue():
-                lease.depose(f"the lease of {self.name} was not renewed for {lease.settings.deadline:.1f}s")
-            if lease.due():
-                self.transaction(lease.renew)
-        except Deposed as e:
-            self._deposed(str(e))
-
-    def _deposed(self, why: str) -> None:
-        """Fenced: serve nothing more, leave the bus and exit; the agent starts this a standby again."""
-        if self.fenced:
-            return
-        self.fenced = True
-        self.started = False
-        self.bus.set_interest(set())
-        self.log.error("%s: no longer the active %s, leaving the bus to stand by again", why, self.name)
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
-        self.stop(EXIT_DEPOSED)
-
     # ----------------------------------------------------------------- running
 
     def stop(self, code: int = 0) -> None:
@@ -427,7 +365,7 @@ class Module:
 
     async def run(self, start: bool = False) -> int:
         if self.lease is not None:
-            if not await self._until_stopped(self._stand_by()):
+            if not await until_stopped(self.holding.stand_by(), self._stop):
                 self.log.info("Stopped while standing by")
                 return self.exit_code
             start = True  # the active instance of a redundant module starts itself
@@ -478,7 +416,7 @@ class Module:
             await beat.wait()
             beat.clear()
             try:
-                self._keep_lease()
+                self.holding.keep()
                 if self.fenced:
                     return
                 self._probe_database()
@@ -671,3 +609,78 @@ def run_module(
         log.error("fatal: %s", e)
         print(f"gwc: {name}: {e}", file=sys.stderr)
         return e.exit_code
+
+
+async def until_stopped(work: Awaitable[None], stop: asyncio.Event) -> bool:
+    """Do `work` unless `stop` is set first (SIGTERM): whether it was done."""
+    done = asyncio.ensure_future(work)
+    stopping = asyncio.ensure_future(stop.wait())
+    try:
+        await asyncio.wait({done, stopping}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        stopping.cancel()
+    if not done.done():
+        done.cancel()
+        return False
+    done.result()
+    return True
+
+
+class LeaseHolding:
+    """A module's side of its lease (gwc/lease.py), when it runs with standbys: standing by off the bus
+    until it holds the lease, taking it again on every new connection, renewing it at the heartbeat,
+    and being deposed. A part the Module holds, so the lease adds no method to every module."""
+
+    def __init__(self, module: Module) -> None:
+        self.module = module
+
+    def on_connect(self, conn: psycopg.Connection) -> None:
+        """A new connection of the active instance takes its lease again (same epoch), or Deposed."""
+        lease = self.module.lease
+        if lease is not None and lease.epoch:
+            lease.claim(conn)
+
+    async def stand_by(self) -> None:
+        """Off the bus until this instance holds its module's lease; then its connection is the one
+        that holds it, and the module starts at once, carrying on from the tables."""
+        m = self.module
+        assert m.lease is not None
+        m.log.info("redundant: waiting for the lease of %s", m.name)
+        conn = await m.lease.wait(lambda: db.connect(m.cfg, m.role, m.log, 1), notify_ready)
+        m._conn = conn
+        m._database_used = time.monotonic()
+        try:
+            m.on_connect(conn)
+        except DatabaseUnavailable as e:  # (MSCHED's own lock: its predecessor's session is going)
+            m.log.warning("after taking the lease: %s", e)
+            conn.close()
+            m._conn = None
+
+    def keep(self) -> None:
+        """At each heartbeat: renew the lease when due; depose this instance when it could not for
+        the lease's deadline (a standby may fence it soon) or the lease is not its own any more."""
+        m = self.module
+        lease = m.lease
+        if lease is None or not lease.active or m.fenced:
+            return
+        try:
+            if lease.overdue():
+                lease.depose(f"the lease of {m.name} was not renewed for {lease.settings.deadline:.1f}s")
+            if lease.due():
+                m.transaction(lease.renew)
+        except Deposed as e:
+            self.deposed(str(e))
+
+    def deposed(self, why: str) -> None:
+        """Fenced: serve nothing more, leave the bus and exit; the agent starts this a standby again."""
+        m = self.module
+        if m.fenced:
+            return
+        m.fenced = True
+        m.started = False
+        m.bus.set_interest(set())
+        m.log.error("%s: no longer the active %s, leaving the bus to stand by again", why, m.name)
+        if m._conn is not None:
+            m._conn.close()
+            m._conn = None
+        m.stop(EXIT_DEPOSED)

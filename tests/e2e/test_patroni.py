@@ -27,9 +27,10 @@ from typing import Any
 
 import pytest
 
-from gwc.config import dump_toml, private_bus
+from gwc.config import dump_toml
 from gwc.netns import Hosts, leftovers, unavailable
 from gwc.patroni import primary_url
+from gwc.soak.private_config import private_bus
 from tests.harness import SERVERS, wait_for
 
 MISSING = next((p for p in ("patroni", "etcd") if shutil.which(p) is None), None)

@@ -14,9 +14,10 @@ import pytest
 
 from gwc import db
 from gwc.cell import cell_procs
-from gwc.config import Config, write_config
+from gwc.config import Config
 from gwc.errors import ConfigError, DatabaseUnavailable
 from gwc.lease import Claim, Deposed, Lease, LeaseSettings
+from gwc.soak.private_config import write_config
 
 LOG = logging.getLogger("test.lease")
 TTL = 1.0
