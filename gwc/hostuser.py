@@ -200,6 +200,19 @@ def cannot_run_as(user: pwd.struct_passwd, cfg: Config) -> str | None:
     return None
 
 
+def cell_user_reaches(cfg: Config, path: Path) -> bool:
+    """Whether the cell's user (when it is another than the caller) may walk to `path`."""
+    name = cell_user_name(cfg)
+    user = _user(name) if name else None
+    if user is None or user.pw_uid == os.geteuid():
+        return True
+    try:
+        _reachable(path.resolve(), user, "the folder")
+    except HostUserError:
+        return False
+    return True
+
+
 _said: set[str] = set()
 
 

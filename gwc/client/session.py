@@ -7,15 +7,17 @@ import getpass
 import logging
 import os
 import time
+from pathlib import Path
 from typing import Any
 
+import click
 import psycopg
 
 from gwc import db
 from gwc.cell import hi_bus
 from gwc.config import Config, load_config
 from gwc.errors import GwcError
-from gwc.hostuser import become_cell_user
+from gwc.hostuser import become_cell_user, cell_user_reaches
 from gwc.ipc import BlockingBus
 from gwc.ipc.catalogue import Message
 from gwc.log import open_log
@@ -40,13 +42,19 @@ __all__ = [
 
 def context(name: str = "hi", caps: tuple[int, ...] = (), drop: bool = True) -> tuple[Config, logging.Logger]:
     """The configuration and a client's log (var/log/<name>.log). Run as root, the command first becomes
-    the cell's user, keeping capabilities `caps` alone (gwc.hostuser); unless `drop` is False: the
-    benches and the soak, which build private cells of their own that run as whoever starts them
-    (their folders may be where the cell's user cannot go), and log under names of their own."""
+    the cell's user, keeping capabilities `caps` alone (gwc.hostuser). `drop=False`: the benches and
+    the soak, whose private cells run as whoever starts them: they become the cell's user only if it
+    can reach the folders they were given (`--dir`), else stay as they are."""
     cfg = load_config()
-    if drop:
+    if drop or all(cell_user_reaches(cfg, p) for p in _folders_given()):
         become_cell_user(cfg, caps)
     return cfg, open_log(name, cfg.log_dir, cfg.level_of(name))
+
+
+def _folders_given() -> list[Path]:
+    """The paths among the running click command's parameters (a bench's --dir)."""
+    ctx = click.get_current_context(silent=True)
+    return [v for v in (ctx.params.values() if ctx else ()) if isinstance(v, Path)]
 
 
 def operator() -> str:
