@@ -117,6 +117,11 @@ class Demo:
         with psycopg.connect(url, autocommit=True) as conn:
             conn.execute(sql.SQL("DROP DATABASE IF EXISTS {} WITH (FORCE)").format(sql.Identifier(db.DB_NAME)))
             conn.execute(sql.SQL("CREATE DATABASE {}").format(sql.Identifier(db.DB_NAME)))
+        # The travellers of an earlier run belong to its database: gone with it. (A traveller another
+        # user wrote, e.g. the cell's before its lot scripts had a user of their own, could not be
+        # replaced by a script of the lot user in var/lots, which is sticky: it would be resumed.)
+        for old in (self.cfg.var / "lots").glob("entity-*.json"):
+            old.unlink(missing_ok=True)
 
     def _production(self) -> bool:
         assert self.bus is not None
