@@ -292,7 +292,7 @@ def command(trials: int, where: Path | None, as_json: bool) -> None:
     $GWC_DATABASE_URL if set, else an embedded cluster of its own."""
     if trials < 1:
         raise click.BadParameter("--trials must be at least 1")
-    cfg, log = context()
+    cfg, log = context("bench", drop=False)
     bench = FailoverBench(
         where or cfg.var / "bench-failover",
         trials,

@@ -189,7 +189,7 @@ def command(machines: int, lots: int, pairs: int, view: str, where: Path | None,
     alternately without and with a console on it (in tmux), medians of each side. Needs tmux."""
     if machines < 1 or lots < 1 or pairs < 1:
         raise click.BadParameter("--machines, --lots and --pairs must be at least 1")
-    cfg, log = context()
+    cfg, log = context("bench", drop=False)
     say = (lambda s: None) if as_json else click.echo
     result = ConsoleBench(where or cfg.var / "bench-console", machines, lots, pairs, view, log, say).run()
     if as_json:
