@@ -151,7 +151,7 @@ def test_bench_growth_runs_each_size_and_reports_one_table(tmp_path: Path, datab
     assert [(r["machines"], r["lots"]) for r in rows] == [(1, 3), (2, 4)]
     assert all(r["failed"] == 0 and r["check_held"] for r in rows), rows
     assert rows[0]["growth"] == 1.0 and rows[1]["growth"] > 0
-    assert rows[1]["growth"] == round(rows[1]["loaded_median_ms"] / rows[0]["loaded_median_ms"], 2)
+    assert abs(rows[1]["growth"] - rows[1]["loaded_median_ms"] / rows[0]["loaded_median_ms"]) < 0.02
     # a cell of servers, MSCHED, machines and PostgreSQL takes far more than 50 MB, and less than 50 GB
     assert all(50 < r["peak_memory_mb"] < 50_000 for r in rows), rows
     assert all(r["resting_percent"] is not None and r["floor_percent"] is not None for r in rows)
