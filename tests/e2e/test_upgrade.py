@@ -133,12 +133,22 @@ def start_standby(standbys: Standbys, name: str, build: Path | None) -> subproce
     return p
 
 
-@pytest.mark.soak  # 90 s on the shared 2-core machine; tests/unit/test_wire_versions.py and
-# test_schema_versions.py prove the negotiation and the schema rules in the default suite
+def test_msched_and_the_lot_server_handed_over_to_a_new_build_while_lots_run(upgrade_cell: Any, tmp_path: Path) -> None:
+    """The default suite's walk, while 2 lots run: a module of the new build refuses the old schema;
+    the schema migrated; h2's standbys started on the new build; h1's active instances handed over."""
+    rolling_upgrade(*upgrade_cell, tmp_path, full=False)
+
+
+@pytest.mark.soak  # 90 s on the shared 2-core machine
 def test_a_rolling_upgrade_while_lots_run_loses_no_lot_and_both_versions_talk(
     upgrade_cell: Any, tmp_path: Path
 ) -> None:
-    cell, old, new, build = upgrade_cell
+    """The whole walk: h2's standbys of the old build replaced, h1's handed over, h1's instances back
+    as standbys of the new build, lots of both builds ordered, `gwc upgrade status` asked."""
+    rolling_upgrade(*upgrade_cell, tmp_path, full=True)
+
+
+def rolling_upgrade(cell: CellHarness, old: Standbys, new: Standbys, build: Path, tmp_path: Path, full: bool) -> None:
     record = tmp_path / "monitor.jsonl"
     monitor = subprocess.Popen(
         [sys.executable, "-m", "gwc", "monitor", "--json", "--members", "--record", str(record), "--duration", "150"],
@@ -149,11 +159,16 @@ def test_a_rolling_upgrade_while_lots_run_loses_no_lot_and_both_versions_talk(
     )
     try:
         assert monitor.stderr is not None and "monitoring bus" in monitor.stderr.readline()
-        for name in LEASED:  # h2: standbys of this build
-            old.start(name)
-        for name in LEASED:
-            wait_for(lambda name=name: standing_by(cell, name, 1), 20, f"a standby {name}")
-        entities = order(cell, "milled_pawn=3")  # lots of this build
+        if full:  # h2: standbys of the old build
+            for name in LEASED:
+                start_standby(old, name, None)
+            for name in LEASED:
+                wait_for(lambda name=name: standing_by(cell, name, 1), 20, f"a standby {name}")
+        else:  # a module of the new build refuses the schema before the migration, saying what to do
+            early = start_standby(new, "msched", build)
+            assert early.wait(30) == 3
+            assert "apply this build's schema first" in cell.log_text("msched")
+        entities = order(cell, "milled_pawn=3" if full else "milled_pawn=2")  # lots of the old build
         for e in entities:
             wait_state(cell, e, "waiting_import")
         ok(gwc(cell, "import", "--all"))
@@ -179,14 +194,15 @@ def test_a_rolling_upgrade_while_lots_run_loses_no_lot_and_both_versions_talk(
         for name in LEASED:
             assert f"{name}: handed over" in handed and holder(cell, name)[0] == epochs[name] + 1
             assert f"it speaks wire version {NEW_WIRE}" in handed, handed
-        # 4. h1's instances come back on the new build, as standbys.
-        for name in LEASED:
-            start_standby(new, name, build)
-        # Lots of the new build ordered now talk to machines of the old.
-        entities += order_new(cell, build, "milled_pawn=2")
-        versions = json.loads(run_new(cell, build, "upgrade", "status", "--json", "--listen", "1"))
-        assert versions["modules"]["msched"] == NEW_WIRE and versions["modules"]["wc:wc1"] == wire.VERSION
-        assert versions["cell_speaks"] == wire.VERSION and versions["runs_here"]
+        if full:
+            # 4. h1's instances come back on the new build, as standbys.
+            for name in LEASED:
+                start_standby(new, name, build)
+            # Lots of the new build ordered now talk to machines of the old.
+            entities += order_new(cell, build, "milled_pawn=2")
+            versions = json.loads(run_new(cell, build, "upgrade", "status", "--json", "--listen", "1"))
+            assert versions["modules"]["msched"] == NEW_WIRE and versions["modules"]["wc:wc1"] == wire.VERSION
+            assert versions["cell_speaks"] == wire.VERSION and versions["runs_here"]
         # A field the new build added is left out for the old: an old receiver would drop it as unknown.
         conv, answer = cell.bus.request("STARTUP", message("Startup_Request", module="msched"), to="msched")
         conv.end()
