@@ -194,6 +194,11 @@ def rolling_upgrade(cell: CellHarness, old: Standbys, new: Standbys, build: Path
         for name in LEASED:
             assert f"{name}: handed over" in handed and holder(cell, name)[0] == epochs[name] + 1
             assert f"it speaks wire version {NEW_WIRE}" in handed, handed
+        status = run_new(cell, build, "upgrade", "status", "--listen", "0.5")
+        assert f"database: schema {NEW_SCHEMA}, runs builds of schema {SCHEMA_VERSION}..{NEW_SCHEMA}" in status
+        new_line = next(line for line in status.splitlines() if line.startswith(f"wire {NEW_WIRE}: "))
+        assert "ls" in new_line and "msched" in new_line and "wc:wc1" not in new_line, status
+        assert f"the cell speaks wire version {wire.VERSION}" in status, status
         if full:
             # 4. h1's instances come back on the new build, as standbys.
             for name in LEASED:
