@@ -32,7 +32,7 @@ from typing import Any, TypeVar
 
 import psycopg
 
-from gwc import db
+from gwc import db, schema
 from gwc.agent.control import notify_ready
 from gwc.config import Config, load_config
 from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, GwcError, Refused
@@ -364,6 +364,7 @@ class Module:
         self._stop.set()
 
     async def run(self, start: bool = False) -> int:
+        await schema.check_at_start(self.cfg, self.role, self.log)  # a schema it cannot run with: it exits
         if self.lease is not None:
             if not await until_stopped(self.holding.stand_by(), self._stop):
                 self.log.info("Stopped while standing by")

@@ -92,6 +92,7 @@ class Bus:
         self._heartbeat: asyncio.Task[None] | None = None
         self.faults = FaultLog(log, self.stats)  # a step that failed: counted, logged once per kind
         self._origin = wire.origin(name, self.inc)
+        self._speaking = wire.VERSION  # the wire version we encode in (speak(); docs/protocol.md, Versions)
         self._mine = f"{name}."  # how the ids of conversations this module opened begin
         self._conv_prefix = f"{name}.{self.inc:x}."  # ... in this incarnation
         self.peer_listeners: list[Callable[[str, Peer | None], None]] = []  # told of every join and leave
@@ -194,6 +195,24 @@ class Bus:
 
     def peers(self) -> dict[str, Peer]:
         return dict(self._peers)
+
+    # ----------------------------------------------------------------- wire versions (gwc/ipc/membership.py)
+
+    @property
+    def speaking(self) -> int:
+        """The wire version this bus encodes in now: the lowest its peers speak, at most its own."""
+        return self._speaking
+
+    def versions(self) -> dict[str, int]:
+        """Peer name -> the highest wire version it speaks (from its hellos)."""
+        return dict(self._members.speaks)
+
+    def speak(self, version: int) -> None:
+        """Encode everything from now on in wire `version` (the membership decides which): what is
+        already in flight is retransmitted as it was encoded."""
+        omit = catalogue.fields_after(version) if version < wire.VERSION else None
+        self._origin = wire.origin(self.name, self.inc, version, omit)
+        self._speaking = self.outbox.version = version
 
     def listeners_of(self, cls: str, subject: str = "") -> list[str]:
         """Who hears broadcasts of `cls` (about `subject`: those who hear the class about it too)."""
@@ -439,6 +458,8 @@ class Bus:
             peer = self._peers.get(env.src)
             if peer is not None and peer.inc == env.inc:
                 peer.last_seen = now  # any datagram proves life, not only hellos
+            elif env.version != self._speaking:  # a sender we hold no hello of speaks another version
+                self._members.heard_version(env, now)
             kind = env.kind
             self.stats[kind] += 1  # datagrams read, by kind: what the kernel filter let through
             if kind == "msg":
