@@ -5,7 +5,6 @@ an audit row. One cell for the module (tests/e2e/webkit.py)."""
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import os
 import ssl
@@ -16,11 +15,8 @@ from typing import Any
 
 import httpx
 import pytest
-from click.testing import CliRunner
 
-from gwc.cli import cli
-from gwc.console.link import CellLink
-from gwc.log import open_log
+from gwc.users import Action
 from tests.e2e.webkit import ARTIFACTS, PASSWORD, ROLE, audit_rows, client, logged_in, start_gateway, web_cell
 from tests.harness import CellHarness, wait_for
 
@@ -253,128 +249,97 @@ def test_operator_in_chromium_starts_a_machine_clears_an_alarm_and_enters_an_ord
 
 # ---------------------------------------------------------------------------------------- door by door
 
-# One action at each boundary of the role table (docs/users.md), as each door spells it: alarm.clear
-# (operator and up), request.cancel (engineer and up), audit.read (admin). Each is asked of a number
-# nothing has (alarm 999, request 999), so an allowed act reaches its module and fails there ("failed"),
-# and a refused one never leaves the door ("refused").
-BOUNDARY = {"alarm.clear": "operator", "request.cancel": "engineer", "audit.read": "admin"}
-RANK = ["viewer", "operator", "engineer", "admin"]
-
-
-def may(user: str, action: str) -> bool:
-    return RANK.index(ROLE[user]) >= RANK.index(BOUNDARY[action])
-
-
-def opcua_calls(cell: CellHarness, certs: Path) -> dict[tuple[str, str], str]:
-    """ClearAlarm(999) and CancelRequest(999) by each cell user over a SignAndEncrypt channel: the
-    status name each call answered."""
-    from asyncua import Client, ua
-    from asyncua.crypto.cert_gen import setup_self_signed_certificate
-    from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
-    from cryptography.x509.oid import ExtendedKeyUsageOID
-
-    endpoint = cell.cfg.raw["opcua"]["endpoint"]
-    out: dict[tuple[str, str], str] = {}
-
-    async def run() -> None:
-        cert, key = certs / "client-cert.der", certs / "client-key.pem"
-        await setup_self_signed_certificate(
-            key, cert, "urn:gwc:test:client", "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "t"}
-        )
-        for user in PASSWORD:
-            client = Client(endpoint, timeout=30)
-            client.application_uri = "urn:gwc:test:client"
-            await client.set_security(
-                SecurityPolicyBasic256Sha256, str(cert), str(key), mode=ua.MessageSecurityMode.SignAndEncrypt
-            )
-            client.set_user(user)
-            client.set_password(PASSWORD[user])
-            await client.connect()
-            try:
-                ns = await client.get_namespace_index("urn:gwc:cell")
-                cell_node = client.get_node(ua.NodeId("cell", ns))
-                for action, method in (("alarm.clear", "ClearAlarm"), ("request.cancel", "CancelRequest")):
-                    try:
-                        await cell_node.call_method(
-                            ua.NodeId(f"cell/{method}", ns), ua.Variant(999, ua.VariantType.Int64)
-                        )
-                        out[(user, action)] = "Good"
-                    except ua.UaStatusCodeError as e:
-                        out[(user, action)] = type(e).__name__
-            finally:
-                await client.disconnect()
-
-    asyncio.run(run())
-    return out
+USERS = list(PASSWORD)  # ada (admin), vera (viewer), otto (operator), emma (engineer)
 
 
 def test_the_role_table_holds_door_by_door_each_refusal_said_and_audited(
     web: tuple[CellHarness, str], tmp_path: Path, monkeypatch: Any
 ) -> None:
+    """The whole role table (docs/users.md), at every door that offers each action: the web (its HTTP
+    API), `gwc`, the console, OPC UA. Every role that may passes the door (the act is done, or its
+    module answers about the object, never `may not`); every other role is refused with a message
+    naming who may, and an audit row `refused` (tests/e2e/doorwalk.py)."""
+    from gwc.hi.door import COMMAND_ACTIONS
+    from gwc.opcua.door import METHOD_ACTIONS
+    from gwc.users.roles import LOWEST, Role, allowed
+    from gwc.web.app import WEB_ACTIONS
+    from tests.e2e import doorwalk
+
+    # the walk covers every action each door offers, and every action of the table is offered somewhere
+    assert set(doorwalk.WEB_CALLS) == set(WEB_ACTIONS.values())
+    assert {tuple(args[: len(k)]) for _, args in doorwalk.GWC_CALLS for k in COMMAND_ACTIONS} >= set(COMMAND_ACTIONS)
+    assert all(
+        COMMAND_ACTIONS.get(args[:2], COMMAND_ACTIONS.get(args[:1])) == a
+        for a, args in doorwalk.GWC_CALLS
+        if args[0] not in ("user", "audit")
+    )
+    assert set(doorwalk.opcua_calls()) == set(METHOD_ACTIONS)
+    offered = {*WEB_ACTIONS.values(), *(a for a, _ in doorwalk.GWC_CALLS), *doorwalk.CONSOLE_CALLS}
+    assert offered | set(METHOD_ACTIONS.values()) == set(LOWEST)
+
     cell, base = web
     before = len(audit_rows(cell))
-    # the web: alarm.clear and audit.read (the web has no request.cancel)
-    for user in PASSWORD:
-        c, csrf = logged_in(base, user)
-        with contextlib.closing(c):
-            r = c.post("/api/alarms/999/clear", headers={"X-CSRF-Token": csrf})
-            if may(user, "alarm.clear"):
-                assert r.status_code == 409, (user, r.text)  # the CAS: no such alarm
-            else:
-                assert r.status_code == 403 and f"{user} (viewer) may not clear an alarm" in r.json()["error"]
-            r = c.get("/api/audit")
-            assert r.status_code == (200 if may(user, "audit.read") else 403), (user, r.text)
-    # `gwc`: each login through sudo (SUDO_USER), ada as root itself; the command line in this process
-    # (click's runner: the same cli, door and client code as `python -m gwc`, without 12 interpreters)
-    runner = CliRunner()
-    for user in PASSWORD:
-        env = {**cell.env(), "SUDO_USER": None if user == "ada" else user}
-        for action, args in (
-            ("alarm.clear", ("alarm", "clear", "999")),
-            ("request.cancel", ("cancel", "999")),
-            ("audit.read", ("audit",)),
-        ):
-            done = runner.invoke(cli, list(args), env=env)
-            if may(user, action):
-                assert done.exit_code != 8, (user, action, done.output)  # past the door: the cell answered
-            else:
-                assert done.exit_code == 8 and f"{user} ({ROLE[user]}) may not" in done.output, (user, done.output)
-    # the console: its link, as `gwc console` acts (the person found from the login, as for gwc)
-    for user in PASSWORD:
-        monkeypatch.setenv("SUDO_USER", "root" if user == "ada" else user)
-        link = CellLink(cell.cfg, open_log("console", cell.cfg.log_dir, "note"))
-        link.open()
-        try:
-            for action, answer in (
-                ("alarm.clear", link.clear_alarm(999)),
-                ("request.cancel", link.cancel_request(999)),
-            ):
-                assert not answer.ok
-                refused = "may not" in answer.text
-                assert refused != may(user, action), (user, action, answer.text)
-        finally:
-            link.close()
-    monkeypatch.delenv("SUDO_USER")
-    # OPC UA: the cell users log in by name and password
-    start_gateway(cell)
-    calls = opcua_calls(cell, tmp_path)
-    for (user, action), status in calls.items():
-        assert (status != "BadUserAccessDenied") == may(user, action), (user, action, status)
+    began = time.monotonic()
 
+    def role(user: str) -> Role:
+        return Role[ROLE[user]]
+
+    def judged(door: str, user: str, action: Any, answer: doorwalk.Answer) -> None:
+        may_ = allowed(role(user), action)
+        assert answer.refused != may_, (door, user, action, answer.text)
+        if answer.refused and door != "opcua":  # OPC UA says it in its status code: BadUserAccessDenied
+            assert f"{user} ({ROLE[user]}) may not" in answer.text, (door, user, action, answer.text)
+        if may_:
+            assert "may not" not in answer.text, (door, user, action, answer.text)
+
+    timings = {}
+    for (user, action), answer in doorwalk.walk_web(base, USERS).items():
+        judged("web", user, action, answer)
+    timings["web"] = time.monotonic() - began
+    for (user, args), answer in doorwalk.walk_gwc(cell, USERS).items():
+        judged("gwc", user, dict((tuple(a), x) for x, a in doorwalk.GWC_CALLS)[args], answer)
+    timings["gwc"] = time.monotonic() - began - sum(timings.values())
+    for (user, action), answer in doorwalk.walk_console(cell, USERS, monkeypatch).items():
+        judged("console", user, action, answer)
+    timings["console"] = time.monotonic() - began - sum(timings.values())
+    # OPC UA: Start on wc1 and Stop on wc2 find them already so (the otto's acts here are audited too)
+    c, csrf = logged_in(base, "otto")
+    with contextlib.closing(c):
+        for path in ("/api/machines/wc1/start", "/api/machines/wc2/stop"):
+            assert c.post(path, headers={"X-CSRF-Token": csrf}).status_code == 200
+    start_gateway(cell)
+    gate = time.monotonic()
+    for (user, method), answer in doorwalk.walk_opcua(cell, tmp_path, USERS).items():
+        judged("opcua", user, METHOD_ACTIONS[method], answer)
+    timings["opcua"] = time.monotonic() - gate
+
+    # the trail: for each door, user and action walked, rows `refused` exactly when the role may not
     rows = audit_rows(cell)[before:]
-    for door in ("web", "gwc", "console", "opcua"):
-        for user in PASSWORD:
-            for action in BOUNDARY:
-                if door in ("console", "opcua") and action == "audit.read":
-                    continue
-                mine = [r for r in rows if (r[0], r[2], r[3]) == (user, door, action)]
-                if door == "web" and action == "request.cancel":
-                    continue
+    walked: dict[str, set[Action]] = {
+        "web": {a for a in WEB_ACTIONS.values() if a is not Action.VIEW},  # a GET is not an act: not audited
+        "gwc": {a for a, _ in doorwalk.GWC_CALLS},
+        "console": set(doorwalk.CONSOLE_CALLS),
+        "opcua": set(METHOD_ACTIONS.values()),
+    }
+    for door, actions in walked.items():
+        for user in USERS:
+            for action in actions:
+                mine = [r for r in rows if (r[0], r[2], r[3]) == (user, door, action.value)]
                 assert mine, (door, user, action)
-                outcome = mine[-1][5]
-                assert (outcome == "refused") != may(user, action), (door, user, action, outcome)
-                if outcome == "refused":
-                    assert "may not" in mine[-1][6]
+                if allowed(role(user), action):
+                    assert all(r[5] != "refused" for r in mine), (door, user, action, mine)
+                else:
+                    assert all(r[5] == "refused" and f"{user} ({ROLE[user]}) may not" in r[6] for r in mine), (
+                        door,
+                        user,
+                        action,
+                        mine,
+                    )
+    cells = sum(len(a) for a in walked.values()) * len(USERS)
+    print(
+        f"role table walked: {cells} door x action x user cells; "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
+    )
 
 
 @pytest.mark.soak
