@@ -32,15 +32,15 @@ def window(cfg: Config, since: str | None, until: str | None) -> tuple[datetime,
 
 
 def _segments(segs: list[store.Segment], since: datetime, until: datetime) -> list[dict[str, Any]]:
-    """A timeline's segments as the page draws them, neighbours of one E10 state merged and, past
-    TIMELINE_MAX, the narrowest folded into the one before (a page is a few hundred pixels wide)."""
+    """A timeline's segments as the page draws them: neighbours of one E10 state merged, and past
+    TIMELINE_MAX the narrowest folded into the one before (a page is a few hundred pixels wide); the
+    last, the machine's state now, is always kept."""
     span = (until - since).total_seconds() or 1.0
     out: list[dict[str, Any]] = []
     for s in segs:
-        last = out[-1] if out else None
-        if last is not None and (last["e10"] == s.e10 or s.seconds / span < 1 / (4 * TIMELINE_MAX)):
-            last["end"] = s.end.isoformat()
-            last["seconds"] = round(last["seconds"] + s.seconds, 3)
+        if out and out[-1]["e10"] == s.e10:
+            out[-1]["end"] = s.end.isoformat()
+            out[-1]["seconds"] = round(out[-1]["seconds"] + s.seconds, 3)
             continue
         out.append(
             {
@@ -53,7 +53,16 @@ def _segments(segs: list[store.Segment], since: datetime, until: datetime) -> li
                 "recipe_id": s.recipe_id,
             }
         )
-    return out
+    if len(out) <= TIMELINE_MAX:
+        return out
+    folded = out[:1]
+    for seg in out[1:-1]:
+        if seg["seconds"] / span < 1 / (4 * TIMELINE_MAX):
+            folded[-1]["end"] = seg["end"]
+            folded[-1]["seconds"] = round(folded[-1]["seconds"] + seg["seconds"], 3)
+        else:
+            folded.append(seg)
+    return [*folded, out[-1]]
 
 
 def record_view(cfg: Config, conn: psycopg.Connection[Any], since: datetime, until: datetime) -> dict[str, Any]:
@@ -81,7 +90,7 @@ def record_view(cfg: Config, conn: psycopg.Connection[Any], since: datetime, unt
 
 def spc_view(cfg: Config, conn: psycopg.Connection[Any], machine: str | None = None) -> list[dict[str, Any]]:
     """The control charts `gwc spc --json` shows (one per machine, recipe and feature measured)."""
-    from gwc.hi.quality import charts
+    from gwc.quality.charts import charts
 
     def read(sql: str, params: Any = ()) -> list[tuple[Any, ...]]:
         rows = conn.execute(sql, tuple(params)).fetchall()

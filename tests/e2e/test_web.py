@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import ssl
 import time
 from collections.abc import Iterator
@@ -15,7 +16,9 @@ from typing import Any
 
 import httpx
 import pytest
+from click.testing import CliRunner
 
+from gwc.cli import cli
 from gwc.users import Action
 from tests.e2e.webkit import ARTIFACTS, PASSWORD, ROLE, audit_rows, client, logged_in, start_gateway, web_cell
 from tests.harness import CellHarness, wait_for
@@ -357,3 +360,189 @@ def test_bench_web_compares_the_cell_with_and_without_browsers_open(tmp_path: Pa
     assert without["browsers_cpu_ms_per_lot"] == 0 < with_browsers["browsers_cpu_ms_per_lot"]  # they were open
     assert with_browsers["web_cpu_ms_per_lot"] > 0
     assert result["check_held"] is True, result["check_breaches"]
+
+
+# ------------------------------------------------------------------------- the record and quality pages
+
+
+def test_record_quality_and_genealogy_are_read_through_the_api(web: tuple[CellHarness, str]) -> None:
+    """What the record's pages draw, as an MES tool reads it: a viewer may read it all; a bad window or
+    an unknown entity is a clear 400, no session a 401."""
+    _, base = web
+    with client(base) as anon:
+        assert anon.get("/api/record").status_code == 401
+    c, _ = logged_in(base, "vera")
+    with contextlib.closing(c):
+        rec = c.get("/api/record", params={"since": "1h"}).json()
+        machines = {"wc1", "wc2", "cmm_wc"}
+        assert {m["machine_id"] for m in rec["oee"]["machines"]} == machines
+        assert set(rec["timelines"]) == machines and rec["reasons"]
+        assert all(seg["e10"] for segs in rec["timelines"].values() for seg in segs)
+        assert isinstance(c.get("/api/spc").json(), list)
+        assert isinstance(c.get("/api/trace/where", params={"machine": "wc1"}).json(), list)
+        assert {r["recipe_id"] for r in c.get("/api/recipes").json()}
+        for path, params, says in (
+            ("/api/record", {"since": "yesterday-ish"}, "is not a time"),
+            ("/api/trace/entity/999999", {}, "unknown lot entity 999999"),
+            ("/api/trace/where", {}, "say where"),
+        ):
+            r = c.get(path, params=params)
+            assert r.status_code == 400 and says in r.json()["error"], (path, r.text)
+
+
+@pytest.fixture(scope="module")
+def engineer_page(web: tuple[CellHarness, str]) -> Iterator[Any]:
+    """One headless Chromium for the record's pages, logged in as emma (engineer: she may give a downtime
+    its reason and approve a recipe)."""
+    if not os.path.exists(CHROMIUM):
+        pytest.skip("Debian's chromium is not installed (bin/setup)")
+    from playwright.sync_api import expect, sync_playwright
+
+    _, base = web
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        try:
+            page = browser.new_context(ignore_https_errors=True, viewport={"width": 1280, "height": 900}).new_page()
+            page.goto(base)
+            page.fill("#login-user", "emma")
+            page.fill("#login-password", PASSWORD["emma"])
+            page.click("#login button[type=submit]")
+            expect(page.locator("#user")).to_have_text("emma (engineer)")
+            expect(page.locator("#live")).to_have_text("live")
+            yield page
+        finally:
+            browser.close()
+
+
+def keep(page: Any, name: str) -> Path:
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    path = ARTIFACTS / f"record-{name}.png"
+    page.screenshot(path=str(path), full_page=True)
+    assert path.stat().st_size > 10_000, f"{path} looks blank"
+    return path
+
+
+def test_oee_page_shows_each_machine_and_the_cell(engineer_page: Any) -> None:
+    from playwright.sync_api import expect
+
+    page = engineer_page
+    page.click("#tabs button[data-tab=oee]")
+    for m in ("wc1", "wc2", "cmm_wc", "(cell)"):
+        expect(page.locator("#oee-table")).to_contain_text(m)
+    assert page.locator("#oee-chart rect").count() == 4 * 4  # availability, performance, quality, OEE
+    keep(page, "oee")
+
+
+def test_downtime_page_gives_a_stop_its_reason_live_and_audited(
+    web: tuple[CellHarness, str], engineer_page: Any
+) -> None:
+    """wc1 stopped through the API opens a downtime event; the page shows it live, emma gives it a reason
+    of the tree, the Machine Server stores it, the page shows it, the trail has it."""
+    from playwright.sync_api import expect
+
+    cell, base = web
+    c, csrf = logged_in(base, "otto")
+    with contextlib.closing(c):
+        assert c.post("/api/machines/wc1/start", headers={"X-CSRF-Token": csrf}).status_code == 200
+        wait_for(lambda: status(cell, "wc1") == "Idle", 10, "wc1 Idle")
+        assert c.post("/api/machines/wc1/stop", headers={"X-CSRF-Token": csrf}).status_code == 200
+    wait_for(lambda: cell.query("select 1 from downtime_events where machine_id = 'wc1' and ended_at is null"), 10, "")
+    (event,) = cell.query("select max(event_id) from downtime_events where machine_id = 'wc1' and ended_at is null")[0]
+    reason = next(iter(cell.cfg.record.reasons))
+    page = engineer_page
+    page.click("#tabs button[data-tab=downtime]")
+    row = page.locator("#downtime-table tr", has=page.locator(f"td:text-is('{event}')"))
+    expect(row).to_have_count(1, timeout=15000)  # the record topic: read at most every 5 s
+    row.locator("select").select_option(reason)
+    row.locator("button", has_text="Set reason").click()
+    expect(page.locator("#message")).to_contain_text(f"downtime {event}: {reason}")
+    expect(row.locator("td").nth(5)).to_have_text(reason, timeout=10000)  # read again at once, sent live
+    keep(page, "downtime")
+    assert cell.query("select reason, reason_by from downtime_events where event_id = %s", event)[0] == (
+        reason,
+        "web:emma",
+    )
+    assert ("emma", "engineer", "web", "downtime.reason", str(event), "ok") in [r[:6] for r in audit_rows(cell)]
+
+
+def test_timeline_page_draws_each_machines_e10_states(engineer_page: Any) -> None:
+    from playwright.sync_api import expect
+
+    page = engineer_page
+    page.click("#tabs button[data-tab=timeline]")
+    for m in ("wc1", "wc2", "cmm_wc"):
+        expect(page.locator(f"#timeline-{m}")).to_be_attached()
+    # wc1 was started and stopped (the downtime test): productive or standby, then down, drawn live
+    line = page.locator("#timeline-wc1 rect")
+    expect(line.last).to_have_attribute("data-e10", re.compile("downtime|non_scheduled"), timeout=15000)
+    assert {line.nth(i).get_attribute("data-e10") for i in range(line.count())} & {"standby", "productive"}
+    keep(page, "timeline")
+
+
+def test_spc_page_charts_a_measured_feature_and_marks_a_broken_rule(
+    web: tuple[CellHarness, str], engineer_page: Any
+) -> None:
+    """25 measurements of one feature, as a measuring run's results leave them in run_features (written
+    here, as the WC's trigger would), the last far out: the chart shows it red (WE1)."""
+    from playwright.sync_api import expect
+
+    cell, _ = web
+    values = [10.0 + 0.01 * ((i * 7) % 5 - 2) for i in range(24)] + [10.2]
+    with cell.db() as conn:
+        for i, v in enumerate(values):
+            conn.execute(
+                "insert into run_features (machine_run_id, machine_id, recipe_id, feature, measured, nominal, tol, at) "
+                "values (%s, 'cmm_wc', 'web_spc', 'DIAM', %s, 10.0, 0.1, now() - make_interval(secs => %s))",
+                (900_000 + i, v, 100 - i),
+            )
+    page = engineer_page
+    page.reload()  # the charts are read at a page's start, then live (every 60 s at least)
+    page.click("#tabs button[data-tab=spc]")
+    chart = page.locator("#spc-cmm_wc-web_spc-DIAM")
+    expect(chart).to_contain_text("1 rule(s) broken")
+    assert chart.locator("circle").count() == 25
+    assert chart.locator("circle[data-broken='1']").count() == 1
+    keep(page, "spc")
+
+
+def test_genealogy_page_traces_an_entity_and_searches_where(web: tuple[CellHarness, str], engineer_page: Any) -> None:
+    from playwright.sync_api import expect
+
+    cell, base = web
+    (entity,) = cell.query("select max(entity_id) from lot_status")[0]
+    if entity is None:  # run alone: an order of one part (its lot waits to be imported)
+        c, csrf = logged_in(base, "otto")
+        with contextlib.closing(c):
+            r = c.post(
+                "/api/orders", headers={"X-CSRF-Token": csrf}, json={"customer": "NJIT", "items": "milled_pawn=1"}
+            )
+            entity = r.json()["lots"][0]["entities"][0]
+    page = engineer_page
+    page.click("#tabs button[data-tab=genealogy]")
+    page.fill("#trace-entity", str(entity))
+    page.click("#trace-form button[type=submit]")
+    expect(page.locator("#trace-head")).to_contain_text(f"entity {entity}, lot ")
+    expect(page.locator("#trace-states")).to_contain_text("created")
+    page.fill("#where-machine", "wc1")
+    page.click("#where-form button[type=submit]")
+    expect(page.locator("#where-table tr").first).to_contain_text("entity_id")
+    keep(page, "genealogy")
+
+
+def test_recipe_page_approves_a_new_version(web: tuple[CellHarness, str], engineer_page: Any, tmp_path: Path) -> None:
+    from playwright.sync_api import expect
+
+    cell, _ = web
+    recipe = tmp_path / "web_recipe.txt"
+    recipe.write_text("G00 X0 Y0\n")
+    done = CliRunner().invoke(cli, ["recipe", "add", "web_recipe", str(recipe)], env={**cell.env(), "SUDO_USER": None})
+    assert done.exit_code == 0, done.output
+    page = engineer_page
+    page.click("#tabs button[data-tab=recipes]")
+    row = page.locator("#recipe-table tr", has=page.locator("td:text-is('web_recipe')"))
+    row.locator("button", has_text="Approve v1").click()
+    expect(page.locator("#message")).to_contain_text("web_recipe v1 approved")
+    expect(row.locator("button")).to_have_count(0)  # the list read again: nothing left to approve
+    keep(page, "recipes")
+    assert cell.query("select approved from recipe_versions where recipe_id = 'web_recipe'") == [(True,)]
+    assert ("emma", "engineer", "web", "recipe.approve", "web_recipe", "ok") in [r[:6] for r in audit_rows(cell)]
