@@ -1,6 +1,6 @@
 """What the web's record and quality pages show (docs/web.md): OEE, the machines' state timelines and
 downtime over a window, the control charts, the recipe library, and the genealogy searches. Each is
-the production record's or the quality work's own read (gwc.record.store, gwc.hi.quality.charts,
+the production record's or the quality work's own read (gwc.record.store, gwc.quality.charts,
 gwc.client.recipes), put in the shape the pages draw: the web holds no SQL of its own for them.
 """
 
