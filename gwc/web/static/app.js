@@ -188,7 +188,7 @@ function drawSpc(charts) {
 async function loadRecord() {
   try {
     const data = await api("GET", "/api/record" + (state.window ? `?since=${encodeURIComponent(state.window)}` : ""));
-    drawRecord(data);
+    if (state.window) drawRecord(data); else show("record", data);
   } catch (e) { say(e.message, false); }
 }
 
@@ -267,11 +267,12 @@ const render = {
   modules(rows) {
     table("module-table", rows, ["module", "started"]);
   },
+  // The record and the charts are big: drawn only while their tab is shown (and when it is chosen).
   record(data) {
-    if (!state.window) drawRecord(data);  // a chosen window is not live: it was read when chosen
+    if (!state.window && RECORD_TABS.includes(state.tab)) drawRecord(data);  // a chosen window is not live
   },
   spc(charts) {
-    drawSpc(charts);
+    if (state.tab === "spc") drawSpc(charts);
   },
 };
 
@@ -294,6 +295,8 @@ function switchTab(tab) {
   $("record-bar").hidden = !RECORD_TABS.includes(tab);
   if (tab === "audit") loadAudit();
   if (tab === "recipes") loadRecipes();
+  if (RECORD_TABS.includes(tab) && !state.window && state.data.record) drawRecord(state.data.record);
+  if (tab === "spc" && state.data.spc) drawSpc(state.data.spc);
 }
 
 let events = null;
