@@ -97,7 +97,12 @@ function bars(el, rows, scale, fmt) {
 function drawTimelines(data) {
   const out = $("timelines");
   out.replaceChildren();
-  const since = Date.parse(data.since), span = (Date.parse(data.until) - since) || 1, width = 900;
+  // The axis starts at the window's start, or at the first thing known in it (a young cell's few
+  // minutes drawn across the width, not as a sliver at the end of 8 hours).
+  const firsts = Object.values(data.timelines).filter((s) => s.length).map((s) => Date.parse(s[0].start));
+  const since = Math.max(Date.parse(data.since), Math.min(...firsts, Infinity) === Infinity ? 0 : Math.min(...firsts));
+  const span = (Date.parse(data.until) - since) || 1, width = 900;
+  $("timeline-axis").textContent = `${new Date(since).toISOString().slice(0, 19)} to ${data.until.slice(0, 19)} UTC`;
   for (const [machine, segs] of Object.entries(data.timelines)) {
     const row = document.createElement("div");
     row.className = "machine-line";
