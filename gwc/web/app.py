@@ -68,6 +68,9 @@ WEB_ACTIONS: dict[str, Action] = {
     "GET /api/audit": Action.AUDIT_READ,
     "POST /api/logout": Action.VIEW,
 }
+# Topics a new event stream is not given the latest of: a page reads them (GET) as it opens, and the
+# latest may be older than that read (they are re-read seldom: gwc.web.cellview.SLOW_TOPICS).
+NO_REPLAY = frozenset({"record", "spc"})
 # The live topics an action changes, read again at once after it (the others follow their broadcasts).
 TOUCHES: dict[Action, tuple[str, ...]] = {Action.DOWNTIME_REASON: ("record",)}
 NOBODY = Person("(none)", role=next(iter(LOWEST.values())), door="web")  # an act without a session, for the trail
@@ -313,7 +316,8 @@ def build_app(web: Web) -> Starlette:
             return _error(e.status, str(e))
         q: asyncio.Queue[tuple[str, str] | None] = asyncio.Queue()
         for topic, text in web.live.latest.items():
-            q.put_nowait((topic, text))
+            if topic not in NO_REPLAY:
+                q.put_nowait((topic, text))
         web.live.streams.add(q)
 
         async def stream() -> AsyncIterator[str]:
