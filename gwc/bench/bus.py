@@ -45,6 +45,7 @@ from gwc.ipc import auth, eventloop, keys, wire
 from gwc.ipc.auth import Guard
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import message
+from gwc.ipc.conversation import Conversation
 from gwc.ipc.names import Conv, Msg
 from gwc.ipc.transport import open_socket
 from gwc.retry import Deadline
@@ -105,18 +106,23 @@ def mac_cost(n: int = 20_000) -> dict[str, float]:
 async def _serve_bus(cfg: BusConfig) -> None:
     bus = Bus(SERVER, cfg, logging.getLogger("gwc.bench"), [Conv.PING])
     await bus.sign_on(settle=0)
-    while True:
-        conv = await bus.first_message()
-        if conv is None:
-            return
-        assert conv.first is not None
-        first = conv.first.first
-        if first.payload == "stop":
-            conv.end()
-            await bus.close()
-            return
-        await conv.send(message(Msg.PONG, n=first.n))
-        conv.end()
+    stopped = asyncio.get_running_loop().create_future()
+    bus.accept(lambda conv: _answer(conv, stopped))
+    await stopped
+    await bus.close()
+
+
+def _answer(conv: Conversation, stopped: asyncio.Future[None]) -> None:
+    """A Ping answered at once, on the bus's loop, as a handler that needs no database answers
+    (Bus.accept): no task, no loop turn between the Ping and its Pong."""
+    assert conv.first is not None
+    first = conv.first.first
+    if first.payload == "stop":
+        if not stopped.done():
+            stopped.set_result(None)
+    else:
+        conv.reply(message(Msg.PONG, n=first.n))
+    conv.end()
 
 
 def _serve_bare(cfg: BusConfig) -> None:

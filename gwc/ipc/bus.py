@@ -88,6 +88,7 @@ class Bus:
         # New conversations, and the first_message() calls waiting for one (no asyncio.Queue: hot path).
         self._incoming: collections.deque[Conversation] = collections.deque()
         self._incoming_waiters: collections.deque[asyncio.Future[Conversation]] = collections.deque()
+        self._accept: Callable[[Conversation], None] | None = None  # accept(): new conversations go there
         self.deadlines = Deadlines()  # every wait's deadline, on one timer
         self._heartbeat: asyncio.Task[None] | None = None
         self.faults = FaultLog(log, self.stats)  # a step that failed: counted, logged once per kind
@@ -274,8 +275,22 @@ class Bus:
             return None
         return conv
 
+    def accept(self, handler: Callable[[Conversation], None] | None) -> None:
+        """Hand every conversation another module opens with us to `handler`, called at once on the bus's
+        loop as its first batch is delivered (those already queued first), instead of queueing them for
+        first_message(); None: queue them again. The handler must not block: it answers at once
+        (Conversation.reply) or starts a task. No future, task or loop turn stands between the datagram and
+        it: a module's conversations start a loop turn sooner, an answer given at once two sooner."""
+        self._accept = handler
+        while handler is not None and self._incoming and self._incoming[0] is not CLOSED:
+            handler(self._incoming.popleft())
+
     def _put_incoming(self, conv: Conversation) -> None:
-        """A new conversation: to the longest-waiting first_message() still waiting, or queued."""
+        """A new conversation: to accept()'s handler, or the longest-waiting first_message() still
+        waiting, or queued."""
+        if self._accept is not None and conv is not CLOSED:
+            self._accept(conv)
+            return
         waiters = self._incoming_waiters
         while waiters:
             waiter = waiters.popleft()

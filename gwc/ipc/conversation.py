@@ -155,6 +155,11 @@ class Conversation:
         target = self.peer if to is DEFAULT else to
         self.sent = self.bus.send_batch(self, messages, target)
 
+    def reply(self, *messages: Message) -> None:
+        """send() to the other side, now, without a coroutine: for a handler that answers at once
+        (Bus.accept)."""
+        self.sent = self.bus.send_batch(self, messages, self.peer)
+
     async def next_message(self, timeout: float | None = None) -> Batch:
         """The next batch the other side sends; ConversationTimeout (logged) if none comes in time."""
         if self.ended:
