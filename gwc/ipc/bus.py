@@ -492,18 +492,29 @@ class Bus:
         self.outbox.acked(env.src, env.acks)
 
     def _on_msg(self, env: Envelope, now: float) -> None:
-        to, src, inc = env.to, env.src, env.inc
+        to = env.to
         if to is not None and to != self.name:
             return
+        self._take(env, now)
+        # Acks riding on the msg are taken after it is delivered: an answer given at once (Bus.accept)
+        # leaves sooner, and a base computed before them is only lower, never wrong.
         if env.acks and to is not None and env.to_inc == self.inc:
-            self.outbox.acked(src, env.acks)
-        conv_id = env.conv
+            self.outbox.acked(env.src, env.acks)
+
+    def _take(self, env: Envelope, now: float) -> None:
+        """A msg meant for this module (addressed to it or to all): acknowledged, and delivered once."""
+        conv_id, cls = env.conv, env.cls
         conv = self._convs.get(conv_id)
-        cls = env.cls
-        if to is None and conv is None and cls not in self._interest and env.subject not in self._subjects.get(cls, ()):
+        if (
+            conv is None
+            and env.to is None
+            and cls not in self._interest
+            and env.subject not in self._subjects.get(cls, ())
+        ):
             return  # not for us (nor about a subject we hear it about): no ack, the sender does not count us
+        src = env.src
         seq = env.seq
-        key = (src, inc)
+        key = (src, env.inc)
         self.outbox.ack(key, seq)
         if self._inbound.duplicate(key, seq, now):
             self.stats["duplicates"] += 1
@@ -511,15 +522,15 @@ class Bus:
         if conv is None and self._is_ended(conv_id):
             self.stats["late"] += 1
             self.log.warning(
-                "late %s from %s in ended conversation: dropped", env.msg, src, extra={"conv": f"{conv_id} {env.cls}"}
+                "late %s from %s in ended conversation: dropped", env.msg, src, extra={"conv": f"{conv_id} {cls}"}
             )
             return
         try:
-            msg: Message | None = catalogue.check(env.cls, env.msg, env.fields)
+            msg: Message | None = catalogue.check(cls, env.msg, env.fields)
         except MessageError as e:
             # Still take its place in the order, so the messages after it are not held up forever.
             self.stats["invalid"] += 1
-            self.log.warning("dropped invalid %s from %s: %s", env.msg, src, e, extra={"conv": f"{conv_id} {env.cls}"})
+            self.log.warning("dropped invalid %s from %s: %s", env.msg, src, e, extra={"conv": f"{conv_id} {cls}"})
             msg = None
         self._inbound.place(env, msg, now)
 
