@@ -117,7 +117,7 @@ def _answer(conv: Conversation, stopped: asyncio.Future[None]) -> None:
     (Bus.accept): no task, no loop turn between the Ping and its Pong."""
     assert conv.first is not None
     first = conv.first.first
-    if first.payload == "stop":
+    if first.fields.get("payload") == "stop":  # (not first.payload: an absent field's read raises inside)
         if not stopped.done():
             stopped.set_result(None)
     else:

@@ -492,47 +492,37 @@ class Bus:
         self.outbox.acked(env.src, env.acks)
 
     def _on_msg(self, env: Envelope, now: float) -> None:
-        to = env.to
+        to, src, inc = env.to, env.src, env.inc
         if to is not None and to != self.name:
             return
-        self._take(env, now)
-        # Acks riding on the msg are taken after it is delivered: an answer given at once (Bus.accept)
-        # leaves sooner, and a base computed before them is only lower, never wrong.
-        if env.acks and to is not None and env.to_inc == self.inc:
-            self.outbox.acked(env.src, env.acks)
-
-    def _take(self, env: Envelope, now: float) -> None:
-        """A msg meant for this module (addressed to it or to all): acknowledged, and delivered once."""
         conv_id, cls = env.conv, env.cls
         conv = self._convs.get(conv_id)
-        if (
-            conv is None
-            and env.to is None
-            and cls not in self._interest
-            and env.subject not in self._subjects.get(cls, ())
-        ):
+        subjects = self._subjects
+        if conv is None and to is None and cls not in self._interest and env.subject not in subjects.get(cls, ()):
             return  # not for us (nor about a subject we hear it about): no ack, the sender does not count us
-        src = env.src
         seq = env.seq
-        key = (src, env.inc)
+        key = (src, inc)
         self.outbox.ack(key, seq)
         if self._inbound.duplicate(key, seq, now):
             self.stats["duplicates"] += 1
-            return
-        if conv is None and self._is_ended(conv_id):
+        elif conv is None and self._is_ended(conv_id):
             self.stats["late"] += 1
             self.log.warning(
                 "late %s from %s in ended conversation: dropped", env.msg, src, extra={"conv": f"{conv_id} {cls}"}
             )
-            return
-        try:
-            msg: Message | None = catalogue.check(cls, env.msg, env.fields)
-        except MessageError as e:
-            # Still take its place in the order, so the messages after it are not held up forever.
-            self.stats["invalid"] += 1
-            self.log.warning("dropped invalid %s from %s: %s", env.msg, src, e, extra={"conv": f"{conv_id} {cls}"})
-            msg = None
-        self._inbound.place(env, msg, now)
+        else:
+            try:
+                msg: Message | None = catalogue.check(cls, env.msg, env.fields)
+            except MessageError as e:
+                # Still take its place in the order, so the messages after it are not held up forever.
+                self.stats["invalid"] += 1
+                self.log.warning("dropped invalid %s from %s: %s", env.msg, src, e, extra={"conv": f"{conv_id} {cls}"})
+                msg = None
+            self._inbound.place(env, msg, now)
+        # Acks riding on the msg are taken after it is delivered: an answer given at once (Bus.accept)
+        # leaves sooner, and a base computed before them is only lower, never wrong.
+        if env.acks and to is not None and env.to_inc == self.inc:
+            self.outbox.acked(src, env.acks)
 
     def _deliver(self, head: Envelope, msgs: tuple[Message | None, ...]) -> None:
         for m in msgs:
