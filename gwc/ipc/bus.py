@@ -503,26 +503,31 @@ class Bus:
         seq = env.seq
         key = (src, inc)
         self.outbox.ack(key, seq)
-        if self._inbound.duplicate(key, seq, now):
-            self.stats["duplicates"] += 1
-        elif conv is None and self._is_ended(conv_id):
-            self.stats["late"] += 1
-            self.log.warning(
-                "late %s from %s in ended conversation: dropped", env.msg, src, extra={"conv": f"{conv_id} {cls}"}
-            )
-        else:
-            try:
-                msg: Message | None = catalogue.check(cls, env.msg, env.fields)
-            except MessageError as e:
-                # Still take its place in the order, so the messages after it are not held up forever.
-                self.stats["invalid"] += 1
-                self.log.warning("dropped invalid %s from %s: %s", env.msg, src, e, extra={"conv": f"{conv_id} {cls}"})
-                msg = None
-            self._inbound.place(env, msg, now)
-        # Acks riding on the msg are taken after it is delivered: an answer given at once (Bus.accept)
-        # leaves sooner, and a base computed before them is only lower, never wrong.
-        if env.acks and to is not None and env.to_inc == self.inc:
-            self.outbox.acked(src, env.acks)
+        try:
+            if self._inbound.duplicate(key, seq, now):
+                self.stats["duplicates"] += 1
+            elif conv is None and self._is_ended(conv_id):
+                self.stats["late"] += 1
+                self.log.warning(
+                    "late %s from %s in ended conversation: dropped", env.msg, src, extra={"conv": f"{conv_id} {cls}"}
+                )
+            else:
+                try:
+                    msg: Message | None = catalogue.check(cls, env.msg, env.fields)
+                except MessageError as e:
+                    # Still take its place in the order, so the messages after it are not held up forever.
+                    self.stats["invalid"] += 1
+                    self.log.warning(
+                        "dropped invalid %s from %s: %s", env.msg, src, e, extra={"conv": f"{conv_id} {cls}"}
+                    )
+                    msg = None
+                self._inbound.place(env, msg, now)
+        finally:
+            # Acks riding on the msg are taken after it is delivered (even if a handler failed): an
+            # answer given at once (Bus.accept) leaves sooner, and a base computed before them is only
+            # lower, never wrong.
+            if env.acks and to is not None and env.to_inc == self.inc:
+                self.outbox.acked(src, env.acks)
 
     def _deliver(self, head: Envelope, msgs: tuple[Message | None, ...]) -> None:
         for m in msgs:
