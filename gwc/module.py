@@ -382,11 +382,11 @@ class Module:
                 notify_ready()
         loop = asyncio.get_running_loop()
         idle = loop.create_task(self._idle_loop())
-        accept = loop.create_task(self._accept())
+        self.bus.accept(self._accept)
         try:
             await self._stop.wait()
         finally:
-            accept.cancel()
+            self.bus.accept(None)
             idle.cancel()
             if self.started:
                 await self._shutdown_work()
@@ -398,16 +398,13 @@ class Module:
             self.log.info("Stopped (exit %d)", self.exit_code)
         return self.exit_code
 
-    async def _accept(self) -> None:
-        """Every conversation opened with this module runs as a task of its own: a handler waiting for
-        an answer never keeps the next conversation waiting (docs/protocol.md, No collisions)."""
-        loop = asyncio.get_running_loop()
-        while not self.bus.closed:
-            conv = await self.bus.first_message()
-            if conv is not None:
-                task = loop.create_task(self._serve(conv))
-                self._tasks.add(task)
-                task.add_done_callback(self._tasks.discard)
+    def _accept(self, conv: Conversation) -> None:
+        """Every conversation opened with this module runs as a task of its own, started as its first
+        batch arrives (Bus.accept): a handler waiting for an answer never keeps the next conversation
+        waiting (docs/protocol.md, No collisions)."""
+        task = asyncio.get_running_loop().create_task(self._serve(conv))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     async def _idle_loop(self) -> None:
         """The module's periodic work, right after each of its bus heartbeats: one wake-up for both."""
