@@ -219,8 +219,8 @@ class AlarmServer(Server, Module):
 
     async def on_idle(self) -> None:
         """A database away past the bound is told at once as a cell event (the alarm waits for it)."""
-        if self.started and self.database_down is not None and not self._outage_told:
-            away = time.monotonic() - self.database_down
+        if self.started and self.database.down is not None and not self._outage_told:
+            away = time.monotonic() - self.database.down
             if away >= self.outage_alarm_s:
                 self._outage_told = True
                 self.log.error("the cell database has been away for %.0fs", away)

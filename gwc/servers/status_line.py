@@ -106,8 +106,8 @@ class StatusLineServer(Server, Module):
         try:
             r = self.read()
         except DatabaseUnavailable:
-            assert self.database_down is not None
-            away = time.monotonic() - self.database_down
+            assert self.database.down is not None
+            away = time.monotonic() - self.database.down
             text = f"DATABASE DOWN for {away:.0f}s: imports, exports and alarms unknown | LAST {self.last_event}"
             await conv.send(message(Msg.STATUS_LINE, text=text[:500], last_event=self.last_event))
             return
