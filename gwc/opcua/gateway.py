@@ -14,21 +14,17 @@ as an OPC UA status (docs/opcua.md, Methods).
 from __future__ import annotations
 
 import asyncio
-import copy
 import functools
 import importlib.metadata
 import json
 import logging
-import re
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from asyncua import ua
-from asyncua.server.event_generator import EventGenerator
 
 from gwc.config import Config
 from gwc.errors import ConversationTimeout, GwcError
@@ -38,20 +34,19 @@ from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module, module_name
 from gwc.opcua import model, record, security, store
-from gwc.opcua.answers import OUT, result
+from gwc.opcua.answers import OUT
+from gwc.opcua.conditions import AlarmConditions
 from gwc.opcua.door import OpcuaDoor
 from gwc.opcua.hi_methods import MAINTENANCE_OUT, UNRESERVE_ARGS, UNRESERVE_OUT, HiMethods
 from gwc.opcua.methods import PRIORITIES, CellMethods
 from gwc.opcua.settings import load_settings
 from gwc.opcua.space import (
-    ALARM,
     ENTITY,
     LAST_RUN,
     LOT,
     MACHINE,
     STATUS_LINE,
     Space,
-    check_arguments,
     machinery_state,
     nid,
     operation_mode,
@@ -60,25 +55,8 @@ from gwc.opcua.space import (
 V = ua.VariantType
 S = ua.StatusCodes
 LISTENS = (Conv.UPD_ME_ST, Conv.RUN_COMPL, Conv.ALARM_CLE, Conv.CELL_EVENT, Conv.LOT_MOVED)
-SEVERITY = {"note": 200, "warning": 500, "error": 800}  # OPC UA event severity, 1..1000
 MethodResult = Awaitable[ua.CallMethodResult]
 READ_DRAIN = 5.0  # s the shutdown waits for a read of the tables in progress
-# Part 9's methods of a condition, as asyncua's standard address space numbers them.
-ACKNOWLEDGE = ua.ObjectIds.AcknowledgeableConditionType_Acknowledge
-CONFIRM = ua.ObjectIds.AcknowledgeableConditionType_Confirm
-CONDITION_ARGS = [("EventId", V.ByteString, "the event"), ("Comment", V.LocalizedText, "a comment")]
-
-
-@dataclass
-class Condition:
-    """A pending alarm as an OPC UA condition (Part 9): the cell raises and clears it; a client may
-    acknowledge and then confirm it, which changes nothing in the cell."""
-
-    row: dict[str, Any]
-    acked: bool = False
-    confirmed: bool = False
-    comment: str = ""
-    event_ids: set[bytes] = field(default_factory=set)  # the events told of it: an Acknowledge names one
 
 
 def build_info() -> tuple[str, str, datetime]:
@@ -107,12 +85,9 @@ class Gateway(Module):
         self.space: Space | None = None
         self.companion: model.Companion | None = None
         self.types: model.CellTypes | None = None
-        self.alarms: dict[int, Condition] = {}  # pending alarms, as raised to OPC UA clients
+        self.conditions: AlarmConditions | None = None  # pending alarms, as raised to OPC UA clients
         self.lots: set[int] = set()  # lots in the address space
         self.entities: dict[int, int] = {}  # entity -> lot, as in the address space
-        self._alarm_events: EventGenerator | None = None
-        self._alarm_template: Any = None
-        self._event_lock = asyncio.Lock()
         self.door = OpcuaDoor(cfg, log)  # cell users, the role table, the audit trail (docs/users.md)
         self.methods = CellMethods(cfg, log, self.bus, self.settings.method_timeout, self.door)
         self.hi = HiMethods(cfg, log, self.methods.converse, self.methods.by, self.methods.lock)
@@ -257,12 +232,7 @@ class Gateway(Module):
         )
         # Alarms are AlarmConditionType events emitted by the Server object (where clients subscribe
         # to events); each is a condition whose ConditionId is its node under Alarms.
-        self._alarm_events = await self.server.get_event_generator(ua.ObjectIds.AlarmConditionType, ua.ObjectIds.Server)
-        self._alarm_template = copy.copy(self._alarm_events.event)
-        self._alarm_template.add_property("ConfirmedState", None, V.LocalizedText)
-        self._alarm_template.add_property("ConfirmedState/Id", None, V.Boolean)
-        self.server.link_method(self.server.get_node(ACKNOWLEDGE), self.acknowledge)
-        self.server.link_method(self.server.get_node(CONFIRM), self.confirm)
+        self.conditions = await AlarmConditions.serve(self.server, sp, types, self.machine_ids, self.log)
 
     # ----------------------------------------------------------------- what the gateway hears
 
@@ -281,7 +251,8 @@ class Gateway(Module):
             self._poke("machines", "status_line")
         elif conv.cls == Conv.ALARM_CLE:
             self._cleared += 1
-            await self._alarm_cleared(int(msg.alarm_no), f"cleared by {msg.cleared_by}")
+            if self.conditions is not None:
+                await self.conditions.cleared(int(msg.alarm_no), f"cleared by {msg.cleared_by}")
             self._poke("alarms", "status_line")
         elif conv.cls == Conv.RUN_COMPL:
             self._poke("machines", "status_line")
@@ -375,62 +346,8 @@ class Gateway(Module):
         if cleared != self._cleared:  # an ALARM_CLE came while we read
             self._poke("alarms")
             return
-        pending = {int(r["alarm_no"]): r for r in rows}
-        for no in [n for n in self.alarms if n not in pending]:
-            await self._alarm_cleared(no, "cleared")
-        for no, row in pending.items():
-            if no not in self.alarms:
-                await self._alarm_raised(row)
-
-    async def _alarm_raised(self, row: dict[str, Any]) -> None:
-        sp, types = self.space, self.types
-        assert sp is not None and types is not None
-        no = int(row["alarm_no"])
-        condition = self.alarms[no] = Condition(row)
-        await sp.object(sp.nodeid("alarms"), f"alarms/{no}", f"alarm_{no}", ALARM, types.alarm, ua.ObjectIds.Organizes)
-        await sp.set_all(f"alarms/{no}", row, ALARM, row["raised_at"])
-        await self._alarm_event(condition, active=True, text=row["alarm_text"], at=row["raised_at"])
-        self.log.info("alarm %d %s raised to OPC UA clients", no, row["alarm_id"])
-
-    async def _alarm_cleared(self, alarm_no: int, how: str) -> None:
-        condition = self.alarms.pop(alarm_no, None)
-        if condition is None or self.space is None:
-            return
-        row = condition.row
-        # The cell's clearing is the operator's act on the alarm itself: acknowledged and confirmed.
-        condition.acked = condition.confirmed = True
-        await self._alarm_event(condition, active=False, text=f"{row['alarm_text']} ({how})", at=datetime.now(UTC))
-        await self.space.remove(f"alarms/{alarm_no}")
-        self.log.info("alarm %d %s %s: told OPC UA clients", alarm_no, row["alarm_id"], how)
-
-    async def _alarm_event(self, condition: Condition, active: bool, text: str, at: datetime) -> None:
-        """One AlarmConditionType event. Retained (ConditionRefresh sends it again) while the alarm is
-        active, or not yet acknowledged or confirmed; a cleared alarm is inactive, acknowledged and
-        confirmed (the cell clears it as one act) and no longer retained."""
-        sp = self.space
-        assert sp is not None and self._alarm_events is not None
-        row = condition.row
-        machine = row["machine_id"]
-        ev = copy.copy(self._alarm_template)
-        ev.SourceNode = sp.nodeid(f"machines/{machine}" if machine in self._heard else "cell")
-        ev.SourceName = machine or "cell"
-        ev.NodeId = sp.nodeid(f"alarms/{row['alarm_no']}")
-        ev.ConditionName = row["alarm_id"] or "unknown"
-        ev.Severity = SEVERITY.get(row["severity"], 500)
-        ev.Retain = active or not condition.acked or not condition.confirmed
-        ev.Comment = ua.LocalizedText(condition.comment) if condition.comment else None
-        for state, on, (yes, no) in (
-            ("EnabledState", True, ("Enabled", "Disabled")),
-            ("ActiveState", active, ("Active", "Inactive")),
-            ("AckedState", condition.acked, ("Acknowledged", "Unacknowledged")),
-            ("ConfirmedState", condition.confirmed, ("Confirmed", "Unconfirmed")),
-        ):
-            setattr(ev, state, ua.LocalizedText(yes if on else no))
-            setattr(ev, f"{state}/Id", on)
-        async with self._event_lock:  # the generator holds one event at a time
-            self._alarm_events.event = ev
-            await self._alarm_events.trigger(at, text)
-            condition.event_ids.add(ev.EventId.Value)
+        assert self.conditions is not None
+        await self.conditions.refresh(rows)
 
     async def _refresh_lots(self) -> None:
         sp, types = self.space, self.types
@@ -472,53 +389,3 @@ class Gateway(Module):
         line = batch.first
         # Every field of the line is written: one the server leaves out is Null, not the last value.
         await sp.set_all("cell", {k: line.fields.get(k) for k in STATUS_LINE}, STATUS_LINE)
-
-    # ----------------------------------------------------------------- methods
-
-    def _condition(self, object_id: ua.NodeId, given: tuple[ua.Variant, ...]) -> tuple[Condition | None, Any]:
-        """The condition an Acknowledge or Confirm names, or the refusal (a CallMethodResult)."""
-        refused = check_arguments(given, CONDITION_ARGS)
-        if refused is not None:
-            return None, refused
-        path = self.space.path_of(object_id) if self.space else None
-        m = re.fullmatch(r"alarms/(\d+)", path or "")
-        condition = self.alarms.get(int(m.group(1))) if m else None
-        if condition is None:
-            return None, result(S.BadNodeIdUnknown, f"{object_id.to_string()} is not a pending alarm of the cell")
-        if given[0].Value not in condition.event_ids:
-            return None, result(S.BadEventIdUnknown, "no event of this condition has that EventId")
-        return condition, None
-
-    async def acknowledge(self, object_id: ua.NodeId, *given: ua.Variant) -> ua.CallMethodResult:
-        """Part 9 Acknowledge: the condition is acknowledged, nothing else. The cell's alarm stays
-        pending (clearing HOME_CMM would start the CMM: that is ClearAlarm's, an explicit act)."""
-        condition, refused = self._condition(object_id, given)
-        if condition is None:
-            self.log.warning("OPC UA Acknowledge of %s refused: %s", object_id.to_string(), refused.StatusCode.name)
-            out: ua.CallMethodResult = refused
-            return out
-        if condition.acked:
-            return result(S.BadConditionBranchAlreadyAcked, "the alarm is acknowledged already")
-        condition.acked = True
-        condition.comment = given[1].Value.Text or ""
-        no = condition.row["alarm_no"]
-        self.log.info(
-            "alarm %s %s acknowledged by an OPC UA client: %s", no, condition.row["alarm_id"], condition.comment
-        )
-        await self._alarm_event(condition, True, f"{condition.row['alarm_text']} (acknowledged)", datetime.now(UTC))
-        return result(AckCode.ACK_OK, f"alarm {no} acknowledged; it stays pending until cleared (ClearAlarm)")
-
-    async def confirm(self, object_id: ua.NodeId, *given: ua.Variant) -> ua.CallMethodResult:
-        """Part 9 Confirm: after an Acknowledge, the operator confirms the alarm was seen to."""
-        condition, refused = self._condition(object_id, given)
-        if condition is None:
-            out: ua.CallMethodResult = refused
-            return out
-        if not condition.acked:
-            return result(S.BadConditionBranchAlreadyConfirmed, "acknowledge the alarm before confirming it")
-        if condition.confirmed:
-            return result(S.BadConditionBranchAlreadyConfirmed, "the alarm is confirmed already")
-        condition.confirmed = True
-        condition.comment = given[1].Value.Text or ""
-        await self._alarm_event(condition, True, f"{condition.row['alarm_text']} (confirmed)", datetime.now(UTC))
-        return result(AckCode.ACK_OK, f"alarm {condition.row['alarm_no']} confirmed")
