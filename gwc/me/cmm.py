@@ -54,6 +54,7 @@ from gwc.me.line import (
 )
 from gwc.me.machine import MachineSide, Refusal, RunOutcome
 from gwc.me.parts import PartError, part_tar, program_from
+from gwc.retry import Deadline
 
 T = TypeVar("T")
 VERDICTS = ("PASS!", "FAIL!")
@@ -100,7 +101,7 @@ class CmmMachine(MachineSide):
         self.reprobe_min = self.options.get("reprobe_min", float, 0.5)
         self.reprobe_max = self.options.get("reprobe_max", float, 2.0)
         self.link = CmmLine(cfg, spec.id, self.settings, log, self.probe)
-        self._run_deadline = 0.0
+        self._run_deadline = Deadline(0.0)
         self._suspect: str | None = None  # an exchange failed: probe the CMM next
         self._probe_deadline: float | None = None  # a STATUS is out: its READY is due by then
         self._ready = ""  # the answer due to the STATUS out
@@ -213,7 +214,7 @@ class CmmMachine(MachineSide):
     def begin(self) -> None:
         self._measured = {}
         self._exchange("start of the run", lambda line: line.write_record("START RUN !"))
-        self._run_deadline = time.monotonic() + self.run_timeout
+        self._run_deadline = Deadline(self.run_timeout)
 
     def progress(self) -> RunOutcome | None:
         """The verdict, or why the run failed (the CMM is then probed by watch(), after RUN_COMPL)."""
@@ -226,7 +227,7 @@ class CmmMachine(MachineSide):
             kind = "line lost" if isinstance(e, LineLost) else "garbage"
             return self._run_failed(e, f"{kind} during the run: {what}")
         if rec is None:
-            if time.monotonic() > self._run_deadline:
+            if self._run_deadline.expired:
                 return self._run_failed(
                     LineTimeout("no verdict"), f"no verdict from the CMM within {self.run_timeout:g}s: run given up"
                 )
