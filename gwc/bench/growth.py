@@ -24,7 +24,7 @@ import click
 
 from gwc.bench.cell import CellBench
 from gwc.bench.order import database_pids, pss_kb
-from gwc.client.session import context
+from gwc.client.session import bench_context
 
 SAMPLE_S = 0.5  # how often the cell's memory is read
 
@@ -165,7 +165,7 @@ def command(
     plan = sizes(machines, lots)
     if at_once < 1 or solo < 0 or idle_s < 0:
         raise click.BadParameter("--at-once at least 1, --solo and --idle at least 0")
-    cfg, log = context("bench", drop=False)
+    cfg, log = bench_context()
     base = where or cfg.var / "bench-growth"
     rows: list[Row] = []
     for n, m in plan:

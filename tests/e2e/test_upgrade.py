@@ -62,7 +62,7 @@ def second_build(where: Path) -> Path:
         '_msg("Startup_Ack", "startup accepted (ACK_OK) or refused (Notnow, Start_Fail)", **ACK),',
         f'_msg("Startup_Ack", "startup accepted or refused", build="str?@{NEW_WIRE}", **ACK),',
     )
-    patch(root / "gwc" / "module.py", 'note=f"{self.name} is already started")', 'note="already", build="2")')
+    patch(root / "gwc" / "module.py", 'note=f"{m.name} is already started")', 'note="already", build="2")')
     patch(root / "gwc" / "schema.py", f"SCHEMA_VERSION = {SCHEMA_VERSION}\n", f"SCHEMA_VERSION = {NEW_SCHEMA}\n")
     (root / "sql" / "096_upgrade_test.sql").write_text(
         "alter table lot_status add column if not exists upgrade_note text;\n"
