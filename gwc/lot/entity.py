@@ -45,6 +45,7 @@ import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from gwc import lothosts as hosting
 from gwc.config import Config
 from gwc.errors import GwcError
 from gwc.ipc import BlockingBus
@@ -118,6 +119,8 @@ class OperationEntity:
         self.runs = MachineRuns(self.facts, self.reads, self.heard, self.link, self.ls)
         self.resume = Resumption(self.facts, self.reads, self.heard, self.link, self.requests, self.runs)
         self.holdings = Holdings(self.facts, self.link, self.runs)
+        if hosting.hosted(cfg):  # the traveller in the database too: a script on another host resumes from it
+            self.facts.keep = hosting.TravellerStore(cfg, self.facts.entity_id, self.reads, log)
 
     # ----------------------------------------------------------------- life
 
@@ -164,7 +167,12 @@ class OperationEntity:
         )
         self.resume.after_restart()
         self.facts.traveller.update(
-            lot_id=self.lot_id, product_id=self.product_id, pid=os.getpid(), started=now_text(), state=self.facts.state
+            lot_id=self.lot_id,
+            product_id=self.product_id,
+            pid=os.getpid(),
+            host=self.facts.cfg.host,
+            started=now_text(),
+            state=self.facts.state,
         )
         self.facts.save()
 

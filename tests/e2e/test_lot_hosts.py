@@ -1,0 +1,185 @@
+"""Lot scripts outlive their host, and production resumes within 10 s of losing h1 (issue 36).
+
+The issue's topology on network-namespace hosts (gwc/netns.py): h1 the active servers and MSCHED and
+the Patroni primary, h2 their standbys and the synchronous standby, h3 the machines and a replica,
+etcd on all three. Four pawns are ordered, two from h1 (their lot scripts run on h1) and two from h2.
+h1 is killed whole (every process in it, its cable cut) while they run: Patroni promotes h2, h2's
+standbys take every lease, a live host's agent takes h1's lot scripts over (sql/095_lot_hosts.sql)
+and they resume their entities from LOT_TRAVELLERS, as a script killed with -9 does. Production
+resumes (the next machine bound) within 10 s of the kill, every lot is exported, nothing is milled
+twice, no committed row is lost and `gwc check` is clean.
+
+A long walk (about four minutes): `.venv/bin/python -m pytest -q -s -m soak tests/e2e/test_lot_hosts.py`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from gwc.config import dump_toml
+from gwc.netns import Hosts, leftovers, unavailable
+from tests.e2e.test_patroni import MEMBERS, MISSING, PatroniCluster, sql_on
+from tests.harness import SERVERS, wait_for
+
+pytestmark = [
+    pytest.mark.e2e,
+    pytest.mark.soak,
+    pytest.mark.skipif(unavailable() is not None, reason=f"{unavailable()}"),
+    pytest.mark.skipif(MISSING is not None, reason=f"{MISSING} is not installed (bin/setup installs it)"),
+]
+
+BAR_S = 10.0  # the issue's bar from the kill to production going on (its goal: 3 s)
+LOT_HOSTS_TTL = 4.0
+
+
+class QuickPatroni(PatroniCluster):
+    """Patroni's timing (GWC_TEST_DCS="ttl,loop_wait,retry_timeout" to try others; Patroni's rule:
+    ttl > loop_wait + 2 x retry_timeout)."""
+
+    DCS = dict(zip(("ttl", "loop_wait", "retry_timeout"), map(int, os.environ.get("GWC_TEST_DCS", "6,1,2").split(","))))
+
+
+def test_h1_killed_with_servers_primary_and_lot_scripts_production_resumes_within_10s() -> None:
+    from tests.e2e.test_hosts import HostCell
+
+    base = Path(tempfile.mkdtemp(prefix="gwc-lh-", dir="/var/tmp"))
+    base.chmod(0o755)
+    try:
+        with Hosts(3) as hosts:
+            (base / "patroni").mkdir()
+            cluster = QuickPatroni(hosts, base / "patroni")
+            cell: HostCell | None = None
+            try:
+                cluster.start()
+                url = cluster.url()
+                sql_on(hosts, "h3", url.replace("/gwc?", "/postgres?"), "create database gwc")
+                cell = HostCell(hosts, base)
+                doc = cell.doc
+                doc["database"] = {"url": url, "patroni": [f"http://{a}:8008" for a in cluster.addr.values()]}
+                doc["module"] = [{"name": m, "host": "h1", "standby": ["h2"]} for m in SERVERS]
+                doc["machine"] = [
+                    {**m, "host": "h3", "liveness": 6.0} for m in doc["machine"] if m["id"] in ("cmm_wc", "wc1", "wc2")
+                ]
+                doc["lease"] = {"ttl": 3.0}
+                doc["lot_hosts"] = {"ttl": LOT_HOSTS_TTL}
+                for h in MEMBERS:
+                    cell.config_path(h).write_text(
+                        dump_toml({**doc, "cell": {"name": "hosts", "var": str(cell.var(h))}})
+                    )
+                walk(hosts, cluster, cell, url)
+            finally:
+                if cell is not None:
+                    for h in ("h3", "h2", "h1"):
+                        try:
+                            cell.run(h, "stop", timeout=60)
+                        except subprocess.TimeoutExpired:
+                            pass
+                for p in cluster.procs:
+                    p.kill()
+    finally:
+        if keep := os.environ.get("GWC_TEST_KEEP"):  # the hosts' logs, for a failure's post-mortem
+            shutil.copytree(base, keep, dirs_exist_ok=True, ignore_dangling_symlinks=True, symlinks=True)
+        shutil.rmtree(base, ignore_errors=True)
+    assert not leftovers(), "test hosts left behind"
+
+
+def walk(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
+    def q(text: str) -> list[list[Any]]:
+        return sql_on(hosts, "h3", url, text)
+
+    cell.gwc("h1", "start", timeout=240)  # the schema, the cell key, the active servers
+    cell.copy_secrets()
+    cell.gwc("h2", "start", timeout=240)
+    cell.gwc("h3", "start", timeout=240)
+    for m in ("cmm_wc", "wc1", "wc2"):
+        t = threading.Thread(target=lambda m=m: cell.gwc("h3", "machine", "start", m))
+        t.start()
+        while t.is_alive():
+            for (no,) in q(f"select alarm_no from alarms where cleared_at is null and machine_id = '{m}' "
+                           "and alarm_id = 'HOME_CMM'"):  # fmt: skip
+                cell.gwc("h3", "alarm", "clear", str(no))
+            t.join(0.3)
+    assert cluster.leader() == "h1"
+    assert {h for (h,) in q("select host from module_leases")} == {"h1"}
+    entities: dict[str, list[int]] = {}
+    for h in ("h1", "h2"):  # each host's agent runs the scripts of its order
+        made = json.loads(cell.gwc(h, "order", "new", "--customer", "NJIT", "milled_pawn=2", "--json"))
+        entities[h] = [e for lot in made["lots"] for e in lot["entities"]]
+    every = entities["h1"] + entities["h2"]
+    ids = ",".join(map(str, every))
+    on_h1 = ",".join(map(str, entities["h1"]))
+    wait_for(
+        lambda: (
+            {int(e) for (e,) in q(f"select entity_id from lot_script_hosts where entity_id in ({ids})")} == set(every)
+        ),
+        30,
+        "every script's host recorded",
+    )
+
+    def done() -> bool:
+        states = dict(q(f"select entity_id, state from lot_status where entity_id in ({ids})"))
+        assert "failed" not in states.values(), q("select entity_id, reason from lot_status where state = 'failed'")
+        if "waiting_import" in states.values():
+            cell.gwc("h2", "import", "--all")
+        if "waiting_export" in states.values():
+            cell.gwc("h2", "export", "--all")
+        return len(states) == len(every) and set(states.values()) == {"exported"}
+
+    def last_binding() -> int:
+        return int(q("select greatest((select max(machine_run_id) from reserved_machines), "
+                     "(select max(machine_run_id) from machine_run_outcome), 0)")[0][0])  # fmt: skip
+
+    def h1_recorded() -> bool:  # one of h1's scripts has an operation in its stored record
+        rows = q(f"select count(*) from lot_travellers where entity_id in ({on_h1}) "
+                 "and jsonb_array_length(coalesce(traveller->'operations', '[]')) > 0")  # fmt: skip
+        return int(rows[0][0]) > 0
+
+    wait_for(lambda: done() or (h1_recorded() and q("select 1 from machine_status where status = 'Running'")),
+             120, "a run, and an operation of h1's scripts recorded", interval=0.3)  # fmt: skip
+    counts = "select (select count(*) from lot_status), (select count(*) from machine_run_outcome)"
+    committed = q(counts)[0]
+    before = last_binding()
+    at_work = [int(e) for (e,) in q(f"select entity_id from lot_status where entity_id in ({on_h1}) "
+                                    "and state not in ('exported', 'failed')")]  # fmt: skip
+    assert at_work, "h1's lots were done before the kill"
+    cluster.kill_host("h1")
+    killed = time.monotonic()
+    wait_for(lambda: cluster.leader() not in (None, "h1"), 60, "a new primary", interval=0.1)
+    promoted = time.monotonic() - killed
+    wait_for(lambda: done() or last_binding() > before, 60, "the next machine bound", interval=0.1)
+    resumed = time.monotonic() - killed
+    wait_for(
+        lambda: (
+            not q(f"select 1 from lot_script_hosts where entity_id in ({on_h1}) and host = 'h1'")
+            or not q(f"select 1 from lot_status where entity_id in ({on_h1}) and state not in ('exported', 'failed')")
+        ),
+        60,
+        "h1's lot scripts taken over",
+        interval=0.2,
+    )
+    taken = time.monotonic() - killed
+    wait_for(lambda: {h for (h,) in q("select host from module_leases")} == {"h2"}, 60, "h2 holding every lease")
+    wait_for(done, 240, "every lot exported", interval=0.5)
+    now = q(counts)[0]
+    assert now[0] == committed[0] and now[1] >= committed[1], (committed, now)
+    milled = q("select count(*) from machine_run_outcome where machine_id <> 'cmm_wc' and ack_code = 'ACK_OK'")
+    assert milled[0][0] == 4, milled  # nothing milled twice, every pawn milled
+    moved = q(f"select entity_id, host from lot_travellers where entity_id in ({','.join(map(str, at_work))})")
+    assert len(moved) == len(at_work) and all(h != "h1" for _, h in moved), moved  # resumed and finished on a live host
+    check = cell.run("h2", "check")
+    assert check.returncode == 0, check.stdout + check.stderr
+    print(
+        f"h1 killed: new primary after {promoted:.1f}s, next machine bound after {resumed:.1f}s, "
+        f"h1's lot scripts taken over after {taken:.1f}s"
+    )
+    assert resumed < BAR_S, f"production resumed {resumed:.1f}s after the kill (bar {BAR_S:g}s)"
