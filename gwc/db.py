@@ -483,7 +483,7 @@ _KEEPALIVE = {"keepalives": 1, "keepalives_idle": 3, "keepalives_interval": 1, "
 # does, and a module's query on it fails after 4 s instead of holding its step (docs/reliability.md).
 TCP_WATCH: dict[str, Any] = {**_KEEPALIVE, "tcp_user_timeout": 4000}
 CONNECT_TIMEOUT_S = 5  # a connect's bound, unless the URL says (`connect_timeout`)
-SLOW_MEMBER_S = 1.0  # s: how long a multi-host connect waits for a silent member once the others refused
+SLOW_MEMBER_S = 0.25  # s: how long a multi-host connect waits for a silent member once the others refused
 
 
 def connect(

@@ -5,8 +5,10 @@ traveller (var/lots/entity-E.json, gwc/lot/resume.py). In a cell over several ho
 with its host, so there (`hosted`) each script also saves its traveller into LOT_TRAVELLERS, and
 every host's agent beats once a second (`beat`, sql/095_lot_hosts.sql): it renews its host in
 LOT_HOSTS and names the scripts it runs or queues (LOT_SCRIPT_HOSTS). A host whose beat is older than
-`ttl` is dead to the cell: the first live agent to beat claims its unfinished entities and starts
-their scripts, which resume from LOT_TRAVELLERS exactly as a script killed with -9 does.
+`ttl`, and whose agent the claiming agent does not hear on the bus, is dead to the cell (after a
+database outage every host's beat is stale; the bus tells the live ones): the first live agent to
+beat claims its unfinished entities and starts their scripts, which resume from LOT_TRAVELLERS
+exactly as a script killed with -9 does.
 
 Fencing: a host thought dead may only be cut off. Its scripts cannot save once another host holds
 their entities (`lot_traveller_save` refuses: the script exits at once, 75, without touching what
@@ -55,10 +57,12 @@ class Beat:
     lost: list[int]
 
 
-def beat(conn: psycopg.Connection[Any], host: str, ttl_s: float, mine: list[int], room: int) -> Beat:
-    """One beat, one transaction (see the module docstring)."""
+def beat(conn: psycopg.Connection[Any], host: str, ttl_s: float, mine: list[int], room: int, heard: list[str]) -> Beat:
+    """One beat, one transaction (see the module docstring). `heard`: the hosts whose agents this one hears
+    on the bus, alive whatever their beats say."""
     rows = conn.execute(
-        "select what, entity_id from lot_hosts_beat(%s, %s::real, %s::bigint[], %s)", (host, ttl_s, mine, room)
+        "select what, entity_id from lot_hosts_beat(%s, %s::real, %s::bigint[], %s, %s::text[])",
+        (host, ttl_s, mine, room, heard),
     ).fetchall()
     conn.commit()
     return Beat([int(e) for w, e in rows if w == "take"], [int(e) for w, e in rows if w == "lost"])

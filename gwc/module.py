@@ -60,6 +60,7 @@ DATABASE_WATCH_S = 1.0
 # How long a module waits for its database at startup, and asks to other modules go on while
 # their database is away: the outage the cell rides out without a step failing (docs/reliability.md).
 DATABASE_OUTAGE_S = 60.0
+RECONNECT_MAX_S = 0.5  # s: the longest pause between reconnects while the database is away (was 1 s)
 
 # Bus modules: name -> "module:Class". Machine halves take --machine and are named kind:ID.
 BUS_MODULES = {
@@ -310,7 +311,9 @@ class Module:
 
     async def _reconnect(self) -> None:
         assert self.database_down is not None
-        backoff = Backoff(0.2, 1.0)  # unbounded: until the database is back or the module stops
+        # 0.2 doubling to 0.5 s, unbounded: until the database is back or the module stops. The cap is what
+        # a failover costs a module after the new primary is up (a WC: its runs stored, its machine freed).
+        backoff = Backoff(0.2, RECONNECT_MAX_S)
         said = time.monotonic()
         while await backoff.asleep():
             try:

@@ -48,9 +48,11 @@ create table if not exists lot_travellers (
 );
 
 -- One agent's beat: renew its host, name the scripts it runs or queues (p_mine), take up to p_room
--- scripts of dead hosts. Answers ('take', E) for each entity this host must now start, ('lost', E)
--- for each of p_mine another host took over (the agent stops that script: it is fenced).
-create or replace function lot_hosts_beat(p_host text, p_ttl real, p_mine bigint[], p_room int)
+-- scripts of dead hosts: hosts whose beat is older than their ttl and whose agents the caller does
+-- not hear on the bus (p_heard: after a database outage every beat is stale, live hosts' too).
+-- Answers ('take', E) for each entity this host must now start, ('lost', E) for each of p_mine
+-- another host took over (the agent stops that script: it is fenced).
+create or replace function lot_hosts_beat(p_host text, p_ttl real, p_mine bigint[], p_room int, p_heard text[])
 returns table (what text, entity_id bigint)
 language plpgsql security definer set search_path = public, pg_catalog as $$
 declare
@@ -80,7 +82,8 @@ begin
              left join lot_hosts h on h.host = s.host
              join lot_status l on l.entity_id = s.entity_id
              join lot_entities e on e.entity_id = s.entity_id
-             where s.host <> p_host and l.state not in ('exported', 'failed') and e.destroyed_at is null
+             where s.host <> p_host and s.host <> all(p_heard)
+               and l.state not in ('exported', 'failed') and e.destroyed_at is null
                and (h.host is null or now() - h.renewed_at > make_interval(secs => h.ttl_s))
              order by s.entity_id
              limit greatest(p_room, 0)
@@ -115,7 +118,7 @@ revoke all on lot_hosts, lot_script_hosts, lot_travellers from public;
 grant usage on schema public to gwc_agent;
 grant select on lot_hosts, lot_script_hosts, lot_travellers
     to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot, gwc_opcua, gwc_agent;
-revoke execute on function lot_hosts_beat(text, real, bigint[], int), lot_traveller_save(bigint, text, int, jsonb)
+revoke execute on function lot_hosts_beat(text, real, bigint[], int, text[]), lot_traveller_save(bigint, text, int, jsonb)
     from public;
-grant execute on function lot_hosts_beat(text, real, bigint[], int) to gwc_agent;
+grant execute on function lot_hosts_beat(text, real, bigint[], int, text[]) to gwc_agent;
 grant execute on function lot_traveller_save(bigint, text, int, jsonb) to gwc_lot;

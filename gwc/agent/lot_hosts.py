@@ -1,7 +1,8 @@
 """The agent's side of lot scripts that outlive their host (issue 36; gwc/lothosts.py, sql/095_lot_hosts.sql).
 
 In a cell over several hosts each agent beats once a second: it renews its host, names the lot scripts it
-runs or queues, and is answered with the scripts of dead hosts it must start now (queued as `gwc order
+runs or queues and the hosts whose agents it hears on the bus (alive, though their beats may be stale
+after a database outage), and is answered with the scripts of dead hosts it must start now (queued as `gwc order
 new`'s are: their processes resume their entities from LOT_TRAVELLERS) and with those of its own another
 host took over meanwhile (this host was cut off, not dead), which it kills without a restart. The beat
 runs in a thread: a database that is away, or a member whose host is dead, never holds the agent's loop.
@@ -23,9 +24,11 @@ from gwc.agent.states import LIVE, ProcessState
 from gwc.budget import Budget
 from gwc.config import Config
 from gwc.errors import DatabaseError
+from gwc.ipc.bus import Bus
 from gwc.lot.admission import LotQueue
 
 SAY_EVERY_S = 10.0  # s: how often a database that stays away is logged again
+AGAIN_S = 0.25  # s: the next try after a beat that failed (the database failing over: take over soon after)
 
 
 class LotHost(Protocol):
@@ -36,6 +39,7 @@ class LotHost(Protocol):
     children: dict[str, Child]
     queue: LotQueue
     budget: Budget
+    bus: Bus
 
     def spawn_lots(self, entities: list[int]) -> dict[str, int | None]: ...
 
@@ -49,6 +53,9 @@ class LotHosting:
         self.ttl = hosting.ttl(agent.cfg)
         self.conn: psycopg.Connection[Any] | None = None
         self.away: str | None = None
+        # A freshly started agent claims nothing until it has heard the bus for two peer timeouts: a host
+        # whose agent it hears is alive, whatever its beat says (stale after a database outage).
+        self.listen_s = 2 * agent.cfg.bus.peer_timeout
 
     def mine(self) -> list[int]:
         """Entities whose scripts this agent runs, restarts or queues."""
@@ -58,11 +65,15 @@ class LotHosting:
         ]
         return sorted({*running, *self.agent.queue.pending()})
 
-    def _beat(self, mine: list[int], room: int) -> hosting.Beat:
+    def heard(self) -> list[str]:
+        """The hosts whose agents are on the bus now (alive: their scripts are theirs)."""
+        return sorted(n.partition(":")[2] for n in self.agent.bus.peers() if n.startswith("agent:"))
+
+    def _beat(self, mine: list[int], room: int, heard: list[str]) -> hosting.Beat:
         if self.conn is None or self.conn.closed:
             self.conn = db.connect(self.agent.cfg, role="agent", log=self.agent.log, attempts=1)
         try:
-            return hosting.beat(self.conn, self.host, self.ttl, mine, room)
+            return hosting.beat(self.conn, self.host, self.ttl, mine, room, heard)
         except psycopg.Error as e:
             self.conn.close()
             self.conn = None
@@ -77,16 +88,19 @@ class LotHosting:
         )
         said = 0.0
         loop = asyncio.get_running_loop()
+        started = loop.time()
         try:
             while True:
-                room = max(0, self.agent.budget.running * 4)
+                room = max(0, self.agent.budget.running * 4) if loop.time() - started >= self.listen_s else 0
                 try:
-                    answer = await asyncio.to_thread(self._beat, self.mine(), room)
+                    answer = await asyncio.to_thread(self._beat, self.mine(), room, self.heard())
                 except DatabaseError as e:
                     if self.away is None or loop.time() - said >= SAY_EVERY_S:
                         said = loop.time()
                         log.warning("lot hosts: cannot beat (%s): scripts of dead hosts wait", e)
                     self.away = str(e)
+                    await asyncio.sleep(AGAIN_S)
+                    continue
                 else:
                     if self.away is not None:
                         log.info("lot hosts: beating again")

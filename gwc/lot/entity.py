@@ -32,9 +32,11 @@ conversation with the Lot Server or MSCHED that finds it away, restarting or not
 again with a backoff for a bounded time (Timeouts.retry); every request the entity repeats that way is
 safe to repeat.
 
-It reads the tables (as role gwc_lot) and writes none. Besides its log it keeps a traveller,
-var/lots/entity-E.json: what it ran where and what it decided, for the operator (`gwc lots show E`)
-and the demonstration.
+It reads the tables (as role gwc_lot) and writes none but its own record. Besides its log it keeps a
+traveller, var/lots/entity-E.json: what it ran where and what it decided, for the operator (`gwc lots
+show E`), the demonstration and its own resume after a kill; in a cell over several hosts also in
+LOT_TRAVELLERS, so that a script started on another host when this one's died resumes from it
+(gwc/lothosts.py).
 """
 
 from __future__ import annotations

@@ -52,7 +52,8 @@ class PatroniCluster:
 
     # Failover within about ttl + loop_wait of the primary's death (loop_wait + 2 * retry_timeout must
     # stay under ttl: Patroni's rule against a leader that cannot renew in time).
-    DCS: dict[str, int] = {"ttl": 6, "loop_wait": 1, "retry_timeout": 2}
+    DCS: dict[str, float] = {"ttl": 6, "loop_wait": 1, "retry_timeout": 2}
+    ETCD_TIMING = ("--heartbeat-interval", "100", "--election-timeout", "1000")  # ms
 
     def __init__(self, hosts: Hosts, base: Path) -> None:
         self.hosts = hosts
@@ -73,7 +74,7 @@ class PatroniCluster:
                 "--listen-client-urls", f"http://{a}:2379", "--advertise-client-urls", f"http://{a}:2379",
                 "--listen-peer-urls", f"http://{a}:2380", "--initial-advertise-peer-urls", f"http://{a}:2380",
                 "--initial-cluster", initial, "--initial-cluster-state", "new",
-                "--heartbeat-interval", "100", "--election-timeout", "1000",
+                *self.ETCD_TIMING,
             ], "etcd.log")  # fmt: skip
         for h in MEMBERS:
             self._patroni(h)
