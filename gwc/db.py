@@ -13,6 +13,7 @@ table-ownership rule (thesis 5.1, GUIDE 4) is enforced by the server, not by con
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import fcntl
 import grp
@@ -33,7 +34,7 @@ from urllib.parse import quote, urlsplit, urlunsplit
 
 import psycopg
 from psycopg import sql
-from psycopg.conninfo import conninfo_attempts, conninfo_to_dict
+from psycopg.conninfo import conninfo_attempts, conninfo_attempts_async, conninfo_to_dict
 
 from gwc import hostuser
 from gwc.budget import MAX_CONNECTIONS, plan
@@ -552,6 +553,56 @@ def _connect_any(url: str, application_name: str) -> psycopg.Connection[Any]:
     if len(attempts) < 2:
         return psycopg.connect(url, autocommit=False, **options)
     return _race(attempts)
+
+
+async def connect_async(cfg: Config, role: str) -> psycopg.AsyncConnection[Any]:
+    """One try at a connection as role gwc_<role> (autocommit), for an event loop that must run no
+    thread: the host agent, which forks lot scripts. Every member of a multi-host URL at once, as
+    _connect_any; DatabaseUnavailable when none accepts, DatabaseError when the role cannot be taken."""
+    if not _ROLE.match(role):
+        raise DatabaseError(f"bad database role name {role!r}")
+    url = database_url(cfg, role)
+    given = conninfo_to_dict(url)
+    options: dict[str, Any] = {"application_name": f"gwc_{role}", **TCP_WATCH}
+    if "connect_timeout" not in given:
+        options["connect_timeout"] = CONNECT_TIMEOUT_S
+    attempts: list[dict[str, Any]] = await conninfo_attempts_async({**given, **options})
+    loop = asyncio.get_running_loop()
+    pending = {asyncio.ensure_future(psycopg.AsyncConnection.connect(**a, autocommit=True)) for a in attempts}
+    deadline = loop.time() + max(float(a.get("connect_timeout") or CONNECT_TIMEOUT_S) for a in attempts)
+    errors: list[str] = []
+    refused_at: float | None = None
+    conn: psycopg.AsyncConnection[Any] | None = None
+    try:
+        while pending and conn is None:
+            until = deadline if refused_at is None else min(deadline, refused_at + SLOW_MEMBER_S)
+            if until <= loop.time():
+                break
+            left = until - loop.time()
+            done, pending = await asyncio.wait(pending, timeout=left, return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                if (error := task.exception()) is not None:
+                    errors.append(_one_line(error))
+                    refused_at = refused_at or loop.time()
+                elif conn is None:
+                    conn = task.result()
+                else:
+                    await task.result().close()
+    finally:
+        for task in pending:
+            task.cancel()
+    if conn is None:
+        why = "; ".join(errors) or "no answer"
+        raise DatabaseUnavailable(f"cannot connect to the cell database at {_redact(url)}: {why}")
+    try:
+        await conn.execute(sql.SQL("set role {}").format(sql.Identifier(f"gwc_{role}")))
+    except psycopg.OperationalError as e:
+        await conn.close()
+        raise DatabaseUnavailable(f"cell database connection lost at once: {_one_line(e)}") from e
+    except psycopg.Error as e:
+        await conn.close()
+        raise DatabaseError(f"cannot act as database role gwc_{role}: {_one_line(e)} (try `gwc db init`)") from e
+    return conn
 
 
 def _race(attempts: list[dict[str, Any]]) -> psycopg.Connection[Any]:

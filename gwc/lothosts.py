@@ -29,6 +29,7 @@ import psycopg
 
 from gwc.cell import pid_file
 from gwc.config import Config
+from gwc.errors import GwcError
 
 DEFAULT_TTL_S = 4.0  # s: a host whose agent has not beaten for this long is dead to the cell
 BEAT_S = 1.0  # s: how often an agent beats
@@ -68,6 +69,18 @@ def beat(conn: psycopg.Connection[Any], host: str, ttl_s: float, mine: list[int]
     return Beat([int(e) for w, e in rows if w == "take"], [int(e) for w, e in rows if w == "lost"])
 
 
+async def beat_async(
+    conn: psycopg.AsyncConnection[Any], host: str, ttl_s: float, mine: list[int], room: int, heard: list[str]
+) -> Beat:
+    """`beat` on an autocommit connection of an event loop (the agent's: it runs no thread)."""
+    cur = await conn.execute(
+        "select what, entity_id from lot_hosts_beat(%s, %s::real, %s::bigint[], %s, %s::text[])",
+        (host, ttl_s, mine, room, heard),
+    )
+    rows = await cur.fetchall()
+    return Beat([int(e) for w, e in rows if w == "take"], [int(e) for w, e in rows if w == "lost"])
+
+
 class TravellerStore:
     """A lot script's traveller in LOT_TRAVELLERS (hosted cells): saved beside the file, read back by the
     script that takes the entity over. `reads` is the entity's LotReads (its query asks again while the
@@ -78,17 +91,39 @@ class TravellerStore:
         self.entity_id = entity_id
         self.reads = reads
         self.log = log
+        self.unreachable: str | None = None  # why the database cannot be reached by this script, once known
 
     def save(self, traveller: dict[str, Any]) -> None:
+        if self.unreachable is not None:
+            return
         doc = json.dumps(traveller, default=str)
-        rows = self.reads.query(
-            "select lot_traveller_save(%s, %s, %s, %s::jsonb)", self.entity_id, self.cfg.host, os.getpid(), doc
-        )
+        try:
+            rows = self.reads.query(
+                "select lot_traveller_save(%s, %s, %s, %s::jsonb)", self.entity_id, self.cfg.host, os.getpid(), doc
+            )
+        except (GwcError, OSError) as e:
+            self._unreachable(e)
+            return
         if rows and rows[0][0] is False:
             self.taken_over()
 
+    def _unreachable(self, e: BaseException) -> None:
+        """The script cannot reach the database at all (a lot user on a host other than the embedded
+        database's cannot read var/secrets, whose passwords it would log in with): its record stays on
+        its host's disk, and the script does not outlive its host (docs/deploying.md)."""
+        self.unreachable = str(e)
+        self.log.error(
+            "entity %d: its traveller cannot be kept in the database (%s): this script will not outlive its host",
+            self.entity_id,
+            e,
+        )
+
     def read(self) -> dict[str, Any] | None:
-        row = self.reads.query_one("select traveller from lot_travellers where entity_id = %s", self.entity_id)
+        try:
+            row = self.reads.query_one("select traveller from lot_travellers where entity_id = %s", self.entity_id)
+        except (GwcError, OSError) as e:
+            self._unreachable(e)
+            return None
         if row is None:
             return None
         doc = row[0]
@@ -109,4 +144,4 @@ class TravellerStore:
         os._exit(EXIT_TAKEN_OVER)
 
 
-__all__ = ["BEAT_S", "EXIT_TAKEN_OVER", "Beat", "TravellerStore", "beat", "hosted", "ttl"]
+__all__ = ["BEAT_S", "EXIT_TAKEN_OVER", "Beat", "TravellerStore", "beat", "beat_async", "hosted", "ttl"]

@@ -84,6 +84,11 @@ begin
              join lot_entities e on e.entity_id = s.entity_id
              where s.host <> p_host and s.host <> all(p_heard)
                and l.state not in ('exported', 'failed') and e.destroyed_at is null
+               -- Only with a record to resume from, or with nothing done yet: a script that could not
+               -- reach the database (gwc/lothosts.py) left none, and started anew it could run an
+               -- operation twice; the Lot Server reaps such an entity instead.
+               and (exists (select 1 from lot_travellers t where t.entity_id = s.entity_id)
+                    or l.state in ('created', 'waiting_import'))
                and (h.host is null or now() - h.renewed_at > make_interval(secs => h.ttl_s))
              order by s.entity_id
              limit greatest(p_room, 0)

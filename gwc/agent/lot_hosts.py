@@ -5,7 +5,8 @@ runs or queues and the hosts whose agents it hears on the bus (alive, though the
 after a database outage), and is answered with the scripts of dead hosts it must start now (queued as `gwc order
 new`'s are: their processes resume their entities from LOT_TRAVELLERS) and with those of its own another
 host took over meanwhile (this host was cut off, not dead), which it kills without a restart. The beat
-runs in a thread: a database that is away, or a member whose host is dead, never holds the agent's loop.
+is asynchronous, on the agent's loop (the agent runs no thread: it forks lot scripts), each bounded:
+a database that is away, or a member whose host is dead, never holds the agent's loop.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from gwc.ipc.bus import Bus
 from gwc.lot.admission import LotQueue
 
 SAY_EVERY_S = 10.0  # s: how often a database that stays away is logged again
+BEAT_TIMEOUT_S = 5.0  # s: a beat's bound (connect and query), beside the connection's own TCP watch
 AGAIN_S = 0.25  # s: the next try after a beat that failed (the database failing over: take over soon after)
 
 
@@ -51,7 +53,7 @@ class LotHosting:
         self.agent = agent
         self.host = str(agent.cfg.host)
         self.ttl = hosting.ttl(agent.cfg)
-        self.conn: psycopg.Connection[Any] | None = None
+        self.conn: psycopg.AsyncConnection[Any] | None = None
         self.away: str | None = None
         # A freshly started agent claims nothing until it has heard the bus for two peer timeouts: a host
         # whose agent it hears is alive, whatever its beat says (stale after a database outage).
@@ -69,15 +71,17 @@ class LotHosting:
         """The hosts whose agents are on the bus now (alive: their scripts are theirs)."""
         return sorted(n.partition(":")[2] for n in self.agent.bus.peers() if n.startswith("agent:"))
 
-    def _beat(self, mine: list[int], room: int, heard: list[str]) -> hosting.Beat:
-        if self.conn is None or self.conn.closed:
-            self.conn = db.connect(self.agent.cfg, role="agent", log=self.agent.log, attempts=1)
+    async def _beat(self, mine: list[int], room: int, heard: list[str]) -> hosting.Beat:
         try:
-            return hosting.beat(self.conn, self.host, self.ttl, mine, room, heard)
-        except psycopg.Error as e:
-            self.conn.close()
+            async with asyncio.timeout(BEAT_TIMEOUT_S):
+                if self.conn is None or self.conn.closed:
+                    self.conn = await db.connect_async(self.agent.cfg, "agent")
+                return await hosting.beat_async(self.conn, self.host, self.ttl, mine, room, heard)
+        except (psycopg.Error, TimeoutError) as e:
+            if self.conn is not None:
+                await self.conn.close()
             self.conn = None
-            raise DatabaseError(f"lot hosts' beat: {e}") from e
+            raise DatabaseError(f"lot hosts' beat: {e or f'no answer within {BEAT_TIMEOUT_S:g}s'}") from e
 
     async def run(self) -> None:
         log = self.agent.log
@@ -93,7 +97,7 @@ class LotHosting:
             while True:
                 room = max(0, self.agent.budget.running * 4) if loop.time() - started >= self.listen_s else 0
                 try:
-                    answer = await asyncio.to_thread(self._beat, self.mine(), room, self.heard())
+                    answer = await self._beat(self.mine(), room, self.heard())
                 except DatabaseError as e:
                     if self.away is None or loop.time() - said >= SAY_EVERY_S:
                         said = loop.time()
@@ -109,7 +113,7 @@ class LotHosting:
                 await asyncio.sleep(hosting.BEAT_S)
         finally:
             if self.conn is not None:
-                self.conn.close()
+                await self.conn.close()
 
     def _obey(self, answer: hosting.Beat) -> None:
         log = self.agent.log
