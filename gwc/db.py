@@ -270,6 +270,25 @@ def _set_role_passwords(cur: psycopg.Cursor[Any], cfg: Config) -> None:
         cur.execute(sql.SQL("alter role {} login password {}").format(sql.Identifier(role), sql.Literal(password)))
     if passwords != known:
         _write_secret(_passwords_file(cfg), "".join(f"{r} {p}\n" for r, p in passwords.items()))
+    lot_role = f"gwc_{LOT_ROLE}"
+    if lot_role in passwords and _lot_password(cfg) != passwords[lot_role]:
+        _write_secret(lot_passwords_file(cfg), f"{lot_role} {passwords[lot_role]}\n")
+
+
+def lot_passwords_file(cfg: Config) -> Path:
+    """The lot scripts' own role's password alone (var/secrets/lot.database): shared with the lot user's
+    group as lot.key is (gwc.private), so that a lot script on a host other than the database's can log
+    in as gwc_lot (reads, and its own traveller) without reading the other roles' passwords."""
+    return secrets_dir(cfg) / "lot.database"
+
+
+def _lot_password(cfg: Config) -> str | None:
+    with contextlib.suppress(OSError, ValueError):
+        for line in lot_passwords_file(cfg).read_text().splitlines():
+            role, _, password = line.partition(" ")
+            if role == f"gwc_{LOT_ROLE}" and password:
+                return password
+    return None
 
 
 def _lot_access(cfg: Config) -> tuple[str, str] | None:
@@ -449,7 +468,8 @@ def database_url(cfg: Config, role: str | None = None) -> str:
             return f"postgresql://{user}@/{DB_NAME}?host={quote(str(socket_dir(cfg)), safe='')}" + (
                 f"&port={port}" if port != 5432 else ""
             )
-        password = role_passwords(cfg).get(user)
+        password = _lot_password(cfg) if role == LOT_ROLE else None
+        password = password or role_passwords(cfg).get(user)
         if password is None:
             raise DatabaseError(f"no password for {user} in {_passwords_file(cfg)}: copy it from the database host")
         tls = f"?sslmode=verify-ca&sslrootcert={quote(str(_ca_file(cfg)), safe='')}" if _tls(cfg) else ""

@@ -108,9 +108,9 @@ class TravellerStore:
             self.taken_over()
 
     def _unreachable(self, e: BaseException) -> None:
-        """The script cannot reach the database at all (a lot user on a host other than the embedded
-        database's cannot read var/secrets, whose passwords it would log in with): its record stays on
-        its host's disk, and the script does not outlive its host (docs/deploying.md)."""
+        """The script cannot reach the database at all (on a host other than the embedded database's, a
+        lot user without var/secrets/lot.database): its record stays on its host's disk, and the script
+        does not outlive its host (docs/deploying.md)."""
         self.unreachable = str(e)
         self.log.error(
             "entity %d: its traveller cannot be kept in the database (%s): this script will not outlive its host",
