@@ -13,6 +13,7 @@ table-ownership rule (thesis 5.1, GUIDE 4) is enforced by the server, not by con
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import fcntl
 import grp
@@ -24,6 +25,7 @@ import secrets
 import shutil
 import stat
 import subprocess
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -32,6 +34,7 @@ from urllib.parse import quote, urlsplit, urlunsplit
 
 import psycopg
 from psycopg import sql
+from psycopg.conninfo import conninfo_attempts, conninfo_attempts_async, conninfo_to_dict
 
 from gwc import hostuser
 from gwc.budget import MAX_CONNECTIONS, plan
@@ -267,6 +270,25 @@ def _set_role_passwords(cur: psycopg.Cursor[Any], cfg: Config) -> None:
         cur.execute(sql.SQL("alter role {} login password {}").format(sql.Identifier(role), sql.Literal(password)))
     if passwords != known:
         _write_secret(_passwords_file(cfg), "".join(f"{r} {p}\n" for r, p in passwords.items()))
+    lot_role = f"gwc_{LOT_ROLE}"
+    if lot_role in passwords and _lot_password(cfg) != passwords[lot_role]:
+        _write_secret(lot_passwords_file(cfg), f"{lot_role} {passwords[lot_role]}\n")
+
+
+def lot_passwords_file(cfg: Config) -> Path:
+    """The lot scripts' own role's password alone (var/secrets/lot.database): shared with the lot user's
+    group as lot.key is (gwc.private), so that a lot script on a host other than the database's can log
+    in as gwc_lot (reads, and its own traveller) without reading the other roles' passwords."""
+    return secrets_dir(cfg) / "lot.database"
+
+
+def _lot_password(cfg: Config) -> str | None:
+    with contextlib.suppress(OSError, ValueError):
+        for line in lot_passwords_file(cfg).read_text().splitlines():
+            role, _, password = line.partition(" ")
+            if role == f"gwc_{LOT_ROLE}" and password:
+                return password
+    return None
 
 
 def _lot_access(cfg: Config) -> tuple[str, str] | None:
@@ -446,7 +468,8 @@ def database_url(cfg: Config, role: str | None = None) -> str:
             return f"postgresql://{user}@/{DB_NAME}?host={quote(str(socket_dir(cfg)), safe='')}" + (
                 f"&port={port}" if port != 5432 else ""
             )
-        password = role_passwords(cfg).get(user)
+        password = _lot_password(cfg) if role == LOT_ROLE else None
+        password = password or role_passwords(cfg).get(user)
         if password is None:
             raise DatabaseError(f"no password for {user} in {_passwords_file(cfg)}: copy it from the database host")
         tls = f"?sslmode=verify-ca&sslrootcert={quote(str(_ca_file(cfg)), safe='')}" if _tls(cfg) else ""
@@ -476,7 +499,12 @@ _ROLE = re.compile(r"^[a-z][a-z0-9_]*$")
 # fails instead of holding its module for TCP's ~15 min of retries. The socket then turns readable, as
 # a resting module's watch sees without a round trip (gwc/module.py). libpq ignores it on a Unix socket.
 _KEEPALIVE = {"keepalives": 1, "keepalives_idle": 3, "keepalives_interval": 1, "keepalives_count": 3}
-TCP_WATCH: dict[str, Any] = {**_KEEPALIVE, "tcp_user_timeout": 8000}  # ms
+# Data unacknowledged this long ends the connection (ms). The peer's kernel acknowledges, not its
+# PostgreSQL, so a loaded server does not trip it; a dead host (a database failover's old primary)
+# does, and a module's query on it fails after 4 s instead of holding its step (docs/reliability.md).
+TCP_WATCH: dict[str, Any] = {**_KEEPALIVE, "tcp_user_timeout": 4000}
+CONNECT_TIMEOUT_S = 5  # a connect's bound, unless the URL says (`connect_timeout`)
+SLOW_MEMBER_S = 0.25  # s: how long a multi-host connect waits for a silent member once the others refused
 
 
 def connect(
@@ -496,9 +524,7 @@ def connect(
     while True:
         attempt = backoff.tries + 1
         try:
-            conn = psycopg.connect(
-                url, autocommit=False, connect_timeout=5, application_name=f"gwc_{role}" if role else "gwc", **TCP_WATCH
-            )
+            conn = _connect_any(url, application_name=f"gwc_{role}" if role else "gwc")
         except psycopg.OperationalError as e:
             error = e
             pause = backoff.next()
@@ -527,6 +553,122 @@ def connect(
         f"cannot connect to the cell database at {_redact(url)} after {attempts} tries "
         f"({_one_line(error) if error else 'no attempt'}): is the cell database running? try `gwc db start`"
     ) from error
+
+
+def _connect_any(url: str, application_name: str) -> psycopg.Connection[Any]:
+    """psycopg.connect(url), but a multi-host URL's members are tried all at once, not in turn.
+
+    libpq (and psycopg) try the members of `host=a,b,c` one after the other, each for up to
+    `connect_timeout`: after a database failover whose old primary's host is dead (its packets lost,
+    not refused) every connect paid that member's whole timeout before it tried the new primary. Here
+    each member is tried in a thread of its own with the URL's options (target_session_attrs among
+    them); the first that accepts wins and the others are closed. Once a member has refused and only
+    silent ones are left, they are waited for at most SLOW_MEMBER_S: the caller's backoff tries again
+    soon rather than waiting out a dead host's timeout."""
+    given = conninfo_to_dict(url)
+    options: dict[str, Any] = {"application_name": application_name, **TCP_WATCH}
+    if "connect_timeout" not in given:
+        options["connect_timeout"] = CONNECT_TIMEOUT_S
+    attempts = conninfo_attempts({**given, **options})
+    if len(attempts) < 2:
+        return psycopg.connect(url, autocommit=False, **options)
+    return _race(attempts)
+
+
+async def connect_async(cfg: Config, role: str) -> psycopg.AsyncConnection[Any]:
+    """One try at a connection as role gwc_<role> (autocommit), for an event loop that must run no
+    thread: the host agent, which forks lot scripts. Every member of a multi-host URL at once, as
+    _connect_any; DatabaseUnavailable when none accepts, DatabaseError when the role cannot be taken."""
+    if not _ROLE.match(role):
+        raise DatabaseError(f"bad database role name {role!r}")
+    url = database_url(cfg, role)
+    given = conninfo_to_dict(url)
+    options: dict[str, Any] = {"application_name": f"gwc_{role}", **TCP_WATCH}
+    if "connect_timeout" not in given:
+        options["connect_timeout"] = CONNECT_TIMEOUT_S
+    attempts: list[dict[str, Any]] = await conninfo_attempts_async({**given, **options})
+    loop = asyncio.get_running_loop()
+    pending = {asyncio.ensure_future(psycopg.AsyncConnection.connect(**a, autocommit=True)) for a in attempts}
+    deadline = loop.time() + max(float(a.get("connect_timeout") or CONNECT_TIMEOUT_S) for a in attempts)
+    errors: list[str] = []
+    refused_at: float | None = None
+    conn: psycopg.AsyncConnection[Any] | None = None
+    try:
+        while pending and conn is None:
+            until = deadline if refused_at is None else min(deadline, refused_at + SLOW_MEMBER_S)
+            if until <= loop.time():
+                break
+            left = until - loop.time()
+            done, pending = await asyncio.wait(pending, timeout=left, return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                if (error := task.exception()) is not None:
+                    errors.append(_one_line(error))
+                    refused_at = refused_at or loop.time()
+                elif conn is None:
+                    conn = task.result()
+                else:
+                    await task.result().close()
+    finally:
+        for task in pending:
+            task.cancel()
+    if conn is None:
+        why = "; ".join(errors) or "no answer"
+        raise DatabaseUnavailable(f"cannot connect to the cell database at {_redact(url)}: {why}")
+    try:
+        await conn.execute(sql.SQL("set role {}").format(sql.Identifier(f"gwc_{role}")))
+    except psycopg.OperationalError as e:
+        await conn.close()
+        raise DatabaseUnavailable(f"cell database connection lost at once: {_one_line(e)}") from e
+    except psycopg.Error as e:
+        await conn.close()
+        raise DatabaseError(f"cannot act as database role gwc_{role}: {_one_line(e)} (try `gwc db init`)") from e
+    return conn
+
+
+def _race(attempts: list[dict[str, Any]]) -> psycopg.Connection[Any]:
+    """The first of the members' connections to succeed (see _connect_any); the others are closed."""
+    done = threading.Condition()
+    errors: list[str] = []
+    won: list[psycopg.Connection[Any] | None] = []  # [conn] once one won, [None] once given up
+
+    def one(params: dict[str, Any]) -> None:
+        try:
+            conn = psycopg.connect(**params, autocommit=False)
+        except psycopg.Error as e:
+            with done:
+                errors.append(f"{params.get('host')}: {_one_line(e)}")
+                done.notify_all()
+            return
+        with done:
+            if not won:
+                won.append(conn)
+                done.notify_all()
+                return
+        conn.close()  # another member won, or the caller gave up
+
+    for params in attempts:
+        threading.Thread(target=one, args=(params,), name="gwc-db-connect", daemon=True).start()
+    start = time.monotonic()
+    deadline = start + max(float(p.get("connect_timeout") or CONNECT_TIMEOUT_S) for p in attempts)
+    refused_at: float | None = None
+    with done:
+        while not won and len(errors) < len(attempts):
+            now = time.monotonic()
+            if errors and refused_at is None:
+                refused_at = now
+            until = deadline if refused_at is None else min(deadline, refused_at + SLOW_MEMBER_S)
+            if now >= until:
+                break
+            done.wait(until - now)
+        if won:
+            conn = won[0]
+            assert conn is not None
+            return conn
+        won.append(None)
+        silent = len(attempts) - len(errors)
+        raise psycopg.OperationalError(
+            "no member accepted: " + "; ".join(errors + ([f"{silent} silent"] if silent else []))
+        )
 
 
 def probe(cfg: Config) -> str | None:

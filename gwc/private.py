@@ -80,13 +80,18 @@ def secure_var(cfg: Config) -> None:
 
 def share_with_lot_user(cfg: Config, gid: int) -> None:
     """What lot scripts of another user (gwc.hostuser) need of var/, and nothing more: to pass through
-    var/secrets to lot.key (0640) and var/log to their own logs (made for them); to write their
+    var/secrets to lot.key, lot.database and database.crt (0640: gwc_lot's password and the database's
+    certificate, for a host other than the database's) and var/log to their own logs (made for them); to write their
     travellers in var/lots (1770: sticky, so none replaces a file it does not own)."""
     for folder, mode in ((cfg.var / "secrets", 0o710), (cfg.log_dir, 0o710), (cfg.var / "lots", 0o1770)):
         private_dir(folder, gid, mode)
     lot_key = Path(cfg.bus.lot_key_file or cfg.var / "secrets" / "lot.key")
     if lot_key.exists():
         hostuser.share_with_lots(lot_key, gid, 0o640)
+    # gwc_lot's password alone (gwc.db.lot_passwords_file), and the database's certificate it is checked with
+    for name in ("lot.database", "database.crt"):
+        if (cfg.var / "secrets" / name).exists():
+            hostuser.share_with_lots(cfg.var / "secrets" / name, gid, 0o640)
 
 
 def _owned(fd: int, path: Path) -> None:

@@ -35,8 +35,10 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, fields
 from typing import Any
 
+from gwc import lothosts as hosting
 from gwc.agent.child import Child, Process
 from gwc.agent.control import READY_FD, address, peer_of
+from gwc.agent.lot_hosts import LotHosting
 from gwc.agent.states import LIVE, ProcessState
 from gwc.budget import plan
 from gwc.cell import cell_procs, hold_startup, lot_proc, pid_file, read_pid, spawn_process, write_pid_file
@@ -187,6 +189,8 @@ class Agent(Server):
                 self.log.warning("lot scripts run as the cell's user (uid %d): %s", os.geteuid(), why)
             self._adopt()
             self.spawn(self._start_all_logged())
+            if hosting.hosted(self.cfg):  # lot scripts outlive their host (gwc/agent/lot_hosts.py)
+                self.spawn(LotHosting(self).run())
             try:
                 await self._stop.wait()
             finally:

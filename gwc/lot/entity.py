@@ -32,9 +32,11 @@ conversation with the Lot Server or MSCHED that finds it away, restarting or not
 again with a backoff for a bounded time (Timeouts.retry); every request the entity repeats that way is
 safe to repeat.
 
-It reads the tables (as role gwc_lot) and writes none. Besides its log it keeps a traveller,
-var/lots/entity-E.json: what it ran where and what it decided, for the operator (`gwc lots show E`)
-and the demonstration.
+It reads the tables (as role gwc_lot) and writes none but its own record. Besides its log it keeps a
+traveller, var/lots/entity-E.json: what it ran where and what it decided, for the operator (`gwc lots
+show E`), the demonstration and its own resume after a kill; in a cell over several hosts also in
+LOT_TRAVELLERS, so that a script started on another host when this one's died resumes from it
+(gwc/lothosts.py).
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from gwc import lothosts as hosting
 from gwc.config import Config
 from gwc.errors import GwcError
 from gwc.ipc import BlockingBus
@@ -118,6 +121,8 @@ class OperationEntity:
         self.runs = MachineRuns(self.facts, self.reads, self.heard, self.link, self.ls)
         self.resume = Resumption(self.facts, self.reads, self.heard, self.link, self.requests, self.runs)
         self.holdings = Holdings(self.facts, self.link, self.runs)
+        if hosting.hosted(cfg):  # the traveller in the database too: a script on another host resumes from it
+            self.facts.keep = hosting.TravellerStore(cfg, self.facts.entity_id, self.reads, log)
 
     # ----------------------------------------------------------------- life
 
@@ -164,7 +169,12 @@ class OperationEntity:
         )
         self.resume.after_restart()
         self.facts.traveller.update(
-            lot_id=self.lot_id, product_id=self.product_id, pid=os.getpid(), started=now_text(), state=self.facts.state
+            lot_id=self.lot_id,
+            product_id=self.product_id,
+            pid=os.getpid(),
+            host=self.facts.cfg.host,
+            started=now_text(),
+            state=self.facts.state,
         )
         self.facts.save()
 

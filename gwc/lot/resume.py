@@ -64,18 +64,22 @@ class Resumption:
     def after_restart(self) -> None:
         """(at open, attached) A traveller of another process of this entity: take its record over, and
         clean up what the dead process left in MSCHED that no record names."""
-        old = read_traveller(self.facts.cfg, self.facts.entity_id)
+        keep = self.facts.keep  # a hosted cell: the record in the database, whichever host wrote it
+        old = keep.read() if keep is not None else None
+        old = old or read_traveller(self.facts.cfg, self.facts.entity_id)
         # Completed and waiting to be exported too: its operations are replayed, not asked for again.
-        if not old or old.get("pid") in (None, os.getpid()) or self.facts.state is None:
+        mine = old is not None and old.get("pid") == os.getpid() and old.get("host") == self.facts.cfg.host
+        if not old or old.get("pid") is None or mine or self.facts.state is None:
             return
         self._replay = list(old.get("operations") or [])
         self.facts.traveller.update(old)
         self.facts.traveller["restarts"] = int(old.get("restarts") or 0) + 1
         self.facts.result = old.get("result")
         self.facts.log.warning(
-            "entity %d resumes after its lot script (pid %s) ended: %d operation(s) recorded",
+            "entity %d resumes after its lot script (pid %s%s) ended: %d operation(s) recorded",
             self.facts.entity_id,
             old.get("pid"),
+            f" on {old['host']}" if old.get("host") and old.get("host") != self.facts.cfg.host else "",
             len(self._replay),
         )
         if self.facts.state in (LotState.CREATED, LotState.WAITING_IMPORT):

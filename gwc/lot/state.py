@@ -36,6 +36,9 @@ class EntityState:
     result: str | None = None
     failed: bool = False  # fail() ran (or the attach was refused): nothing more to clean up
     traveller: dict[str, Any] = field(default_factory=dict)
+    # Where the traveller is kept besides its file: the database, in a cell whose lot scripts outlive
+    # their host (gwc/lothosts.py's TravellerStore); None on one host.
+    keep: Any = None
 
     def __post_init__(self) -> None:
         self.entity_id = int(self.entity_id)
@@ -66,11 +69,13 @@ class EntityState:
         self.save()
 
     def save(self) -> None:
-        """Write the traveller (var/lots/entity-E.json) whole; it is a record, never required."""
+        """Write the traveller (var/lots/entity-E.json) whole, and in a hosted cell into LOT_TRAVELLERS."""
         try:
             save_traveller(self.cfg, self.entity_id, self.traveller)
         except OSError as e:
             self.log.warning("could not write the traveller: %s", e)
+        if self.keep is not None:  # the record a script on another host resumes from
+            self.keep.save(self.traveller)
 
 
 class Shared(Generic[V]):

@@ -20,6 +20,7 @@ import logging
 import time
 from typing import Any
 
+from gwc import lothosts as hosting
 from gwc.config import Config
 from gwc.errors import GwcError, Refused
 from gwc.ipc.bus import Conversation, Peer
@@ -83,6 +84,12 @@ class LotServer(Server, Module):
         self.watched: dict[int, float] = {}  # entity -> when its script was last seen on the bus
         self.restarting: dict[int, float] = {}  # entity -> until when its script's restart is waited for
         self.grace = max(3.0, 2 * cfg.bus.peer_timeout)
+        # Lot scripts outlive their host (gwc/lothosts.py): a script whose peer went silent may be on
+        # a host that died, its entity taken over by a live host's agent after the hosts' ttl; it is
+        # reaped only if no script attached within that and RESTART_GRACE.
+        self.hosted = hosting.hosted(cfg)
+        if self.hosted:
+            self.grace += hosting.ttl(cfg) + hosting.BEAT_S + RESTART_GRACE
         self.pruner = Pruner("ls", "entity history", cfg.record, self.transaction, log)
 
     def handlers(self) -> dict[str, Handler]:
@@ -138,6 +145,8 @@ class LotServer(Server, Module):
         if peer is not None or kind != "lot" or not ent.isdigit() or not self.started:
             return
         entity = int(ent)
+        if self.hosted:  # perhaps its host died: reap_silent waits for another host to take it over
+            return
         if entity in self.watched and not self._restarting(entity, time.monotonic()):
             self.watched.pop(entity, None)
             self.spawn(self.reap(entity, f"bus peer {name} left"))

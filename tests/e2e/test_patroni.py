@@ -50,6 +50,11 @@ PASSWORD = "patroni-test"
 class PatroniCluster:
     """etcd and Patroni on h1..h3: started, killed with their hosts, and the hosts' removal ends them."""
 
+    # Failover within about ttl + loop_wait of the primary's death (loop_wait + 2 * retry_timeout must
+    # stay under ttl: Patroni's rule against a leader that cannot renew in time).
+    DCS: dict[str, float] = {"ttl": 6, "loop_wait": 1, "retry_timeout": 2}
+    ETCD_TIMING = ("--heartbeat-interval", "100", "--election-timeout", "1000")  # ms
+
     def __init__(self, hosts: Hosts, base: Path) -> None:
         self.hosts = hosts
         self.base = base
@@ -69,7 +74,7 @@ class PatroniCluster:
                 "--listen-client-urls", f"http://{a}:2379", "--advertise-client-urls", f"http://{a}:2379",
                 "--listen-peer-urls", f"http://{a}:2380", "--initial-advertise-peer-urls", f"http://{a}:2380",
                 "--initial-cluster", initial, "--initial-cluster-state", "new",
-                "--heartbeat-interval", "100", "--election-timeout", "1000",
+                *self.ETCD_TIMING,
             ], "etcd.log")  # fmt: skip
         for h in MEMBERS:
             self._patroni(h)
@@ -91,11 +96,7 @@ class PatroniCluster:
             "etcd3": {"hosts": [f"{x}:2379" for x in self.addr.values()]},
             "bootstrap": {
                 "dcs": {
-                    # Failover within about ttl + loop_wait of the primary's death (loop_wait + 2 *
-                    # retry_timeout must stay under ttl).
-                    "ttl": 6,
-                    "loop_wait": 1,
-                    "retry_timeout": 2,
+                    **self.DCS,
                     "synchronous_mode": True,  # a commit waits for the sync standby: it survives the primary
                     "postgresql": {"use_pg_rewind": True, "parameters": {"fsync": "off"}},
                 },
