@@ -268,7 +268,6 @@ def ancestry(qualname: str, infos: dict[str, ClassInfo]) -> list[ClassInfo]:
 # and the entity's were cut) brings most of them under.
 OVER_UNTIL_CUT = {
     "gwc.me.cmm.CmmMachine": 50,
-    "gwc.msched.server.Msched": 49,
     "gwc.opcua.gateway.Gateway": 64,
     "gwc.servers.alarm.AlarmServer": 47,
     "gwc.servers.lot.LotServer": 51,
