@@ -200,6 +200,9 @@ class StepWorker:
             elif not fut.done():
                 fut.set_exception(e)
             return
+        # The outcomes first: an entity bound is told before the changes' askers are answered (a lot
+        # that freed a machine hears its Unreserve_Me_Ack after the next lot heard it has it).
+        self.tell(outcomes)
         for (_, fut), result in zip(ops, results):
             if fut is not None and not fut.done():
                 fut.set_result(result)
@@ -210,7 +213,6 @@ class StepWorker:
             len(outcomes),
             (time.perf_counter() - started) * 1000,
         )
-        self.tell(outcomes)
 
 
 def _spread(done: asyncio.Future[list[list[str]]], waiters: list[asyncio.Future[list[str]]]) -> None:
