@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -41,10 +40,6 @@ from gwc.msched.store import Outcome, Step
 GATHER_TURNS = 4
 MAX_GATHER_TURNS = 200
 LAZY_S = 0.5  # an acknowledged outcome waits at most this long for a step to ride on
-# How long the event loop's thread may hold the GIL while the step thread, its database answer read,
-# waits for it (Python's default 5 ms, once a round trip of the step's five or so, while the loop is
-# busy with the bus). Set for MSCHED's process when its worker starts.
-SWITCH_S = 0.0005
 
 Op = Callable[[Step], Any]
 T = TypeVar("T")
@@ -123,7 +118,6 @@ class StepWorker:
     async def run(self) -> None:
         """The worker task: a step whenever changes are pending, one at a time."""
         kick = self._kick
-        sys.setswitchinterval(SWITCH_S)
         while True:
             await kick.wait()
             # Group commit: conversations already received join this step. Keep letting the loop turn
