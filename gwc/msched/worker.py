@@ -8,11 +8,11 @@ change fails alone.
 The transaction runs in a thread of its own, one step at a time. The event loop meanwhile keeps
 reading the bus, acknowledging datagrams and gathering the next step's changes: while a step waited
 for the database on the loop itself, nothing was acknowledged, and under load a step longer than the
-bus's `ack_timeout` (20 ms) made every peer retransmit to MSCHED, and MSCHED to every peer (at
-10,000 queued three datagrams in four were retransmissions: docs/performance.md, *The scheduler*).
+bus's `ack_timeout` (20 ms) made its peers retransmit to MSCHED (at 10,000 queued on a loaded
+machine, about seven datagrams in ten were retransmissions: docs/performance.md, *The scheduler*).
 
 The module's one database connection is shared by the step thread and the event loop (the sweep's
-look at the queue, the database watch): `Connection.transaction` lets one of them use it at a time,
+look at the queue, the database watch): `Msched.transaction` lets one of them use it at a time,
 and the step thread never makes a connection (that is the loop's, where an outage is noticed and
 reconnected).
 """
