@@ -42,6 +42,7 @@ COMMANDS = {
     **dict.fromkeys(["spc", "tool"], "gwc.hi.quality"),  # quality: control charts, tool changes (docs/quality.md)
     "user": "gwc.hi.user",  # the cell's users and their roles
     "audit": "gwc.hi.audit",  # the audit trail
+    "upgrade": "gwc.hi.upgrade",  # rolling upgrades: versions, the standby-first handover (issue 36)
 }
 
 # The commands of which some act on the cell: only their lines load the door (gwc/hi/door.py,

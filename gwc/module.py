@@ -20,19 +20,16 @@ import asyncio
 import gc
 import importlib
 import logging
-import math
 import os
-import select
 import signal
 import sys
 import threading
-import time
 from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, TypeVar
 
 import psycopg
 
-from gwc import db
+from gwc import db, schema
 from gwc.agent.control import notify_ready
 from gwc.config import Config, load_config
 from gwc.errors import ConversationTimeout, DatabaseError, DatabaseUnavailable, GwcError, Refused
@@ -43,6 +40,7 @@ from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.lease import EXIT_DEPOSED, Deposed, Lease
 from gwc.log import cap_output, conversation, open_log
+from gwc.moduledb import ModuleDatabase
 from gwc.retry import Backoff, Deadline
 
 Handler = Callable[[Conversation], Awaitable[None]]
@@ -50,13 +48,6 @@ T = TypeVar("T")
 # The note of the Notnow a module answers before its STARTUP (or after its SHUTDOWN): a passing state,
 # so callers (the lot library) ask again after a pause rather than give up.
 NOT_STARTED = "module not started"
-# A module that uses the database watches it while nothing else does, so that a lost database is noticed
-# (and reconnected to) within seconds, not at the next conversation that needs it. After DATABASE_WATCH_S
-# without a step it looks at its connection's socket at each heartbeat: a server that stops or dies
-# closes it, and a link cut off fails the kernel's keepalive probes (db.TCP_WATCH); either way it turns
-# readable and then a query tells. One poll() and no round trip: a resting module's database costs
-# neither it nor the server a wake-up.
-DATABASE_WATCH_S = 1.0
 # How long a module waits for its database at startup, and asks to other modules go on while
 # their database is away: the outage the cell rides out without a step failing (docs/reliability.md).
 DATABASE_OUTAGE_S = 60.0
@@ -153,17 +144,21 @@ class Module:
         self.started = False
         self.exit_code = 0
         self._stop = asyncio.Event()
-        self._conn: psycopg.Connection | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
-        self.database_down: float | None = None  # monotonic time the database was found away, if it is
-        self._database_why = ""
-        self._database_up = asyncio.Event()
-        self._database_used = 0.0  # monotonic time of the last step, for the probe
         # Redundancy (gwc/lease.py): the lease that makes this instance the active one, when cell.toml
         # runs the module with standbys; `fenced` once it lost it (it then serves nothing and exits).
         self.lease = Lease.of(cfg, name, log)
         self.fenced = False
         self.holding = LeaseHolding(self)
+
+        def prepare(conn: psycopg.Connection) -> None:
+            self.holding.on_connect(conn)
+            self.on_connect(conn)
+
+        self.database = ModuleDatabase(
+            cfg, self.role, log, prepare, self.holding.deposed, self.on_database_back, self._tasks
+        )
+        self.lifecycle = Lifecycle(self)
 
     # ----------------------------------------------------------------- what subclasses declare
 
@@ -238,30 +233,11 @@ class Module:
         While the database is away this raises DatabaseUnavailable at once: a task of its own
         reconnects with backoff, so no step and no heartbeat ever waits for a database that is gone.
         """
-        if self._conn is not None and not self._conn.closed:
-            return self._conn
-        if self.database_down is not None:
-            raise DatabaseUnavailable(
-                f"the cell database is away (for {time.monotonic() - self.database_down:.0f}s): ask again later"
-            )
-        try:
-            conn = db.connect(self.cfg, role=self.role, log=self.log, attempts=1)
-            self.holding.on_connect(conn)
-            self.on_connect(conn)
-        except Deposed as e:
-            self.holding.deposed(str(e))
-            raise
-        except DatabaseUnavailable as e:
-            self._database_lost(e)
-            raise
-        self._conn = conn
-        self._database_up.set()
-        return conn
+        return self.database.connection()
 
     def transaction(self, fn: Callable[[psycopg.Cursor[Any]], T]) -> T:
         """Run one step's database work as one transaction, retried on transient failures."""
-        self._database_used = time.monotonic()
-        return db.transaction(self.db, fn, log=self.log)
+        return self.database.transaction(fn)
 
     async def transaction_when_up(self, fn: Callable[[psycopg.Cursor[Any]], T], within: float | None = None) -> T:
         """A step that must not be lost though nobody waits for it (a broadcast heard, a dead lot
@@ -277,14 +253,7 @@ class Module:
 
     async def wait_database(self, deadline: Deadline) -> bool:
         """Wait until the database is back (True), or the deadline passes (False)."""
-        if self.database_down is None:
-            return True
-        try:
-            left = deadline.left()
-            await asyncio.wait_for(self._database_up.wait(), None if left == math.inf else left)
-        except TimeoutError:
-            return False
-        return True
+        return await self.database.wait_up(deadline)
 
     def on_connect(self, conn: psycopg.Connection) -> None:
         """Called with every new connection, before it is used (MSCHED takes its lock here).
@@ -293,70 +262,6 @@ class Module:
     async def on_database_back(self, down_for: float) -> None:
         """Called once the database is back after an outage of `down_for` seconds."""
 
-    def _database_lost(self, e: DatabaseUnavailable) -> None:
-        """The database is away: say so once, and reconnect in the background until it is back."""
-        self._database_why = str(e)
-        if self.database_down is not None:
-            return
-        self.database_down = time.monotonic()
-        self._database_up.clear()
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
-        self.log.error("the cell database is away (%s): serving what does not need it, reconnecting", e)
-        task = asyncio.get_running_loop().create_task(self._reconnect())
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-
-    async def _reconnect(self) -> None:
-        assert self.database_down is not None
-        backoff = Backoff(0.2, 1.0)  # unbounded: until the database is back or the module stops
-        said = time.monotonic()
-        while await backoff.asleep():
-            try:
-                # In a thread: connecting to a server that is away (a TCP address that does not answer)
-                # may take up to connect_timeout, which the module's event loop must not wait for.
-                conn = await asyncio.to_thread(db.connect, self.cfg, self.role, self.log, 1)
-            except DatabaseError as e:
-                self._database_why = str(e)
-            else:
-                try:
-                    self.holding.on_connect(conn)
-                    self.on_connect(conn)
-                except Deposed as e:
-                    conn.close()
-                    self.holding.deposed(str(e))
-                    return
-                except DatabaseUnavailable as e:
-                    conn.close()
-                    self._database_why = str(e)
-                else:
-                    break
-            if time.monotonic() - said >= 10:
-                said = time.monotonic()
-                self.log.warning(
-                    "the cell database is still away after %.0fs: %s", said - self.database_down, self._database_why
-                )
-        down_for = time.monotonic() - self.database_down
-        self._conn, self.database_down = conn, None
-        self._database_up.set()
-        self.log.warning("the cell database is back after %.1fs", down_for)
-        try:
-            await self.on_database_back(down_for)
-        except GwcError as e:
-            self.log.error("work after the database came back failed: %s", e)
-
-    def _probe_database(self) -> None:
-        """Look at the database when no step did for a while, so that an outage is noticed."""
-        if self.role is None or self.database_down is not None:
-            return
-        idle = time.monotonic() - self._database_used
-        if idle < DATABASE_WATCH_S:
-            return
-        conn = self._conn
-        if conn is None or conn.closed or _readable(conn.fileno()):
-            self.transaction(db.Statement("select 1", fetch=None))
-
     # ----------------------------------------------------------------- running
 
     def stop(self, code: int = 0) -> None:
@@ -364,6 +269,7 @@ class Module:
         self._stop.set()
 
     async def run(self, start: bool = False) -> int:
+        await schema.check_at_start(self.cfg, self.role, self.log)  # a schema it cannot run with: it exits
         if self.lease is not None:
             if not await until_stopped(self.holding.stand_by(), self._stop):
                 self.log.info("Stopped while standing by")
@@ -376,37 +282,33 @@ class Module:
         # of the collector's way, so that its full collections do not stall a step for milliseconds.
         gc.freeze()
         if start:
-            await self._start()
+            await self.lifecycle.start()
             if self.lease is not None:
                 notify_ready()
         loop = asyncio.get_running_loop()
         idle = loop.create_task(self._idle_loop())
-        accept = loop.create_task(self._accept())
+        self.bus.accept(self._accept)
         try:
             await self._stop.wait()
         finally:
-            accept.cancel()
+            self.bus.accept(None)
             idle.cancel()
             if self.started:
-                await self._shutdown_work()
+                await self.lifecycle.finish()
             for t in list(self._tasks):
                 t.cancel()
             await self.bus.close(flush=0.0 if self.fenced else 1.0)
-            if self._conn is not None:
-                self._conn.close()
+            self.database.close()
             self.log.info("Stopped (exit %d)", self.exit_code)
         return self.exit_code
 
-    async def _accept(self) -> None:
-        """Every conversation opened with this module runs as a task of its own: a handler waiting for
-        an answer never keeps the next conversation waiting (docs/protocol.md, No collisions)."""
-        loop = asyncio.get_running_loop()
-        while not self.bus.closed:
-            conv = await self.bus.first_message()
-            if conv is not None:
-                task = loop.create_task(self._serve(conv))
-                self._tasks.add(task)
-                task.add_done_callback(self._tasks.discard)
+    def _accept(self, conv: Conversation) -> None:
+        """Every conversation opened with this module runs as a task of its own, started as its first
+        batch arrives (Bus.accept): a handler waiting for an answer never keeps the next conversation
+        waiting (docs/protocol.md, No collisions)."""
+        task = asyncio.get_running_loop().create_task(self._serve(conv))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     async def _idle_loop(self) -> None:
         """The module's periodic work, right after each of its bus heartbeats: one wake-up for both."""
@@ -419,7 +321,7 @@ class Module:
                 self.holding.keep()
                 if self.fenced:
                     return
-                self._probe_database()
+                self.database.probe()
                 await self.on_idle()
             except DatabaseUnavailable:
                 pass  # said once when it went; done again once it is back
@@ -439,9 +341,9 @@ class Module:
                         "ignored %s from %s: not the opening of a conversation here", head.name, conv.first.sender
                     )
                 elif conv.cls == self.start_class:
-                    await self._startup(conv)
+                    await self.lifecycle.startup(conv)
                 elif conv.cls == self.stop_class:
-                    await self._shutdown(conv)
+                    await self.lifecycle.shutdown(conv)
                 else:
                     handler = self.handlers().get(conv.cls)
                     if handler is None or not self.serves(conv.cls):
@@ -481,82 +383,6 @@ class Module:
             await conv.send(message(answer.name, **answer.fields, **fields) if fields else answer)
         except GwcError as e:
             self.log.warning("could not refuse %s: %s", conv.cls, e)
-
-    async def _start(self) -> str:
-        deadline = Deadline(DATABASE_OUTAGE_S)
-        while True:
-            try:
-                code = await self.on_startup()
-                break
-            except DatabaseUnavailable:
-                self.log.warning("startup waits for the cell database")
-                if not await self.wait_database(deadline):
-                    raise
-        if code == AckCode.ACK_OK:
-            self.started = True
-            self.bus.set_interest(self.busy_interest())
-            self.log.info("started: listening for %s", ", ".join(sorted(self.bus.interests)))
-        return code
-
-    async def _startup(self, conv: Conversation) -> None:
-        assert conv.first is not None
-        req = conv.first.first
-        if req.module != self.name:
-            self.log.info("ignored Startup_Request for %s", req.module)
-            return
-        if self.started and await self.still_up():
-            await conv.send(message(Msg.STARTUP_ACK, ack_code=AckCode.NOTNOW, note=f"{self.name} is already started"))
-            return
-        await conv.send(message(Msg.STARTUP_ACK, ack_code=AckCode.ACK_OK))
-        try:
-            code = await self._start()
-        except Exception as e:
-            # The starter waits for Startup_Complete: tell it how the startup failed, then let
-            # _serve log the error.
-            failed = (
-                AckCode.DB_BADREA
-                if isinstance(e, DatabaseUnavailable)
-                else AckCode.DB_BADUPD
-                if isinstance(e, DatabaseError)
-                else AckCode.START_FAIL
-            )
-            await conv.send(self.startup_complete(failed))
-            raise
-        await conv.send(self.startup_complete(code))
-
-    async def _shutdown(self, conv: Conversation) -> None:
-        assert conv.first is not None
-        req = conv.first.first
-        if req.module != self.name:
-            self.log.info("ignored Shutdown_Request for %s", req.module)
-            return
-        if not self.started:
-            cancel = self.cancel_start()
-            if cancel is None:
-                await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.NOTNOW, note=f"{self.name} is not started"))
-                return
-            await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.ACK_OK))
-            await conv.send(self.shutdown_complete(await cancel))
-            return
-        await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.ACK_OK))
-        note = await self._shutdown_work()
-        await conv.send(self.shutdown_complete(note))
-
-    async def _shutdown_work(self) -> str | None:
-        self.started = False
-        self.bus.set_interest(self.idle_interest())
-        note = None
-        try:
-            note = await self.on_shutdown()
-        except Exception:
-            self.log.exception("shutdown work failed")
-        self.log.info("shut down: listening for %s", ", ".join(sorted(self.bus.interests)))
-        return note
-
-
-def _readable(fd: int) -> bool:
-    """Whether a socket has something to read (or was closed by its other end) now."""
-    return bool(select.select([fd], [], [], 0)[0])
 
 
 def run_module(
@@ -626,6 +452,93 @@ async def until_stopped(work: Awaitable[None], stop: asyncio.Event) -> bool:
     return True
 
 
+class Lifecycle:
+    """A module's STARTUP and SHUTDOWN (GUIDE 3), written once: answering the start and stop classes,
+    doing the module's startup and shutdown work through its hooks, widening and narrowing its interest.
+    A part the Module holds, as LeaseHolding is."""
+
+    def __init__(self, module: Module) -> None:
+        self.module = module
+
+    async def start(self) -> str:
+        """The module's startup work (waiting up to DATABASE_OUTAGE_S for its database), then its
+        interest widened: the ack code of Startup_Complete."""
+        m = self.module
+        deadline = Deadline(DATABASE_OUTAGE_S)
+        while True:
+            try:
+                code = await m.on_startup()
+                break
+            except DatabaseUnavailable:
+                m.log.warning("startup waits for the cell database")
+                if not await m.wait_database(deadline):
+                    raise
+        if code == AckCode.ACK_OK:
+            m.started = True
+            m.bus.set_interest(m.busy_interest())
+            m.log.info("started: listening for %s", ", ".join(sorted(m.bus.interests)))
+        return code
+
+    async def startup(self, conv: Conversation) -> None:
+        m = self.module
+        assert conv.first is not None
+        req = conv.first.first
+        if req.module != m.name:
+            m.log.info("ignored Startup_Request for %s", req.module)
+            return
+        if m.started and await m.still_up():
+            await conv.send(message(Msg.STARTUP_ACK, ack_code=AckCode.NOTNOW, note=f"{m.name} is already started"))
+            return
+        await conv.send(message(Msg.STARTUP_ACK, ack_code=AckCode.ACK_OK))
+        try:
+            code = await self.start()
+        except Exception as e:
+            # The starter waits for Startup_Complete: tell it how the startup failed, then let
+            # _serve log the error.
+            failed = (
+                AckCode.DB_BADREA
+                if isinstance(e, DatabaseUnavailable)
+                else AckCode.DB_BADUPD
+                if isinstance(e, DatabaseError)
+                else AckCode.START_FAIL
+            )
+            await conv.send(m.startup_complete(failed))
+            raise
+        await conv.send(m.startup_complete(code))
+
+    async def shutdown(self, conv: Conversation) -> None:
+        m = self.module
+        assert conv.first is not None
+        req = conv.first.first
+        if req.module != m.name:
+            m.log.info("ignored Shutdown_Request for %s", req.module)
+            return
+        if not m.started:
+            cancel = m.cancel_start()
+            if cancel is None:
+                await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.NOTNOW, note=f"{m.name} is not started"))
+                return
+            await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.ACK_OK))
+            await conv.send(m.shutdown_complete(await cancel))
+            return
+        await conv.send(message(Msg.SHUTDOWN_ACK, ack_code=AckCode.ACK_OK))
+        note = await self.finish()
+        await conv.send(m.shutdown_complete(note))
+
+    async def finish(self) -> str | None:
+        """The module's shutdown work, its interest narrowed back first: the note of Shutdown_Complete."""
+        m = self.module
+        m.started = False
+        m.bus.set_interest(m.idle_interest())
+        note = None
+        try:
+            note = await m.on_shutdown()
+        except Exception:
+            m.log.exception("shutdown work failed")
+        m.log.info("shut down: listening for %s", ", ".join(sorted(m.bus.interests)))
+        return note
+
+
 class LeaseHolding:
     """A module's side of its lease (gwc/lease.py), when it runs with standbys: standing by off the bus
     until it holds the lease, taking it again on every new connection, renewing it at the heartbeat,
@@ -647,14 +560,12 @@ class LeaseHolding:
         assert m.lease is not None
         m.log.info("redundant: waiting for the lease of %s", m.name)
         conn = await m.lease.wait(lambda: db.connect(m.cfg, m.role, m.log, 1), notify_ready)
-        m._conn = conn
-        m._database_used = time.monotonic()
+        m.database.adopt(conn)
         try:
             m.on_connect(conn)
         except DatabaseUnavailable as e:  # (MSCHED's own lock: its predecessor's session is going)
             m.log.warning("after taking the lease: %s", e)
-            conn.close()
-            m._conn = None
+            m.database.close()
 
     def keep(self) -> None:
         """At each heartbeat: renew the lease when due; depose this instance when it could not for
@@ -680,7 +591,5 @@ class LeaseHolding:
         m.started = False
         m.bus.set_interest(set())
         m.log.error("%s: no longer the active %s, leaving the bus to stand by again", why, m.name)
-        if m._conn is not None:
-            m._conn.close()
-            m._conn = None
+        m.database.close()
         m.stop(EXIT_DEPOSED)

@@ -47,12 +47,13 @@ from gwc.bench.heal import freeze_trials
 from gwc.cell import machine_procs
 from gwc.check import check_cell
 from gwc.client.orders import decide
-from gwc.client.session import context
+from gwc.client.session import bench_context
 from gwc.errors import GwcError
 from gwc.ipc.codes import LotState
 from gwc.lot.entity import create_lot
 from gwc.lot.events import Phase
 from gwc.lot.run import spawn_lot_script
+from gwc.retry import Deadline
 from gwc.soak.cell import PrivateCell
 from gwc.soak.driver import PRODUCT, SCRIPT_ID, SCRIPT_PATH
 
@@ -329,12 +330,12 @@ class CellBench:
     def _wait_states(
         self, entities: list[int], states: tuple[str, ...], decided: set[tuple[int, str]], what: str, poll: float = POLL
     ) -> dict[int, str]:
-        deadline = time.monotonic() + LOT_TIMEOUT
+        deadline = Deadline(LOT_TIMEOUT)
         while True:
             now = self.operator(decided, entities)
             if all(now.get(e) in states for e in entities):
                 return now
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise GwcError(f"lots {entities} did not reach {what} within {LOT_TIMEOUT:.0f}s")
             time.sleep(poll)
 
@@ -398,10 +399,10 @@ class CellBench:
         names = [p.name for m in machines for p in reversed(machine_procs(self.cell.cfg, m))]  # the WC first
         agent_control.call(self.cell.cfg, "stop", names=names)
         assert self.conn is not None
-        deadline = time.monotonic() + LOT_TIMEOUT
+        deadline = Deadline(LOT_TIMEOUT)
         query = "SELECT count(*) FROM machine_status WHERE machine_id = ANY(%s) AND status <> 'Shutdown'"
         while (row := self.conn.execute(query, (machines,)).fetchone()) and row[0]:
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise GwcError(f"{', '.join(machines)} not Shutdown {LOT_TIMEOUT:.0f}s after their processes stopped")
             time.sleep(SOLO_POLL)
 
@@ -430,7 +431,7 @@ class CellBench:
                 self.cell.kill(p.name)
             # The lot finishes on the other machine; when it was given it, its timing file says (a BOUND event).
             while self.operator(decided, [entity]).get(entity) not in FINAL:
-                if time.monotonic() > deadline:
+                if deadline.expired:
                     raise GwcError(f"death trial {k + 1}: entity {entity} did not finish")
                 time.sleep(POLL * 5)
             (timing,) = self._timing_files([entity]) or [{}]
@@ -444,13 +445,13 @@ class CellBench:
             self.machine_up(victim)
         return times
 
-    def running_lot(self, what: str) -> tuple[int, str, float, set[tuple[int, str]]]:
+    def running_lot(self, what: str) -> tuple[int, str, Deadline, set[tuple[int, str]]]:
         """A lot ordered on either slow machine, once its run has started: (entity, its machine, the
         trial's deadline, the operator's decisions so far)."""
         assert self.conn is not None
         entity = self._order([[m] for m in self.slow])
         decided: set[tuple[int, str]] = set()
-        deadline = time.monotonic() + LOT_TIMEOUT
+        deadline = Deadline(LOT_TIMEOUT)
         while True:
             self.operator(decided, [entity])
             row = self.conn.execute(
@@ -460,14 +461,14 @@ class CellBench:
             ).fetchone()
             if row:
                 return entity, str(row[0]), deadline, decided
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise GwcError(f"{what}: the lot's run never started (entity {entity})")
             time.sleep(POLL)
 
     def machine_up(self, machine: str) -> None:
         """The killed machine back up (its WC resumes it or it needs ME_START), ready for the next trial."""
         assert self.conn is not None
-        deadline = time.monotonic() + LOT_TIMEOUT
+        deadline = Deadline(LOT_TIMEOUT)
         while True:
             row = self.conn.execute("SELECT status FROM machine_status WHERE machine_id = %s", (machine,)).fetchone()
             if row and row[0] == "Idle":
@@ -477,7 +478,7 @@ class CellBench:
                     self.cell.machine_start(machine, via_hi=False)
                 except GwcError as e:
                     self.log.warning("%s would not start yet: %s", machine, e)
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise GwcError(f"{machine} did not come back up")
             time.sleep(0.2)
 
@@ -600,7 +601,7 @@ def command(
     of its own."""
     if machines < 1 or lots < 1 or solo < 0 or deaths < 0 or freezes < 0:
         raise click.BadParameter("--machines and --lots must be at least 1, --solo and --deaths at least 0")
-    cfg, log = context("bench", drop=False)
+    cfg, log = bench_context()
     if compare > 0:
         from gwc.bench.history import compare_history
 

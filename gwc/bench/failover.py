@@ -35,13 +35,14 @@ import psycopg
 from gwc import db
 from gwc.bench import summary
 from gwc.client.orders import decide
-from gwc.client.session import context
+from gwc.client.session import bench_context
 from gwc.config import SERVER_MODULES, dump_toml, load_config
 from gwc.errors import GwcError
 from gwc.ipc.codes import LotState
 from gwc.lot.entity import create_lot
 from gwc.lot.model import read_traveller
 from gwc.lot.run import spawn_lot_script
+from gwc.retry import Deadline
 from gwc.soak.cell import PrivateCell
 from gwc.soak.driver import PRODUCT, SCRIPT_ID, SCRIPT_PATH
 
@@ -176,12 +177,12 @@ class FailoverBench:
     # ----------------------------------------------------------------- trials
 
     def _trial(self, n: int) -> tuple[float, float]:
-        deadline = time.monotonic() + 60
+        deadline = Deadline(60)
         while not self._standing_by() or self._last_binding() == 0:
             self._operate()
             for name in SERVER_MODULES:
                 self._standby(name)
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise GwcError("the standbys did not come up within 60 s")
             time.sleep(0.1)
         time.sleep(SETTLE_S)
@@ -230,8 +231,8 @@ class FailoverBench:
                 b, s = self._trial(n)
                 bound.append(b)
                 setup.append(s)
-            deadline = time.monotonic() + 120
-            while time.monotonic() < deadline:
+            deadline = Deadline(120)
+            while not deadline.expired:
                 states = self._operate(order=False)
                 if all(s in ("exported", "failed") for s in states.values()) and len(states) == len(self.entities):
                     break
@@ -292,7 +293,7 @@ def command(trials: int, where: Path | None, as_json: bool) -> None:
     $GWC_DATABASE_URL if set, else an embedded cluster of its own."""
     if trials < 1:
         raise click.BadParameter("--trials must be at least 1")
-    cfg, log = context("bench", drop=False)
+    cfg, log = bench_context()
     bench = FailoverBench(
         where or cfg.var / "bench-failover",
         trials,

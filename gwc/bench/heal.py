@@ -42,7 +42,7 @@ def freeze_trials(bench: CellBench, trials: int, freeze: float = FREEZE) -> dict
         finally:
             os.kill(pid, signal.SIGCONT)
         while (state := bench.operator(decided, [entity]).get(entity)) not in ("exported", "failed"):
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise GwcError(f"freeze trial {k + 1}: entity {entity} did not finish")
             time.sleep(0.05)
         runs = _runs_done(bench, entity)

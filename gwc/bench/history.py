@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from gwc.bench import brief
-from gwc.client.session import context
+from gwc.client.session import bench_context
 
 if TYPE_CHECKING:  # the bench is handed in: gwc.bench.cell imports this module when asked to compare
     from gwc.bench.cell import CellBench
@@ -27,7 +27,7 @@ def compare_history(
     """`--compare-history N`: the lots phase with the production record off and on, N pairs in one
     sitting (off-on, then on-off, ...), each run a fresh private cell: lots/s and the overhead per lot
     with `machines` lots at once, side by side (docs/record.md, What it costs)."""
-    _, log = context("bench", drop=False)
+    _, log = bench_context()
     say = (lambda s: None) if as_json else click.echo
     runs: dict[str, list[dict[str, Any]]] = {"off": [], "on": []}
     for i in range(pairs):

@@ -32,7 +32,7 @@ from asyncua import Client, Node, ua
 
 from gwc.bench import brief, summary
 from gwc.bench.cell import log_events
-from gwc.client.session import context
+from gwc.client.session import bench_context
 from gwc.config import load_config
 from gwc.errors import GwcError
 from gwc.ipc import BlockingBus
@@ -245,7 +245,7 @@ def run(log: logging.Logger, where: Path, machines: int, lots: int, items: int, 
 def command(machines: int, lots: int, items: int, interval: float, where: Path | None, as_json: bool) -> None:
     """The OPC UA gateway's change-to-notification latency (median, p99) for ITEMS monitored items,
     and its CPU, while `gwc bench cell` runs lots through a private cell."""
-    cfg, log = context("bench", drop=False)
+    cfg, log = bench_context()
     logging.getLogger("asyncua").setLevel(logging.ERROR)  # its notes on revised settings are not results
     result = run(log, (where or cfg.var / "bench-opcua").resolve(), machines, lots, items, interval)
     if as_json:

@@ -37,7 +37,7 @@ from gwc.agent import control as agent_control
 from gwc.budget import plan
 from gwc.check import check_cell
 from gwc.client.orders import decide, enter_order
-from gwc.client.session import context
+from gwc.client.session import bench_context
 from gwc.errors import GwcError
 from gwc.soak.cell import PrivateCell
 
@@ -217,7 +217,7 @@ def command(
     """An order of PARTS milled pawns through a private cell of MACHINES machines: the whole cell's peak
     memory, database connections, scripts at once, lots waiting while a machine could serve them, lots
     per second, and `gwc check`. Uses $GWC_DATABASE_URL if set, else an embedded cluster of its own."""
-    cfg, log = context("bench", drop=False)
+    cfg, log = bench_context()
     var = where or cfg.var / "bench-order"
     if var.exists():
         shutil.rmtree(var)

@@ -33,13 +33,14 @@ from gwc import db
 from gwc.cell import shutdown, startup
 from gwc.client.orders import decide
 from gwc.client.recipes import approve_recipe, store_recipe
-from gwc.client.session import context
+from gwc.client.session import bench_context
 from gwc.errors import GwcError, ModuleError
 from gwc.ipc.codes import LotState
 from gwc.ipc.names import Conv
 from gwc.lot.entity import create_lot
 from gwc.lot.run import spawn_lot_script
 from gwc.quality import spc
+from gwc.retry import Deadline
 from gwc.soak.cell import PrivateCell
 
 FEATURES = {"DIAMETER": (25.0, 0.05), "HEIGHT": (40.0, 0.10)}
@@ -164,8 +165,8 @@ class QualityBench:
         since = self._rows("SELECT clock_timestamp()")[0][0]
         entities: list[int] = []
         decided: set[tuple[int, str]] = set()
-        deadline = time.monotonic() + PHASE_TIMEOUT
-        while time.monotonic() < deadline:
+        deadline = Deadline(PHASE_TIMEOUT)
+        while not deadline.expired:
             states = dict(self._rows("SELECT entity_id, state FROM lot_status WHERE entity_id = ANY(%s)", entities))
             active = [e for e in entities if states.get(e) not in (LotState.EXPORTED, LotState.FAILED)]
             if stop is not None and stop() and not active:
@@ -271,7 +272,7 @@ def command(parts: int, seed: int, at_once: int, where: Path | None, as_json: bo
     alarm. Uses $GWC_DATABASE_URL if set, else an embedded cluster of its own."""
     if parts < 1 or at_once < 1:
         raise click.BadParameter("--parts and --at-once must be at least 1")
-    cfg, log = context("bench", drop=False)
+    cfg, log = bench_context()
     bench = QualityBench(
         where or cfg.var / "bench-quality",
         parts,

@@ -37,7 +37,7 @@ from psycopg import sql
 
 from gwc import db
 from gwc.bench import cpu_s, summary
-from gwc.client.session import context
+from gwc.client.session import bench_context
 from gwc.config import Config
 from gwc.errors import GwcError
 from gwc.ipc import eventloop
@@ -360,7 +360,7 @@ def run_size(
 @click.option("--json", "as_json", is_flag=True, help="Print JSON for scripts.")
 def command(sizes: str, n_machines: int, decisions: int, samples: int, level: str, policy: str, as_json: bool) -> None:
     """MSCHED: decisions per second and free-to-bound latency with 1,000 and 10,000 requests queued."""
-    cfg, log = context("bench", drop=False)
+    cfg, log = bench_context()
     try:
         qs = [int(s) for s in sizes.split(",") if s.strip()]
     except ValueError:

@@ -30,6 +30,7 @@ __all__ = [
     "ANSWER",
     "ON_BUS_WAIT",
     "ask",
+    "bench_context",
     "context",
     "hi_bus",
     "hi_conn",
@@ -49,6 +50,12 @@ def context(name: str = "hi", caps: tuple[int, ...] = (), drop: bool = True) -> 
     if drop or all(cell_user_reaches(cfg, p) for p in _folders_given()):
         become_cell_user(cfg, caps)
     return cfg, open_log(name, cfg.log_dir, cfg.level_of(name))
+
+
+def bench_context(name: str = "bench") -> tuple[Config, logging.Logger]:
+    """context() for a benchmark or the soak (`name`): its private cell runs as whoever starts it, so it
+    becomes the cell's user only if that user can reach the folders it was given (drop=False)."""
+    return context(name, drop=False)
 
 
 def _folders_given() -> list[Path]:

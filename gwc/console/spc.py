@@ -14,7 +14,7 @@ from textual.widgets import DataTable, Static
 
 from gwc.console.link import CellLink
 from gwc.console.views import View, fill_table, selected_row
-from gwc.hi.quality import charts
+from gwc.quality.charts import charts
 
 
 def _f(v: float | None, fmt: str) -> str:

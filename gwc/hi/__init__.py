@@ -11,9 +11,9 @@ from typing import Any
 
 import click
 
-from gwc.client.session import context
+from gwc.client.session import bench_context, context
 
-__all__ = ["context", "json_option", "table"]
+__all__ = ["bench_context", "context", "json_option", "table"]
 
 
 def table(rows: Sequence[dict[str, Any]], columns: Sequence[str], as_json: bool = False) -> None:

@@ -16,6 +16,7 @@ BENCH_MODULES = [
     "gwc.bench.mq",
     "gwc.bench.sched",
     "gwc.bench.cell",
+    "gwc.bench.growth",  # 10, 50, 100 machines in one table
     "gwc.bench.failover",
     "gwc.bench.order",
     "gwc.bench.opcua",

@@ -38,6 +38,7 @@ from gwc.ipc import BlockingBus, keys
 from gwc.ipc.codes import LotState
 from gwc.log import open_log
 from gwc.record import store
+from gwc.retry import Deadline
 
 DEMO_CONFIG = shipped("etc") / "demo.toml"
 BY = "demo operator"
@@ -140,7 +141,7 @@ class Demo:
                 f"work order {order['work_order_id']}: lot {lot['lot_id']} of {lot['quantity']} "
                 f"{lot['product_id']}, entities {', '.join(map(str, lot['entities']))}, one lot script each"
             )
-        deadline = time.monotonic() + self.timeout
+        deadline = Deadline(self.timeout)
         # While lots run: once the first mill has done a run, a second mill joins and the first leaves.
         if self.pawns:
             self._wait(
@@ -156,11 +157,11 @@ class Demo:
         self._wait(lambda: all(self.states.get(e) in FINAL for e in entities), deadline, "every lot to be exported")
         return self._report(entities)
 
-    def _wait(self, predicate: Callable[[], bool], deadline: float, what: str) -> None:
+    def _wait(self, predicate: Callable[[], bool], deadline: Deadline, what: str) -> None:
         while not predicate():
             if self.errors:
                 raise GwcError(f"demonstration failed: {self.errors[0]}")
-            if time.monotonic() > deadline:
+            if deadline.expired:
                 raise GwcError(f"demonstration timed out waiting for {what} (logs in {self.cfg.log_dir})")
             time.sleep(POLL)
 

@@ -54,6 +54,7 @@ def record_of(env: wire.Envelope, bus: str, now: float) -> dict[str, Any]:
         "fields": env.fields,
         "ack_code": env.fields.get("ack_code"),
         "seq": env.seq,
+        "wire": env.version,  # the version it was encoded in: the lowest the cell speaks now
     }
 
 
@@ -89,8 +90,9 @@ def line_of(rec: dict[str, Any]) -> str:
     fields = " ".join(f"{k}={v}" for k, v in rec["fields"].items() if k != "ack_code")
     code = f" [{rec['ack_code']}]" if rec["ack_code"] else ""
     more = f" (+{rec['more']})" if rec["more"] else ""
+    speaks = f"@v{rec['speaks']}" if rec.get("speaks") else ""  # the highest wire version its sender speaks
     return (
-        f"{rec['time'][11:]} {rec['bus']} {rec['class']:<13} {rec['conv']:<28} {rec['from']} -> "
+        f"{rec['time'][11:]} {rec['bus']} {rec['class']:<13} {rec['conv']:<28} {rec['from']}{speaks} -> "
         f"{rec['to'] or '*'}  {rec['message']}{more}{code} {fields}"
     ).rstrip()
 
@@ -102,6 +104,7 @@ def watch(
     show_acks: bool = False,
     ready: Callable[[], None] = lambda: None,
     keyed: bool = True,
+    show_members: bool = False,
 ) -> dict[str, int]:
     """Listen to the group until stop() says so; emit each new msg once (and acks, if asked).
 
@@ -109,6 +112,12 @@ def watch(
     datagrams came that could not be authenticated."""
     guard = Guard(cfg, "monitor", logging.getLogger("gwc.monitor"), collections.Counter()) if keyed else None
     sock = open_socket(cfg)
+    try:  # beats: every module's hello each heartbeat, which says the wire version it speaks
+        beat_sock = open_socket(cfg, cfg.port + 1)
+    except BaseException:
+        sock.close()
+        raise
+    versions = Versions(cfg.name, emit if show_members else None)
     ready()
     seen: OrderedDict[tuple[str, int, int], dict[str, Any]] = OrderedDict()
     counts = {"datagrams": 0, "messages": 0, "malformed": 0, "unauthenticated": 0}
@@ -120,9 +129,13 @@ def watch(
                     now = datetime.now().isoformat(" ", "milliseconds")
                     emit({"time": now, "bus": cfg.name, "unauthenticated": unauthenticated, "keyed": keyed})
                 second, unauthenticated = time.monotonic() + 1.0, 0
-            readable, _, _ = select.select([sock], [], [], 0.1)
+            readable, _, _ = select.select([sock, beat_sock], [], [], 0.1)
             if not readable:
                 continue
+            if beat_sock in readable:
+                versions.read_beats(beat_sock, guard)
+                if sock not in readable:
+                    continue
             try:
                 data, source = sock.recvfrom(65536)
             except BlockingIOError:
@@ -155,12 +168,15 @@ def watch(
                                     "by": env.src,
                                 }
                             )
+            if env.kind == "hello":
+                versions.heard(env)
             if env.kind != "msg":
                 continue
             key = (env.src, env.inc, env.seq)
             if key in seen:
                 continue  # a retransmission or a duplicate: shown once
             rec = record_of(env, cfg.name, time.time())
+            rec["speaks"] = versions.speaks.get(env.src)
             rec["acked_by"] = []
             seen[key] = rec
             while len(seen) > SEEN_MAX:
@@ -169,7 +185,48 @@ def watch(
             emit(rec)
     finally:
         sock.close()
+        beat_sock.close()
     return counts
+
+
+class Versions:
+    """The wire version each module speaks, from its hellos (on the bus port) and beats (the beat port):
+    what the monitor shows beside each message's sender, and with --members as each one changes."""
+
+    def __init__(self, bus: str, emit: Callable[[dict[str, Any]], None] | None) -> None:
+        self.bus = bus
+        self.emit = emit
+        self.speaks: dict[str, int] = {}  # module -> the highest version it speaks
+        self.sends: dict[str, int] = {}  # module -> the version its datagrams are in now
+
+    def read_beats(self, sock: Any, guard: Guard | None) -> None:
+        while True:
+            try:
+                data, source = sock.recvfrom(65536)
+            except BlockingIOError:
+                return
+            opened = guard.open(data, True, source) if guard is not None else None
+            if opened is None:
+                continue
+            try:
+                env = wire.decode(opened[0])
+            except MessageError:
+                continue
+            if env.kind == "hello":
+                self.heard(env)
+
+    def heard(self, env: wire.Envelope) -> None:
+        speaks = env.fields.get(wire.SPEAKS)
+        speaks = speaks if type(speaks) is int else env.version
+        if env.query:  # a sign-on query is in the oldest version its sender speaks: not what it speaks now
+            self.speaks[env.src] = speaks
+            return
+        if self.speaks.get(env.src) == speaks and self.sends.get(env.src) == env.version:
+            return
+        self.speaks[env.src], self.sends[env.src] = speaks, env.version
+        if self.emit is not None:
+            now = datetime.now().isoformat(" ", "milliseconds")
+            self.emit({"time": now, "bus": self.bus, "member": env.src, "speaks": speaks, "wire": env.version})
 
 
 def render_catalogue() -> str:
@@ -212,7 +269,12 @@ def render_catalogue() -> str:
     ]
     out += ["", "## Message classes", "", "| Message | Fields | What it says |", "|---|---|---|"]
     for m in catalogue.MESSAGE_CLASSES.values():
-        fields = ", ".join(f"`{f.name}: {f.type}{'?' if f.nullable else ''}`" for f in m.fields) or "(none)"
+        fields = (
+            ", ".join(
+                f"`{f.name}: {f.type}{'?' if f.nullable else ''}{f'@{f.since}' if f.since else ''}`" for f in m.fields
+            )
+            or "(none)"
+        )
         out.append(f"| `{m.name}` | {fields} | {m.doc} |")
     from gwc.ipc.codes import AckCode
 
@@ -245,6 +307,12 @@ def render_catalogue() -> str:
 @click.option("--duration", type=float, help="Stop after this many seconds.")
 @click.option("--no-key", "no_key", is_flag=True, help="Do not load the cell key: only count the traffic.")
 @click.option(
+    "--members",
+    "show_members",
+    is_flag=True,
+    help="Also show each module's wire version (what it speaks, what it sends in) as it is heard or changes.",
+)
+@click.option(
     "--catalogue", "show_catalogue", is_flag=True, help="Print the conversation catalogue (markdown) and exit."
 )
 def monitor(
@@ -257,6 +325,7 @@ def monitor(
     count: int | None,
     duration: float | None,
     no_key: bool,
+    show_members: bool,
     show_catalogue: bool,
 ) -> None:
     """Watch every conversation on the cell bus, live and decoded (the Conversation Monitor)."""
@@ -275,7 +344,7 @@ def monitor(
         nonlocal shown
         if "message" in rec and not matches(rec, classes, modules, machines, machine_convs):
             return
-        if "message" not in rec and (classes or modules or machines):
+        if "message" not in rec and (classes or modules or machines) and not (show_members and "member" in rec):
             return
         text = json.dumps(rec, default=str)
         if record is not None:
@@ -287,6 +356,13 @@ def monitor(
             click.echo(escape(line_of(rec)))
         elif "ack" in rec:
             click.echo(escape(f"{rec['time'][11:]} {rec['bus']}   ack {rec['of']} in {rec['conv']} by {rec['by']}"))
+        elif "member" in rec:
+            click.echo(
+                escape(
+                    f"{rec['time'][11:]} {rec['bus']}   {rec['member']} speaks wire version {rec['speaks']}"
+                    f" (sends {rec['wire']})"
+                )
+            )
         elif "unauthenticated" in rec:
             why = "refused: not authentic, not fresh or another cell's" if rec["keyed"] else "no key: not decoded"
             click.echo(f"{rec['time'][11:]} {rec['bus']}   {rec['unauthenticated']} datagram(s) ({why})")
@@ -309,7 +385,7 @@ def monitor(
             click.echo(f"{e}: showing only that traffic exists", err=True)
             keyed = False
     try:
-        watch(cfg.bus, emit, stop, show_acks, ready, keyed)
+        watch(cfg.bus, emit, stop, show_acks, ready, keyed, show_members)
     except KeyboardInterrupt:
         pass
 

@@ -14,7 +14,8 @@ from gwc.client.alarms import clear_alarm
 from gwc.client.machines import START_TIMEOUT, start_machine
 from gwc.client.session import hi_bus, hi_conn, rows_of
 from gwc.hi import context, json_option
-from gwc.quality import spc, store
+from gwc.quality import store
+from gwc.quality.charts import charts
 
 
 def _reader(conn: Any) -> store.Reader:
@@ -24,44 +25,6 @@ def _reader(conn: Any) -> store.Reader:
         return list(rows)
 
     return read
-
-
-def charts(read: store.Reader, cfg: Any, machine: str | None, feature: str | None) -> list[dict[str, Any]]:
-    """One chart per machine, recipe and feature measured: limits, rules broken, Cp, Cpk, the points."""
-    rules, baseline, window = spc.settings(cfg)
-    pts = store.points(read, machine_id=machine, feature=feature, limit=window)
-    out = []
-    for key in sorted({(p.machine_id, p.recipe_id, p.feature) for p in pts}):
-        series = [p for p in pts if (p.machine_id, p.recipe_id, p.feature) == key]
-        last = series[-1]
-        c = spc.chart(
-            key[2], [p.value for p in series], last.nominal - last.tol, last.nominal + last.tol, rules, baseline
-        )
-        out.append(
-            {
-                "machine_id": key[0],
-                "recipe_id": key[1],
-                "feature": key[2],
-                "nominal": last.nominal,
-                "tol": last.tol,
-                "points": len(series),
-                "center": c.limits.center if c.limits else None,
-                "sigma": c.limits.sigma if c.limits else None,
-                "ucl": c.limits.ucl if c.limits else None,
-                "lcl": c.limits.lcl if c.limits else None,
-                "cp": c.cp,
-                "cpk": c.cpk,
-                "out_of_tolerance": sum(1 for p in series if abs(p.value - p.nominal) > p.tol),
-                "violations": [
-                    {"part": v.index + 1, "rule": v.rule, "run": series[v.index].machine_run_id, "text": v.text}
-                    for v in c.violations
-                ],
-                "values": [p.value for p in series],
-                "offsets": [p.offset for p in series],
-                "drawing": spc.drawing(c),
-            }
-        )
-    return out
 
 
 def _num(v: float | None, fmt: str = ".3f") -> str:

@@ -10,7 +10,7 @@ from typing import Any
 
 import click
 
-from gwc.hi import context
+from gwc.hi import bench_context
 from gwc.soak.driver import SoakOptions, read_header, run_soak
 from gwc.soak.plan import ACTION_WEIGHTS
 
@@ -63,7 +63,7 @@ def soak(
     an embedded cluster of its own under the soak's folder. Every fault is logged with its time in
     actions.jsonl; the same seed gives the same faults in the same order.
     """
-    cfg, log = context("soak", drop=False)
+    cfg, log = bench_context("soak")
     options: dict[str, Any] = dict(seed=seed, minutes=minutes, machines=machines, kinds=tuple(kinds), agent=agent)
     if replay is not None:
         h = read_header(replay)

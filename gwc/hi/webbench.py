@@ -1,23 +1,18 @@
 """`gwc bench web`: what five open browsers on the web HMI cost a busy cell, side by side in one run.
 
-As `gwc bench console` does for the console: `gwc bench cell`'s lots (a private cell of N dummy
-machines whose runs take no time) run in rounds on one cell that has the web module, alternately with
-no browser and with five headless Chromiums (Debian's, driven by Playwright) logged in and showing the
-dispatch list live (the busiest page: a row changes at every step of every lot). The rounds go ABBA.
-Each figure is the median over the rounds of each side: lots per second, overhead per lot, the cell's
-CPU per lot (the web module's and the database's apart), database transactions and bus messages per
+A rounds bench (gwc/hi/rounds.py: `gwc bench cell`'s lots in ABBA rounds on one cell, medians of each
+side), as `gwc bench console` is, on a cell that has the web module; its load is five headless
+Chromiums (Debian's, driven by Playwright) logged in and showing the dispatch list live (the busiest
+page: a row changes at every step of every lot). Beside the common figures: the web module's CPU per
 lot, and apart, the browsers' own CPU: theirs, not the cell's, but on this host they share its cores.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-import json
-import logging
-import os
 import socket
-import statistics
-from collections.abc import Callable
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,9 +21,8 @@ import click
 from gwc import db
 from gwc.bench import cpu_s
 from gwc.bench.cell import CellBench
-from gwc.client.session import context
-from gwc.console.cost import BusCounter
 from gwc.errors import GwcError
+from gwc.hi.rounds import run_rounds
 from gwc.soak.private_config import write_config
 from gwc.users import Role, store
 from gwc.users.passwords import hash_password
@@ -77,54 +71,34 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-class WebBench(CellBench):
-    """CellBench on a cell with the web module, its lots in rounds without and with browsers open."""
+class WebLoad:
+    """Headless Chromiums logged in to the cell's web HMI, each on the dispatch list live: the load of
+    `gwc bench web`'s rounds (gwc.hi.rounds.Load). The bench's cell gets the web module."""
 
+    side = "browsers"
+    figures = FIGURES
     counted = "xact_commit + xact_rollback"  # the web's reads end in a rollback
+    bus_prefix = "\0"  # the web module's conversations are the cell's: none counted apart
 
-    def __init__(
-        self,
-        var: Path,
-        machines: int,
-        lots: int,
-        pairs: int,
-        browsers: int,
-        log: logging.Logger,
-        say: Callable[[str], None],
-    ) -> None:
-        super().__init__(var, machines, lots, 0, 0, os.environ.get("GWC_DATABASE_URL"), log, say, idle_s=0)
-        self.pairs = pairs
+    def __init__(self, browsers: int) -> None:
         self.browsers = browsers
-        self.rounds: list[dict[str, Any]] = []
         self.url = f"https://127.0.0.1:{free_port()}"
-        raw = dict(self.cell.cfg.raw)
+
+    def attach(self, bench: CellBench) -> None:
+        raw = dict(bench.cell.cfg.raw)
         raw["module"] = [*raw.get("module", []), {"name": "web"}]
         raw["web"] = {"listen": self.url.removeprefix("https://")}
-        self.cell.cfg = dataclasses.replace(write_config(self.cell.cfg.path, raw), var=self.cell.var)
+        bench.cell.cfg = dataclasses.replace(write_config(bench.cell.cfg.path, raw), var=bench.cell.var)
 
-    def _lots(self) -> dict[str, Any]:
-        with db.connect(self.cell.cfg, role="hi", log=self.log) as conn:
+    def prepare(self, bench: CellBench) -> None:
+        with db.connect(bench.cell.cfg, role="hi", log=bench.log) as conn:
             store.add_user(conn, USER, Role.viewer, hash_password(PASSWORD), None, "bench")
-        counter = BusCounter(self.cell.cfg.bus)
-        try:
-            for i in range(self.pairs):
-                for with_web in (False, True) if i % 2 == 0 else (True, False):
-                    self.rounds.append(self._round(with_web, counter))
-        finally:
-            counter.close()
-        return {
-            "machines": self.n,
-            "lots": self.m,
-            "browsers": self.browsers,
-            "rounds": self.rounds,
-            **compare(self.rounds),
-        }
 
-    def _round(self, with_web: bool, counter: BusCounter) -> dict[str, Any]:
-        k = len(self.rounds) + 1
-        self.say(f"round {k}: {self.m} lots " + (f"with {self.browsers} browsers open" if with_web else "with none"))
-        if not with_web:
-            return self._measure(False, counter)
+    def describe(self, loaded: bool) -> str:
+        return f"with {self.browsers} browsers open" if loaded else "with none"
+
+    @contextlib.contextmanager
+    def opened(self, k: int) -> Iterator[None]:
         from playwright.sync_api import sync_playwright
 
         with sync_playwright() as pw:
@@ -141,41 +115,20 @@ class WebBench(CellBench):
                     page.wait_for_selector("#user:has-text('bench')")
                     page.click("#tabs button[data-tab=lots]")
                     page.wait_for_selector("#live:has-text('live')")
-                return self._measure(True, counter)
+                yield
             finally:
                 for browser in browsers:
                     browser.close()
 
-    def _measure(self, with_web: bool, counter: BusCounter) -> dict[str, Any]:
-        all0, _ = counter.now()
-        browsers0 = browsers_cpu_s()
-        got = super()._lots()
-        browsers1 = browsers_cpu_s()
-        all1, _ = counter.now()
-        cpu = got["loaded_cpu_ms_per_lot"]
-        result = {
-            "browsers": self.browsers if with_web else 0,
-            "lots_per_s": got["lots_per_s"],
-            "overhead_median_ms": got["loaded_overhead_ms"]["median"],
-            "overhead_p99_ms": got["loaded_overhead_ms"]["p99"],
-            "cell_cpu_ms_per_lot": round(sum(v for role, v in cpu.items() if not role.startswith("lot ")), 2),
-            "web_cpu_ms_per_lot": cpu.get("web", 0.0),
-            "database_cpu_ms_per_lot": cpu.get("database", 0.0),
-            "db_commits_per_lot": got["db_commits_per_lot"],
-            "bus_msgs_per_lot": round((all1 - all0) / self.m, 1),
-            "browsers_cpu_ms_per_lot": round((browsers1 - browsers0) * 1000 / self.m, 2),
-            "cpu_ms_per_lot_by_role": cpu,
+    def sample(self) -> float:
+        return browsers_cpu_s()
+
+    def figures_of(self, loaded: bool, got: dict[str, Any], cpu_s: float, mine: int, lots: int) -> dict[str, Any]:
+        return {
+            "browsers": self.browsers if loaded else 0,
+            "web_cpu_ms_per_lot": got["loaded_cpu_ms_per_lot"].get("web", 0.0),
+            "browsers_cpu_ms_per_lot": round(cpu_s * 1000 / lots, 2),
         }
-        self.say("  " + ", ".join(f"{key} {result[key]:g}" for _, key in FIGURES))
-        return result
-
-
-def compare(rounds: list[dict[str, Any]]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for side, open_ in (("without", False), ("with", True)):
-        mine = [r for r in rounds if bool(r["browsers"]) == open_]
-        out[f"median_{side}_browsers"] = {key: statistics.median(r[key] for r in mine) for _, key in FIGURES if mine}
-    return out
 
 
 @click.command("web")
@@ -202,18 +155,7 @@ def command(machines: int, lots: int, pairs: int, browsers: int, where: Path | N
         raise GwcError("gwc bench web needs the playwright package (pip install playwright)") from None
     if not Path(CHROMIUM).exists():
         raise GwcError(f"gwc bench web needs Debian's chromium at {CHROMIUM} (apt-get install chromium)")
-    cfg, log = context("bench", drop=False)
-    say = (lambda s: None) if as_json else click.echo
-    result = WebBench(where or cfg.var / "bench-web", machines, lots, pairs, browsers, log, say).run()
-    if as_json:
-        click.echo(json.dumps(result, indent=1))
-        return
-    click.echo(
-        f"{2 * pairs} rounds of {lots} lots on {machines} machines, alternately without and with {browsers} "
-        f"browsers on the dispatch list: medians of {pairs} rounds each"
-    )
-    click.echo(f"{'':52s} {'no browser':>12s} {f'{browsers} browsers':>12s}")
-    none, some = result["median_without_browsers"], result["median_with_browsers"]
-    for label, key in FIGURES:
-        click.echo(f"{label:52s} {none[key]:12.2f} {some[key]:12.2f}")
-    click.echo("gwc check at the end: " + ("held" if result["check_held"] else "BROKEN"))
+    load = WebLoad(browsers)
+    columns = ("no browser", f"{browsers} browsers")
+    what = f"{browsers} browsers on the dispatch list"
+    run_rounds(load, where, "bench-web", machines, lots, pairs, as_json, what, columns, 52, browsers=browsers)

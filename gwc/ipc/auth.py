@@ -130,6 +130,11 @@ class Guard:
         self._module_send = (module_key.id, mac_of(module_key.secret)) if module_key else (0, None)
 
     @property
+    def sealed(self) -> int:
+        """Datagrams sealed on the bus channel so far (beats not counted)."""
+        return self._counters[0]
+
+    @property
     def key_ids(self) -> tuple[int, int]:
         """The ids of the (module, lot) keys this member signs with now (module 0: a lot script)."""
         return self._module_send[0], self._lot_send[0]

@@ -88,10 +88,12 @@ class Bus:
         # New conversations, and the first_message() calls waiting for one (no asyncio.Queue: hot path).
         self._incoming: collections.deque[Conversation] = collections.deque()
         self._incoming_waiters: collections.deque[asyncio.Future[Conversation]] = collections.deque()
+        self._accept: Callable[[Conversation], None] | None = None  # accept(): new conversations go there
         self.deadlines = Deadlines()  # every wait's deadline, on one timer
         self._heartbeat: asyncio.Task[None] | None = None
         self.faults = FaultLog(log, self.stats)  # a step that failed: counted, logged once per kind
         self._origin = wire.origin(name, self.inc)
+        self._speaking = wire.VERSION  # the wire version we encode in (speak(); docs/protocol.md, Versions)
         self._mine = f"{name}."  # how the ids of conversations this module opened begin
         self._conv_prefix = f"{name}.{self.inc:x}."  # ... in this incarnation
         self.peer_listeners: list[Callable[[str, Peer | None], None]] = []  # told of every join and leave
@@ -195,6 +197,24 @@ class Bus:
     def peers(self) -> dict[str, Peer]:
         return dict(self._peers)
 
+    # ----------------------------------------------------------------- wire versions (gwc/ipc/membership.py)
+
+    @property
+    def speaking(self) -> int:
+        """The wire version this bus encodes in now: the lowest its peers speak, at most its own."""
+        return self._speaking
+
+    def versions(self) -> dict[str, int]:
+        """Peer name -> the highest wire version it speaks (from its hellos)."""
+        return dict(self._members.speaks)
+
+    def speak(self, version: int) -> None:
+        """Encode everything from now on in wire `version` (the membership decides which): what is
+        already in flight is retransmitted as it was encoded."""
+        omit = catalogue.fields_after(version) if version < wire.VERSION else None
+        self._origin = wire.origin(self.name, self.inc, version, omit)
+        self._speaking = self.outbox.version = version
+
     def listeners_of(self, cls: str, subject: str = "") -> list[str]:
         """Who hears broadcasts of `cls` (about `subject`: those who hear the class about it too)."""
         return sorted(p.name for p in self._peers.values() if p.hears(cls, subject))
@@ -274,8 +294,22 @@ class Bus:
             return None
         return conv
 
+    def accept(self, handler: Callable[[Conversation], None] | None) -> None:
+        """Hand every conversation another module opens with us to `handler`, called at once on the bus's
+        loop as its first batch is delivered (those already queued first), instead of queueing them for
+        first_message(); None: queue them again. The handler must not block: it answers at once
+        (Conversation.reply) or starts a task. No future, task or loop turn stands between the datagram and
+        it: a module's conversations start a loop turn sooner, an answer given at once two sooner."""
+        self._accept = handler
+        while handler is not None and self._incoming and self._incoming[0] is not CLOSED:
+            handler(self._incoming.popleft())
+
     def _put_incoming(self, conv: Conversation) -> None:
-        """A new conversation: to the longest-waiting first_message() still waiting, or queued."""
+        """A new conversation: to accept()'s handler, or the longest-waiting first_message() still
+        waiting, or queued."""
+        if self._accept is not None and conv is not CLOSED:
+            self._accept(conv)
+            return
         waiters = self._incoming_waiters
         while waiters:
             waiter = waiters.popleft()
@@ -439,6 +473,8 @@ class Bus:
             peer = self._peers.get(env.src)
             if peer is not None and peer.inc == env.inc:
                 peer.last_seen = now  # any datagram proves life, not only hellos
+            elif env.version != self._speaking:  # a sender we hold no hello of speaks another version
+                self._members.heard_version(env, now)
             kind = env.kind
             self.stats[kind] += 1  # datagrams read, by kind: what the kernel filter let through
             if kind == "msg":
@@ -480,33 +516,39 @@ class Bus:
         to, src, inc = env.to, env.src, env.inc
         if to is not None and to != self.name:
             return
-        if env.acks and to is not None and env.to_inc == self.inc:
-            self.outbox.acked(src, env.acks)
-        conv_id = env.conv
+        conv_id, cls = env.conv, env.cls
         conv = self._convs.get(conv_id)
-        cls = env.cls
-        if to is None and conv is None and cls not in self._interest and env.subject not in self._subjects.get(cls, ()):
+        subjects = self._subjects
+        if conv is None and to is None and cls not in self._interest and env.subject not in subjects.get(cls, ()):
             return  # not for us (nor about a subject we hear it about): no ack, the sender does not count us
         seq = env.seq
         key = (src, inc)
         self.outbox.ack(key, seq)
-        if self._inbound.duplicate(key, seq, now):
-            self.stats["duplicates"] += 1
-            return
-        if conv is None and self._is_ended(conv_id):
-            self.stats["late"] += 1
-            self.log.warning(
-                "late %s from %s in ended conversation: dropped", env.msg, src, extra={"conv": f"{conv_id} {env.cls}"}
-            )
-            return
         try:
-            msg: Message | None = catalogue.check(env.cls, env.msg, env.fields)
-        except MessageError as e:
-            # Still take its place in the order, so the messages after it are not held up forever.
-            self.stats["invalid"] += 1
-            self.log.warning("dropped invalid %s from %s: %s", env.msg, src, e, extra={"conv": f"{conv_id} {env.cls}"})
-            msg = None
-        self._inbound.place(env, msg, now)
+            if self._inbound.duplicate(key, seq, now):
+                self.stats["duplicates"] += 1
+            elif conv is None and self._is_ended(conv_id):
+                self.stats["late"] += 1
+                self.log.warning(
+                    "late %s from %s in ended conversation: dropped", env.msg, src, extra={"conv": f"{conv_id} {cls}"}
+                )
+            else:
+                try:
+                    msg: Message | None = catalogue.check(cls, env.msg, env.fields)
+                except MessageError as e:
+                    # Still take its place in the order, so the messages after it are not held up forever.
+                    self.stats["invalid"] += 1
+                    self.log.warning(
+                        "dropped invalid %s from %s: %s", env.msg, src, e, extra={"conv": f"{conv_id} {cls}"}
+                    )
+                    msg = None
+                self._inbound.place(env, msg, now)
+        finally:
+            # Acks riding on the msg are taken after it is delivered (even if a handler failed): an
+            # answer given at once (Bus.accept) leaves sooner, and a base computed before them is only
+            # lower, never wrong.
+            if env.acks and to is not None and env.to_inc == self.inc:
+                self.outbox.acked(src, env.acks)
 
     def _deliver(self, head: Envelope, msgs: tuple[Message | None, ...]) -> None:
         for m in msgs:

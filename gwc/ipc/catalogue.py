@@ -4,11 +4,14 @@ A new conversation is one entry here, not new plumbing: the bus validates every 
 and receives against these declarations, and the monitor and docs/conversations.md read them.
 
 Field types are written as strings: "str", "int", "float", "bool", "list", "dict"; a trailing
-"?" makes the field nullable (it may be absent or null). Every other field is required.
+"?" makes the field nullable (it may be absent or null). Every other field is required. A field
+added by a later wire version says which after an "@" ("str?@6"): it must be nullable, and a bus
+speaking an older version leaves it out (docs/protocol.md, "Versions").
 """
 
 from __future__ import annotations
 
+import functools
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -34,6 +37,7 @@ class FieldSpec:
     name: str
     type: str
     nullable: bool
+    since: int = 0  # the wire version that added it (0: every version has it)
 
 
 @dataclass(frozen=True)
@@ -98,13 +102,27 @@ class ConversationClass:
 
 def _msg(name: str, doc: str = "", **fields: str) -> MessageClass:
     specs = []
-    for fname, ftype in fields.items():
+    for fname, spec in fields.items():
+        ftype, _, since = spec.partition("@")
         nullable = ftype.endswith("?")
         base = ftype.rstrip("?")
         if base not in _TYPES:
-            raise ValueError(f"catalogue: {name}.{fname} has unknown type {ftype}")
-        specs.append(FieldSpec(fname, base, nullable))
+            raise ValueError(f"catalogue: {name}.{fname} has unknown type {spec}")
+        if since and not (since.isdigit() and nullable):
+            raise ValueError(f"catalogue: {name}.{fname}: a field added by a version must be nullable (type?@N)")
+        specs.append(FieldSpec(fname, base, nullable, int(since or 0)))
     return MessageClass(name, tuple(specs), doc)
+
+
+@functools.cache
+def fields_after(version: int) -> Mapping[str, frozenset[str]]:
+    """Message class -> its fields that wire versions after `version` added: what a bus speaking
+    `version` leaves out of what it sends (gwc.ipc.wire.Origin.omit). Empty for this build's own."""
+    return {
+        m.name: frozenset(f.name for f in m.fields if f.since > version)
+        for m in MESSAGE_CLASSES.values()
+        if any(f.since > version for f in m.fields)
+    }
 
 
 ACK = {"ack_code": "str", "note": "str?"}

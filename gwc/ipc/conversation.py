@@ -138,7 +138,7 @@ class Conversation:
         self.initiator = initiator
         self.first = first  # for an incoming conversation: the batch that opened it
         self.peer: str | None = first.sender if first else None
-        self._inbox: collections.deque[Batch] = collections.deque()
+        self._inbox: collections.deque[Batch] | None = None  # made when a batch comes before its wait
         self._waiter: asyncio.Future[Batch] | None = None
         self.sent = 0  # messages this module has sent in the conversation so far (its bus counts them)
         self.ended = False
@@ -154,6 +154,11 @@ class Conversation:
         """Send a batch into this conversation; by default to the other side (or to all, if unknown)."""
         target = self.peer if to is DEFAULT else to
         self.sent = self.bus.send_batch(self, messages, target)
+
+    def reply(self, *messages: Message) -> None:
+        """send() to the other side, now, without a coroutine: for a handler that answers at once
+        (Bus.accept)."""
+        self.sent = self.bus.send_batch(self, messages, self.peer)
 
     async def next_message(self, timeout: float | None = None) -> Batch:
         """The next batch the other side sends; ConversationTimeout (logged) if none comes in time."""
@@ -179,6 +184,8 @@ class Conversation:
                 bus.deadlines.discard(waiter)
                 self._waiter = None
         if batch is CLOSED:
+            if self._inbox is None:
+                self._inbox = collections.deque()
             self._inbox.appendleft(batch)
             raise BusError(f"{self.cls} conversation {self.id}: the bus was closed while waiting")
         self.peer = batch.sender
@@ -189,6 +196,8 @@ class Conversation:
         waiter = self._waiter
         if waiter is not None and not waiter.done():
             waiter.set_result(batch)
+        elif self._inbox is None:
+            self._inbox = collections.deque((batch,))
         else:
             self._inbox.append(batch)
 

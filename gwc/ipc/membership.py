@@ -1,5 +1,10 @@
 """Who is on the bus: each module's name, incarnation and interest, learnt from hellos (on the bus
-port at sign-on and on a change, on the beat port every heartbeat) and lost by bye or silence."""
+port at sign-on and on a change, on the beat port every heartbeat) and lost by bye or silence.
+
+And which wire version to speak (docs/protocol.md, "Versions"): every hello says the highest version
+its sender speaks; a bus speaks the lowest of its live peers' (and of what untracked senders sent
+lately), never above its own, so a cell upgraded host by host goes on talking and moves up once
+every peer has moved."""
 
 from __future__ import annotations
 
@@ -57,6 +62,10 @@ class MembershipHost(Protocol):
     @property
     def signed_on(self) -> bool: ...
 
+    def speak(self, version: int) -> None:
+        """Encode everything from now on in this wire version."""
+        ...
+
     def decode(self, data: bytes, what: str) -> Envelope | None:
         """The datagram's envelope; None (counted, logged) if it is malformed."""
         ...
@@ -80,6 +89,12 @@ class Membership:
         self.gone: collections.OrderedDict[tuple[str, int], None] = collections.OrderedDict()
         self.beat_body: bytes | None = None  # our beat, encoded (send_beat); None after a change of interest
         self.following = False  # reading beats as they come (under a flood), not once a heartbeat
+        # Wire versions: the highest each tracked peer speaks (its hellos), the versions untracked senders
+        # (ignored_peers, or not yet heard by hello) sent lately (name -> (version, when)), and ours.
+        self.speaks: dict[str, int] = {}
+        self.untracked: dict[str, tuple[int, float]] = {}
+        self.speaking = wire.VERSION
+        self.highest = wire.VERSION  # what our hellos say we speak (this build's version)
 
     def hello(self, query: bool = False, to: str | None = None) -> None:
         """Our hello on the bus port: at sign-on (a query), on a change of interest, to a querier."""
@@ -93,6 +108,10 @@ class Membership:
                 query=query,
                 to=to,
                 subjects=self.subject_entries(),
+                fields={wire.SPEAKS: self.highest},
+                # A query (sign-on) goes out before any peer is known: in the oldest version we speak,
+                # which every peer whose build reads it hears; it then answers with its own hello.
+                version=wire.MIN_VERSION if query else self.speaking,
             )
         )
 
@@ -124,7 +143,15 @@ class Membership:
         if beat is None:  # the same body every heartbeat until our interest changes: encoded once
             interest = tuple(sorted(bus.interests))
             beat = self.beat_body = wire.encode(
-                Envelope(kind="hello", src=bus.name, inc=bus.inc, interest=interest, subjects=self.subject_entries())
+                Envelope(
+                    kind="hello",
+                    src=bus.name,
+                    inc=bus.inc,
+                    interest=interest,
+                    subjects=self.subject_entries(),
+                    fields={wire.SPEAKS: self.highest},
+                    version=self.speaking,
+                )
             )
         try:
             bus.transport.send_beat(bus.guard.seal(beat, beat=True))
@@ -136,6 +163,49 @@ class Membership:
         for name, peer in list(self.peers.items()):
             if now - peer.last_seen > self.bus.cfg.peer_timeout:
                 self.left(name, "silent for %.1fs" % (now - peer.last_seen))
+        if self.untracked:
+            timeout = self.bus.cfg.peer_timeout
+            old = [n for n, (_, at) in self.untracked.items() if now - at > timeout]
+            for name in old:
+                del self.untracked[name]
+            if old:
+                self.renegotiate()
+
+    # ----------------------------------------------------------------- wire versions
+
+    def heard_version(self, env: Envelope, now: float) -> None:
+        """A datagram in another version than ours from a sender we hold no hello of (the bus calls this
+        only then): one we ignore (a WC hears no lot's hellos, yet answers lots) must be answered in a
+        version it reads, so an older one's msgs and acks lower what we speak for as long as it keeps
+        sending. Not its hellos: a sign-on query is in the oldest version its sender speaks, whatever
+        it speaks after (on_hello reads what it says)."""
+        src, version = env.src, env.version
+        if env.kind == "hello" or env.kind == "bye":
+            return
+        if version < self.speaking or src in self.untracked:
+            self.untracked[src] = (version, now)
+            if version != self.speaking:
+                self.renegotiate()
+
+    def renegotiate(self) -> None:
+        """Speak the lowest version of our peers' (never above ours, never below the oldest we encode)."""
+        lowest = min((self.highest, *self.speaks.values(), *(v for v, _ in self.untracked.values())))
+        version = max(lowest, wire.MIN_VERSION)
+        if version == self.speaking:
+            return
+        bus = self.bus
+        older = sorted(n for n, v in self.speaks.items() if v == version)
+        older += sorted(n for n, (v, _) in self.untracked.items() if v == version and n not in older)
+        bus.log.info(
+            "speaking wire version %d (this build speaks %d..%d%s)",
+            version,
+            wire.MIN_VERSION,
+            wire.VERSION,
+            f"; {', '.join(older[:5])}{' ...' if len(older) > 5 else ''} speak {version}" if older else "",
+        )
+        self.speaking = version
+        self.beat_body = None
+        bus.speak(version)
 
     def read_beats(self, datagrams: Iterable[bytes]) -> None:
         """Beats since the last heartbeat. They are late by up to a heartbeat, so one never brings in a
@@ -154,6 +224,8 @@ class Membership:
             env = bus.decode(data, "beat")
             if env is None:
                 continue
+            if env.inc == bus.inc and env.src == bus.name:
+                continue  # our own, in a version the transport's prefix test did not know (speaking an older one)
             if env.kind != "hello":
                 bus.stats["malformed"] += 1  # summarised with the drops: a line per datagram would flood the log
                 bus.guard.drops.drop(f"{env.kind}_on_the_beat_port", env.src)
@@ -173,6 +245,12 @@ class Membership:
         if bus.ignored_peers and env.src.startswith(bus.ignored_peers):
             return  # not tracked, and it does not track us: no answer to its query either
         now = time.monotonic()
+        speaks = env.fields.get(wire.SPEAKS) if env.fields else None
+        speaks = speaks if type(speaks) is int and env.version <= speaks <= 255 else env.version
+        if self.speaks.get(env.src) != speaks:
+            self.speaks[env.src] = speaks
+            self.untracked.pop(env.src, None)
+            self.renegotiate()
         interest = frozenset(env.interest)
         subjects: dict[str, frozenset[str]] = {}
         if env.subjects:
@@ -206,6 +284,8 @@ class Membership:
             return
         self.bus.log.log(_level(self.bus, name), "%s left the bus (%s)", name, why)
         self.beats = {d: k for d, k in self.beats.items() if k[0] != name}
+        if self.speaks.pop(name, 256) <= self.speaking:  # it may have been the oldest
+            self.renegotiate()
         if clean:
             self.gone[(name, peer.inc)] = None
             if len(self.gone) > MAX_GONE:

@@ -23,7 +23,7 @@ class Stream:
 
     def __init__(self, next_idx: int, touched: float) -> None:
         self.next_idx = next_idx
-        self.buffer: dict[int, tuple[Envelope, Message | None]] = {}
+        self.buffer: dict[int, tuple[Envelope, Message | None]] | None = None  # made when a message comes early
         self.batch: list[tuple[Envelope, Message | None]] | None = None  # made when a batch of several begins
         self.touched = touched
         self.gap_since = 0.0  # when the buffer last became non-empty (a message is missing)
@@ -92,15 +92,20 @@ class Inbound:
             st.next_idx += 1  # the usual case: a one-message batch, in order, nothing waiting
             self.deliver(env, (msg,))
             return
-        if not st.buffer:
+        buffer = st.buffer
+        if not buffer:
             st.gap_since = now
             self.gaps[skey] = st
-        st.buffer[idx] = (env, msg)
+            if buffer is None:
+                buffer = st.buffer = {}
+        buffer[idx] = (env, msg)
         self.advance(st, skey, upto=env.base)
 
     def advance(self, st: Stream, skey: tuple[str, str, int], upto: int = 0) -> None:
         """Deliver what is in order; a message missing below `upto` is settled elsewhere: skip it."""
         lost = 0
+        if st.buffer is None:
+            st.buffer = {}
         while True:
             item = st.buffer.pop(st.next_idx, None)
             if item is None:
@@ -152,7 +157,7 @@ class Inbound:
         for key, st in list(self.gaps.items()):
             if now - st.gap_since > self.cfg.retry_deadline + self.cfg.heartbeat:
                 # The sender has given up on what is missing: deliver what came after it.
-                self.advance(st, key, upto=min(st.buffer))
+                self.advance(st, key, upto=min(st.buffer or (st.next_idx,)))
         streams = self.streams
         while streams:
             key, st = next(iter(streams.items()))

@@ -53,6 +53,7 @@ class Outbox:
         self.log = log
         self.stats = stats
         self.transmit = transmit  # seal and send one datagram (the bus's); raises BusError once closed
+        self.version = wire.VERSION  # the wire version acks, hellos and byes go in (Bus.speak sets it)
         self.loop: asyncio.AbstractEventLoop | None = None  # set when the bus signs on
         self.pending: dict[int, Pending] = {}  # seq -> a msg not yet acknowledged by all it is meant for
         self.acks_due: dict[tuple[str, int], list[int]] = {}  # (peer, inc) -> seqs to acknowledge
@@ -120,6 +121,8 @@ class Outbox:
 
     def send_envelope(self, env: Envelope) -> None:
         """Encode and send a datagram that is not a msg (an ack, a hello, a bye); lost if the bus closed."""
+        if env.version == wire.VERSION:  # (a sign-on query names its own: the oldest version we speak)
+            env.version = self.version  # the version the bus speaks (Bus.speak)
         try:
             self.transmit(wire.encode(env))
         except BusError as e:  # not signed on (closing): lost like a dropped datagram

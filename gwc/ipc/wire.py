@@ -25,8 +25,14 @@ from typing import Any
 from gwc.errors import MessageError
 
 MAGIC = b"GWC"
-VERSION = 4
+# Wire versions (docs/protocol.md, "Versions"): this build encodes in any version from MIN_VERSION to
+# VERSION and decodes all of them; a bus speaks the lowest version its live peers speak (gwc/ipc/
+# membership.py), so that a cell being upgraded host by host goes on talking. Versions 4 and 5 share
+# one layout: 5 adds `speaks` to the hello's fields and the rules of negotiation.
+VERSION = 5
+MIN_VERSION = 4
 HEADER = MAGIC + bytes([VERSION])
+SPEAKS = "speaks"  # the hello field naming the highest version its sender speaks (absent: the datagram's)
 MAX_DATAGRAM = 60_000  # below the 65,507-byte UDP limit, with room for IP options
 MAX_NAME = 200  # bytes: module names, conversation ids and class names are short; longer is hostile
 
@@ -62,6 +68,7 @@ class Envelope:
     query: bool = False  # hello: "tell me who you are" (peers answer with their own hello)
     subject: str = ""  # msg: what it is about, for a class that names one (UPD_ME_ST, RUN_COMPL: the machine)
     subjects: tuple[tuple[str, str], ...] = ()  # hello: (class, subject): src hears that class about these only
+    version: int = VERSION  # the wire version it is (to be) encoded in: decode sets it from the datagram
 
 
 # After HEADER, the fixed part: inc, the tags of src, to, cls and subject, kind, flags, seq, idx, more, part,
@@ -159,18 +166,31 @@ def _json(value: Any) -> str:
 
 @dataclass(frozen=True, slots=True)
 class Origin:
-    """What every datagram of one sender (module name, incarnation) begins with, computed once."""
+    """What every datagram of one sender (module name, incarnation) begins with, computed once, and
+    how it encodes for the wire version it speaks."""
 
     src: bytes
     prefix: bytes  # magic, version, inc, src tag: lets the sender skip its own looped-back datagrams
+    version: int = VERSION
+    # Message fields a peer of `version` does not know (catalogue.fields_after): left out of each
+    # msg of those message classes, so that an older receiver finds them absent, as it expects.
+    omit: Mapping[str, frozenset[str]] | None = None
 
 
-def origin(src: str, inc: int) -> Origin:
+def check_version(version: int) -> int:
+    """`version` if this build can encode it, else MessageError."""
+    if not MIN_VERSION <= version <= VERSION:
+        raise MessageError(f"wire version {version} is not one this build speaks ({MIN_VERSION}..{VERSION})")
+    return version
+
+
+def origin(src: str, inc: int, version: int = VERSION, omit: Mapping[str, frozenset[str]] | None = None) -> Origin:
     name = src.encode()
     if not 0 < len(name) <= MAX_NAME:
         raise MessageError(f"module name {src[:40]!r} must be 1 to {MAX_NAME} bytes")
+    check_version(version)
     try:
-        return Origin(name, HEADER + struct.pack("!QI", inc, tag(name)))
+        return Origin(name, MAGIC + bytes([version]) + struct.pack("!QI", inc, tag(name)), version, omit or None)
     except struct.error:
         raise MessageError(f"incarnation {inc} out of range") from None
 
@@ -178,7 +198,7 @@ def origin(src: str, inc: int) -> Origin:
 def encode(env: Envelope) -> bytes:
     """Serialise one envelope; refuse what cannot fit one datagram (or the layout)."""
     return encode_parts(
-        origin(env.src, env.inc),
+        origin(env.src, env.inc, env.version),
         env.kind,
         env.seq,
         env.conv,
@@ -221,8 +241,11 @@ def encode_parts(
 ) -> bytes:
     """encode() from the parts, for the bus's hot path (no Envelope made just to be read).
 
-    orig is origin(src, inc) of the sender.
+    orig is origin(src, inc, version) of the sender.
     """
+    if orig.omit is not None and msg in orig.omit:  # speaking an older version: its fields only
+        gone = orig.omit[msg]
+        fields = {k: v for k, v in fields.items() if k not in gone}
     c = conv.encode()
     k, ktag = _ENCODED.get(cls) or _encoded(cls)
     m = (_ENCODED.get(msg) or _encoded(msg))[0]
@@ -306,10 +329,13 @@ def decode(data: bytes) -> Envelope:
     n = len(data)
     if n > MAX_DATAGRAM:
         raise MessageError(f"datagram of {n} bytes is over the limit {MAX_DATAGRAM}")
-    if not data.startswith(HEADER):
+    if not data.startswith(HEADER):  # (this build's version: one test for the usual case)
         if data[:3] != MAGIC:
             raise MessageError("not a GWC datagram (bad magic)")
-        raise MessageError(f"unknown wire version {data[3] if n > 3 else None}")
+        if n < 4 or not MIN_VERSION <= data[3] <= VERSION:
+            raise MessageError(
+                f"unknown wire version {data[3] if n > 3 else None} (this build reads {MIN_VERSION}..{VERSION})"
+            )
     names = _DECODED
     try:
         (
@@ -436,6 +462,7 @@ def decode(data: bytes) -> Envelope:
         bool(flags),
         subject,
         subjects,
+        data[3],
     )
 
 
@@ -456,7 +483,7 @@ def kernel_filter(
     """The socket filter for module `src` (incarnation `inc`) listening to `interest`.
 
     It keeps exactly what the bus would not drop unread: every datagram that is too short or not of
-    this version (so the bus logs it), hellos and byes for everyone, acks, msgs and hellos (answers
+    a version this build reads (so the bus logs it), hellos and byes for everyone, acks, msgs and hellos (answers
     to its query) addressed to `src`, and broadcast msgs of a class in `interest` or of a
     conversation's later batches (a conversation the module holds is received whatever its
     interest), or of a class in `subjects` about one of its subjects there. It drops the module's own
@@ -488,8 +515,9 @@ def kernel_filter(
     prog: list[tuple[tuple[int, int], str | None, str | None] | str] = [
         ((_LD_LEN, 0), None, None),
         ((_JGE, u + _BODY), None, "keep"),
-        ((_LD_W, u), None, None),
-        ((_JEQ, int.from_bytes(HEADER, "big")), None, "keep"),
+        ((_LD_W, u), None, None),  # magic and version: a version this build does not read is kept (and logged)
+        ((_JGE, int.from_bytes(MAGIC + bytes([MIN_VERSION]), "big")), None, "keep"),
+        ((_JGE, int.from_bytes(MAGIC + bytes([VERSION + 1]), "big")), "keep", None),
         ((_LD_W, u + OFF_INC), None, None),
         ((_JEQ, hi), None, "not_own"),
         ((_LD_W, u + OFF_INC + 4), None, None),

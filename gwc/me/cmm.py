@@ -32,22 +32,17 @@ the line lost), and says which in its note.
 from __future__ import annotations
 
 import logging
-import os
 import re
 import shutil
-import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future
 from pathlib import Path
 from typing import TypeVar
-
-import serial
 
 from gwc.config import Config, MachineSpec
 from gwc.errors import ConfigError, LineError
 from gwc.ipc.codes import AckCode
-from gwc.me.cmm_sim import sim_link
+from gwc.me.cmm_line import QUIET, CmmLine
 from gwc.me.line import (
     Garbage,
     LineLost,
@@ -55,9 +50,7 @@ from gwc.me.line import (
     RecordStream,
     escaped,
     kermit,
-    open_serial,
     serial_settings,
-    serial_stream,
 )
 from gwc.me.machine import MachineSide, Refusal, RunOutcome
 from gwc.me.parts import PartError, part_tar, program_from
@@ -69,7 +62,6 @@ TRANSFERS = ("line", "kermit")
 KERMIT_TIMEOUT = 60.0  # longest one Kermit transfer may take
 MEAS_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,31}$")  # a measured feature's name (MEAS records)
 MEAS_VALUE = re.compile(r"^[-+]?[0-9]+(\.[0-9]*)?$")
-QUIET = 0.1  # resynchronising without STATUS (Kermit devices): the line must be quiet this long
 
 
 def exchange_deadline(spec: MachineSpec) -> float:
@@ -100,7 +92,6 @@ class CmmMachine(MachineSide):
         super().__init__(cfg, spec, log)
         self.settings = serial_settings(self.options.get("serial", dict, {}), f"machine {spec.id}")
         self.answer_timeout = float(self.settings.get("timeout", 5.0))
-        self.open_timeout = float(self.settings.get("open_timeout", self.answer_timeout))
         self.run_timeout = self.options.get("run_timeout", float, 120.0)
         self.transfer = self.options.get("transfer", str, "line")
         if self.transfer not in TRANSFERS:
@@ -109,14 +100,10 @@ class CmmMachine(MachineSide):
         self.kermit_timeout = self.options.get("kermit_timeout", float, KERMIT_TIMEOUT)
         self.reprobe_min = self.options.get("reprobe_min", float, 0.5)
         self.reprobe_max = self.options.get("reprobe_max", float, 2.0)
-        self._ser: serial.SerialBase | None = None
-        self._line: RecordStream | None = None
-        self._opening: tuple[str, Future[serial.SerialBase]] | None = None  # a probe's open (_probe_line)
-        self._run_deadline = 0.0
-        self._given_up = 0  # the last run given up without a verdict: its verdict may still come
+        self.link = CmmLine(cfg, spec.id, self.settings, log, self.probe)
+        self._run_deadline = Deadline(0.0)
         self._suspect: str | None = None  # an exchange failed: probe the CMM next
         self._probe_deadline: float | None = None  # a STATUS is out: its READY is due by then
-        self._status_no = 0
         self._ready = ""  # the answer due to the STATUS out
         self._next_probe = 0.0
         self._backoff = self.reprobe_min
@@ -124,127 +111,15 @@ class CmmMachine(MachineSide):
 
     # ----------------------------------------------------------------- the line
 
-    def _port(self, wait: bool) -> str:
-        port = str(self.settings["port"])
-        if port != "sim":
-            return port
-        link = sim_link(self.cfg, self.spec.id)
-        deadline = Deadline(self.open_timeout if wait else 0.0)
-        while not link.exists():  # the simulator may still be starting, or its line is down
-            if deadline.expired:
-                raise LineLost(f"no CMM simulator: {link} does not exist (is `gwc run cmmsim` running?)")
-            time.sleep(0.05)
-        return os.path.realpath(link)
-
-    def line(self) -> RecordStream:
-        """The open line to the CMM, opened now if it is not (waiting for the simulator's pty to appear)."""
-        if self._line is None:
-            if self._opening is not None:  # a probe's open under way: its outcome first
-                port, opening = self._opening
-                self._opening = None
-                self._adopt(port, opening.result())
-            else:
-                port = self._port(wait=True)
-                self._adopt(port, open_serial(self.settings, port))
-        assert self._line is not None
-        return self._line
-
-    def _probe_line(self) -> RecordStream | None:
-        """The line for a probe, opened without holding the ME's loop: None while the open is under way.
-
-        Opening a device server's port can take seconds: pyserial's TCP connect waits up to 5 s for a
-        host that is off (its SYN unanswered), and rfc2217:// negotiates Telnet options for up to 3 s
-        with a server that accepted but does not speak. The WC's pings (1.5 s) must be answered
-        meanwhile, or the ME is taken for dead. LineLost if the open failed."""
-        if self._line is not None:
-            return self._line
-        if self._opening is None:
-            port = self._port(wait=False)
-            self._opening = (port, self._open_in_background(port))
-        port, opening = self._opening
-        if not opening.done():
-            return None
-        self._opening = None
-        self._adopt(port, opening.result())
-        return self._line
-
-    def _open_in_background(self, port: str) -> Future[serial.SerialBase]:
-        """open_serial in a daemon thread (one at a time: _opening), so a stopping ME never waits for it."""
-        opening: Future[serial.SerialBase] = Future()
-
-        def run() -> None:
-            try:
-                opening.set_result(open_serial(self.settings, port))
-            except Exception as e:  # handed to the ME's loop, which takes the outcome
-                opening.set_exception(e)
-
-        threading.Thread(target=run, name=f"open-{self.spec.id}", daemon=True).start()
-        return opening
-
-    def _adopt(self, port: str, ser: serial.SerialBase) -> None:
-        self._ser = ser
-        self._line = serial_stream(ser, f"CMM line {port}")
-        self.log.info(
-            "serial line to the CMM open: %s at %s %s%s%s (%s)",
-            port,
-            ser.baudrate,
-            ser.bytesize,
-            ser.parity,
-            ser.stopbits,
-            ", ".join(f"{k}={v}" for k, v in self.settings.items() if k != "port"),
-        )
-
-    def drop_line(self, why: str) -> None:
-        if self._ser is not None:
-            self.log.warning("closing the serial line to the CMM: %s", why)
-            try:
-                self._ser.close()
-            except (OSError, serial.SerialException):
-                pass
-        self._ser, self._line = None, None
-
-    def _stale(self, rec: str, when: str) -> None:
-        """A record nobody asked for: a late verdict of a run given up, or garbage. Logged, dropped."""
-        if rec.rstrip("!") in ("PASS", "FAIL") and self._given_up:
-            self.log.warning("late verdict %s for run %d (given up) %s: dropped", rec, self._given_up, when)
-        elif rec.startswith("READY "):
-            self.log.info("answer %s to an earlier STATUS %s: dropped", rec, when)
-        else:
-            self.log.warning("unexpected record from the CMM %s: %r dropped", when, rec)
-
-    def _resync(self, line: RecordStream) -> None:
-        """Nothing from an earlier exchange may answer the next one: STATUS until READY!, or drain."""
-        if not self.probe:
-            junk = line.drain(QUIET, self.answer_timeout)
-            if junk:
-                self._stale(junk.decode("ascii", "backslashreplace"), "before the exchange")
-            return
-        ready = self._ask_status(line)
-        deadline = Deadline(self.answer_timeout)
-        while True:
-            rec = line.next_record(deadline.left(), bare_verdict=True)
-            if rec is None:
-                raise LineTimeout(f"the CMM did not answer STATUS within {self.answer_timeout:.1f}s")
-            if rec == ready:
-                return
-            self._stale(rec, f"before {ready}")
-
-    def _ask_status(self, line: RecordStream) -> str:
-        """`STATUS <n>!`, numbered so that an answer to an earlier one (a CMM that read several at once
-        after a measurement) is not taken for this one's; returns the answer due, `READY <n>!`."""
-        self._status_no = self._status_no % 99999 + 1
-        line.write_record(f"STATUS {self._status_no}!")
-        return f"READY {self._status_no}!"
-
     def _exchange(self, what: str, fn: Callable[[RecordStream], T]) -> T:
         """One exchange on a resynchronised line. Its failure is refused Notnow (the CMM cannot serve
         now: the lot asks again): a CMM that did not answer the resync, or whose line is gone, is lost
         at once; after any other failure it is probed next (watch)."""
         self._suspect, self._probe_deadline = None, None  # the resync probes as well
         try:
-            line = self.line()
+            line = self.link.open()
             try:
-                self._resync(line)
+                self.link.resync(line)
             except LineTimeout as e:
                 raise LineLost(str(e)) from e
             return fn(line)
@@ -280,9 +155,9 @@ class CmmMachine(MachineSide):
     def home(self) -> None:
         self._suspect, self._probe_deadline = None, None
         try:
-            self._resync(self.line())
+            self.link.resync(self.link.open())
         except LineError as e:
-            self.drop_line(str(e))
+            self.link.drop(str(e))
             raise Refusal(AckCode.START_FAIL, f"the CMM does not answer: {e}") from e
 
     def load(self, recipe_id: str, path: Path) -> None:
@@ -339,11 +214,11 @@ class CmmMachine(MachineSide):
     def begin(self) -> None:
         self._measured = {}
         self._exchange("start of the run", lambda line: line.write_record("START RUN !"))
-        self._run_deadline = time.monotonic() + self.run_timeout
+        self._run_deadline = Deadline(self.run_timeout)
 
     def progress(self) -> RunOutcome | None:
         """The verdict, or why the run failed (the CMM is then probed by watch(), after RUN_COMPL)."""
-        line = self.line()
+        line = self.link.open()
         try:
             rec = line.poll_record(bare_verdict=True)
         except LineError as e:
@@ -352,7 +227,7 @@ class CmmMachine(MachineSide):
             kind = "line lost" if isinstance(e, LineLost) else "garbage"
             return self._run_failed(e, f"{kind} during the run: {what}")
         if rec is None:
-            if time.monotonic() > self._run_deadline:
+            if self._run_deadline.expired:
                 return self._run_failed(
                     LineTimeout("no verdict"), f"no verdict from the CMM within {self.run_timeout:g}s: run given up"
                 )
@@ -376,16 +251,16 @@ class CmmMachine(MachineSide):
         return self._run_failed(Garbage(rec), f"the CMM answered {escaped(rec.encode())} instead of a verdict")
 
     def _run_failed(self, error: LineError, note: str) -> RunOutcome:
-        self._given_up = self.run_no
+        self.link.given_up = self.run_no
         self._suspect = note  # probed by watch() once RUN_COMPL is out (so ME_LOST follows it)
         if isinstance(error, LineLost):
-            self.drop_line(note)
+            self.link.drop(note)
         self.log.warning("run %d failed, the part was not measured: %s", self.run_no, note)
         return RunOutcome(AckCode.RUN_FAIL, {"RESULT": "NONE"}, note=note)
 
     def abort(self, why: str) -> None:
         # Listing 9 has no way to stop a measurement: its late verdict is dropped at the next resync.
-        self._given_up = self.run_no
+        self.link.given_up = self.run_no
         self.log.warning("run %d abandoned (%s): the CMM's verdict will be dropped", self.run_no, why)
 
     def watch(self) -> None:
@@ -395,10 +270,10 @@ class CmmMachine(MachineSide):
         if self._suspect is not None or self.lost is not None:
             self._probe_step()
             return
-        if self._line is None:
+        if self.link.stream is None:
             return
         try:
-            rec = self._line.poll_record(bare_verdict=True)
+            rec = self.link.stream.poll_record(bare_verdict=True)
         except Garbage as e:
             self.log.warning("garbage from the CMM between exchanges dropped: %s", e)
             return
@@ -406,7 +281,7 @@ class CmmMachine(MachineSide):
             self._lose(str(e))
             return
         if rec is not None:
-            self._stale(rec, "between exchanges")
+            self.link.stale(rec, "between exchanges")
 
     def _probe_step(self) -> None:
         now = time.monotonic()
@@ -414,11 +289,11 @@ class CmmMachine(MachineSide):
             if now < self._next_probe:
                 return
             try:
-                line = self._probe_line()
+                line = self.link.open_for_probe()
                 if line is None:
                     return  # still opening: looked at again next turn
                 if self.probe:
-                    self._ready = self._ask_status(line)
+                    self._ready = self.link.ask_status(line)
                     self._probe_deadline = now + self.answer_timeout
                     return
                 line.drain(QUIET, QUIET)  # a Kermit device: an open line that does not hang up is there
@@ -428,7 +303,7 @@ class CmmMachine(MachineSide):
             self._found()
             return
         try:
-            rec = self.line().poll_record(bare_verdict=True)
+            rec = self.link.open().poll_record(bare_verdict=True)
         except Garbage as e:
             self.log.warning("garbage from the CMM while probing dropped: %s", e)
             return
@@ -438,7 +313,7 @@ class CmmMachine(MachineSide):
         if rec == self._ready:
             self._found()
         elif rec is not None:
-            self._stale(rec, "while probing")
+            self.link.stale(rec, "while probing")
         elif now > self._probe_deadline:
             self._probe_failed(f"the CMM did not answer STATUS within {self.answer_timeout:.1f}s", gone=False)
 
@@ -459,7 +334,7 @@ class CmmMachine(MachineSide):
             self._lose(f"{self._suspect}; then {why}" if self._suspect else why, gone)
             return
         if gone:
-            self.drop_line(why)
+            self.link.drop(why)
         self._backoff = min(self._backoff * 2, self.reprobe_max)
         self._next_probe = time.monotonic() + self._backoff
         self.log.info("the CMM still does not answer (%s): next try in %.1fs", why, self._backoff)
@@ -468,11 +343,11 @@ class CmmMachine(MachineSide):
         """The CMM is lost: the WC told, probes from now on with backoff (the line closed if `gone`)."""
         self._suspect, self._probe_deadline = None, None
         if gone:
-            self.drop_line(why)
+            self.link.drop(why)
         self._backoff = self.reprobe_min
         self._next_probe = time.monotonic() + self._backoff
         self.device_lost(why)
 
     def close(self) -> None:
-        if self._ser is not None:
-            self.drop_line("the ME is stopping")
+        if self.link.is_open:
+            self.link.drop("the ME is stopping")

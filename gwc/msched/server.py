@@ -61,7 +61,7 @@ class Msched(Module):
         # How long an entity has to acknowledge a Machine_Req_Comp: the bus's whole retry window and then some.
         self.ack_timeout = float(opts.get("ack_timeout", cfg.bus.retry_deadline + cfg.bus.reply_timeout))
         self.sweep_s = float(opts.get("sweep_s", DEFAULT_SWEEP_S))
-        self.steps = StepWorker(self, self.policy, log, self._dispatch)
+        self.steps = StepWorker(self.database, self.policy, log, self._dispatch)
         self._waiters: dict[str, asyncio.Future[Outcome]] = {}  # MACH_REQ conversation id -> its outcome
         self._acks: dict[int, asyncio.Future[None]] = {}  # request_key -> done when its Comp is acknowledged
         self._stopping = False
@@ -92,11 +92,6 @@ class Msched(Module):
             conn.close()
             raise SchedulerLocked("another MSCHED holds the scheduler lock in this database")
         conn.commit()
-
-    def db(self) -> psycopg.Connection:
-        """The connection; in the step thread the one the step was given, never a new one: connecting
-        (and noticing an outage) is the event loop's (gwc.msched.worker)."""
-        return self.steps.step_connection() if self.steps.in_step() else super().db()
 
     def transaction(self, fn: Callable[[psycopg.Cursor[Any]], T]) -> T:
         """Module.transaction, one user of the connection at a time: the step thread or the event loop."""

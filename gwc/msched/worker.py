@@ -11,25 +11,29 @@ for the database on the loop itself, nothing was acknowledged, and under load a 
 bus's `ack_timeout` (20 ms) made its peers retransmit to MSCHED (at 10,000 queued on a loaded
 machine, about seven datagrams in ten were retransmissions: docs/performance.md, *The scheduler*).
 
-The module's one database connection is shared by the step thread and the event loop (the sweep's
-look at the queue, the database watch): `Msched.transaction` lets one of them use it at a time,
-and the step thread never makes a connection (that is the loop's, where an outage is noticed and
-reconnected).
+The module's one database connection (gwc.moduledb.ModuleDatabase) is shared by the step thread
+and the event loop (the sweep's look at the queue, the start): `Msched.transaction` lets one of them
+use it at a time; the database watch (`ModuleDatabase.probe`) sees a step in flight as the database
+used now. The step thread never makes a connection: that is the loop's, where an outage is noticed
+and reconnected.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, Protocol, TypeVar
+from typing import Any, TypeVar
 
 import psycopg
 
+from gwc import db
 from gwc.errors import DatabaseUnavailable
 from gwc.log import TRACE
+from gwc.moduledb import ModuleDatabase
 from gwc.msched import store
 from gwc.msched.policy import Policy
 from gwc.msched.store import Outcome, Step
@@ -45,27 +49,18 @@ Op = Callable[[Step], Any]
 T = TypeVar("T")
 
 
-class Database(Protocol):
-    """What the worker needs of its module: its connection, and a transaction on it."""
-
-    def db(self) -> psycopg.Connection: ...
-
-    def transaction(self, fn: Callable[[psycopg.Cursor[Any]], T]) -> T: ...
-
-
 class StepWorker:
     """Gathers the changes of conversations and runs them as steps; hands each step's outcomes on."""
 
     def __init__(
-        self, module: Database, policy: Policy, log: logging.Logger, tell: Callable[[list[Outcome]], None]
+        self, database: ModuleDatabase, policy: Policy, log: logging.Logger, tell: Callable[[list[Outcome]], None]
     ) -> None:
-        self.module = module
+        self.database = database  # the module's connection and its outages
         self.policy = policy
         self.log = log
         self.tell = tell  # called on the event loop with the outcomes of each committed step
         self.lock = threading.Lock()  # one user of the module's connection at a time
         self.step_conn: psycopg.Connection | None = None  # the connection the running step uses
-        self._thread: int | None = None  # the running step's thread
         self._ops: list[tuple[Op, asyncio.Future[Any] | None]] = []
         # Unreserve_Me and acknowledged outcomes of one step go to the database as one statement each.
         self._frees: list[tuple[int, str | None, asyncio.Future[list[str]]]] = []
@@ -101,10 +96,6 @@ class StepWorker:
     def busy(self) -> bool:
         """A step is running or waiting to run."""
         return self.lock.locked() or bool(self._ops or self._frees)
-
-    def in_step(self) -> bool:
-        """Whether the caller is the running step's thread."""
-        return self._thread is not None and threading.get_ident() == self._thread
 
     def step_connection(self) -> psycopg.Connection:
         """The running step's connection; lost, the step fails DatabaseUnavailable (the loop reconnects)."""
@@ -157,7 +148,7 @@ class StepWorker:
         connection lost during the step is made again here once and the step run again (as
         gwc.db.transaction does on the loop), else DatabaseUnavailable."""
         for attempt in (1, 2):
-            self.step_conn = self.module.db()
+            self.step_conn = self.database.connection()
             try:
                 return await asyncio.to_thread(self._in_thread, ops)
             except DatabaseUnavailable:
@@ -168,11 +159,16 @@ class StepWorker:
         raise AssertionError("unreachable")
 
     def _in_thread(self, ops: list[Op]) -> tuple[list[Any], list[Outcome]]:
-        self._thread = threading.get_ident()
-        try:
-            return self.module.transaction(lambda cur: store.run_step(cur, self.policy, ops))
-        finally:
-            self._thread = None
+        with self.lock:
+            # In flight, the step is the database used now: the watch (ModuleDatabase.probe) leaves
+            # the connection alone until it is done.
+            self.database.used = math.inf
+            try:
+                return db.transaction(
+                    self.step_connection, lambda cur: store.run_step(cur, self.policy, ops), log=self.log
+                )
+            finally:
+                self.database.used = time.monotonic()
 
     async def _run(self, ops: list[tuple[Op, asyncio.Future[Any] | None]]) -> None:
         """One step for all ops, then tell. A batch that fails is run again op by op."""

@@ -5,7 +5,7 @@ ALARM_CLE, CELL_EVENT, LOT_MOVED) and from the tables it reads as role gwc_opcua
 it write at once what the broadcast says and re-read what it touches, and every `refresh` seconds
 it re-reads everything, so a missed broadcast, or a gateway restarted mid-way, is put right.
 
-Methods hold the same conversations the `gwc` command holds (ME_START, ME_SHUT, ALARM_CLR_REQ,
+Methods (gwc/opcua/methods.py) hold the same conversations the `gwc` command holds (ME_START, ME_SHUT, ALARM_CLR_REQ,
 IMPORT_LOT, EXPORT_LOT, CANCEL_RE; a work order, a machine's unreserve (UNRESERVE) and its
 maintenance (MAINT_DONE) are done by the HI's own client code) and answer with the cell's ack code
 as an OPC UA status (docs/opcua.md, Methods).
@@ -14,44 +14,39 @@ as an OPC UA status (docs/opcua.md, Methods).
 from __future__ import annotations
 
 import asyncio
-import copy
 import functools
 import importlib.metadata
 import json
 import logging
-import re
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from asyncua import ua
-from asyncua.server.event_generator import EventGenerator
 
-from gwc.cell import hi_bus
 from gwc.config import Config
 from gwc.errors import ConversationTimeout, GwcError
 from gwc.ipc.bus import Conversation
-from gwc.ipc.catalogue import Message, message
+from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module, module_name
 from gwc.opcua import model, record, security, store
-from gwc.opcua.answers import OUT, result
+from gwc.opcua.answers import OUT
+from gwc.opcua.conditions import AlarmConditions
 from gwc.opcua.door import OpcuaDoor
 from gwc.opcua.hi_methods import MAINTENANCE_OUT, UNRESERVE_ARGS, UNRESERVE_OUT, HiMethods
+from gwc.opcua.methods import PRIORITIES, CellMethods
 from gwc.opcua.settings import load_settings
 from gwc.opcua.space import (
-    ALARM,
     ENTITY,
     LAST_RUN,
     LOT,
     MACHINE,
     STATUS_LINE,
     Space,
-    check_arguments,
     machinery_state,
     nid,
     operation_mode,
@@ -60,30 +55,8 @@ from gwc.opcua.space import (
 V = ua.VariantType
 S = ua.StatusCodes
 LISTENS = (Conv.UPD_ME_ST, Conv.RUN_COMPL, Conv.ALARM_CLE, Conv.CELL_EVENT, Conv.LOT_MOVED)
-SEVERITY = {"note": 200, "warning": 500, "error": 800}  # OPC UA event severity, 1..1000
-# asyncua serves one client connection's requests one after the other, and asyncua's client gives up
-# a connection whose server does not answer its probe within 1 s: a method must not hold its client
-# longer than this for a machine to finish starting or stopping (a CMM waits to be homed).
-COMPLETE_WAIT = 0.5
 MethodResult = Awaitable[ua.CallMethodResult]
 READ_DRAIN = 5.0  # s the shutdown waits for a read of the tables in progress
-PRIORITIES = (1, 1000)  # a work order's priority (0: the cell's default, 20)
-# Part 9's methods of a condition, as asyncua's standard address space numbers them.
-ACKNOWLEDGE = ua.ObjectIds.AcknowledgeableConditionType_Acknowledge
-CONFIRM = ua.ObjectIds.AcknowledgeableConditionType_Confirm
-CONDITION_ARGS = [("EventId", V.ByteString, "the event"), ("Comment", V.LocalizedText, "a comment")]
-
-
-@dataclass
-class Condition:
-    """A pending alarm as an OPC UA condition (Part 9): the cell raises and clears it; a client may
-    acknowledge and then confirm it, which changes nothing in the cell."""
-
-    row: dict[str, Any]
-    acked: bool = False
-    confirmed: bool = False
-    comment: str = ""
-    event_ids: set[bytes] = field(default_factory=set)  # the events told of it: an Acknowledge names one
 
 
 def build_info() -> tuple[str, str, datetime]:
@@ -112,14 +85,12 @@ class Gateway(Module):
         self.space: Space | None = None
         self.companion: model.Companion | None = None
         self.types: model.CellTypes | None = None
-        self.alarms: dict[int, Condition] = {}  # pending alarms, as raised to OPC UA clients
+        self.conditions: AlarmConditions | None = None  # pending alarms, as raised to OPC UA clients
         self.lots: set[int] = set()  # lots in the address space
         self.entities: dict[int, int] = {}  # entity -> lot, as in the address space
-        self._alarm_events: EventGenerator | None = None
-        self._alarm_template: Any = None
-        self._event_lock = asyncio.Lock()
-        self.hi = HiMethods(cfg, log, self._converse, self._by())
         self.door = OpcuaDoor(cfg, log)  # cell users, the role table, the audit trail (docs/users.md)
+        self.methods = CellMethods(cfg, log, self.bus, self.settings.method_timeout, self.door)
+        self.hi = HiMethods(cfg, log, self.methods.converse, self.methods.by, self.methods.lock)
         self._dirty: set[str] = set()
         self._wake = asyncio.Event()
         self._heard: dict[str, int] = dict.fromkeys(self.machine_ids, 0)  # UPD_ME_ST heard per machine
@@ -213,8 +184,8 @@ class Gateway(Module):
         await sp.folder(cell, "lots", "Lots")
         await sp.folder(cell, "alarms", "Alarms")
         machine_methods = [
-            model.MachineMethod("Start", self.start_machine, [], OUT),
-            model.MachineMethod("Stop", self.stop_machine, [], OUT),
+            model.MachineMethod("Start", self.methods.start_machine, [], OUT),
+            model.MachineMethod("Stop", self.methods.stop_machine, [], OUT),
             model.MachineMethod("Unreserve", self.hi.unreserve, UNRESERVE_ARGS, UNRESERVE_OUT),
             model.MachineMethod("MaintenanceDone", self.hi.maintenance_done, [], MAINTENANCE_OUT),
         ]
@@ -232,7 +203,7 @@ class Gateway(Module):
             cell,
             "cell/EnterWorkOrder",
             "EnterWorkOrder",
-            self.enter_work_order,
+            self.methods.enter_work_order,
             [
                 ("customer", V.String, "customer id (gwc customer list)"),
                 ("items", V.String, "PRODUCT=QTY items, separated by spaces or commas"),
@@ -241,13 +212,13 @@ class Gateway(Module):
             [*OUT, ("work_order_id", V.Int64, "the new work order")],
         )
         entity = [("entity_id", V.Int64, "the lot entity (1 or more)")]
-        await sp.method(cell, "cell/ImportLot", "ImportLot", self.import_lot, entity, OUT)
-        await sp.method(cell, "cell/ExportLot", "ExportLot", self.export_lot, entity, OUT)
+        await sp.method(cell, "cell/ImportLot", "ImportLot", self.methods.import_lot, entity, OUT)
+        await sp.method(cell, "cell/ExportLot", "ExportLot", self.methods.export_lot, entity, OUT)
         await sp.method(
             cell,
             "cell/CancelRequest",
             "CancelRequest",
-            self.cancel_request,
+            self.methods.cancel_request,
             [("request_key", V.Int64, "the machine request (gwc requests; 1 or more)")],
             OUT,
         )
@@ -255,18 +226,13 @@ class Gateway(Module):
             cell,
             "cell/ClearAlarm",
             "ClearAlarm",
-            self.clear_alarm,
+            self.methods.clear_alarm,
             [("alarm_no", V.Int64, "the alarm (1 or more): clearing HOME_CMM homes and starts the CMM")],
             OUT,
         )
         # Alarms are AlarmConditionType events emitted by the Server object (where clients subscribe
         # to events); each is a condition whose ConditionId is its node under Alarms.
-        self._alarm_events = await self.server.get_event_generator(ua.ObjectIds.AlarmConditionType, ua.ObjectIds.Server)
-        self._alarm_template = copy.copy(self._alarm_events.event)
-        self._alarm_template.add_property("ConfirmedState", None, V.LocalizedText)
-        self._alarm_template.add_property("ConfirmedState/Id", None, V.Boolean)
-        self.server.link_method(self.server.get_node(ACKNOWLEDGE), self.acknowledge)
-        self.server.link_method(self.server.get_node(CONFIRM), self.confirm)
+        self.conditions = await AlarmConditions.serve(self.server, sp, types, self.machine_ids, self.log)
 
     # ----------------------------------------------------------------- what the gateway hears
 
@@ -285,7 +251,8 @@ class Gateway(Module):
             self._poke("machines", "status_line")
         elif conv.cls == Conv.ALARM_CLE:
             self._cleared += 1
-            await self._alarm_cleared(int(msg.alarm_no), f"cleared by {msg.cleared_by}")
+            if self.conditions is not None:
+                await self.conditions.cleared(int(msg.alarm_no), f"cleared by {msg.cleared_by}")
             self._poke("alarms", "status_line")
         elif conv.cls == Conv.RUN_COMPL:
             self._poke("machines", "status_line")
@@ -379,62 +346,8 @@ class Gateway(Module):
         if cleared != self._cleared:  # an ALARM_CLE came while we read
             self._poke("alarms")
             return
-        pending = {int(r["alarm_no"]): r for r in rows}
-        for no in [n for n in self.alarms if n not in pending]:
-            await self._alarm_cleared(no, "cleared")
-        for no, row in pending.items():
-            if no not in self.alarms:
-                await self._alarm_raised(row)
-
-    async def _alarm_raised(self, row: dict[str, Any]) -> None:
-        sp, types = self.space, self.types
-        assert sp is not None and types is not None
-        no = int(row["alarm_no"])
-        condition = self.alarms[no] = Condition(row)
-        await sp.object(sp.nodeid("alarms"), f"alarms/{no}", f"alarm_{no}", ALARM, types.alarm, ua.ObjectIds.Organizes)
-        await sp.set_all(f"alarms/{no}", row, ALARM, row["raised_at"])
-        await self._alarm_event(condition, active=True, text=row["alarm_text"], at=row["raised_at"])
-        self.log.info("alarm %d %s raised to OPC UA clients", no, row["alarm_id"])
-
-    async def _alarm_cleared(self, alarm_no: int, how: str) -> None:
-        condition = self.alarms.pop(alarm_no, None)
-        if condition is None or self.space is None:
-            return
-        row = condition.row
-        # The cell's clearing is the operator's act on the alarm itself: acknowledged and confirmed.
-        condition.acked = condition.confirmed = True
-        await self._alarm_event(condition, active=False, text=f"{row['alarm_text']} ({how})", at=datetime.now(UTC))
-        await self.space.remove(f"alarms/{alarm_no}")
-        self.log.info("alarm %d %s %s: told OPC UA clients", alarm_no, row["alarm_id"], how)
-
-    async def _alarm_event(self, condition: Condition, active: bool, text: str, at: datetime) -> None:
-        """One AlarmConditionType event. Retained (ConditionRefresh sends it again) while the alarm is
-        active, or not yet acknowledged or confirmed; a cleared alarm is inactive, acknowledged and
-        confirmed (the cell clears it as one act) and no longer retained."""
-        sp = self.space
-        assert sp is not None and self._alarm_events is not None
-        row = condition.row
-        machine = row["machine_id"]
-        ev = copy.copy(self._alarm_template)
-        ev.SourceNode = sp.nodeid(f"machines/{machine}" if machine in self._heard else "cell")
-        ev.SourceName = machine or "cell"
-        ev.NodeId = sp.nodeid(f"alarms/{row['alarm_no']}")
-        ev.ConditionName = row["alarm_id"] or "unknown"
-        ev.Severity = SEVERITY.get(row["severity"], 500)
-        ev.Retain = active or not condition.acked or not condition.confirmed
-        ev.Comment = ua.LocalizedText(condition.comment) if condition.comment else None
-        for state, on, (yes, no) in (
-            ("EnabledState", True, ("Enabled", "Disabled")),
-            ("ActiveState", active, ("Active", "Inactive")),
-            ("AckedState", condition.acked, ("Acknowledged", "Unacknowledged")),
-            ("ConfirmedState", condition.confirmed, ("Confirmed", "Unconfirmed")),
-        ):
-            setattr(ev, state, ua.LocalizedText(yes if on else no))
-            setattr(ev, f"{state}/Id", on)
-        async with self._event_lock:  # the generator holds one event at a time
-            self._alarm_events.event = ev
-            await self._alarm_events.trigger(at, text)
-            condition.event_ids.add(ev.EventId.Value)
+        assert self.conditions is not None
+        await self.conditions.refresh(rows)
 
     async def _refresh_lots(self) -> None:
         sp, types = self.space, self.types
@@ -476,187 +389,3 @@ class Gateway(Module):
         line = batch.first
         # Every field of the line is written: one the server leaves out is Null, not the last value.
         await sp.set_all("cell", {k: line.fields.get(k) for k in STATUS_LINE}, STATUS_LINE)
-
-    # ----------------------------------------------------------------- methods
-
-    async def _converse(self, what: str, call: Callable[[], Awaitable[ua.CallMethodResult]]) -> ua.CallMethodResult:
-        """Run one method's conversation; a silent module or a refusal becomes a status, logged."""
-        try:
-            out = await call()
-        except ConversationTimeout as e:
-            out = result(AckCode.TIMEOUT, str(e))
-        except GwcError as e:
-            out = result(AckCode.BAD_MESSAGE, str(e))
-        await self.door.done(out)
-        code = out.OutputArguments[0].Value if out.OutputArguments else out.StatusCode.name
-        self.log.info(
-            "OPC UA method %s: %s %s", what, code, out.OutputArguments[1].Value if out.OutputArguments else ""
-        )
-        return out
-
-    async def _ask(self, cls: str, first: Message, to: str) -> ua.CallMethodResult:
-        answer = await self.ask(cls, first, to, timeout=self.settings.method_timeout)
-        return result(answer.ack_code, answer.fields.get("note") or "")
-
-    async def _machine_conversation(
-        self, machine: str, cls: str, opener: str, done: tuple[str, ...]
-    ) -> ua.CallMethodResult:
-        """ME_START / ME_SHUT with a machine's WC, as `gwc machine start|stop` holds it. A machine that
-        takes longer than COMPLETE_WAIT (a CMM waiting to be homed, a run to finish first) answers
-        GoodCompletesAsynchronously: the change will show in its status."""
-        wc = module_name("wc", machine)
-        if wc not in self.bus.peers():
-            return result(AckCode.NOTNOW, f"{wc} is not on the bus: start its processes (gwc machine start {machine})")
-        conv, batch = await self.bus.request(
-            cls, message(opener, module=wc), to=wc, timeout=self.settings.method_timeout
-        )
-        try:
-            ack = batch.first
-            if ack.ack_code == AckCode.NOTNOW:
-                return result(AckCode.ACK_OK, ack.note or "nothing to do")
-            if ack.ack_code != AckCode.ACK_OK:
-                return result(ack.ack_code, ack.note or "")
-            try:
-                async with asyncio.timeout(COMPLETE_WAIT):  # not a failure: the status will tell the end
-                    while (end := (await conv.next_message()).first).name not in done:
-                        pass
-            except TimeoutError:
-                return result(S.GoodCompletesAsynchronously, f"{wc} accepted {cls}; not finished yet")
-            return result(end.ack_code, end.fields.get("note") or "")
-        finally:
-            conv.end()
-
-    async def start_machine(self, machine: str) -> ua.CallMethodResult:
-        return await self._converse(
-            f"Start {machine}",
-            lambda: self._machine_conversation(
-                machine, Conv.ME_START, Msg.STARTUP_REQUEST, (Msg.STARTUP_COMPLETE, Msg.ME_READY)
-            ),
-        )
-
-    async def stop_machine(self, machine: str) -> ua.CallMethodResult:
-        return await self._converse(
-            f"Stop {machine}",
-            lambda: self._machine_conversation(
-                machine, Conv.ME_SHUT, Msg.SHUTDOWN_REQUEST, (Msg.SHUTDOWN_COMPLETE, Msg.ME_STOPPED)
-            ),
-        )
-
-    def _by(self) -> str:
-        return f"opcua:{self.cfg.cell_name}"
-
-    async def clear_alarm(self, alarm_no: int) -> ua.CallMethodResult:
-        """The operator's explicit clearing of an alarm (`gwc alarm clear`): for HOME_CMM it homes and
-        starts the CMM. Never done by an Acknowledge."""
-        if alarm_no < 1:
-            return result(S.BadInvalidArgument, f"alarm_no {alarm_no}: alarm numbers are 1 or more")
-        return await self._converse(
-            f"ClearAlarm({alarm_no})",
-            lambda: self._ask(
-                Conv.ALARM_CLR_REQ,
-                message(Msg.ALARM_CLEAR_REQUEST, alarm_no=alarm_no, cleared_by=self._by()),
-                "cas",
-            ),
-        )
-
-    def _condition(self, object_id: ua.NodeId, given: tuple[ua.Variant, ...]) -> tuple[Condition | None, Any]:
-        """The condition an Acknowledge or Confirm names, or the refusal (a CallMethodResult)."""
-        refused = check_arguments(given, CONDITION_ARGS)
-        if refused is not None:
-            return None, refused
-        path = self.space.path_of(object_id) if self.space else None
-        m = re.fullmatch(r"alarms/(\d+)", path or "")
-        condition = self.alarms.get(int(m.group(1))) if m else None
-        if condition is None:
-            return None, result(S.BadNodeIdUnknown, f"{object_id.to_string()} is not a pending alarm of the cell")
-        if given[0].Value not in condition.event_ids:
-            return None, result(S.BadEventIdUnknown, "no event of this condition has that EventId")
-        return condition, None
-
-    async def acknowledge(self, object_id: ua.NodeId, *given: ua.Variant) -> ua.CallMethodResult:
-        """Part 9 Acknowledge: the condition is acknowledged, nothing else. The cell's alarm stays
-        pending (clearing HOME_CMM would start the CMM: that is ClearAlarm's, an explicit act)."""
-        condition, refused = self._condition(object_id, given)
-        if condition is None:
-            self.log.warning("OPC UA Acknowledge of %s refused: %s", object_id.to_string(), refused.StatusCode.name)
-            out: ua.CallMethodResult = refused
-            return out
-        if condition.acked:
-            return result(S.BadConditionBranchAlreadyAcked, "the alarm is acknowledged already")
-        condition.acked = True
-        condition.comment = given[1].Value.Text or ""
-        no = condition.row["alarm_no"]
-        self.log.info(
-            "alarm %s %s acknowledged by an OPC UA client: %s", no, condition.row["alarm_id"], condition.comment
-        )
-        await self._alarm_event(condition, True, f"{condition.row['alarm_text']} (acknowledged)", datetime.now(UTC))
-        return result(AckCode.ACK_OK, f"alarm {no} acknowledged; it stays pending until cleared (ClearAlarm)")
-
-    async def confirm(self, object_id: ua.NodeId, *given: ua.Variant) -> ua.CallMethodResult:
-        """Part 9 Confirm: after an Acknowledge, the operator confirms the alarm was seen to."""
-        condition, refused = self._condition(object_id, given)
-        if condition is None:
-            out: ua.CallMethodResult = refused
-            return out
-        if not condition.acked:
-            return result(S.BadConditionBranchAlreadyConfirmed, "acknowledge the alarm before confirming it")
-        if condition.confirmed:
-            return result(S.BadConditionBranchAlreadyConfirmed, "the alarm is confirmed already")
-        condition.confirmed = True
-        condition.comment = given[1].Value.Text or ""
-        await self._alarm_event(condition, True, f"{condition.row['alarm_text']} (confirmed)", datetime.now(UTC))
-        return result(AckCode.ACK_OK, f"alarm {condition.row['alarm_no']} confirmed")
-
-    async def _decide(self, action: str, entity_id: int) -> ua.CallMethodResult:
-        if entity_id < 1:
-            return result(S.BadInvalidArgument, f"entity_id {entity_id}: entities are 1 or more")
-        cls = Conv.IMPORT_LOT if action == "import" else Conv.EXPORT_LOT
-        first = message(Msg.LOT_DECISION, entity_id=entity_id, action=action, by=self._by())
-        return await self._converse(f"{action} entity {entity_id}", lambda: self._ask(cls, first, "ls"))
-
-    async def import_lot(self, entity_id: int) -> ua.CallMethodResult:
-        return await self._decide("import", entity_id)
-
-    async def export_lot(self, entity_id: int) -> ua.CallMethodResult:
-        return await self._decide("export", entity_id)
-
-    async def cancel_request(self, request_key: int) -> ua.CallMethodResult:
-        if request_key < 1:
-            return result(S.BadInvalidArgument, f"request_key {request_key}: request keys are 1 or more")
-        first = message(Msg.CANCEL_REQUEST, request_key=request_key, by=self._by())
-        return await self._converse(f"CancelRequest({request_key})", lambda: self._ask(Conv.CANCEL_RE, first, "msched"))
-
-    async def enter_work_order(self, customer: str | None, items: str | None, priority: int) -> ua.CallMethodResult:
-        """Work Order Entry by the HI's own code (it writes WORK_ORDERS as the HI, the table's owner,
-        asks the Lot Server for the lots and starts their lot scripts), in a thread: it is blocking.
-        Everything that can be checked is checked before anything is written."""
-        from gwc.client.orders import enter_order, parse_items
-
-        if not (customer or "").strip():
-            return result(S.BadInvalidArgument, "customer: a customer id is needed (gwc customer list)")
-        if priority != 0 and not PRIORITIES[0] <= priority <= PRIORITIES[1]:
-            return result(
-                S.BadInvalidArgument, f"priority {priority}: 0 (the default) or {PRIORITIES[0]}..{PRIORITIES[1]}"
-            )
-        try:
-            parsed = parse_items(tuple(i for i in re.split(r"[\s,]+", (items or "").strip()) if i))
-        except GwcError as e:
-            return result(S.BadInvalidArgument, str(e))
-        cust = str(customer).strip()
-
-        async def enter() -> ua.CallMethodResult:
-            def run() -> dict[str, Any]:
-                with hi_bus(self.cfg, self.log) as bus:
-                    return enter_order(self.cfg, self.log, bus, cust, parsed, priority=priority or None)
-
-            async with self.hi.lock:  # one HI bus attachment (hi.<pid>) at a time
-                made = await asyncio.to_thread(run)
-            note = "; ".join(
-                f"lot {lot['lot_id']}: {lot['quantity']} x {lot['product_id']} (entities "
-                + ", ".join(map(str, lot["entities"]))
-                + ")"
-                for lot in made["lots"]
-            )
-            return result(AckCode.ACK_OK, note, ua.Variant(made["work_order_id"], V.Int64))
-
-        return await self._converse(f"EnterWorkOrder({cust}, {items})", enter)

@@ -29,12 +29,14 @@ Converse = Callable[[str, Callable[[], Awaitable[ua.CallMethodResult]]], Awaitab
 
 
 class HiMethods:
-    def __init__(self, cfg: Config, log: logging.Logger, converse: Converse, by: str) -> None:
+    def __init__(
+        self, cfg: Config, log: logging.Logger, converse: Converse, by: str, lock: asyncio.Lock | None = None
+    ) -> None:
         self.cfg = cfg
         self.log = log
         self.converse = converse
         self.by = by  # who acted, as the cell records it
-        self.lock = asyncio.Lock()
+        self.lock = lock or asyncio.Lock()  # shared with the gateway's Work Order Entry
 
     async def _call(
         self, what: str, act: Callable[[BlockingBus], ua.CallMethodResult], refused: str

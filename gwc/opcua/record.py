@@ -50,9 +50,9 @@ async def build(gw: Gateway, node: ua.NodeId, machine_id: str, out: list[tuple[s
     await sp.set(f"{path}/Monitoring/DowntimeOpen", False)
 
     async def set_reason(reason: str) -> ua.CallMethodResult:
-        first = message(Msg.DOWNTIME_REASON, machine_id=machine_id, reason=reason, by=gw._by())
-        return await gw._converse(
-            f"SetDowntimeReason({machine_id}, {reason})", lambda: gw._ask(Conv.DOWNTIME_RSN, first, "ms")
+        first = message(Msg.DOWNTIME_REASON, machine_id=machine_id, reason=reason, by=gw.methods.by)
+        return await gw.methods.converse(
+            f"SetDowntimeReason({machine_id}, {reason})", lambda: gw.methods.ask(Conv.DOWNTIME_RSN, first, "ms")
         )
 
     await sp.method(

@@ -27,6 +27,7 @@ from gwc.quality.feedback import feed_forward, next_offset
 from gwc.quality.sheet import RunSheet
 from gwc.quality.spc import settings as spc_settings
 from gwc.quality.store import Reader
+from gwc.retry import Deadline
 
 WORN_WAIT = 15.0  # s: how long a worn tool's machine is given to go down after TOOL_CHANGE
 
@@ -188,8 +189,8 @@ class Quality:
         text = f"{machine_id} tool worn out (recipe {recipe_id}): " + "; ".join(why)
         if not store.pending_alarm(self.read, machine_id, "TOOL_CHANGE"):
             self.entity.raise_alarm("TOOL_CHANGE", machine_id, text)
-        deadline = time.monotonic() + WORN_WAIT  # the Cell Alarm Server shuts it down: ask again once it has
-        while time.monotonic() < deadline:
+        deadline = Deadline(WORN_WAIT)  # the Cell Alarm Server shuts it down: ask again once it has
+        while not deadline.expired:
             rows = self.read("SELECT status FROM machine_status WHERE machine_id = %s", (machine_id,))
             if rows and rows[0][0] == "Shutdown":
                 break

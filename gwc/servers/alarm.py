@@ -26,16 +26,15 @@ import contextlib
 import logging
 import os
 import time
-from typing import Any
 
-from gwc import db
 from gwc.config import Config
-from gwc.errors import GwcError
+from gwc.errors import GwcError, Refused
 from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import DATABASE_OUTAGE_S, Handler, Module
+from gwc.servers import alarm_store
 from gwc.servers.common import NOT_LOTS, SERVER_TIMEOUT, Server
 
 ACTIONS = ("shutdown", "page")  # what an alarm's description may ask of the CAS (060_thesis.sql)
@@ -67,10 +66,7 @@ class AlarmServer(Server, Module):
         }
 
     async def on_startup(self) -> str:
-        def pending(cur: Any) -> int:
-            return int(cur.execute("select count(*) from alarms where cleared_at is null").fetchone()[0])
-
-        n = self.transaction(pending)
+        n = self.transaction(alarm_store.pending())
         self.log.info("%d alarm(s) pending from before", n)
         return AckCode.ACK_OK
 
@@ -78,12 +74,10 @@ class AlarmServer(Server, Module):
         """ALARM_SEND: record the alarm (known or not), answer its number, tell the status line."""
         req = self.request(conv)
         if not req.alarm_id.strip() or not req.raised_by.strip():
-            return await self.answer(conv, Msg.ALARM_ACK, AckCode.BAD_MESSAGE, "alarm_id and raised_by must be given")
+            raise Refused(AckCode.BAD_MESSAGE, "alarm_id and raised_by must be given")
         if conv.initiator.startswith("lot:") and (req.alarm_id not in LOT_ALARMS or req.raised_by != conv.initiator):
             # A lot script raises quality's alarms only, in its own name (docs/quality.md).
-            return await self.answer(
-                conv, Msg.ALARM_ACK, AckCode.NOT_AUTH, f"a lot raises only {', '.join(LOT_ALARMS)}, in its own name"
-            )
+            raise Refused(AckCode.NOT_AUTH, f"a lot raises only {', '.join(LOT_ALARMS)}, in its own name")
 
         no, known = await self.record(req.alarm_id, req.alarm_text, req.machine_id, req.raised_by)
         await self.answer(conv, Msg.ALARM_ACK, AckCode.ACK_OK, alarm_no=no, known=known)
@@ -91,28 +85,15 @@ class AlarmServer(Server, Module):
     async def record(self, alarm_id: str, text: str | None, machine_id: str | None, raised_by: str) -> tuple[int, bool]:
         """Record an alarm (known or not) and tell the status line; its number, and whether it is known."""
 
-        def insert(cur: Any) -> tuple[int, bool, str, list[str]]:
-            row = cur.execute(
-                "select alarm_text, actions from alarm_description where alarm_id = %s", (alarm_id,)
-            ).fetchone()
-            known = row is not None
-            full = text or (row[0] if known else f"unknown alarm {alarm_id}")
-            no = db.get_new_max_value(cur, "ALARM_NO")
-            cur.execute(
-                "insert into alarms (alarm_no, alarm_id, known, machine_id, alarm_text, raised_by) "
-                "values (%s, %s, %s, %s, %s, %s)",
-                (no, alarm_id, known, machine_id, full, raised_by),
-            )
-            return no, known, full, list(row[1]) if known else []
-
-        no, known, full, actions = self.transaction(insert)
+        got = self.transaction(lambda cur: alarm_store.record(cur, alarm_id, text, machine_id, raised_by))
+        no, known, full = got.alarm_no, got.known, got.text
         if known:
             self.log.info("alarm %d %s from %s pending: %s", no, alarm_id, raised_by, full)
         else:
             self.log.warning("alarm %d %s from %s is not in ALARM_DESCRIPTION: %s", no, alarm_id, raised_by, full)
         await self.event(f"alarm {no} {alarm_id}{'' if known else ' (unknown)'}: {full}")
-        if actions:  # after the answer: the raiser (a WC in a step) is not held up by a shutdown
-            self.spawn(self.act(no, alarm_id, machine_id, full, actions))
+        if got.actions:  # after the answer: the raiser (a WC in a step) is not held up by a shutdown
+            self.spawn(self.act(no, alarm_id, machine_id, full, list(got.actions)))
         return no, known
 
     # ----------------------------------------------------------------- the alarm's actions (1.4.5)
@@ -130,10 +111,7 @@ class AlarmServer(Server, Module):
             self.log.warning("alarm %d %s: %s", no, alarm_id, outcome)
             done.append(outcome)
         taken = "; ".join(done)
-        await self.transaction_when_up(
-            db.Statement("update alarms set actions_taken = %s where alarm_no = %s", (taken, no), None),
-            within=DATABASE_OUTAGE_S,
-        )
+        await self.transaction_when_up(alarm_store.actions_taken(no, taken), within=DATABASE_OUTAGE_S)
 
     async def _shut_down(self, machine_id: str | None) -> str:
         """ME_SHUT to the machine's WC, as `gwc machine stop` does."""
@@ -190,37 +168,23 @@ class AlarmServer(Server, Module):
     async def alarm_describe(self, conv: Conversation) -> None:
         """ALARM_DESC: the operator adds or changes an alarm's description: text, severity, actions."""
         req = self.request(conv)
-        ack = Msg.ALARM_CLEAR_ACK
         actions = None if req.actions is None else [str(a) for a in req.actions]
         wrong = [a for a in actions or [] if a not in ACTIONS]
         if not req.alarm_id.strip() or wrong or (req.severity is not None and req.severity not in SEVERITIES):
             why = f"unknown action(s) {', '.join(wrong)} (known: {', '.join(ACTIONS)})" if wrong else ""
             why = why or f"an alarm id, and a severity of {', '.join(SEVERITIES)}"
-            return await self.answer(conv, ack, AckCode.BAD_MESSAGE, why)
-
-        def describe(cur: Any) -> str | None:
-            row = cur.execute(
-                "insert into alarm_description (alarm_id, alarm_text, severity, actions) "
-                "values (%(id)s, coalesce(%(text)s, %(id)s), coalesce(%(sev)s, 'warning'), "
-                "coalesce(%(act)s, '{}'::text[])) on conflict (alarm_id) do update set "
-                "alarm_text = coalesce(%(text)s, alarm_description.alarm_text), "
-                "severity = coalesce(%(sev)s, alarm_description.severity), "
-                "actions = coalesce(%(act)s, alarm_description.actions) "
-                "returning alarm_text, severity, actions",
-                {"id": req.alarm_id, "text": req.alarm_text, "sev": req.severity, "act": actions},
-            ).fetchone()
-            return f"{row[0]!r}, {row[1]}, actions {','.join(row[2]) or 'none'}"
-
-        now = self.transaction(describe)
+            raise Refused(AckCode.BAD_MESSAGE, why)
+        got = self.transaction(alarm_store.describe(req.alarm_id, req.alarm_text, req.severity, actions))
+        now = f"{got.alarm_text!r}, {got.severity}, actions {','.join(got.actions) or 'none'}"
         self.log.info("alarm %s described by %s: %s", req.alarm_id, req.by or conv.peer, now)
-        await self.answer(conv, ack, AckCode.ACK_OK, now)
+        await self.answer(conv, Msg.ALARM_CLEAR_ACK, AckCode.ACK_OK, now)
 
     # ----------------------------------------------------------------- the database's own outages
 
     async def on_idle(self) -> None:
         """A database away past the bound is told at once as a cell event (the alarm waits for it)."""
-        if self.started and self.database_down is not None and not self._outage_told:
-            away = time.monotonic() - self.database_down
+        if self.started and self.database.down is not None and not self._outage_told:
+            away = time.monotonic() - self.database.down
             if away >= self.outage_alarm_s:
                 self._outage_told = True
                 self.log.error("the cell database has been away for %.0fs", away)
@@ -239,32 +203,9 @@ class AlarmServer(Server, Module):
         """ALARM_CLR_REQ: the operator clears a pending alarm; ALARM_CLEAR tells whoever waits on it."""
         req = self.request(conv)
         if not req.cleared_by.strip():
-            return await self.answer(conv, Msg.ALARM_CLEAR_ACK, AckCode.BAD_MESSAGE, "cleared_by must be given")
-
-        def clear(cur: Any) -> tuple[Any, ...] | None:
-            row = cur.execute(
-                "select alarm_id, machine_id, cleared_by, cleared_at from alarms where alarm_no = %s for update",
-                (req.alarm_no,),
-            ).fetchone()
-            if row is None or row[3] is not None:
-                return row
-            cur.execute(
-                "update alarms set cleared_by = %s, cleared_at = now() where alarm_no = %s",
-                (req.cleared_by, req.alarm_no),
-            )
-            return row
-
-        row = self.transaction(clear)
-        if row is None:
-            return await self.answer(conv, Msg.ALARM_CLEAR_ACK, AckCode.UNKNOWN, f"no alarm number {req.alarm_no}")
-        alarm_id, machine_id, by, at = row
-        if at is not None:
-            return await self.answer(
-                conv,
-                Msg.ALARM_CLEAR_ACK,
-                AckCode.NOTNOW,
-                f"alarm {req.alarm_no} was already cleared by {by} at {at:%Y-%m-%d %H:%M:%S}",
-            )
+            raise Refused(AckCode.BAD_MESSAGE, "cleared_by must be given")
+        cleared = self.transaction(lambda cur: alarm_store.clear(cur, req.alarm_no, req.cleared_by))
+        alarm_id = cleared.alarm_id
         self.log.info("alarm %d %s cleared by %s", req.alarm_no, alarm_id, req.cleared_by)
         await self.answer(conv, Msg.ALARM_CLEAR_ACK, AckCode.ACK_OK)
         await self.broadcast(
@@ -273,7 +214,7 @@ class AlarmServer(Server, Module):
                 Msg.ALARM_CLEAR,
                 alarm_no=req.alarm_no,
                 alarm_id=alarm_id,
-                machine_id=machine_id,
+                machine_id=cleared.machine_id,
                 cleared_by=req.cleared_by,
             ),
         )

@@ -31,33 +31,40 @@ from gwc.servers import lot_store
 from gwc.servers.common import SERVER_TIMEOUT, Pruner, Server
 from gwc.servers.lot_store import FINISHED, IN_CELL, MAX_QUANTITY, NewLot
 
-L = LotState
 MAX_CHILDREN = 20  # entities one CREATE_LOT of a lot script may make (each is a process)
 RESTART_GRACE = 30.0  # s: a lot script its agent restarts attaches again within this (its start_timeout)
 # ENTITY_REQ action -> (the state it moves the entity to, or None; the states it may come from).
 ACTIONS: dict[str, tuple[LotState | None, frozenset[LotState]]] = {
-    "import": (L.WAITING_IMPORT, frozenset({L.CREATED, L.EXPORTED, L.WAITING_IMPORT})),
-    "export": (L.WAITING_EXPORT, IN_CELL | {L.WAITING_EXPORT}),
-    "waiting_machine": (L.WAITING_MACHINE, frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING, L.HELD})),
-    "running": (L.RUNNING, frozenset({L.IMPORTED, L.WAITING_MACHINE, L.RUNNING, L.HELD})),
+    "import": (LotState.WAITING_IMPORT, frozenset({LotState.CREATED, LotState.EXPORTED, LotState.WAITING_IMPORT})),
+    "export": (LotState.WAITING_EXPORT, IN_CELL | {LotState.WAITING_EXPORT}),
+    "waiting_machine": (
+        LotState.WAITING_MACHINE,
+        frozenset({LotState.IMPORTED, LotState.WAITING_MACHINE, LotState.RUNNING, LotState.HELD}),
+    ),
+    "running": (
+        LotState.RUNNING,
+        frozenset({LotState.IMPORTED, LotState.WAITING_MACHINE, LotState.RUNNING, LotState.HELD}),
+    ),
     # A run in doubt past its bound, the script's decision "hold": the operator releases it (RELEASE_LOT).
-    "held": (L.HELD, frozenset({L.WAITING_MACHINE, L.RUNNING, L.HELD})),
-    "completed": (L.COMPLETED, IN_CELL),
-    "failed": (L.FAILED, frozenset(L) - {L.EXPORTED}),
-    "attach": (None, frozenset(L) - {L.EXPORTED, L.FAILED}),
-    "state": (None, frozenset(L)),
-    "destroy": (None, frozenset({L.CREATED, L.EXPORTED, L.FAILED})),
+    "held": (LotState.HELD, frozenset({LotState.WAITING_MACHINE, LotState.RUNNING, LotState.HELD})),
+    "completed": (LotState.COMPLETED, IN_CELL),
+    "failed": (LotState.FAILED, frozenset(LotState) - {LotState.EXPORTED}),
+    "attach": (None, frozenset(LotState) - {LotState.EXPORTED, LotState.FAILED}),
+    "state": (None, frozenset(LotState)),
+    "destroy": (None, frozenset({LotState.CREATED, LotState.EXPORTED, LotState.FAILED})),
 }
 # The operator's decisions: conversation -> action -> (the states it needs, the state it leaves, in words).
 # An import may come before the entity's script asks for it (created: its script is queued, or has not
 # asked yet): the material is in the cell ahead, and the script finds itself imported when it starts.
-DECISIONS: dict[str, dict[str, tuple[frozenset[L], L, str]]] = {
-    Conv.IMPORT_LOT: {"import": (frozenset({L.WAITING_IMPORT, L.CREATED}), L.IMPORTED, "imported")},
-    Conv.EXPORT_LOT: {"export": (frozenset({L.WAITING_EXPORT}), L.EXPORTED, "exported")},
+DECISIONS: dict[str, dict[str, tuple[frozenset[LotState], LotState, str]]] = {
+    Conv.IMPORT_LOT: {
+        "import": (frozenset({LotState.WAITING_IMPORT, LotState.CREATED}), LotState.IMPORTED, "imported")
+    },
+    Conv.EXPORT_LOT: {"export": (frozenset({LotState.WAITING_EXPORT}), LotState.EXPORTED, "exported")},
     Conv.RELEASE_LOT: {
-        "retry": (frozenset({L.HELD}), L.RUNNING, "released to retry"),
-        "reroute": (frozenset({L.HELD}), L.RUNNING, "released to reroute"),
-        "fail": (frozenset({L.HELD}), L.FAILED, "released as failed"),
+        "retry": (frozenset({LotState.HELD}), LotState.RUNNING, "released to retry"),
+        "reroute": (frozenset({LotState.HELD}), LotState.RUNNING, "released to reroute"),
+        "fail": (frozenset({LotState.HELD}), LotState.FAILED, "released as failed"),
     },
 }
 
@@ -232,7 +239,7 @@ class LotServer(Server, Module):
         # not apply: the step says why) reads first.
         moved = None
         if target is not None and req.action != "destroy":
-            step = lot_store.move(req.entity_id, target, allowed - {target, L.EXPORTED}, req.reason, keep=False)
+            step = lot_store.move(req.entity_id, target, allowed - {target, LotState.EXPORTED}, req.reason, keep=False)
             moved = self.transaction(step)
         if moved is not None:
             done = lot_store.Moved(moved[0], target)
@@ -271,7 +278,7 @@ class LotServer(Server, Module):
         action = req.action
         waiting, moved, done = DECISIONS[conv.cls][action]
         by = req.by or conv.peer
-        reason = f"held run {done} by {by}" if L.HELD in waiting else None
+        reason = f"held run {done} by {by}" if LotState.HELD in waiting else None
 
         # The move, or why not: each one statement, run alone (a refusal's read is a snapshot of its own,
         # as it was in one read-committed step).

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
 
 from gwc.config import Config
 from gwc.errors import DatabaseUnavailable
@@ -21,6 +20,7 @@ from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode
 from gwc.ipc.names import Conv, Msg
 from gwc.module import Handler, Module
+from gwc.servers import status_line_store
 from gwc.servers.common import NOT_LOTS, Server
 
 SHOW = 5  # entity ids named on the line before "..."
@@ -45,6 +45,20 @@ def _describe(cls: str, msg: Message) -> str:
     return str(msg.text)
 
 
+def line(w: status_line_store.Waiting, last_event: str) -> str:
+    """The status line's text: what waits, then the last event heard."""
+    parts = []
+    if w.imports:
+        parts.append(f"IMPORT {len(w.imports)} waiting ({_ids(w.imports)})")
+    if w.exports:
+        parts.append(f"EXPORT {len(w.exports)} waiting ({_ids(w.exports)})")
+    if w.newest is not None:
+        a = w.newest
+        parts.append(f"ALARMS {w.alarms} pending, newest #{a.alarm_no}{'' if a.known else ' (unknown)'}: {a.text}")
+    parts.append(f"LAST {last_event}")
+    return " | ".join(parts)[:500]
+
+
 class StatusLineServer(Server, Module):
     role = "sls"
     ignored_peers = NOT_LOTS
@@ -66,58 +80,23 @@ class StatusLineServer(Server, Module):
     async def heard(self, conv: Conversation) -> None:
         self.last_event = f"{time.strftime('%H:%M:%S')} {_describe(conv.cls, self.request(conv))}"[:200]
 
-    def read(self) -> dict[str, Any]:
-        """What waits for the operator, from the owners' tables."""
-
-        def q(cur: Any) -> dict[str, Any]:
-            waiting = dict(
-                cur.execute(
-                    "select s.state, array_agg(s.entity_id order by s.entity_id) from lot_status s "
-                    "join lot_entities e using (entity_id) where e.destroyed_at is null "
-                    "and s.state in ('waiting_import', 'waiting_export') group by s.state"
-                ).fetchall()
-            )
-            pending = cur.execute("select count(*) from alarms where cleared_at is null").fetchone()[0]
-            newest = cur.execute(
-                "select alarm_no, alarm_text, known from alarms where cleared_at is null order by alarm_no desc limit 1"
-            ).fetchone()
-            return {
-                "imports": list(waiting.get("waiting_import", [])),
-                "exports": list(waiting.get("waiting_export", [])),
-                "alarms": int(pending),
-                "newest": newest,
-            }
-
-        return self.transaction(q)
-
-    def line(self, r: dict[str, Any]) -> str:
-        parts = []
-        if r["imports"]:
-            parts.append(f"IMPORT {len(r['imports'])} waiting ({_ids(r['imports'])})")
-        if r["exports"]:
-            parts.append(f"EXPORT {len(r['exports'])} waiting ({_ids(r['exports'])})")
-        if r["alarms"]:
-            no, text, known = r["newest"]
-            parts.append(f"ALARMS {r['alarms']} pending, newest #{no}{'' if known else ' (unknown)'}: {text}")
-        parts.append(f"LAST {self.last_event}")
-        return " | ".join(parts)[:500]
-
     async def status_line(self, conv: Conversation) -> None:
+        """STATUS_LN: the line, from the owners' tables now; while the database is away, DATABASE DOWN."""
         try:
-            r = self.read()
+            w = self.transaction(status_line_store.waiting)
         except DatabaseUnavailable:
-            assert self.database_down is not None
-            away = time.monotonic() - self.database_down
+            assert self.database.down is not None
+            away = time.monotonic() - self.database.down
             text = f"DATABASE DOWN for {away:.0f}s: imports, exports and alarms unknown | LAST {self.last_event}"
             await conv.send(message(Msg.STATUS_LINE, text=text[:500], last_event=self.last_event))
             return
         await conv.send(
             message(
                 Msg.STATUS_LINE,
-                text=self.line(r),
-                imports=len(r["imports"]),
-                exports=len(r["exports"]),
-                alarms=r["alarms"],
+                text=line(w, self.last_event),
+                imports=len(w.imports),
+                exports=len(w.exports),
+                alarms=w.alarms,
                 last_event=self.last_event,
             )
         )

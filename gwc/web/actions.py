@@ -95,3 +95,26 @@ class Actions:
 
         async with self._order_lock:
             return await asyncio.to_thread(run)
+
+    async def downtime_reason(self, event_id: int, reason: str, by: str) -> str:
+        """DOWNTIME_RSN to the Machine Server, as `gwc downtime reason` asks it (a reason of the tree)."""
+        if reason not in self.cfg.record.reasons:
+            known = "; ".join(f"{c}: {', '.join(rs)}" for c, rs in self.cfg.record.tree().items())
+            raise GwcError(f"{reason!r} is not in the reason tree ({known})")
+        first = message(Msg.DOWNTIME_REASON, event_id=event_id, machine_id=None, reason=reason, by=by)
+        ack = await ask(self.bus, Conv.DOWNTIME_RSN, first, "ms", ANSWER)
+        if ack.ack_code == AckCode.UNKNOWN:
+            raise GwcError(ack.note or f"no downtime event {event_id}")
+        if ack.ack_code != AckCode.ACK_OK:
+            raise Refused(ack.ack_code, ack.note or "the Machine Server did not take the reason")
+        return f"downtime {event_id}: {reason} ({ack.fields.get('e10_state') or ''})"
+
+    async def approve_recipe(self, recipe_id: str, version: int | None, by: str) -> str:
+        """RECIPE_APPR to the Equipment Recipe Server, as `gwc recipe approve` asks it (default: the
+        latest version)."""
+        first = message(Msg.RECIPE_APPROVE, recipe_id=recipe_id, version=version, by=by)
+        ack = await ask(self.bus, Conv.RECIPE_APPR, first, "ers", ANSWER)
+        if ack.ack_code != AckCode.ACK_OK:
+            raise Refused(ack.ack_code, ack.note or f"the recipe server did not approve {recipe_id}")
+        checksum = str(ack.fields.get("checksum") or "")[:12]
+        return f"{recipe_id} v{ack.fields.get('version')} approved (sha256 {checksum})"

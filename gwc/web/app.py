@@ -23,13 +23,24 @@ from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from gwc.errors import ConfigError, ConversationTimeout, Forbidden, GwcError, ModuleError, NotAuthenticated, Refused
+from gwc.errors import (
+    ConfigError,
+    ConversationTimeout,
+    DatabaseError,
+    DatabaseUnavailable,
+    Forbidden,
+    GwcError,
+    ModuleError,
+    NotAuthenticated,
+    Refused,
+)
 from gwc.users import Action, Person, refuse_unless, store
 from gwc.users.doors import audit
 from gwc.users.passwords import verify
 from gwc.users.roles import LOWEST, allowed
+from gwc.web import record as view
 from gwc.web.actions import Actions
-from gwc.web.cellview import Reader
+from gwc.web.cellview import Reader, plain
 from gwc.web.sessions import Lockout, Session, Sessions
 from gwc.web.settings import WebSettings
 
@@ -43,6 +54,25 @@ HEADERS = {
     "Referrer-Policy": "no-referrer",
     "Strict-Transport-Security": "max-age=31536000",
 }
+# What a person may do through the web (docs/web.md): each POST route's action in the role table.
+WEB_ACTIONS: dict[str, Action] = {
+    "POST /api/machines/{id}/start": Action.MACHINE_START,
+    "POST /api/machines/{id}/stop": Action.MACHINE_STOP,
+    "POST /api/alarms/{alarm_no}/clear": Action.ALARM_CLEAR,
+    "POST /api/orders": Action.ORDER_ENTER,
+    "POST /api/lots/{entity_id}/import": Action.LOT_IMPORT,
+    "POST /api/lots/{entity_id}/export": Action.LOT_EXPORT,
+    "POST /api/lots/{entity_id}/release": Action.LOT_RELEASE,
+    "POST /api/downtime/{event_id}/reason": Action.DOWNTIME_REASON,
+    "POST /api/recipes/{recipe_id}/approve": Action.RECIPE_APPROVE,
+    "GET /api/audit": Action.AUDIT_READ,
+    "POST /api/logout": Action.VIEW,
+}
+# Topics a new event stream is not given the latest of: a page reads them (GET) as it opens, and the
+# latest may be older than that read (they are re-read seldom: gwc.web.cellview.SLOW_TOPICS).
+NO_REPLAY = frozenset({"record", "spc"})
+# The live topics an action changes, read again at once after it (the others follow their broadcasts).
+TOUCHES: dict[Action, tuple[str, ...]] = {Action.DOWNTIME_REASON: ("record",)}
 NOBODY = Person("(none)", role=next(iter(LOWEST.values())), door="web")  # an act without a session, for the trail
 
 
@@ -83,6 +113,7 @@ class Web:
     log: logging.Logger
     read_topic: Callable[[str], Awaitable[Any]]  # a topic's rows now
     modules: Callable[[], list[dict[str, Any]]]  # who is on the bus
+    touched: Callable[[str], None] = lambda topic: None  # an action changed a live topic: read it now
 
     def __post_init__(self) -> None:
         self.sessions = Sessions(self.settings.session_idle_s, self.settings.session_max_s)
@@ -155,6 +186,8 @@ def build_app(web: Web) -> Starlette:
             return _error(400, str(e))
         note = out if isinstance(out, str) else json.dumps(out, default=str)[:500]
         await write_audit(who, action, target, "ok", note)
+        for topic in TOUCHES.get(action, ()):
+            web.touched(topic)
         web.log.info("web: %s %s by %s (%s): %s", action, target, who.name, who.role.name, note)
         return JSONResponse({"ok": True, "note": out} if isinstance(out, str) else {"ok": True, **out})
 
@@ -283,7 +316,8 @@ def build_app(web: Web) -> Starlette:
             return _error(e.status, str(e))
         q: asyncio.Queue[tuple[str, str] | None] = asyncio.Queue()
         for topic, text in web.live.latest.items():
-            q.put_nowait((topic, text))
+            if topic not in NO_REPLAY:
+                q.put_nowait((topic, text))
         web.live.streams.add(q)
 
         async def stream() -> AsyncIterator[str]:
@@ -358,6 +392,74 @@ def build_app(web: Web) -> Starlette:
 
         return await perform(request, Action.ORDER_ENTER, "new order", do)
 
+    async def api_downtime_reason(request: Request) -> Response:
+        event = int(request.path_params["event_id"])
+
+        async def do(who: Person) -> str:
+            reason = str((await body(request)).get("reason") or "").strip()
+            if not reason:
+                raise GwcError('give {"reason": REASON}, one of the reason tree\'s (GET /api/record: reasons)')
+            return await web.actions.downtime_reason(event, reason, who.by)
+
+        return await perform(request, Action.DOWNTIME_REASON, str(event), do)
+
+    async def api_recipe_approve(request: Request) -> Response:
+        recipe = request.path_params["recipe_id"]
+
+        async def do(who: Person) -> str:
+            version = (await body(request)).get("version")
+            if version is not None and (isinstance(version, bool) or not isinstance(version, int)):
+                raise GwcError('version: a whole number, or none for the latest ({"version": 3})')
+            return await web.actions.approve_recipe(recipe, version, who.by)
+
+        return await perform(request, Action.RECIPE_APPROVE, recipe, do)
+
+    # ------------------------------------------------------------------ the record and quality
+
+    def looking(read: Callable[[Request], Awaitable[Any]]) -> Callable[[Request], Awaitable[Response]]:
+        """A GET of the record's or quality's pages: a session, then `read`; bad input a 400."""
+
+        async def get(request: Request) -> Response:
+            try:
+                session_of(request)
+                data = await read(request)
+            except HttpError as e:
+                return _error(e.status, str(e))
+            except (DatabaseError, DatabaseUnavailable) as e:
+                return _error(503, str(e))
+            except (GwcError, ValueError) as e:
+                return _error(400, str(e))
+            return JSONResponse(data, headers={"Cache-Control": "no-store"})
+
+        return get
+
+    async def read_record(request: Request) -> Any:
+        q = request.query_params
+        a, b = view.window(web.reader.cfg, q.get("since"), q.get("until"))
+        return await web.reader.run(lambda c: view.record_view(web.reader.cfg, c, a, b))
+
+    async def read_spc(request: Request) -> Any:
+        machine = request.query_params.get("machine") or None
+        return await web.reader.run(lambda c: view.spc_view(web.reader.cfg, c, machine))
+
+    async def read_trace(request: Request) -> Any:
+        entity = int(request.path_params["entity_id"])
+        return await web.reader.run(lambda c: view.trace_view(c, entity))
+
+    async def read_where(request: Request) -> Any:
+        q = request.query_params
+        if not any(q.get(k) for k in ("machine", "recipe", "since", "until")):
+            raise GwcError("say where: machine, recipe (RECIPE or RECIPE@VERSION), since or until")
+        cfg = web.reader.cfg
+        return await web.reader.run(
+            lambda c: view.where_view(cfg, c, q.get("machine"), q.get("recipe"), q.get("since"), q.get("until"))
+        )
+
+    async def read_recipes(request: Request) -> Any:
+        from gwc.client.recipes import list_recipes
+
+        return plain(await asyncio.to_thread(list_recipes, web.reader.cfg))
+
     async def page(request: Request) -> Response:
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-store"})
 
@@ -376,6 +478,13 @@ def build_app(web: Web) -> Starlette:
         Route("/api/alarms/{alarm_no:int}/clear", api_alarm_clear, methods=["POST"]),
         Route("/api/lots/{entity_id:int}/{verb}", api_lot, methods=["POST"]),
         Route("/api/orders", api_order, methods=["POST"]),
+        Route("/api/downtime/{event_id:int}/reason", api_downtime_reason, methods=["POST"]),
+        Route("/api/recipes/{recipe_id}/approve", api_recipe_approve, methods=["POST"]),
+        Route("/api/record", looking(read_record)),
+        Route("/api/spc", looking(read_spc)),
+        Route("/api/trace/entity/{entity_id:int}", looking(read_trace)),
+        Route("/api/trace/where", looking(read_where)),
+        Route("/api/recipes", looking(read_recipes)),
         Mount("/static", StaticFiles(directory=STATIC), name="static"),
     ]
     return Starlette(routes=routes, middleware=[Middleware(SecurityHeaders)])

@@ -59,7 +59,7 @@ class Reader:
                 self._conn.close()
 
 
-def _plain(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def plain(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Rows as JSON takes them (times as text)."""
     return [
         {k: (v if v is None or isinstance(v, (str, int, float, bool)) else str(v)) for k, v in r.items()} for r in rows
@@ -67,21 +67,21 @@ def _plain(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def read_view(cfg: Config, log: logging.Logger, conn: psycopg.Connection[Any], topic: str, peers: set[str]) -> Any:
-    """One topic of the pages: machines, alarms, lots, orders, requests, order_form."""
+    """One topic of the pages: machines, alarms, lots, orders, requests, order_form, record, spc."""
     if topic == "machines":
-        return _plain(machine_rows(conn, cfg, peers))
+        return plain(machine_rows(conn, cfg, peers))
     if topic == "alarms":
-        return _plain(alarm_rows(conn))
+        return plain(alarm_rows(conn))
     if topic == "lots":  # the dispatch list's newest LOTS_SHOWN entities (list_lots reads them all)
         rows = rows_of(conn, LOTS_SQL + " ORDER BY s.entity_id DESC LIMIT %s", LOTS_SHOWN)
         for r in rows:
             r["script"] = script_alive(cfg, r["entity"], r.pop("script_pid"))
-        return _plain(rows[::-1])
+        return plain(rows[::-1])
     if topic == "orders":
-        return _plain(list_orders(cfg, log, conn=conn))
+        return plain(list_orders(cfg, log, conn=conn))
     if topic == "requests":
         waiting, reserved, telling = request_tables(conn)
-        return {"waiting": _plain(waiting), "reserved": _plain(reserved), "telling": _plain(telling)}
+        return {"waiting": plain(waiting), "reserved": plain(reserved), "telling": plain(telling)}
     if topic == "order_form":
         customers = [r[0] for r in conn.execute("select customer_id from customers order by 1")]
         products = [
@@ -89,7 +89,18 @@ def read_view(cfg: Config, log: logging.Logger, conn: psycopg.Connection[Any], t
         ]
         conn.rollback()
         return {"customers": customers, "products": products}
+    if topic == "record":  # the OEE, timeline and downtime pages' live window (gwc.web.record)
+        from gwc.web import record
+
+        return record.record_view(cfg, conn, *record.window(cfg, None, None))
+    if topic == "spc":
+        from gwc.web import record
+
+        return record.spc_view(cfg, conn)
     raise ValueError(f"no topic {topic!r}")
 
 
 TOPICS = ("machines", "alarms", "lots", "orders", "requests")
+# Topics dearer to read (an OEE over hours, every control chart): read when something touched them at
+# most every first seconds, and at least every second seconds, while a page is open.
+SLOW_TOPICS: dict[str, tuple[float, float]] = {"record": (5.0, 30.0), "spc": (5.0, 60.0)}

@@ -26,12 +26,12 @@ from gwc.module import Handler, Module
 from gwc.web import tls
 from gwc.web.actions import Actions
 from gwc.web.app import Live, Web, build_app
-from gwc.web.cellview import TOPICS, Reader, read_view
+from gwc.web.cellview import SLOW_TOPICS, TOPICS, Reader, read_view
 from gwc.web.settings import load_settings
 
 LISTENS: dict[str, tuple[str, ...]] = {
-    Conv.UPD_ME_ST: ("machines",),
-    Conv.RUN_COMPL: ("machines",),
+    Conv.UPD_ME_ST: ("machines", "record"),
+    Conv.RUN_COMPL: ("machines", "record", "spc"),
     Conv.ALARM_CLE: ("alarms",),
     Conv.CELL_EVENT: ("alarms", "lots"),
     Conv.LOT_MOVED: ("lots", "orders", "requests"),
@@ -58,11 +58,15 @@ class WebModule(Module):
             log,
             self.read_topic,
             self.modules,
+            self.touched,
         )
         self.server: uvicorn.Server | None = None
         self._serving: asyncio.Task[None] | None = None
         self._refresher: asyncio.Task[None] | None = None
         self._dirty: set[str] = set()
+        self._urgent: set[str] = set()  # slow topics an action of the web's changed: read at once
+        self._slow_read: dict[str, float] = dict.fromkeys(SLOW_TOPICS, -1e9)
+        self._pending_slow: set[str] = set()
         self._wake = asyncio.Event()
 
     def handlers(self) -> dict[str, Handler]:
@@ -70,6 +74,12 @@ class WebModule(Module):
 
     async def heard(self, conv: Conversation) -> None:
         self._dirty.update(LISTENS.get(conv.cls, ()))
+        self._wake.set()
+
+    def touched(self, topic: str) -> None:
+        """An action of the web's changed `topic`: the open pages see it at the next read."""
+        self._dirty.add(topic)
+        self._urgent.add(topic)
         self._wake.set()
 
     def modules(self) -> list[dict[str, Any]]:
@@ -143,11 +153,23 @@ class WebModule(Module):
             self._wake.clear()
             if not self.live.streams:
                 self._dirty.clear()
+                self._pending_slow.clear()
                 continue
             if time.monotonic() - last_full >= self.settings.refresh:
                 self._dirty.update(TOPICS)
                 last_full = time.monotonic()
-            what, self._dirty = self._dirty, set()
+            now = time.monotonic()
+            for topic, (least, most) in SLOW_TOPICS.items():
+                since_slow = now - self._slow_read[topic]
+                wanted = topic in self._dirty or topic in self._pending_slow
+                if topic in self._urgent or since_slow >= most or (wanted and since_slow >= least):
+                    self._dirty.add(topic)
+                    self._pending_slow.discard(topic)
+                    self._slow_read[topic] = now
+                elif wanted:  # read when `least` has passed (the loop wakes every `refresh` s)
+                    self._dirty.discard(topic)
+                    self._pending_slow.add(topic)
+            what, self._dirty, self._urgent = self._dirty, set(), set()
             last_read = time.monotonic()
             self.live.publish("modules", self.modules())
             for topic in sorted(what):

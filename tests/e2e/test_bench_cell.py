@@ -134,3 +134,26 @@ def test_bench_order_runs_an_order_through_the_agent_and_reports_memory_and_conn
     assert result["idle_while_waiting"] == 0
     assert result["check_ok"], result["check_failures"]
     assert not (tmp_path / "bench").exists(), "the private cell's folder is removed"
+
+
+@pytest.mark.timeout(600)
+def test_bench_growth_runs_each_size_and_reports_one_table(tmp_path: Path, database_url: str) -> None:
+    """Two sizes, one after the other: a row each, the loaded overhead's growth against the first size,
+    the whole cell's peak memory (PSS, the database included) and `gwc check` at each."""
+    result = bench(
+        tmp_path,
+        database_url,
+        "growth",
+        *("--machines", "1,2", "--lots", "3,4", "--at-once", "1", "--solo", "0", "--idle", "1"),
+        timeout=540,
+    )
+    rows = result["rows"]
+    assert [(r["machines"], r["lots"]) for r in rows] == [(1, 3), (2, 4)]
+    assert all(r["failed"] == 0 and r["check_held"] for r in rows), rows
+    assert rows[0]["growth"] == 1.0 and rows[1]["growth"] > 0
+    assert abs(rows[1]["growth"] - rows[1]["loaded_median_ms"] / rows[0]["loaded_median_ms"]) < 0.02
+    # a cell of servers, MSCHED, machines and PostgreSQL takes far more than 50 MB, and less than 50 GB
+    assert all(50 < r["peak_memory_mb"] < 50_000 for r in rows), rows
+    assert all(r["resting_percent"] is not None and r["floor_percent"] is not None for r in rows)
+    assert all(r["solo_median_ms"] is None for r in rows)  # --solo 0
+    assert not list((tmp_path / "bench").glob("m*/run/*.pid")), "every size's cell stopped"

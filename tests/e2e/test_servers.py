@@ -17,14 +17,12 @@ import pytest
 
 from gwc.ipc import BlockingBus, BlockingConversation
 from gwc.ipc.catalogue import Message, message
-from gwc.ipc.codes import AckCode, LotState, MachineStatus
+from gwc.ipc.codes import AckCode
 from gwc.ipc.transport import open_socket
 from gwc.log import log_file_name
 from gwc.servers.recipe import version_path
 from tests.harness import CellHarness, wait_for
 
-S = MachineStatus
-L = LotState
 OK = AckCode.ACK_OK
 MACHINES = [
     {"id": "wc1", "kind": "dummy", "run_time": 0.1, "maintenance_every": 2},

@@ -9,7 +9,9 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
+import click
 import pytest
 
 from gwc.bench import cell, percentile, reaped_cpu_s
@@ -88,3 +90,36 @@ def test_the_cell_bench_times_phases_from_named_events_not_log_wording() -> None
     assert all(v > 0 for v in timed.values())
     assert cell.bound_to(marks, "wc2", marks[0][1]) == marks[1][1]
     assert cell.bound_to(marks, "wc1", 0) is None
+
+
+def test_growth_sizes_pair_machines_with_lots_and_refuse_a_mismatch() -> None:
+    from gwc.bench.growth import sizes
+
+    assert sizes("10,50,100", "500,2000,5000") == [(10, 500), (50, 2000), (100, 5000)]
+    for machines, lots in (("10,50", "500"), ("ten", "5"), ("0", "5"), ("", "")):
+        with pytest.raises(click.BadParameter):
+            sizes(machines, lots)
+
+
+def test_growth_rows_are_measured_against_the_first_size() -> None:
+    from gwc.bench.growth import row_of, table
+
+    def result(machines: int, median: float) -> dict[str, Any]:
+        return {
+            "machines": machines,
+            "lots": 10 * machines,
+            "failed": 0,
+            "lots_per_s": 12.345,
+            "loaded_overhead_ms": {"median": median, "p99": 2 * median},
+            "idle_cpu_percent": 1.5,
+            "idle_floor_cpu_percent": 0.5,
+            "peak_memory_mb": 900.0,
+            "check_held": True,
+        }
+
+    first = row_of(result(10, 40.0), None)
+    second = row_of(result(50, 50.0), first.loaded_median_ms)
+    assert (first.growth, second.growth) == (1.0, 1.25)
+    assert second.solo_median_ms is None and second.lots_per_s == 12.35
+    text = table([first, second], 10)
+    assert "10 at once" in text and "1.25" in text and text.count("held") == 2

@@ -77,11 +77,11 @@ def test_round_trip(env: Envelope) -> None:
 
 def test_the_layout_is_as_documented_and_the_sender_comes_first() -> None:
     data = wire.encode(SAMPLES[-1])
-    # GWC, version 4, inc, src tag, no to, cls or subject tag, kind 3 (bye), 33 zero bytes, len(src) 6,
+    # GWC, version 5, inc, src tag, no to, cls or subject tag, kind 3 (bye), 33 zero bytes, len(src) 6,
     # 9 zero bytes, src.
     src_tag = (zlib.crc32(b"msched") | 1).to_bytes(4, "big")
     assert data == (
-        b"GWC\x04" + (5).to_bytes(8, "big") + src_tag + bytes(12) + b"\x03" + bytes(33) + b"\x06" + bytes(9) + b"msched"
+        b"GWC\x05" + (5).to_bytes(8, "big") + src_tag + bytes(12) + b"\x03" + bytes(33) + b"\x06" + bytes(9) + b"msched"
     )
     assert data.startswith(wire.origin("msched", 5).prefix)
     assert not wire.encode(Envelope(kind="bye", src="msched", inc=55)).startswith(wire.origin("msched", 5).prefix)

@@ -97,10 +97,10 @@ def test_a_module_whose_database_is_away_fails_fast_waits_for_it_and_carries_on_
 
     async def scenario() -> None:
         module = Module(cfg, "dbless", log)
-        module.role = "ms"
+        module.database.role = "ms"
         with pytest.raises(DatabaseUnavailable):
             module.transaction(lambda cur: cur.execute("select 1"))
-        assert module.database_down is not None
+        assert module.database.down is not None
         started = time.monotonic()
         with pytest.raises(DatabaseUnavailable, match="away"):
             module.transaction(lambda cur: cur.execute("select 1"))
@@ -109,9 +109,9 @@ def test_a_module_whose_database_is_away_fails_fast_waits_for_it_and_carries_on_
         with pytest.raises(DatabaseUnavailable):
             await module.transaction_when_up(lambda cur: cur.execute("select 1"), within=0.3)
         # The database comes back (here: the module is pointed at one that answers).
-        module.cfg = dataclasses.replace(cfg, database_url=database_url)
+        module.database.cfg = dataclasses.replace(cfg, database_url=database_url)
         row = await asyncio.wait_for(module.transaction_when_up(lambda cur: cur.execute("select 7").fetchone()), 10)
-        assert row == (7,) and module.database_down is None
+        assert row == (7,) and module.database.down is None
         module.db().close()
         await module.bus.close()
         for task in list(module._tasks):

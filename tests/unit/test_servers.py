@@ -4,7 +4,6 @@ names, the status line's words. (Their conversations are tested end to end in te
 from __future__ import annotations
 
 import hashlib
-from typing import Any
 
 import pytest
 
@@ -17,26 +16,30 @@ from gwc.servers.lot import LotServer
 from gwc.servers.machine import MachineServer
 from gwc.servers.recipe import RecipeServer
 from gwc.servers.status_line import StatusLineServer
-
-S = MachineStatus
+from gwc.servers.status_line_store import Alarm, Waiting
 
 
 def test_every_status_has_its_transitions_and_shutdown_is_always_reachable() -> None:
-    assert set(machine.TRANSITIONS) == set(S)
+    assert set(machine.TRANSITIONS) == set(MachineStatus)
     for frm, to in machine.TRANSITIONS.items():
-        assert S.SHUTDOWN in to and frm in to, frm
+        assert MachineStatus.SHUTDOWN in to and frm in to, frm
     # the WC's path through a run (6.3.2), and the ones it must never take
     for a, b in [
-        (S.SHUTDOWN, S.IDLE),
-        (S.IDLE, S.SETUP),
-        (S.SETUP, S.RUNNING),
-        (S.RUNNING, S.IDLE),
-        (S.SETUP, S.SETUP_SHUT),
-        (S.SETUP_SHUT, S.RUN_SHUT),
-        (S.RUNNING, S.RUN_SHUT),
+        (MachineStatus.SHUTDOWN, MachineStatus.IDLE),
+        (MachineStatus.IDLE, MachineStatus.SETUP),
+        (MachineStatus.SETUP, MachineStatus.RUNNING),
+        (MachineStatus.RUNNING, MachineStatus.IDLE),
+        (MachineStatus.SETUP, MachineStatus.SETUP_SHUT),
+        (MachineStatus.SETUP_SHUT, MachineStatus.RUN_SHUT),
+        (MachineStatus.RUNNING, MachineStatus.RUN_SHUT),
     ]:
         assert b in machine.TRANSITIONS[a], (a, b)
-    for a, b in [(S.SHUTDOWN, S.RUNNING), (S.SHUTDOWN, S.SETUP), (S.IDLE, S.RUNNING), (S.RUN_SHUT, S.IDLE)]:
+    for a, b in [
+        (MachineStatus.SHUTDOWN, MachineStatus.RUNNING),
+        (MachineStatus.SHUTDOWN, MachineStatus.SETUP),
+        (MachineStatus.IDLE, MachineStatus.RUNNING),
+        (MachineStatus.RUN_SHUT, MachineStatus.IDLE),
+    ]:
         assert b not in machine.TRANSITIONS[a], (a, b)
 
 
@@ -73,12 +76,11 @@ def test_each_version_has_its_own_library_file_and_checksum(cell_config: Config)
     assert recipe.sha256(b"RUN\n") == hashlib.sha256(b"RUN\n").hexdigest()  # what the WC computes
 
 
-def test_status_line_says_what_waits_for_the_operator(cell_config: Config) -> None:
-    sls: Any = StatusLineServer.__new__(StatusLineServer)
-    sls.last_event = "12:00:00 wc1 Idle -> Shutdown"
-    quiet = sls.line({"imports": [], "exports": [], "alarms": 0, "newest": None})
+def test_status_line_says_what_waits_for_the_operator() -> None:
+    last = "12:00:00 wc1 Idle -> Shutdown"
+    quiet = status_line.line(Waiting([], [], 0, None), last)
     assert quiet == "LAST 12:00:00 wc1 Idle -> Shutdown"
-    busy = sls.line({"imports": list(range(1, 8)), "exports": [9], "alarms": 2, "newest": (4, "odd", False)})
+    busy = status_line.line(Waiting(list(range(1, 8)), [9], 2, Alarm(4, "odd", False)), last)
     assert busy.startswith(
         "IMPORT 7 waiting (1, 2, 3, 4, 5, ...) | EXPORT 1 waiting (9) | "
         "ALARMS 2 pending, newest #4 (unknown): odd | LAST"

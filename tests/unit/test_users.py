@@ -27,6 +27,44 @@ def test_the_role_table_in_the_docs_is_the_one_the_doors_consult() -> None:
     assert table_markdown() in DOCS.read_text(), "docs/users.md's table differs: paste gwc.users.roles.table_markdown()"
 
 
+def doors_markdown() -> str:
+    """Which door offers each action, from the doors' own tables: the web's routes (WEB_ACTIONS), the
+    `gwc` command lines (COMMAND_ACTIONS, and `gwc user`, `gwc audit`), the console's acts (its link's
+    `Action.X`), the OPC UA methods (METHOD_ACTIONS)."""
+    import re
+
+    from gwc.hi.door import COMMAND_ACTIONS
+    from gwc.opcua.door import METHOD_ACTIONS
+    from gwc.web.app import WEB_ACTIONS
+
+    link = (Path(__file__).parents[2] / "gwc" / "console" / "link.py").read_text()
+    console = {Action[n] for n in re.findall(r"\bAction\.([A-Z_]+)\b", link)}
+    gwc: dict[Action, list[str]] = {}
+    for words, a in COMMAND_ACTIONS.items():
+        gwc.setdefault(a, []).append("gwc " + " ".join(words))
+    gwc.setdefault(Action.USER_MANAGE, []).append("gwc user add/remove/passwd/role")
+    gwc.setdefault(Action.AUDIT_READ, []).append("gwc audit")
+
+    def cell(items: list[str]) -> str:
+        return ", ".join(f"`{i}`" for i in items) or "-"
+
+    rows = ["| action | web | `gwc` | console | OPC UA |", "|---|---|---|---|---|"]
+    for a in Action:
+        web = [route for route, x in WEB_ACTIONS.items() if x is a]
+        if a is Action.VIEW:
+            web = ["GET /api/..."]
+        opcua = [m for m, x in METHOD_ACTIONS.items() if x is a]
+        rows.append(
+            f"| `{a.value}` | {cell(web)} | {cell(gwc.get(a, []))} | {'yes' if a in console else '-'} | {cell(opcua)} |"
+        )
+    return "\n".join(rows)
+
+
+def test_the_doors_table_in_the_docs_is_the_doors_own() -> None:
+    table = doors_markdown()
+    assert table in DOCS.read_text(), "docs/users.md's table of doors differs; it should read:\n" + table
+
+
 def test_each_role_may_what_the_one_below_may_and_a_refusal_names_who_may() -> None:
     check("v", Role.viewer, Action.VIEW)
     check("o", Role.operator, Action.MACHINE_START)

@@ -73,3 +73,27 @@ def test_the_lockout_counts_names_and_addresses_and_ends(monkeypatch: Any) -> No
     lock.succeeded("ann")
     lock.failed("ann", "10.0.0.9")
     assert lock.locked_for("ann", "10.0.0.9") == 0  # a success starts the name's count again
+
+
+def test_a_timeline_merges_like_states_folds_slivers_and_keeps_the_state_now() -> None:
+    from datetime import UTC, datetime, timedelta
+
+    from gwc.record.store import Segment
+    from gwc.web import record
+
+    t0 = datetime(2026, 11, 28, tzinfo=UTC)
+    segs, t = [], t0
+    for i in range(2 * record.TIMELINE_MAX):  # alternating states, each a sliver of the day but the first
+        width = timedelta(hours=1) if i == 0 else timedelta(seconds=1)
+        segs.append(Segment(t, t + width, "Idle" if i % 2 else "Running", "run", "standby" if i % 2 else "productive"))
+        t += width
+    segs.append(Segment(t, t + timedelta(seconds=1), "Idle", "start", "standby"))  # merges with the one before
+    segs.append(
+        Segment(t + timedelta(seconds=1), t + timedelta(seconds=2), "Shutdown", "operator_stop", "non_scheduled")
+    )
+    out = record._segments(segs, t0, t0 + timedelta(days=1))
+    assert len(out) <= record.TIMELINE_MAX
+    assert out[0]["e10"] == "productive" and out[-1]["e10"] == "non_scheduled"  # the state now is kept
+    assert sum(s["seconds"] for s in out) == sum(s.seconds for s in segs)  # nothing lost, only folded
+    short = record._segments(segs[:3], t0, t0 + timedelta(days=1))
+    assert [s["e10"] for s in short] == ["productive", "standby", "productive"]
