@@ -1,8 +1,9 @@
 """MSCHED, the machine scheduler (thesis 6.2, Listing 2): the only module that reserves machines.
 
-Conversation handlers check a message, hand the database work to the step worker and answer when
-it is done. The worker runs every pending change as ONE transaction followed by one scheduling
-pass (gwc.msched.store.Step); under load, many changes share a transaction, which is where the
+Conversation handlers check a message, hand the database work to the step worker (its part
+`steps`, gwc.msched.worker) and answer when it is done. The worker runs every pending change as ONE
+transaction followed by one scheduling pass (gwc.msched.store.Step), in a thread while the event
+loop keeps serving the bus; under load, many changes share a transaction, which is where the
 scheduler's throughput comes from. After the commit the worker hands each outcome to whoever
 tells the entity: the MACH_REQ conversation's own task when it is still waiting here, else a
 teller task that resumes the conversation stored with the request (after a restart). Waiting for
@@ -19,7 +20,9 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
+
+import psycopg
 
 from gwc.config import Config
 from gwc.db import Statement
@@ -28,23 +31,17 @@ from gwc.ipc.bus import Conversation
 from gwc.ipc.catalogue import Message, message
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.ipc.names import Conv, Msg
-from gwc.log import TRACE
 from gwc.module import Module
 from gwc.msched import store
 from gwc.msched.policy import make_policy
-from gwc.msched.store import Outcome, Step
+from gwc.msched.store import Outcome
+from gwc.msched.worker import StepWorker
 from gwc.retry import Deadline
 
 LOCK_WAIT_S = 5.0  # a killed predecessor's database session takes a moment to go
 DEFAULT_SWEEP_S = 5.0
-# Group commit: the step worker takes its batch once GATHER_TURNS event-loop turns brought no new
-# change (a datagram already received needs about three turns - read, open the conversation, run its
-# handler - to become one), or after MAX_GATHER_TURNS turns under a steady stream.
-GATHER_TURNS = 4
-LAZY_S = 0.5  # an acknowledged outcome waits at most this long for a step to ride on
-MAX_GATHER_TURNS = 200
 
-Op = Callable[[Step], Any]
+T = TypeVar("T")
 
 
 class SchedulerLocked(DatabaseUnavailable):
@@ -64,12 +61,7 @@ class Msched(Module):
         # How long an entity has to acknowledge a Machine_Req_Comp: the bus's whole retry window and then some.
         self.ack_timeout = float(opts.get("ack_timeout", cfg.bus.retry_deadline + cfg.bus.reply_timeout))
         self.sweep_s = float(opts.get("sweep_s", DEFAULT_SWEEP_S))
-        self._ops: list[tuple[Op, asyncio.Future[Any] | None]] = []
-        # Unreserve_Me and acknowledged outcomes of one step go to the database as one statement each.
-        self._frees: list[tuple[int, str | None, asyncio.Future[list[str]]]] = []
-        self._finished: list[int] = []
-        self._lazy: asyncio.TimerHandle | None = None  # a step for _finished, should no other come
-        self._kick: asyncio.Event | None = None
+        self.steps = StepWorker(self.database, self.policy, log, self._dispatch)
         self._waiters: dict[str, asyncio.Future[Outcome]] = {}  # MACH_REQ conversation id -> its outcome
         self._acks: dict[int, asyncio.Future[None]] = {}  # request_key -> done when its Comp is acknowledged
         self._stopping = False
@@ -91,8 +83,7 @@ class Msched(Module):
         super().stop(code)
 
     async def on_bus(self) -> None:
-        self._kick = asyncio.Event()
-        self.spawn(self._worker())  # cancelled with the module's other tasks when it stops
+        self.spawn(self.steps.run())  # cancelled with the module's other tasks when it stops
 
     def on_connect(self, conn: Any) -> None:
         """One MSCHED per database: a session lock, freed by PostgreSQL when its holder dies. Taken
@@ -102,11 +93,16 @@ class Msched(Module):
             raise SchedulerLocked("another MSCHED holds the scheduler lock in this database")
         conn.commit()
 
+    def transaction(self, fn: Callable[[psycopg.Cursor[Any]], T]) -> T:
+        """Module.transaction, one user of the connection at a time: the step thread or the event loop."""
+        with self.steps.lock:
+            return super().transaction(fn)
+
     async def on_startup(self) -> str:
         if not await self._lock():
             self.log.error("another MSCHED holds the scheduler lock in this database: not starting")
             return AckCode.START_FAIL
-        owed = await self._submit(lambda s: s.startup(self.clean))
+        owed = await self.steps.submit(lambda s: s.startup(self.clean))
         if self.clean:
             self.log.info("--clean: REQUEST_MACHINES, RESERVED_MACHINES and the owed answers were emptied")
         owed = [o for o in owed if o.request_key not in self._acks]
@@ -129,7 +125,7 @@ class Msched(Module):
         if self._stopping:
             self.log.info("stopping: queued requests and reservations stay for the next start")
             return None
-        n = await self._submit(lambda s: s.shutdown_all("MSCHED shut down"))
+        n = await self.steps.submit(lambda s: s.shutdown_all("MSCHED shut down"))
         pending = list(self._acks.values())
         if pending:
             await asyncio.wait(pending, timeout=self.ack_timeout + 1)
@@ -140,10 +136,13 @@ class Msched(Module):
         if self.started and time.monotonic() - self._last_sweep >= self.sweep_s:
             self._last_sweep = time.monotonic()
             if self._sweep_has_work():
-                self._submit(lambda s: s.sweep(), wait=False)
+                self.steps.submit(lambda s: s.sweep(), wait=False)
 
     def _sweep_has_work(self) -> bool:
-        """(store.SWEEP_WORK) One read, alone; a read that fails says yes: the step then meets the failure."""
+        """(store.SWEEP_WORK) One read, alone; a read that fails says yes: the step then meets the failure.
+        While a step runs or waits there is work, and the loop does not wait for the connection."""
+        if self.steps.busy:
+            return True
         try:
             return bool(self.transaction(Statement(store.SWEEP_WORK))[0])
         except GwcError as e:
@@ -152,7 +151,7 @@ class Msched(Module):
 
     async def on_database_back(self, down_for: float) -> None:
         """Whatever happened meanwhile (a lot that finished, a machine that went): sweep at once."""
-        self._submit(lambda s: s.sweep(), wait=False)
+        self.steps.submit(lambda s: s.sweep(), wait=False)
 
     async def _lock(self) -> bool:
         """Connect (on_connect takes the lock); a killed predecessor's session takes a moment to go."""
@@ -181,7 +180,7 @@ class Msched(Module):
         waiter: asyncio.Future[Outcome] = asyncio.get_running_loop().create_future()
         self._waiters[conv.id] = waiter  # before the step: the pass in it may already bind the request
         try:
-            queued: store.Queued = await self._submit(
+            queued: store.Queued = await self.steps.submit(
                 lambda s: s.queue_request(
                     head.entity_id, head.op_type, machines, head.priority, conv.peer, conv.id, head.alt_group
                 )
@@ -226,7 +225,7 @@ class Msched(Module):
                 )
             )
             return
-        n = await self._submit(lambda s: s.cancel(m.request_key, m.entity_id, m.by or conv.peer))
+        n = await self.steps.submit(lambda s: s.cancel(m.request_key, m.entity_id, m.by or conv.peer))
         what = f"request {m.request_key}" if m.request_key is not None else f"the requests of entity {m.entity_id}"
         self.log.info("cancel %s by %s: %d cancelled", what, m.by or conv.peer, n)
         await conv.send(
@@ -242,7 +241,7 @@ class Msched(Module):
         """UNRESERVE: free machines of an entity, then schedule them (in the same step)."""
         assert conv.first is not None
         m = conv.first.first
-        freed = await self._free(m.entity_id, m.machine_id)
+        freed = await self.steps.free(m.entity_id, m.machine_id)
         if freed:
             self.log.info("entity %s freed %s (by %s)", m.entity_id, ", ".join(freed), m.by or conv.peer)
             await conv.send(message(Msg.UNRESERVE_ME_ACK, ack_code=AckCode.ACK_OK, freed=len(freed)))
@@ -261,13 +260,13 @@ class Msched(Module):
         assert conv.first is not None
         m = conv.first.first
         if m.status == MachineStatus.SHUTDOWN:
-            n = await self._submit(lambda s: s.machines_down())
+            n = await self.steps.submit(lambda s: s.machines_down())
             self.log.info("machine %s shut down: %d request(s) left the queue", m.machine_id, n)
         elif m.status in store.UP and m.previous not in store.UP:
             # Only a machine coming up may serve someone now: Idle, Setup and Running are all up, and a
             # move between them (three a run) changes nothing the pass looks at. What does change in a
             # run, its accept types and its reservation, comes as its own conversation and pass.
-            await self._submit(lambda s: s.machine_up(m.machine_id))
+            await self.steps.submit(lambda s: s.machine_up(m.machine_id))
 
     async def accept_type_change(self, conv: Conversation) -> None:
         """ACC_TYP_C: what a machine accepts now; schedules when something was added (6.2.4.6)."""
@@ -278,98 +277,9 @@ class Msched(Module):
                 message(Msg.CHG_ACCEPT_TYPE_ACK, ack_code=AckCode.BAD_MESSAGE, note="op_types must be a list of names")
             )
             return
-        code, note = await self._submit(lambda s: s.set_accept_types(m.machine_id, m.op_types))
+        code, note = await self.steps.submit(lambda s: s.set_accept_types(m.machine_id, m.op_types))
         self.log.info("accept types of %s: %s %s", m.machine_id, code, note)
         await conv.send(message(Msg.CHG_ACCEPT_TYPE_ACK, ack_code=code, note=note))
-
-    # ------------------------------------------------------------------ the step worker
-
-    def _submit(self, op: Op, wait: bool = True) -> asyncio.Future[Any]:
-        """Queue a change for the next step; the future gives the op's result once it is committed."""
-        assert self._kick is not None
-        fut = asyncio.get_running_loop().create_future() if wait else None
-        self._ops.append((op, fut))
-        self._kick.set()
-        return fut  # type: ignore[return-value]
-
-    def _free(self, entity_id: int, machine_id: str | None) -> asyncio.Future[list[str]]:
-        """Unreserve_Me for the next step, where it joins the step's other frees in one statement."""
-        assert self._kick is not None
-        fut: asyncio.Future[list[str]] = asyncio.get_running_loop().create_future()
-        self._frees.append((entity_id, machine_id, fut))
-        self._kick.set()
-        return fut
-
-    def _take(self) -> list[tuple[Op, asyncio.Future[Any] | None]]:
-        """The pending changes as a step's ops: all frees as one op, all acknowledged outcomes as one."""
-        ops, self._ops = self._ops, []
-        frees, self._frees = self._frees, []
-        finished, self._finished = self._finished, []
-        if self._lazy is not None:
-            self._lazy.cancel()
-            self._lazy = None
-        if finished:
-            ops.insert(0, (lambda s: s.finish(finished), None))
-        if frees:
-            fut = asyncio.get_running_loop().create_future()
-            fut.add_done_callback(lambda f: _spread(f, [w for _, _, w in frees]))
-            ops.insert(0, (lambda s: s.unreserve_all([(e, m) for e, m, _ in frees]), fut))
-        return ops
-
-    async def _worker(self) -> None:
-        assert self._kick is not None
-        while True:
-            await self._kick.wait()
-            # Group commit: conversations already received join this step. Keep letting the loop turn
-            # while changes keep coming (a backlog), up to a bound; a lone change waits a few turns.
-            quiet = turns = 0
-            while quiet < GATHER_TURNS and turns < MAX_GATHER_TURNS:
-                n = len(self._ops) + len(self._frees)
-                await asyncio.sleep(0)
-                turns += 1
-                quiet = quiet + 1 if len(self._ops) + len(self._frees) == n else 0
-            self._kick.clear()
-            ops = self._take()
-            if ops:
-                self._run(ops)
-
-    def _run(self, ops: list[tuple[Op, asyncio.Future[Any] | None]]) -> None:
-        """One transaction for all ops, then tell. A batch that fails is run again op by op."""
-        started = time.perf_counter()
-        try:
-            results, outcomes = self.transaction(lambda cur: store.run_step(cur, self.policy, [op for op, _ in ops]))
-        except DatabaseUnavailable as e:
-            # Nothing was done: whoever waits is answered DB_Badrea (asks again); what nobody waits
-            # for (forgetting told outcomes, the sweep) rides on the first step once it is back.
-            for op, fut in ops:
-                if fut is None:
-                    self._ops.append((op, None))
-                elif not fut.done():
-                    fut.set_exception(e)
-            return
-        except Exception as e:
-            if len(ops) > 1:
-                self.log.warning("a step of %d changes failed (%s): running them one by one", len(ops), e)
-                for one in ops:
-                    self._run([one])
-                return
-            fut = ops[0][1]
-            if fut is None:
-                self.log.error("step failed: %s", e)
-            elif not fut.done():
-                fut.set_exception(e)
-            return
-        for (_, fut), result in zip(ops, results):
-            if fut is not None and not fut.done():
-                fut.set_result(result)
-        self.log.log(
-            TRACE,
-            "step of %d change(s): %d outcome(s) in %.2f ms",
-            len(ops),
-            len(outcomes),
-            (time.perf_counter() - started) * 1000,
-        )
-        self._dispatch(outcomes)
 
     # ------------------------------------------------------------------ telling the entities
 
@@ -442,27 +352,10 @@ class Msched(Module):
         self._told(o)  # not when cancelled (MSCHED stopping): the next start tells it again
 
     def _told(self, o: Outcome) -> None:
-        # Forgetting an acknowledged outcome rides on the next step: kept a moment longer, it is only
-        # told again (and dropped as late) should MSCHED restart meanwhile.
-        self._finished.append(o.request_key)
-        if self._lazy is None and self._kick is not None:
-            self._lazy = asyncio.get_running_loop().call_later(LAZY_S, self._kick.set)
+        self.steps.forget(o.request_key)
         done = self._acks.pop(o.request_key, None)
         if done is not None and not done.done():
             done.set_result(None)
-
-
-def _spread(done: asyncio.Future[list[list[str]]], waiters: list[asyncio.Future[list[str]]]) -> None:
-    """Hand each Unreserve_Me of a batch its own result (or the batch's failure)."""
-    for i, w in enumerate(waiters):
-        if w.done():
-            continue
-        if done.cancelled():
-            w.cancel()
-        elif done.exception() is not None:
-            w.set_exception(done.exception())  # type: ignore[arg-type]
-        else:
-            w.set_result(done.result()[i])
 
 
 def _malformed_request(head: Message, entries: tuple[Message, ...]) -> str | None:
