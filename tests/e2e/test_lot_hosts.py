@@ -19,9 +19,7 @@ from __future__ import annotations
 import datetime
 import json
 import os
-import shutil
 import subprocess
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -29,11 +27,10 @@ from typing import Any
 
 import pytest
 
-from gwc.config import dump_toml
-from gwc.netns import Hosts, leftovers, unavailable
+from gwc.netns import Hosts, unavailable
 from gwc.patroni import primary_url
-from tests.e2e.test_patroni import MEMBERS, MISSING, PASSWORD, PatroniCluster, sql_on
-from tests.harness import SERVERS, wait_for
+from tests.e2e.test_patroni import MISSING, PASSWORD, PatroniCluster, issue_topology, sql_on
+from tests.harness import wait_for
 
 pytestmark = [
     pytest.mark.e2e,
@@ -62,47 +59,9 @@ class QuickPatroni(PatroniCluster):
 
 
 def test_h1_killed_with_servers_primary_and_lot_scripts_they_resume_elsewhere_and_production_goes_on() -> None:
-    from tests.e2e.test_hosts import HostCell
-
-    base = Path(tempfile.mkdtemp(prefix="gwc-lh-", dir="/var/tmp"))
-    base.chmod(0o755)
-    try:
-        with Hosts(3) as hosts:
-            (base / "patroni").mkdir()
-            cluster = QuickPatroni(hosts, base / "patroni")
-            cell: HostCell | None = None
-            try:
-                cluster.start()
-                url = cluster.url()
-                sql_on(hosts, "h3", url.replace("/gwc?", "/postgres?"), "create database gwc")
-                cell = HostCell(hosts, base)
-                doc = cell.doc
-                doc["database"] = {"url": url, "patroni": [f"http://{a}:8008" for a in cluster.addr.values()]}
-                doc["module"] = [{"name": m, "host": "h1", "standby": ["h2"]} for m in SERVERS]
-                doc["machine"] = [
-                    {**m, "host": "h3", "liveness": 6.0} for m in doc["machine"] if m["id"] in ("cmm_wc", "wc1", "wc2")
-                ]
-                doc["lease"] = {"ttl": 3.0}
-                doc["lot_hosts"] = {"ttl": LOT_HOSTS_TTL}
-                for h in MEMBERS:
-                    cell.config_path(h).write_text(
-                        dump_toml({**doc, "cell": {"name": "hosts", "var": str(cell.var(h))}})
-                    )
-                walk(hosts, cluster, cell, url)
-            finally:
-                if cell is not None:
-                    for h in ("h3", "h2", "h1"):
-                        try:
-                            cell.run(h, "stop", timeout=60)
-                        except subprocess.TimeoutExpired:
-                            pass
-                for p in cluster.procs:
-                    p.kill()
-    finally:
-        if keep := os.environ.get("GWC_TEST_KEEP"):  # the hosts' logs, for a failure's post-mortem
-            shutil.copytree(base, keep, dirs_exist_ok=True, symlinks=True, ignore=shutil.ignore_patterns(".s.PGSQL*"))
-        shutil.rmtree(base, ignore_errors=True)
-    assert not leftovers(), "test hosts left behind"
+    extra = {"lot_hosts": {"ttl": LOT_HOSTS_TTL}}
+    with issue_topology(QuickPatroni, "gwc-lh-", extra) as (hosts, cluster, cell, url):
+        walk(hosts, cluster, cell, url)
 
 
 def etcd_call(hosts: Hosts, cluster: PatroniCluster, host: str, path: str, body: dict[str, Any]) -> Any:

@@ -12,6 +12,7 @@ A long walk (about three minutes): `bin/test -m soak tests/e2e/test_patroni.py`.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -21,7 +22,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -340,16 +341,28 @@ def test_the_host_of_the_active_servers_and_the_primary_killed_while_lots_run() 
     synchronous standby, h3 the machines and a replica, etcd on all three. h1 killed whole while lots
     run (their scripts ordered on h2): Patroni promotes h2, h2's standbys take every lease, every lot
     is exported, nothing is milled twice and `gwc check` is clean."""
+    with issue_topology(PatroniCluster, "gwc-p-") as (hosts, cluster, cell, url):
+        walk_h1_killed(hosts, cluster, cell, url)
+
+
+@contextlib.contextmanager
+def issue_topology(
+    make_cluster: Callable[[Hosts, Path], PatroniCluster], prefix: str, extra: dict[str, Any] | None = None
+) -> Iterator[tuple[Hosts, PatroniCluster, Any, str]]:
+    """Issue 36's three hosts: Patroni (`make_cluster`) and etcd on all three, the cell's servers active
+    on h1 with standbys on h2, the machines on h3; each host's cell.toml written with `extra` sections.
+    Yields (hosts, cluster, cell, the multi-host URL); stops the cell host by host and the cluster, and
+    checks no test host is left. GWC_TEST_KEEP=DIR keeps the hosts' folders for a post-mortem."""
     from tests.e2e.test_hosts import HostCell
 
-    base = Path(tempfile.mkdtemp(prefix="gwc-p-", dir="/var/tmp"))
+    base = Path(tempfile.mkdtemp(prefix=prefix, dir="/var/tmp"))
     base.chmod(0o755)
     try:
         with Hosts(3) as hosts:
             # Apart from the cell's var/ folders, which the cell makes private (root's): the members
             # run as the postgres user.
             (base / "patroni").mkdir()
-            cluster = PatroniCluster(hosts, base / "patroni")
+            cluster = make_cluster(hosts, base / "patroni")
             cell: HostCell | None = None
             try:
                 cluster.start()
@@ -363,11 +376,12 @@ def test_the_host_of_the_active_servers_and_the_primary_killed_while_lots_run() 
                     {**m, "host": "h3", "liveness": 6.0} for m in doc["machine"] if m["id"] in ("cmm_wc", "wc1", "wc2")
                 ]
                 doc["lease"] = {"ttl": 3.0}
+                doc.update(extra or {})
                 for h in MEMBERS:
                     cell.config_path(h).write_text(
                         dump_toml({**doc, "cell": {"name": "hosts", "var": str(cell.var(h))}})
                     )
-                walk_h1_killed(hosts, cluster, cell, url)
+                yield hosts, cluster, cell, url
             finally:
                 if cell is not None:
                     for h in ("h3", "h2", "h1"):
@@ -378,6 +392,8 @@ def test_the_host_of_the_active_servers_and_the_primary_killed_while_lots_run() 
                 for p in cluster.procs:
                     p.kill()
     finally:
+        if keep := os.environ.get("GWC_TEST_KEEP"):
+            shutil.copytree(base, keep, dirs_exist_ok=True, symlinks=True, ignore=shutil.ignore_patterns(".s.PGSQL*"))
         shutil.rmtree(base, ignore_errors=True)
     assert not leftovers(), "test hosts left behind"
 
