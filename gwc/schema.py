@@ -24,7 +24,7 @@ from gwc.ipc import wire
 
 # The schema version sql/ makes. A sql/ file that changes the schema ends with
 # `select schema_version_reached(N, C, '...')` and this becomes N (a unit test checks they agree).
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 
 class SchemaMismatch(DatabaseError):

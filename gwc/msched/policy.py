@@ -1,9 +1,11 @@
 """MSCHED's scheduling policy: the one function that decides who goes first (thesis 3.5).
 
-The scheduling pass (gwc.msched.store) finds every queued request that could be bound right now,
-taken alone; the policy puts them in the order the pass then binds them greedily, skipping a
-request whose machines an earlier one took. Changing how the cell schedules is writing one
-`order` function; etc/cell.toml `[cell] policy` chooses which.
+The scheduling pass (sql msched_pass, called by gwc.msched.store) finds every queued request that
+could be bound right now, taken alone, and binds them greedily in the policy's order, skipping a
+request whose machines an earlier one took. The pass runs in the database, so it sorts by the rank
+each request was given when queued (`rank_sql`, then arrival); `order` is the same order in Python
+(for tests and tools). Changing how the cell schedules is writing that pair; etc/cell.toml
+`[cell] policy` chooses which.
 
 * fifo: oldest first (the thesis's algorithm, 6.2.4.6), by arrival order `seq`.
 * priority: the lot's priority first (lower number = more urgent, the seed's default is 20), with

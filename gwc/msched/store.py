@@ -22,11 +22,11 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from typing import Any
 
 import psycopg
 
+from gwc.db import Statement
 from gwc.ipc.codes import AckCode, MachineStatus
 from gwc.msched.policy import Candidate, Policy
 
@@ -358,75 +358,19 @@ class Step:
     def schedule(self) -> list[Outcome]:
         """Bind every request that can be bound now, in the policy's order; return what was bound.
 
-        Each round takes, per trigger machine, the first few candidates in the policy's order and
-        binds greedily; a machine whose candidates were all blocked (their other machine taken,
-        their entity served) gets its next few in the next round, until a round binds nothing. The
-        result is the greedy pass over the whole queue, at the cost of the few requests looked at.
+        One round trip (sql msched_pass): per trigger machine the first few candidates in the
+        policy's order (request_machines.rank, then seq), bound greedily; a machine whose candidates
+        were all blocked (their other machine taken, their entity served) gets its next few in the
+        next round, until a round binds nothing. The result is the greedy pass over the whole queue,
+        at the cost of the few requests looked at. It ran from here, a round trip per round and one
+        more that found nothing, until sql/096_sched_pass.sql moved it into the database.
         """
         trig, self.triggers = self.triggers, set()
         full, self.full = self.full, False
         if not trig and not full:
             return []
-        bound: list[Outcome] = []
-        while full or trig:
-            cands = self.candidates(None if full else sorted(trig))
-            taken: set[str] = set()
-            entities: set[int] = set()
-            chosen: list[Candidate] = []
-            for c in self.policy.order(cands, datetime.now(UTC)):
-                if c.entity_id in entities or taken.intersection(c.machines):
-                    continue  # an earlier (older, or more urgent) request took a machine, or the entity is served
-                chosen.append(c)
-                taken.update(c.machines)
-                entities.add(c.entity_id)
-            if not chosen:
-                break
-            bound += self._bind(chosen)
-            trig -= taken
-        return bound
-
-    def _bind(self, chosen: list[Candidate]) -> list[Outcome]:
-        """Reserve the chosen requests' machines and end their entities' requests, in one round trip."""
-        flat = [(m, i) for i, c in enumerate(chosen) for m in c.machines]
-        # One statement: the machine_run_ids (one counter update for all); reserve; the bound request
-        # ends ACK_OK, the entity's other requests (its alternatives) REQ_CANCEL, and so do its held
-        # outcomes; a bound request's alt_group is remembered as satisfied. The CTEs share one
-        # snapshot, so the update sees only outcomes held before this statement.
         rows = self.cur.execute(
-            "with ids (last) as materialized (select get_new_max_values('MACH_R_ID', %(n)s)), "
-            "b (i, entity_id, bound_key, run_id) as (select u.i, u.entity_id, u.bound_key, "
-            "        ids.last - %(n)s + u.i from ids, unnest(%(entities)s::bigint[], %(keys)s::bigint[]) "
-            "        with ordinality as u (entity_id, bound_key, i)), "
-            "reserve as (insert into reserved_machines (machine_id, entity_id, machine_run_id, request_key) "
-            "        select m.machine_id, b.entity_id, b.run_id, b.bound_key "
-            "        from unnest(%(machines)s::text[], %(m_index)s::bigint[]) as m (machine_id, i) "
-            "        join b on b.i = m.i), "
-            "gone as (delete from request_machines q using b where q.entity_id = b.entity_id "
-            "        returning q.*, b.bound_key, b.run_id), "
-            "satisfied as (insert into satisfied_alt_groups (entity_id, alt_group, request_key) "
-            "        select distinct entity_id, alt_group, bound_key from gone "
-            "        where request_key = bound_key and alt_group is not null on conflict do nothing), "
-            "ended as (insert into request_outcomes (request_key, entity_id, op_type, machines, ack_code, "
-            "                                        machine_run_id, note, reply_to, reply_conv) "
-            "        select request_key, min(entity_id), min(op_type), array_agg(machine_id order by seq), "
-            "               case when request_key = min(bound_key) then 'ACK_OK' else 'REQ_CANCEL' end, "
-            "               case when request_key = min(bound_key) then min(run_id) end, "
-            "               case when request_key = min(bound_key) then null "
-            "                    else 'alternative ' || min(bound_key) || ' satisfied' end, "
-            "               min(reply_to), min(reply_conv) "
-            f"       from gone group by request_key returning {_OUTCOME_COLS}), "
-            "released as (update request_outcomes o set ack_code = 'REQ_CANCEL', held = false, "
-            "               note = 'alternative ' || b.bound_key || ' satisfied' "
-            "        from b where o.held and o.entity_id = b.entity_id "
-            f"       returning {', '.join('o.' + c for c in _OUTCOME_COLS.split(', '))}) "
-            f"select {_OUTCOME_COLS} from ended union all select {_OUTCOME_COLS} from released",
-            {
-                "n": len(chosen),
-                "entities": [c.entity_id for c in chosen],
-                "keys": [c.request_key for c in chosen],
-                "machines": [m for m, _ in flat],
-                "m_index": [i + 1 for _, i in flat],
-            },
+            "select * from msched_pass(%s, %s, %s)", (None if full else sorted(trig), list(UP), self.per_machine)
         ).fetchall()
         ended = [Outcome.of(r) for r in rows]
         self.outcomes += ended
@@ -485,11 +429,56 @@ SWEEP_WORK = (
 )
 
 
-def run_step(
-    cur: psycopg.Cursor[Any], policy: Policy, ops: Sequence[Callable[[Step], Any]]
-) -> tuple[list[Any], list[Outcome]]:
-    """Apply ops in order, then one scheduling pass; return each op's result and the outcomes to tell."""
-    step = Step(cur, policy)
-    results = [op(step) for op in ops]
-    step.schedule()
-    return results, step.outcomes
+@dataclass(frozen=True)
+class StepDone:
+    """What a committed step did: the machines each Unreserve_Me freed, each op's result, the outcomes to tell."""
+
+    freed: list[list[str]]
+    results: list[Any]
+    outcomes: list[Outcome]
+
+
+def step(
+    policy: Policy,
+    frees: Sequence[tuple[int, str | None]] = (),
+    finished: Sequence[int] = (),
+    ops: Sequence[Callable[[Step], Any]] = (),
+) -> Callable[[psycopg.Cursor[Any]], StepDone]:
+    """A step for gwc.db.transaction: the frees (Unreserve_Me), then forgetting the `finished` outcomes,
+    then the ops in order, then one scheduling pass.
+
+    Without ops (the scheduler's step under load: lots freeing machines, entities acknowledging) the
+    step is ONE statement (sql msched_step), which gwc.db.transaction runs alone in autocommit: one
+    round trip instead of BEGIN, a statement per change, the pass and COMMIT. PostgreSQL makes the
+    statement atomic, so a decision is still committed before it is told.
+    """
+    if not ops:
+        n = len(frees)
+
+        def into(rows: list[tuple[Any, ...]]) -> StepDone:
+            freed: list[list[str]] = [[] for _ in range(n)]
+            outcomes: list[Outcome] = []
+            for kind, i, machine, *outcome in rows:
+                if kind == "freed":
+                    freed[i - 1].append(machine)
+                else:
+                    outcomes.append(Outcome.of(outcome))
+            return StepDone(freed, [], outcomes)
+
+        return Statement(
+            "select * from msched_step(%s::bigint[], %s::text[], %s::bigint[], %s::text[], false, %s, %s)",
+            ([e for e, _ in frees], [m for _, m in frees], list(finished), [], list(UP), PER_MACHINE),
+            fetch="all",
+            into=into,
+        )
+
+    def run(cur: psycopg.Cursor[Any]) -> StepDone:
+        s = Step(cur, policy)
+        freed = s.unreserve_all(frees) if frees else []
+        if finished:
+            s.finish(finished)
+        results = [op(s) for op in ops]
+        s.schedule()
+        return StepDone(freed, results, s.outcomes)
+
+    return run

@@ -26,6 +26,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import psycopg
@@ -120,37 +121,31 @@ class StepWorker:
                 turns += 1
                 quiet = quiet + 1 if len(self._ops) + len(self._frees) == n else 0
             kick.clear()
-            ops = self._take()
-            if ops:
-                await self._run(ops)
+            batch = self._take()
+            if batch.size:
+                await self._run(batch)
 
     def _wake(self) -> None:
         self._kick.set()
 
-    def _take(self) -> list[tuple[Op, asyncio.Future[Any] | None]]:
-        """The pending changes as a step's ops: all frees as one op, all acknowledged outcomes as one."""
+    def _take(self) -> _Batch:
+        """The pending changes as one step: the frees, the acknowledged outcomes, the other ops."""
         ops, self._ops = self._ops, []
         frees, self._frees = self._frees, []
         finished, self._finished = self._finished, []
         if self._lazy is not None:
             self._lazy.cancel()
             self._lazy = None
-        if finished:
-            ops.insert(0, (lambda s: s.finish(finished), None))
-        if frees:
-            fut = asyncio.get_running_loop().create_future()
-            fut.add_done_callback(lambda f: _spread(f, [w for _, _, w in frees]))
-            ops.insert(0, (lambda s: s.unreserve_all([(e, m) for e, m, _ in frees]), fut))
-        return ops
+        return _Batch(frees, finished, ops)
 
-    async def _step(self, ops: list[Op]) -> tuple[list[Any], list[Outcome]]:
-        """One transaction for ops, in the step thread. The connection is made here, on the loop; a
+    async def _step(self, work: Callable[[psycopg.Cursor[Any]], store.StepDone]) -> store.StepDone:
+        """One transaction for a step, in the step thread. The connection is made here, on the loop; a
         connection lost during the step is made again here once and the step run again (as
         gwc.db.transaction does on the loop), else DatabaseUnavailable."""
         for attempt in (1, 2):
             self.step_conn = self.database.connection()
             try:
-                return await asyncio.to_thread(self._in_thread, ops)
+                return await asyncio.to_thread(self._in_thread, work)
             except DatabaseUnavailable:
                 if attempt == 2 or (self.step_conn is not None and not self.step_conn.closed):
                     raise
@@ -158,26 +153,31 @@ class StepWorker:
                 self.step_conn = None
         raise AssertionError("unreachable")
 
-    def _in_thread(self, ops: list[Op]) -> tuple[list[Any], list[Outcome]]:
+    def _in_thread(self, work: Callable[[psycopg.Cursor[Any]], store.StepDone]) -> store.StepDone:
         with self.lock:
             # In flight, the step is the database used now: the watch (ModuleDatabase.probe) leaves
             # the connection alone until it is done.
             self.database.used = math.inf
             try:
-                return db.transaction(
-                    self.step_connection, lambda cur: store.run_step(cur, self.policy, ops), log=self.log
-                )
+                return db.transaction(self.step_connection, work, log=self.log)
             finally:
                 self.database.used = time.monotonic()
 
-    async def _run(self, ops: list[tuple[Op, asyncio.Future[Any] | None]]) -> None:
-        """One step for all ops, then tell. A batch that fails is run again op by op."""
+    async def _run(self, batch: _Batch) -> None:
+        """One step for the batch, then tell. A batch of several changes that fails is run again change by change."""
         started = time.perf_counter()
+        frees, ops = batch.frees, batch.ops
         try:
-            results, outcomes = await self._step([op for op, _ in ops])
+            done = await self._step(
+                store.step(self.policy, [(e, m) for e, m, _ in frees], batch.finished, [op for op, _ in ops])
+            )
         except DatabaseUnavailable as e:
             # Nothing was done: whoever waits is answered DB_Badrea (asks again); what nobody waits
             # for (forgetting told outcomes, the sweep) rides on the first step once it is back.
+            self._finished += batch.finished
+            for _, _, waiter in frees:
+                if not waiter.done():
+                    waiter.set_exception(e)
             for op, fut in ops:
                 if fut is None:
                     self._ops.append((op, None))
@@ -185,40 +185,50 @@ class StepWorker:
                     fut.set_exception(e)
             return
         except Exception as e:
-            if len(ops) > 1:
-                self.log.warning("a step of %d changes failed (%s): running them one by one", len(ops), e)
-                for one in ops:
-                    await self._run([one])
+            if batch.size > 1:
+                self.log.warning("a step of %d changes failed (%s): running them one by one", batch.size, e)
+                for one in batch.split():
+                    await self._run(one)
                 return
-            fut = ops[0][1]
-            if fut is None:
+            alone: asyncio.Future[Any] | None = frees[0][2] if frees else ops[0][1] if ops else None
+            if alone is None:
                 self.log.error("step failed: %s", e)
-            elif not fut.done():
-                fut.set_exception(e)
+            elif not alone.done():
+                alone.set_exception(e)
             return
         # The outcomes first: an entity bound is told before the changes' askers are answered (a lot
         # that freed a machine hears its Unreserve_Me_Ack after the next lot heard it has it).
-        self.tell(outcomes)
-        for (_, fut), result in zip(ops, results):
+        self.tell(done.outcomes)
+        for (_, _, waiter), freed in zip(frees, done.freed):
+            if not waiter.done():
+                waiter.set_result(freed)
+        for (_, fut), result in zip(ops, done.results):
             if fut is not None and not fut.done():
                 fut.set_result(result)
         self.log.log(
             TRACE,
             "step of %d change(s): %d outcome(s) in %.2f ms",
-            len(ops),
-            len(outcomes),
+            batch.size,
+            len(done.outcomes),
             (time.perf_counter() - started) * 1000,
         )
 
 
-def _spread(done: asyncio.Future[list[list[str]]], waiters: list[asyncio.Future[list[str]]]) -> None:
-    """Hand each Unreserve_Me of a batch its own result (or the batch's failure)."""
-    for i, w in enumerate(waiters):
-        if w.done():
-            continue
-        if done.cancelled():
-            w.cancel()
-        elif done.exception() is not None:
-            w.set_exception(done.exception())  # type: ignore[arg-type]
-        else:
-            w.set_result(done.result()[i])
+@dataclass
+class _Batch:
+    """The changes of one step: Unreserve_Me (each with its waiter), acknowledged outcomes, other ops."""
+
+    frees: list[tuple[int, str | None, asyncio.Future[list[str]]]]
+    finished: list[int]
+    ops: list[tuple[Op, asyncio.Future[Any] | None]]
+
+    @property
+    def size(self) -> int:
+        return len(self.frees) + (1 if self.finished else 0) + len(self.ops)
+
+    def split(self) -> list[_Batch]:
+        """Each change as a step of its own (the acknowledged outcomes together)."""
+        alone = [_Batch([f], [], []) for f in self.frees]
+        if self.finished:
+            alone.append(_Batch([], self.finished, []))
+        return alone + [_Batch([], [], [op]) for op in self.ops]

@@ -16,6 +16,7 @@ import pytest
 from gwc import db
 from gwc.config import Config
 from gwc.ipc.codes import AckCode
+from gwc.msched import store
 from gwc.msched.policy import Fifo, Policy, Priority
 from gwc.msched.store import SWEEP_WORK, Step
 
@@ -59,6 +60,46 @@ def test_frees_of_one_step_each_get_their_own_machines(conn: psycopg.Connection[
     # entity 1 frees wc2, then (all) the rest: wc1; wc3 was never entity 1's; entity 7 holds nothing
     assert freed == [["wc2"], ["wc3"], [], [], ["wc1"]]
     assert conn.execute("select count(*) from reserved_machines").fetchone()[0] == 0
+
+
+def test_a_step_of_frees_and_acknowledgements_is_one_statement_that_frees_forgets_and_binds(
+    conn: psycopg.Connection[Any],
+) -> None:
+    fifo = Fifo()
+    _accept_all(conn, fifo)
+    (held,), step = _step(conn, fifo, lambda s: [s.queue_request(1, "dummy_op", ["wc1", "wc2"], None, "t", "c1")])
+    assert [o.ack_code for o in step.outcomes] == [AckCode.ACK_OK]  # entity 1 holds wc1 and wc2
+    _step(
+        conn,
+        fifo,
+        lambda s: [
+            s.queue_request(e, "dummy_op", ms, None, "t", f"c{e}")
+            for e, ms in ((2, ["wc1", "wc2"]), (3, ["wc2"]), (4, ["wc1"]))
+        ],
+    )
+    # entity 1 acknowledged its outcome and frees wc1, then all the rest (wc2); entity 9 holds nothing
+    work = store.step(fifo, frees=[(1, "wc1"), (1, None), (9, None)], finished=[held.request_key])
+    assert isinstance(work, db.Statement)  # run alone, in autocommit: one round trip
+    done = db.transaction(conn, work)
+    assert done.freed == [["wc1"], ["wc2"], []]
+    # the oldest, entity 2, takes both machines; 3 and 4 wait
+    assert [(o.entity_id, o.ack_code, o.machines) for o in done.outcomes] == [(2, AckCode.ACK_OK, ("wc1", "wc2"))]
+    assert (
+        conn.execute("select count(*) from request_outcomes where request_key = %s", (held.request_key,)).fetchone()[0]
+        == 0
+    )
+    assert dict(conn.execute("select machine_id, entity_id from reserved_machines")) == {"wc1": 2, "wc2": 2}
+    # 2 frees wc2 only: 3 takes it; then wc1: 4 takes it
+    done = db.transaction(conn, store.step(fifo, frees=[(2, "wc2")]))
+    assert [(o.entity_id, o.machines) for o in done.outcomes] == [(3, ("wc2",))]
+    done = db.transaction(conn, store.step(fifo, frees=[(2, "wc1")]))
+    assert [(o.entity_id, o.machines) for o in done.outcomes] == [(4, ("wc1",))]
+    # a step with other changes is a transaction of its own statements, the frees first
+    work = store.step(fifo, frees=[(3, None)], ops=[lambda s: s.queue_request(5, "dummy_op", ["wc2"], None, "t", "c5")])
+    assert not isinstance(work, db.Statement)
+    done = db.transaction(conn, work)
+    assert done.freed == [["wc2"]] and done.results[0].ack_code == AckCode.ACK_OK
+    assert [(o.entity_id, o.machines) for o in done.outcomes] == [(5, ("wc2",))]
 
 
 def test_a_machine_freed_or_accepting_again_with_nobody_waiting_makes_no_pass(conn: psycopg.Connection[Any]) -> None:
