@@ -3,7 +3,9 @@
 * Acknowledgements due: gathered per peer (name, incarnation) and sent together a quarter of an
   `ack_timeout` later, unless they ride on the next msg to that peer first (`take_acks`).
 * Msgs not yet acknowledged by every module they are meant for: retransmitted with exponential
-  backoff until acknowledged or `retry_deadline` passes; one timer for all of them.
+  backoff until acknowledged or `retry_deadline` passes; one timer for all of them. The first
+  retransmission waits as long as the peers' measured ack delay needs (gwc/ipc/rto.py), at least
+  `ack_timeout`.
 * Each conversation's numbering (`Outgoing`): the next idx, and the batches not yet settled, which
   make the `base` a receiver reads to tell settled from missing.
 
@@ -27,6 +29,7 @@ from gwc.errors import BusError
 from gwc.ipc import wire
 from gwc.ipc.catalogue import Message
 from gwc.ipc.conversation import INF, Outgoing, Peer, Pending
+from gwc.ipc.rto import AckDelays
 from gwc.ipc.wire import Envelope
 
 MAX_RTO = 0.5  # retransmission backoff stops growing here
@@ -66,6 +69,7 @@ class Outbox:
         self._rtx_at = INF
         self._ack_timer: asyncio.TimerHandle | None = None
         self._flushed: asyncio.Future[None] | None = None  # drain() waiting for the last acks
+        self.ack_delays = AckDelays(cfg.ack_timeout, MAX_RTO)  # each peer's first retransmission timeout
 
     # ----------------------------------------------------------------- numbering
 
@@ -152,22 +156,29 @@ class Outbox:
         else:
             out.unsettled.append(batch)
         now = time.monotonic()
-        rto = self.cfg.ack_timeout
+        rto = self.ack_delays.timeout(waiting)
         pending, first_due = self.pending, self._due_first
+        # First sends are due in send order while every peer has the same timeout; one due sooner than
+        # the last (a quicker peer's) waits in the heap with the retransmissions.
+        due_at = first_due.append if not first_due or first_due[-1][0] <= now + rto else self._due_sooner
         for i, data in enumerate(datas):
             seq += 1
             w = set(waiting) if i else waiting
             pending[seq] = Pending(data, w, now, rto, batch, conv_id, cls, messages[i].name, to, base, subject)
-            first_due.append((now + rto, seq))
+            due_at((now + rto, seq))
         if self._rtx_timer is None or now + rto < self._rtx_at:
             self._arm_retransmit(now + rto)
 
     def acked(self, src: str, seqs: Iterable[int]) -> None:
-        """`src` acknowledged these seqs."""
+        """`src` acknowledged these seqs (the first still pending gives its ack delay a sample)."""
         pending = self.pending
+        sample = True
         for seq in seqs:
             p = pending.get(seq)
             if p is not None:
+                if sample and src in p.waiting:
+                    self.ack_delays.sample(src, time.monotonic() - p.first_sent)
+                    sample = False
                 p.waiting.discard(src)
                 if not p.waiting:
                     self._done(seq)
@@ -231,6 +242,9 @@ class Outbox:
         nxt = min(first[0][0] if first else INF, again[0][0] if again else INF)
         if nxt < INF:
             self._arm_retransmit(max(nxt, now + self.cfg.ack_timeout / 4))
+
+    def _due_sooner(self, entry: tuple[float, int]) -> None:
+        heapq.heappush(self._due_again, entry)
 
     def _retransmit(self, seq: int, now: float) -> None:
         p = self.pending[seq]
