@@ -55,7 +55,10 @@ begin
                 where s.status = any (p_up)
                   and not exists (select 1 from reserved_machines r where r.machine_id = s.machine_id)
             )
-            select x.request_key, x.entity_id, x.op_type, x.slots
+            select x.request_key, x.entity_id,
+                   -- the request's machines, in the order it named them ('machine:op_type' slots)
+                   array(select left(u.s, -length(x.op_type) - 1) from unnest(x.slots) with ordinality u (s, i)
+                         order by u.i) as machines
             from usable, unnest(case when v_full then array(select machine_id from me_config) else v_trig end)
                  as t (machine_id)
             cross join lateral (
@@ -70,9 +73,7 @@ begin
             order by x.rank, x.seq
         loop
             continue when c.entity_id = any (v_ents);
-            -- the request's machines, in the order it named them ('machine:op_type' slots)
-            v_ms := array(select left(s, -length(c.op_type) - 1) from unnest(c.slots) with ordinality u (s, i)
-                          order by i);
+            v_ms := c.machines;
             continue when v_ms && v_taken;
             n := n + 1;
             v_keys := v_keys || c.request_key;
@@ -173,14 +174,9 @@ begin
             end if;
         end loop;
     end if;
-    kind := 'outcome'; i := null; machine_id := null;
     if p_full or cardinality(v_trig) > 0 then
-        for r in select * from msched_pass(case when p_full then null else v_trig end, p_up, p_per) loop
-            request_key := r.request_key; entity_id := r.entity_id; ack_code := r.ack_code;
-            machines := r.machines; machine_run_id := r.machine_run_id; note := r.note;
-            reply_to := r.reply_to; reply_conv := r.reply_conv;
-            return next;
-        end loop;
+        return query select 'outcome', null::int, null::text, p.*
+            from msched_pass(case when p_full then null else v_trig end, p_up, p_per) p;
     end if;
 end
 $$;
