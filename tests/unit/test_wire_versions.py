@@ -150,3 +150,22 @@ def test_an_untracked_sender_of_an_older_version_is_answered_in_it() -> None:
         await wc.close(flush=0.1)
 
     asyncio.run(asyncio.wait_for(main(), 30))
+
+
+def test_the_monitor_shows_a_module_restarted_on_another_build_at_its_first_hello() -> None:
+    """A module restarted on a newer build signs on with a query in the oldest version it speaks, then
+    beats in the version the cell speaks: `gwc monitor --members` shows what it speaks now, though its
+    datagrams are in the same version as its predecessor's."""
+    from gwc.hi.monitor import Versions
+
+    shown: list[dict[str, object]] = []
+    versions = Versions("CELL", shown.append)
+    old = wire.VERSION - 1
+    hello = Envelope(kind="hello", src="msched", inc=1, fields={wire.SPEAKS: old}, version=old)
+    versions.heard(hello)
+    versions.heard(hello)  # a beat: nothing changed
+    assert [(r["member"], r["speaks"], r["wire"]) for r in shown] == [("msched", old, old)]
+    new = {wire.SPEAKS: wire.VERSION}
+    versions.heard(Envelope(kind="hello", src="msched", inc=2, fields=new, version=old, query=True))
+    versions.heard(Envelope(kind="hello", src="msched", inc=2, fields=new, version=old))
+    assert [(r["member"], r["speaks"], r["wire"]) for r in shown[1:]] == [("msched", wire.VERSION, old)]
