@@ -1,13 +1,22 @@
-"""A rolling upgrade while lots run (issue 36, item 4): MSCHED and the Lot Server, each with a standby,
-moved host by host to a second build whose wire version is one higher (with one new optional message
-field) and whose schema version is one higher (with one additive migration). No lot fails, nothing is
-run twice, `gwc check` is clean, and the Conversation Monitor shows modules of both versions talking.
+"""A rolling upgrade while lots run (issue 36, item 4): the cell moved module by module to a second
+build whose wire version is one higher (with one new optional message field) and whose schema version
+is one higher (with one additive migration). No lot fails, nothing is run twice, `gwc check` is clean,
+and the Conversation Monitor shows modules of both versions talking, each to the other in the older.
 
-The second build is real: this checkout's gwc/, sql/ and pyproject.toml copied to a folder of the test's
-and patched there; a process runs it with PYTHONPATH naming that folder. The hosts are process groups
-on this one host, not network-namespace hosts (the lease does not care where instances run, and
-namespaces would double the test's time): "h1" runs the active instances at first, "h2" their
-standbys, the machines and the other servers are not upgraded here (docs/deploying.md, 7)."""
+The second build is real: this checkout's gwc/, sql/ and pyproject.toml copied to a folder and patched
+there; a process runs it with PYTHONPATH naming that folder (and started in it).
+
+* The default suite's test (one host, about 30 s): MSCHED and the Lot Server, each with a standby of
+  the new build started by hand, handed over while 2 lots run; a module of the new build started
+  before the migration refuses the old schema.
+* The soak test walks docs/deploying.md, 7 on the issue's network-namespace hosts (gwc/netns.py,
+  tests/e2e/test_patroni.py's issue_topology: h1 the active servers and MSCHED, h2 their standbys, h3
+  the machines, the database under Patroni on all three) while lots are ordered without pause: the
+  schema from h2; h2's agent and standbys on the new build; h1's agent on it and `gwc upgrade
+  handover`; h3's agent, then its machines one by one (`gwc machine stop`, `gwc restart me:M wc:M`,
+  `gwc machine start`). "Installing" the build on a host is killing its agent (-9: the modules run
+  on) and `gwc start` from the new build, whose agent adopts them. About 3 minutes:
+  `.venv/bin/python -m pytest -q -s -m soak tests/e2e/test_upgrade.py` (as root)."""
 
 from __future__ import annotations
 
