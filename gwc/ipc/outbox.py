@@ -153,14 +153,22 @@ class Outbox:
             out.unsettled.append(batch)
         now = time.monotonic()
         rto = self.cfg.ack_timeout
-        pending, first_due = self.pending, self._due_first
-        for i, data in enumerate(datas):
-            seq += 1
-            w = set(waiting) if i else waiting
-            pending[seq] = Pending(data, w, now, rto, batch, conv_id, cls, messages[i].name, to, base, subject)
-            first_due.append((now + rto, seq))
-        if self._rtx_timer is None or now + rto < self._rtx_at:
-            self._arm_retransmit(now + rto)
+        due = now + rto
+        pending = self.pending
+        if n == 1:  # the usual batch: one message
+            pending[seq + 1] = Pending(
+                datas[0], waiting, now, rto, batch, conv_id, cls, messages[0].name, to, base, subject
+            )
+            self._due_first.append((due, seq + 1))
+        else:
+            first_due = self._due_first
+            for i, data in enumerate(datas):
+                seq += 1
+                w = set(waiting) if i else waiting
+                pending[seq] = Pending(data, w, now, rto, batch, conv_id, cls, messages[i].name, to, base, subject)
+                first_due.append((due, seq))
+        if self._rtx_timer is None or due < self._rtx_at:
+            self._arm_retransmit(due)
 
     def acked(self, src: str, seqs: Iterable[int]) -> None:
         """`src` acknowledged these seqs."""

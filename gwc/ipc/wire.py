@@ -421,10 +421,14 @@ def decode(data: bytes) -> Envelope:
             na,
             ni,
         ) = _FIXED.unpack_from(data, 4)
-        if ls > MAX_NAME or lc > MAX_NAME or lk > MAX_NAME or lt > MAX_NAME or lm > MAX_NAME or lj > MAX_NAME:
+        if max(ls, lc, lk, lt, lm, lj) > MAX_NAME:
             raise MessageError(f"a name is longer than {MAX_NAME} bytes")
         o = _BODY + ls
-        e = o + lc + lk + lt + lm + lj
+        c = o + lc
+        k = c + lk
+        t = k + lt
+        m = t + lm
+        e = m + lj
         if e > n:
             raise MessageError("truncated datagram")
         if b"\0" in data[_BODY:e]:
@@ -432,19 +436,16 @@ def decode(data: bytes) -> Envelope:
         # Names through the cache (the empty name is in it, with tag 0); each tag must match its name.
         b = data[_BODY:o]
         src, t1 = names.get(b) or _decoded(b)
-        conv = data[o : o + lc].decode()
-        o += lc
-        b = data[o : o + lk]
+        conv = data[o:c].decode()
+        b = data[c:k]
         cls, t2 = names.get(b) or _decoded(b)
-        o += lk
-        b = data[o : o + lt]
+        b = data[k:t]
         to, t3 = names.get(b) or _decoded(b)
-        o += lt
         if t1 != src_tag or t2 != cls_tag or t3 != to_tag:
             raise MessageError("a filter tag does not match its name")
-        o += lm
-        b = data[o - lm : o]
+        b = data[t:m]
         msg = (names.get(b) or _decoded(b))[0]
+        o = m
         subject = ""
         if lj or subj_tag:
             b = data[o:e]
@@ -489,7 +490,7 @@ def decode(data: bytes) -> Envelope:
         raise MessageError("truncated datagram") from None
     except (UnicodeDecodeError, ValueError, RecursionError) as err:  # ValueError covers JSONDecodeError, huge ints
         raise MessageError(f"undecodable datagram: {str(err)[:200]}") from None
-    if kind >= len(KINDS):
+    if kind > 3:  # len(KINDS) - 1
         raise MessageError(f"unknown kind {kind}")
     if flags & ~QUERY:
         raise MessageError(f"unknown flags {flags:#x}")
