@@ -212,3 +212,14 @@ def test_the_msg_encoder_writes_the_general_encoders_bytes(version: int) -> None
                     )
     with pytest.raises(MessageError, match="over the bus limit"):
         wire.encode_msg(orig, 1, "c.1.2", "PING", 0, 0, 0, 0, None, "Ping", {"payload": "x" * 70_000})
+
+
+def test_the_bytecode_count_of_a_round_trip_is_deterministic_and_names_the_hot_path() -> None:
+    """`gwc bench bus --bytecodes`: the same count twice, and the fast path's steps in it, not the general ones."""
+    from gwc.bench.bus import bytecodes
+
+    first, second = bytecodes(60, warm=20), bytecodes(60, warm=20)
+    assert abs(first["bytecodes"] - second["bytecodes"]) <= 0.02 * first["bytecodes"]
+    per = first["per_function"]
+    assert per["order.py:in_order"][1] == 2.0 and "order.py:place" not in per  # one msg each way, both fast
+    assert per["wire.py:encode_msg"][1] == 2.0  # (encode_parts: hellos only)
