@@ -64,7 +64,7 @@ class Outbox:
         self._due_again: list[tuple[float, int]] = []
         self._rtx_timer: asyncio.TimerHandle | None = None
         self._rtx_at = INF
-        self._ack_timer: asyncio.TimerHandle | None = None
+        self._ack_timer: asyncio.Handle | None = None  # the ack timer, then the flush it put last in the turn
         self._flushed: asyncio.Future[None] | None = None  # drain() waiting for the last acks
 
     # ----------------------------------------------------------------- numbering
@@ -96,7 +96,14 @@ class Outbox:
         else:
             due.append(seq)
         if self._ack_timer is None and self.loop is not None:
-            self._ack_timer = self.loop.call_later(self.cfg.ack_timeout / 4, self.flush_acks)
+            self._ack_timer = self.loop.call_later(self.cfg.ack_timeout / 4, self._acks_due)
+
+    def _acks_due(self) -> None:
+        """The ack timer: flush at the end of this loop turn, not now. The timer runs before the turn's
+        ready callbacks, among them often a task woken by the very msg whose ack is due, which is about
+        to answer it: its answer takes the ack along (take_acks) and no ack datagram goes."""
+        assert self.loop is not None
+        self._ack_timer = self.loop.call_soon(self.flush_acks)
 
     def take_acks(self, key: tuple[str, int]) -> list[int] | None:
         """The acks due to a peer, taken to ride on a msg to it; None if none, or too many to ride."""

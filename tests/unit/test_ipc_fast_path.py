@@ -223,3 +223,35 @@ def test_the_bytecode_count_of_a_round_trip_is_deterministic_and_names_the_hot_p
     per = first["per_function"]
     assert per["order.py:in_order"][1] == 2.0 and "order.py:place" not in per  # one msg each way, both fast
     assert per["wire.py:encode_msg"][1] == 2.0  # (encode_parts: hellos only)
+
+
+def test_the_ack_timer_lets_an_answer_in_the_same_turn_take_the_ack_along() -> None:
+    """The ack timer runs before the loop turn's ready callbacks: it flushes at the end of the turn, so
+    that a task woken by the msg and answering it takes the ack along and no ack datagram goes."""
+    import collections
+
+    from gwc.ipc.outbox import Outbox
+
+    async def main() -> None:
+        sent: list[bytes] = []
+        outbox = Outbox("a", 1, BusConfig(), logging.getLogger("gwc.test.a"), collections.Counter(), sent.append)
+        outbox.loop = asyncio.get_running_loop()
+        try:
+            outbox.ack(("b", 2), 5)
+            outbox._acks_due()  # the timer fires ...
+            assert outbox.take_acks(("b", 2)) == [5]  # ... and an answer in the same turn takes the ack
+            await asyncio.sleep(0)
+            assert sent == []
+            outbox.ack(("b", 2), 6)
+            outbox._acks_due()  # nobody answers: an ack datagram at the end of the turn
+            await asyncio.sleep(0)
+            assert len(sent) == 1 and wire.decode(sent[0]).acks == (6,)
+            outbox.ack(("b", 2), 7)
+            outbox._acks_due()
+            outbox.close()  # a flush put at the end of the turn is cancelled with the timers
+            await asyncio.sleep(0)
+            assert len(sent) == 1
+        finally:
+            outbox.close()
+
+    asyncio.run(main())
