@@ -217,9 +217,12 @@ class Bus:
     def speak(self, version: int) -> None:
         """Encode everything from now on in wire `version` (the membership decides which): what is
         already in flight is retransmitted as it was encoded."""
-        omit = catalogue.fields_after(version) if version < wire.VERSION else None
-        self._origin = wire.origin(self.name, self.inc, version, omit)
+        self._origin = self._origin_in(version)
         self._speaking = self.outbox.version = version
+
+    def _origin_in(self, version: int) -> wire.Origin:
+        omit = catalogue.fields_after(version) if version < wire.VERSION else None
+        return wire.origin(self.name, self.inc, version, omit)
 
     def listeners_of(self, cls: str, subject: str = "") -> list[str]:
         """Who hears broadcasts of `cls` (about `subject`: those who hear the class about it too)."""
@@ -365,6 +368,10 @@ class Bus:
         n = len(messages)
         seq = self._seq
         own, encode = self._origin, wire.encode_msg
+        if also and to is None and self._members.older:  # a listener we do not track may read an older version
+            version = self._members.version_for(also)
+            if version != self._speaking:
+                own = self._origin_in(version)
         subject = j = ""  # what the batch is about, where the kernel filter reads it (a class may name one)
         about = catalogue.SUBJECT_FIELDS.get(cls)
         if about is not None:
@@ -475,8 +482,8 @@ class Bus:
             peer = self._peers.get(env.src)
             if peer is not None and peer.inc == env.inc:
                 peer.last_seen = now  # any datagram proves life, not only hellos
-            elif env.version != self._speaking:  # a sender we hold no hello of speaks another version
-                self._members.heard_version(env, now)
+            elif env.version != self._speaking or env.version != wire.VERSION:
+                self._members.heard_version(env, now)  # a sender we hold no hello of, in another version
             kind = env.kind
             self.stats[kind] += 1  # datagrams read, by kind: what the kernel filter let through
             if kind == "msg":
