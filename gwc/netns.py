@@ -115,7 +115,8 @@ class Hosts:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
 
 
-def leftovers() -> list[str]:
-    """Namespaces of such hosts still present (a leak check for tests)."""
+def leftovers(tag: str = "") -> list[str]:
+    """Namespaces of such hosts still present (a leak check for tests); `tag`: one Hosts' only (others may
+    be another test's, running beside)."""
     out = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
-    return [line.split()[0] for line in out.splitlines() if line.startswith(PREFIX)]
+    return [line.split()[0] for line in out.splitlines() if line.startswith(PREFIX + tag)]
