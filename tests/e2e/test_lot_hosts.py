@@ -254,14 +254,14 @@ def walk(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
     counts = "select (select count(*) from lot_status), (select count(*) from machine_run_outcome)"
     committed = q(counts)[0]
     before = last_binding()
+    at_work = h1_at_work()  # h1's entities with work left: their scripts die with h1 and must be taken over
+    assert at_work, "h1's lots had no work left at the kill"
     wall = time.time()
     cluster.kill_host("h1")
     killed = time.monotonic()
     live_url = primary_url("postgres", PASSWORD, [(cluster.addr[h], 5432) for h in ("h2", "h3")], "gwc")
     wait_for(lambda: cluster.leader() not in (None, "h1"), 60, "a new primary", interval=0.1)
     promoted = time.monotonic() - killed
-    at_work = h1_at_work()  # h1's scripts are dead: these states cannot move until they are taken over
-    assert at_work, "h1's lots had no work left at the kill"
     wait_for(lambda: done() or last_binding() > before, 60, "the next machine bound", interval=0.1)
     polled = time.monotonic() - killed
     wait_for(
