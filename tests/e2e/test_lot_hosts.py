@@ -4,14 +4,16 @@ The issue's topology on network-namespace hosts (gwc/netns.py): h1 the active se
 the Patroni primary, h2 their standbys and the synchronous standby, h3 the machines and a replica,
 etcd on all three. Six pawns are ordered, three from h1 (their lot scripts run on h1) and three from h2.
 h1 is killed whole (every process in it, its cable cut) while they run, etcd's leader moved to h1
-first (the worst case): Patroni promotes h2, h2's standbys take every lease, a live host's agent
-takes h1's lot scripts over (sql/092_lot_hosts.sql) and they resume their entities from
-LOT_TRAVELLERS, as a script killed with -9 does. Every lot is exported, nothing is milled twice, no
-committed row is lost, `gwc check` is clean, and the time from the kill to the next machine bound is
-printed beside the issue's 10 s bar (docs/reliability.md has the trials).
+first (the worst case): Patroni promotes its synchronous standby (h2 or h3), h2's standbys take every
+lease, a live host's agent takes h1's lot scripts over (sql/092_lot_hosts.sql: started ahead while the
+database failed over, gwc/agent/lot_hosts.py) and they resume their entities from LOT_TRAVELLERS, as a
+script killed with -9 does. Every lot is exported, nothing is milled twice, no committed row is lost,
+`gwc check` is clean, and production resumes (the next machine bound, read from the new MSCHED's log)
+within the issue's 10 s of the kill; the failover's steps, read from the hosts' logs, are printed.
 
 About 1.5 minutes: `.venv/bin/python -m pytest -q -s -m soak tests/e2e/test_lot_hosts.py`
-(GWC_TEST_ETCD_LEADER=none leaves etcd's leader where it is; GWC_TEST_DCS="ttl,loop_wait,retry_timeout").
+(GWC_TEST_ETCD_LEADER=none leaves etcd's leader where it is; GWC_TEST_DCS="ttl,loop_wait,retry_timeout"
+and GWC_TEST_ETCD="heartbeat,election" try other timings).
 """
 
 from __future__ import annotations
@@ -39,11 +41,9 @@ pytestmark = [
     pytest.mark.skipif(MISSING is not None, reason=f"{MISSING} is not installed (bin/setup installs it)"),
 ]
 
-BAR_S = 10.0  # the issue's bar from the kill to production going on (its goal: 3 s)
-# What this test holds it to: the worst case it builds (etcd's leader dies with h1, and h1's lots hold
-# every machine, so production waits for their scripts to start again elsewhere) met the bar in 6 of 10
-# trials on the shared 2-core machine (docs/reliability.md); each trial prints whether it met it.
-HELD_S = 12.0
+BAR_S = 10.0  # the issue's bar from the kill to production going on (its goal: 3 s), held in the worst case
+# the test builds: etcd's leader dies with h1, and h1's lots may hold every machine, so that production
+# waits for their scripts to resume on a live host (docs/reliability.md has the trials).
 LOT_HOSTS_TTL = 4.0
 
 
@@ -235,27 +235,29 @@ def walk(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
         return int(q("select greatest((select max(machine_run_id) from reserved_machines), "
                      "(select max(machine_run_id) from machine_run_outcome), 0)")[0][0])  # fmt: skip
 
-    def h1_recorded() -> bool:  # one of h1's scripts has an operation in its stored record
-        rows = q(f"select count(*) from lot_travellers where entity_id in ({on_h1}) "
-                 "and jsonb_array_length(coalesce(traveller->'operations', '[]')) > 0")  # fmt: skip
-        return int(rows[0][0]) > 0
-
-    def h1_at_work() -> list[int]:  # h1's entities whose scripts have work left
-        return [int(e) for (e,) in q(f"select entity_id from lot_status where entity_id in ({on_h1}) and state "
-                                     "not in ('exported', 'failed', 'completed', 'waiting_export')")]  # fmt: skip
-
-    def busy() -> bool:  # a run going on, and lots waiting for machines
-        return bool(q("select 1 from machine_status where status = 'Running'")) and bool(
-            q("select 1 from request_machines")
-        )
-
-    wait_for(lambda: done() or (h1_recorded() and busy() and len(h1_at_work()) >= 2), 120,
-             "a run, a queue, and an operation of h1's scripts recorded", interval=0.3)  # fmt: skip
     counts = "select (select count(*) from lot_status), (select count(*) from machine_run_outcome)"
-    committed = q(counts)[0]
-    before = last_binding()
-    at_work = h1_at_work()  # h1's entities with work left: their scripts die with h1 and must be taken over
-    assert at_work, "h1's lots had no work left at the kill"
+    # The moment to kill h1, read in one query so that the kill follows at once (a query here is a process
+    # started in a test host: a second under load, in which h1's lots may finish): a run going on, lots
+    # waiting for machines, an operation of h1's scripts recorded and at least two of them with work left.
+    moment = (
+        f"select (select count(*) from lot_travellers where entity_id in ({on_h1}) "
+        "and jsonb_array_length(coalesce(traveller->'operations', '[]')) > 0) > 0 "
+        "and exists (select 1 from machine_status where status = 'Running') "
+        "and exists (select 1 from request_machines), "
+        f"(select coalesce(array_agg(entity_id), '{{}}') from lot_status where entity_id in ({on_h1}) "
+        "and state not in ('exported', 'failed', 'completed', 'waiting_export')), "
+        "greatest((select max(machine_run_id) from reserved_machines), "
+        "(select max(machine_run_id) from machine_run_outcome), 0), "
+        "(select count(*) from lot_status), (select count(*) from machine_run_outcome)"
+    )
+
+    def ready() -> list[Any] | None:
+        busy, work, binding, lots, outcomes = q(moment)[0]
+        return [list(work), int(binding), [lots, outcomes]] if busy and len(work) >= 2 else None
+
+    found = wait_for(lambda: done() or ready(), 120, "a run, a queue, and two of h1's scripts at work", interval=0.3)
+    assert isinstance(found, list), "every lot finished before the moment to kill h1 came"
+    at_work, before, committed = found  # h1's entities with work left: their scripts die with h1
     wall = time.time()
     cluster.kill_host("h1")
     killed = time.monotonic()
@@ -295,4 +297,4 @@ def walk(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
     for what, at in timeline(cluster, cell, entities["h1"], wall):
         print(f"  {'-' if at is None else f'{at:6.2f}'}  {what}")
     print(f"the issue's bar ({BAR_S:g}s): {'met' if resumed < BAR_S else 'NOT met'}")
-    assert resumed < HELD_S, f"production resumed {resumed:.1f}s after the kill (held to {HELD_S:g}s)"
+    assert resumed < BAR_S, f"production resumed {resumed:.1f}s after the kill (the issue's bar: {BAR_S:g}s)"
