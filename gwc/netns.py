@@ -116,7 +116,7 @@ class Hosts:
 
 
 def leftovers(tag: str = "") -> list[str]:
-    """Namespaces of such hosts still present (a leak check for tests); `tag`: one Hosts' only (others may
-    be another test's, running beside)."""
+    """Namespaces of such hosts still present (a leak check for tests); with `tag` (Hosts.tag), only those
+    of that set of hosts: others may be building theirs on the same machine meanwhile."""
     out = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
     return [line.split()[0] for line in out.splitlines() if line.startswith(PREFIX + tag)]

@@ -443,8 +443,11 @@ class Agent(Server):
         """Bring modules up in cell.toml's order, each RUNNING before the next; every failure is reported."""
         failed = []
         for name in names:
+            child = self.children.get(name)
+            if child is None:  # gone meanwhile: a lot script that ended, or that another host took over
+                continue
             try:
-                await self.bring_up(self.children[name], say)
+                await self.bring_up(child, say)
             except GwcError as e:
                 say(f"{name}: {e}")
                 failed.append(str(e))

@@ -32,6 +32,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -98,6 +99,60 @@ def mac_cost(n: int = 20_000) -> dict[str, float]:
         "check_us": round(statistics.median(check_us), 2),
         "bytes": auth.SEAL_BYTES,
     }
+
+
+def bytecodes(n: int = 1000, warm: int = 300) -> dict[str, Any]:
+    """What a PING round trip costs the interpreter, counted, not timed: the Python bytecodes and calls
+    it executes per function (`file:function` -> [bytecodes, calls] a round trip), both sides in this
+    process over the in-memory transport (sys.settrace opcode events over `n` round trips after `warm`).
+    The ack and retransmission timers are set long, so that only the round trip's own work is counted
+    (acks ride on the msgs): deterministic, so a change can be read on a loaded machine."""
+    from gwc.ipc.memory import MemoryTransport
+
+    key_dir = tempfile.mkdtemp(prefix="gwc-bench-keys-")
+    cfg = replace(_private_cfg(key_dir), ack_timeout=60.0, retry_deadline=120.0)
+    keys.new(cfg)
+    ops: collections.Counter[str] = collections.Counter()
+    calls: collections.Counter[str] = collections.Counter()
+
+    def tracer(frame: Any, event: str, arg: Any) -> Any:
+        code = frame.f_code
+        where = f"{code.co_filename.rsplit('/', 1)[-1]}:{code.co_name}"
+        if event == "call":
+            frame.f_trace_opcodes = True
+            calls[where] += 1
+        elif event == "opcode":
+            ops[where] += 1
+        return tracer
+
+    async def main() -> None:
+        log = logging.getLogger("gwc.bench")
+        server = Bus(SERVER, cfg, log, [Conv.PING], transport=MemoryTransport(cfg))
+        client = _BusClient(cfg)
+        client.bus = Bus("bench.cli", cfg, log, [], transport=MemoryTransport(cfg))
+        await server.sign_on(settle=0)
+        stopped = asyncio.get_running_loop().create_future()
+        server.accept(lambda conv: _answer(conv, stopped))
+        try:
+            await client.ready()
+            for i in range(warm):
+                await client.ping(i)
+            sys.settrace(tracer)
+            try:
+                for i in range(n):
+                    await client.ping(i)
+            finally:
+                sys.settrace(None)
+        finally:
+            await client.close()
+            await server.close()
+
+    try:
+        eventloop.run(main())
+    finally:
+        shutil.rmtree(key_dir, ignore_errors=True)
+    per = {k: [round(v / n, 1), round(calls[k] / n, 2)] for k, v in ops.most_common()}
+    return {"bytecodes": round(sum(ops.values()) / n), "calls": round(sum(calls.values()) / n, 1), "per_function": per}
 
 
 # ----------------------------------------------------------------------------- servers
@@ -482,9 +537,21 @@ def run(
     help="Put client and server on different CPUs (both modes alike).",
 )
 @click.option("--hosts", is_flag=True, help="Between two namespace hosts over veth (root), not on loopback.")
+@click.option(
+    "--bytecodes", "count_bytecodes", is_flag=True, help="Count a round trip's Python bytecodes per function instead."
+)
 @click.option("--json", "as_json", is_flag=True, help="Print JSON for machines.")
-def command(count: int, window: int, pin: bool, hosts: bool, as_json: bool) -> None:
+def command(count: int, window: int, pin: bool, hosts: bool, count_bytecodes: bool, as_json: bool) -> None:
     """Bus request->reply round trip (median, p99) and conversations/s, beside bare multicast UDP."""
+    if count_bytecodes:
+        b = bytecodes(min(count, 2000))
+        if as_json:
+            click.echo(json.dumps(b, indent=1))
+            return
+        click.echo(f"a PING round trip, both sides: {b['bytecodes']} bytecodes, {b['calls']} Python calls")
+        for where, (ops, calls) in list(b["per_function"].items())[:40]:
+            click.echo(f"{ops:8.1f} {calls:6.2f}  {where}")
+        return
     r = _between_hosts(count, window, pin) if hosts else run(count, window, pin)
     if as_json:
         click.echo(json.dumps(r, indent=1))

@@ -220,6 +220,9 @@ class Versions:
         speaks = speaks if type(speaks) is int else env.version
         if env.query:  # a sign-on query is in the oldest version its sender speaks: not what it speaks now
             self.speaks[env.src] = speaks
+            # A new incarnation (a module restarted, perhaps of another build): what it sends in is known
+            # from its next hello, which is shown even when it speaks and sends as the one before did.
+            self.sends.pop(env.src, None)
             return
         if self.speaks.get(env.src) == speaks and self.sends.get(env.src) == env.version:
             return

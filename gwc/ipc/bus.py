@@ -49,6 +49,12 @@ from gwc.log import TRACE, FaultLog
 
 __all__ = ["Batch", "Bus", "Conversation", "Peer"]
 
+# Looked up on every msg sent or received: (conversation class, message class) -> the message class, the
+# message classes each conversation class allows, and the one that opens it.
+_MEMBERS = catalogue.MEMBERS
+_ALLOWED = {c.name: frozenset(c.messages) for c in catalogue.CONVERSATION_CLASSES.values()}
+_OPENERS = {c.name: c.messages[0] for c in catalogue.CONVERSATION_CLASSES.values()}
+
 
 class Bus:
     """One module's attachment to the CELL bus (see the module docstring)."""
@@ -211,9 +217,12 @@ class Bus:
     def speak(self, version: int) -> None:
         """Encode everything from now on in wire `version` (the membership decides which): what is
         already in flight is retransmitted as it was encoded."""
-        omit = catalogue.fields_after(version) if version < wire.VERSION else None
-        self._origin = wire.origin(self.name, self.inc, version, omit)
+        self._origin = self._origin_in(version)
         self._speaking = self.outbox.version = version
+
+    def _origin_in(self, version: int) -> wire.Origin:
+        omit = catalogue.fields_after(version) if version < wire.VERSION else None
+        return wire.origin(self.name, self.inc, version, omit)
 
     def listeners_of(self, cls: str, subject: str = "") -> list[str]:
         """Who hears broadcasts of `cls` (about `subject`: those who hear the class about it too)."""
@@ -340,7 +349,7 @@ class Bus:
         if not self._open or self.closed:
             raise BusError(f"{self.name} is not signed on to the bus")
         conv_id, cls = conv.id, conv.cls
-        allowed = catalogue.CONVERSATION_CLASSES[cls].messages
+        allowed = _ALLOWED[cls]
         for m in messages:  # fields were checked when message() built m; receivers check them again
             if m.name not in allowed:
                 raise MessageError(f"message {m.name} does not belong to conversation {cls}")
@@ -358,7 +367,11 @@ class Bus:
                     acks, to_inc = due, peer.inc
         n = len(messages)
         seq = self._seq
-        own, encode = self._origin, wire.encode_parts
+        own, encode = self._origin, wire.encode_msg
+        if also and to is None and self._members.older:  # a listener we do not track may read an older version
+            version = self._members.version_for(also)
+            if version != self._speaking:
+                own = self._origin_in(version)
         subject = j = ""  # what the batch is about, where the kernel filter reads it (a class may name one)
         about = catalogue.SUBJECT_FIELDS.get(cls)
         if about is not None:
@@ -367,14 +380,10 @@ class Bus:
         # Encode everything before sending anything: an oversize batch fails whole, at the sender.
         try:
             m = messages[0]  # the first message carries the batch's size and the acks
-            datas = [
-                encode(own, "msg", seq + 1, conv_id, cls, start, n - 1, 0, base, to, m.name, m.fields, j, acks, ti)
-            ]
+            datas = [encode(own, seq + 1, conv_id, cls, start, n - 1, 0, base, to, m.name, m.__dict__, j, acks, ti)]
             for i in range(1, n):
                 m = messages[i]
-                datas.append(
-                    encode(own, "msg", seq + 1 + i, conv_id, cls, start + i, 0, i, base, to, m.name, m.fields, j)
-                )
+                datas.append(encode(own, seq + 1 + i, conv_id, cls, start + i, 0, i, base, to, m.name, m.__dict__, j))
         except MessageError:
             if acks:
                 outbox.give_back_acks((to, to_inc), acks)  # type: ignore[arg-type]
@@ -384,17 +393,17 @@ class Bus:
         for data in datas:  # first on the wire; the bookkeeping below can wait that long
             self._transmit(data)
         if to is not None:
-            waiting = {to}
+            outbox.track(datas, messages, {to}, out, start, seq, conv_id, cls, to, base, subject)
         else:
             peers = self._peers.values()  # (Peer.hears, inline: this runs once a broadcast for every peer)
             waiting = {p.name for p in peers if cls in p.interest or (subject in p.subjects.get(cls, ()))}
             waiting.update(also)
-        if waiting:
-            outbox.track(datas, messages, waiting, out, start, seq, conv_id, cls, to, base, subject)
-        elif to is None:
-            self.log.log(
-                TRACE, "%s: nobody listens to %s yet", cls, messages[0].name, extra={"conv": f"{conv_id} {cls}"}
-            )
+            if waiting:
+                outbox.track(datas, messages, waiting, out, start, seq, conv_id, cls, to, base, subject)
+            else:
+                self.log.log(
+                    TRACE, "%s: nobody listens to %s yet", cls, messages[0].name, extra={"conv": f"{conv_id} {cls}"}
+                )
         self.stats["sent"] += n
         if self.log.isEnabledFor(TRACE):
             self.log.log(
@@ -473,8 +482,8 @@ class Bus:
             peer = self._peers.get(env.src)
             if peer is not None and peer.inc == env.inc:
                 peer.last_seen = now  # any datagram proves life, not only hellos
-            elif env.version != self._speaking:  # a sender we hold no hello of speaks another version
-                self._members.heard_version(env, now)
+            elif env.version != self._speaking or env.version != wire.VERSION:
+                self._members.heard_version(env, now)  # a sender we hold no hello of, in another version
             kind = env.kind
             self.stats[kind] += 1  # datagrams read, by kind: what the kernel filter let through
             if kind == "msg":
@@ -533,16 +542,29 @@ class Bus:
                     "late %s from %s in ended conversation: dropped", env.msg, src, extra={"conv": f"{conv_id} {cls}"}
                 )
             else:
+                name = env.msg
+                mc = _MEMBERS.get((cls, name))
+                msg: Message | None
                 try:
-                    msg: Message | None = catalogue.check(cls, env.msg, env.fields)
+                    if mc is None:
+                        msg = catalogue.check(cls, name, env.fields)  # raises, saying what is wrong
+                    else:
+                        mc.check(env.fields)
+                        msg = Message(name, env.fields)
                 except MessageError as e:
                     # Still take its place in the order, so the messages after it are not held up forever.
                     self.stats["invalid"] += 1
-                    self.log.warning(
-                        "dropped invalid %s from %s: %s", env.msg, src, e, extra={"conv": f"{conv_id} {cls}"}
-                    )
+                    self.log.warning("dropped invalid %s from %s: %s", name, src, e, extra={"conv": f"{conv_id} {cls}"})
                     msg = None
-                self._inbound.place(env, msg, now)
+                if msg is not None and self._inbound.in_order(env, now):
+                    # The fast path: one message, next in its stream, nothing waiting (order.Inbound.in_order).
+                    self.stats["delivered"] += 1
+                    if conv is not None:
+                        conv.deliver(Batch(src, (msg,)))
+                    else:
+                        self._open_conversation(env, Batch(src, (msg,)))
+                else:
+                    self._inbound.place(env, msg, now)
         finally:
             # Acks riding on the msg are taken after it is delivered (even if a handler failed): an
             # answer given at once (Bus.accept) leaves sooner, and a base computed before them is only
@@ -568,7 +590,11 @@ class Bus:
             return
         if head.to is None and head.cls not in self._interest and head.subject not in self._subjects.get(head.cls, ()):
             return
-        if head.msg != catalogue.CONVERSATION_CLASSES[head.cls].messages[0]:
+        self._open_conversation(head, batch)
+
+    def _open_conversation(self, head: Envelope, batch: Batch) -> None:
+        """A batch for no conversation held here: the opening of a new one (else a stray, dropped)."""
+        if head.msg != _OPENERS[head.cls]:
             self.stats["stray"] += 1
             self.log.warning(
                 "stray %s from %s: not the opening of %s and no such conversation here",

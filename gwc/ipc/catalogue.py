@@ -71,8 +71,17 @@ class MessageClass:
                 for f in self.fields
             ),
         )
+        # The check every message sent and received passes, generated for this class's fields (as
+        # dataclasses generates __init__): one expression, no loop over field tuples. It accepts only
+        # what is plainly right and leaves everything else to full_check, which says what is wrong.
+        object.__setattr__(self, "check", _fast_check(self))
 
     def check(self, values: dict[str, Any]) -> None:
+        """Raise MessageError unless values fit this class exactly (replaced per class by _fast_check,
+        which falls back to full_check)."""
+        self.full_check(values)
+
+    def full_check(self, values: dict[str, Any]) -> None:
         """Raise MessageError unless values fit this class exactly."""
         known = self._known
         if not known.issuperset(values):
@@ -90,6 +99,27 @@ class MessageClass:
                 raise MessageError(f"{self.name}: field {name} holds a NUL or is over {limit} characters")
             if numeric and v != v:  # NaN (the wire refuses it; a message built in Python could hold one)
                 raise MessageError(f"{self.name}: field {name} is NaN")
+
+
+def _fast_check(mc: MessageClass) -> Any:
+    """A check function for message class `mc`: returns at once for values of exactly the declared
+    types within their limits, calls mc.full_check (which raises saying why, or accepts what only it
+    knows, such as a subclass of int) for anything else."""
+    terms = ["known.issuperset(values)"]
+    for name, _types, _numeric, nullable, f, limit in mc._checks:
+        v = "v"
+        if f.type == "str":
+            ok = f"({v}.__class__ is str and '\\0' not in {v}" + (f" and len({v}) <= {limit})" if limit else ")")
+        elif f.type == "float":
+            ok = f"({v}.__class__ is int or ({v}.__class__ is float and {v} == {v}))"
+        else:
+            ok = f"{v}.__class__ is {f.type}"
+        got = f"({v} := values.get({name!r}))"
+        terms.append(f"({got} is None or {ok})" if nullable else f"({got} is not None and {ok})")
+    source = f"def check(values):\n    if {' and '.join(terms)}:\n        return\n    full_check(values)\n"
+    scope: dict[str, Any] = {"known": mc._known, "full_check": mc.full_check}
+    exec(compile(source, f"<check {mc.name}>", "exec"), scope)
+    return scope["check"]
 
 
 @dataclass(frozen=True)
@@ -602,7 +632,7 @@ def message(name: str, **fields: Any) -> Message:
 
 
 # (conversation class, message class) -> the message class: one lookup for every message received.
-_MEMBERS = {(c.name, m): MESSAGE_CLASSES[m] for c in CONVERSATION_CLASSES.values() for m in c.messages}
+MEMBERS = _MEMBERS = {(c.name, m): MESSAGE_CLASSES[m] for c in CONVERSATION_CLASSES.values() for m in c.messages}
 
 
 def check(cls: str, msg: str, fields: dict[str, Any]) -> Message:

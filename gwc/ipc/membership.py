@@ -25,6 +25,7 @@ from gwc.ipc.wire import Envelope
 from gwc.log import TRACE, FaultLog
 
 MAX_GONE = 1024  # incarnations that said bye, remembered so that their late beats are ignored
+MAX_OLDER = 4096  # untracked senders whose older wire version is remembered past peer_timeout
 FLOOD_BEATS = 50  # beats refused in one heartbeat that make a flood
 LOT = "lot:"  # lot scripts' bus names
 
@@ -93,6 +94,10 @@ class Membership:
         # (ignored_peers, or not yet heard by hello) sent lately (name -> (version, when)), and ours.
         self.speaks: dict[str, int] = {}
         self.untracked: dict[str, tuple[int, float]] = {}
+        # The last older version each untracked sender used, kept past peer_timeout (newest last, at most
+        # MAX_OLDER): a broadcast that names it among its heard_by (a WC's Run_Complete to the lot whose
+        # run it was, which may have been quiet for the whole run) goes out in a version it reads.
+        self.older: collections.OrderedDict[str, int] = collections.OrderedDict()
         self.speaking = wire.VERSION
         self.highest = wire.VERSION  # what our hellos say we speak (this build's version)
 
@@ -182,10 +187,23 @@ class Membership:
         src, version = env.src, env.version
         if env.kind == "hello" or env.kind == "bye":
             return
+        if version < wire.VERSION:
+            self.older[src] = version
+            self.older.move_to_end(src)
+            if len(self.older) > MAX_OLDER:
+                self.older.popitem(last=False)
+        elif self.older:
+            self.older.pop(src, None)  # restarted on a newer build
         if version < self.speaking or src in self.untracked:
             self.untracked[src] = (version, now)
             if version != self.speaking:
                 self.renegotiate()
+
+    def version_for(self, heard_by: Iterable[str]) -> int:
+        """The version to encode a broadcast in that these untracked listeners must read: the lowest of
+        what we speak and the last older version each of them sent (however long ago)."""
+        older = self.older
+        return min((self.speaking, *(older[n] for n in heard_by if n in older)))
 
     def renegotiate(self) -> None:
         """Speak the lowest version of our peers' (never above ours, never below the oldest we encode)."""

@@ -65,6 +65,28 @@ class Inbound:
         seen.new.add(seq)
         return False
 
+    def in_order(self, env: Envelope, now: float) -> bool:
+        """The fast path (docs/performance.md, "The bus"): whether the new msg is a one-message batch that
+        is next in its stream with nothing waiting before or around it; if so it takes its place here and
+        the caller delivers it at once. Otherwise nothing changes: place() it."""
+        if env.more or env.part:
+            return False
+        skey = (env.conv, env.src, env.inc)
+        streams = self.streams
+        st = streams.get(skey)
+        if st is None:
+            if env.idx != env.base:
+                return False
+            # No state for this stream (first contact, or we restarted): what is below base is settled.
+            streams[skey] = Stream(env.idx + 1, now)
+            return True
+        if env.idx != st.next_idx or st.buffer or st.batch:
+            return False
+        st.next_idx += 1
+        st.touched = now
+        streams.move_to_end(skey)
+        return True
+
     def place(self, env: Envelope, msg: Message | None, now: float) -> None:
         """A new msg (msg None: invalid, still holding its place): deliver what it completes."""
         conv_id, src, inc = env.conv, env.src, env.inc

@@ -64,7 +64,7 @@ class Outbox:
         self._due_again: list[tuple[float, int]] = []
         self._rtx_timer: asyncio.TimerHandle | None = None
         self._rtx_at = INF
-        self._ack_timer: asyncio.TimerHandle | None = None
+        self._ack_timer: asyncio.Handle | None = None  # the ack timer, then the flush it put last in the turn
         self._flushed: asyncio.Future[None] | None = None  # drain() waiting for the last acks
 
     # ----------------------------------------------------------------- numbering
@@ -96,7 +96,14 @@ class Outbox:
         else:
             due.append(seq)
         if self._ack_timer is None and self.loop is not None:
-            self._ack_timer = self.loop.call_later(self.cfg.ack_timeout / 4, self.flush_acks)
+            self._ack_timer = self.loop.call_later(self.cfg.ack_timeout / 4, self._acks_due)
+
+    def _acks_due(self) -> None:
+        """The ack timer: flush at the end of this loop turn, not now. The timer runs before the turn's
+        ready callbacks, among them often a task woken by the very msg whose ack is due, which is about
+        to answer it: its answer takes the ack along (take_acks) and no ack datagram goes."""
+        assert self.loop is not None
+        self._ack_timer = self.loop.call_soon(self.flush_acks)
 
     def take_acks(self, key: tuple[str, int]) -> list[int] | None:
         """The acks due to a peer, taken to ride on a msg to it; None if none, or too many to ride."""
@@ -153,14 +160,22 @@ class Outbox:
             out.unsettled.append(batch)
         now = time.monotonic()
         rto = self.cfg.ack_timeout
-        pending, first_due = self.pending, self._due_first
-        for i, data in enumerate(datas):
-            seq += 1
-            w = set(waiting) if i else waiting
-            pending[seq] = Pending(data, w, now, rto, batch, conv_id, cls, messages[i].name, to, base, subject)
-            first_due.append((now + rto, seq))
-        if self._rtx_timer is None or now + rto < self._rtx_at:
-            self._arm_retransmit(now + rto)
+        due = now + rto
+        pending = self.pending
+        if n == 1:  # the usual batch: one message
+            pending[seq + 1] = Pending(
+                datas[0], waiting, now, rto, batch, conv_id, cls, messages[0].name, to, base, subject
+            )
+            self._due_first.append((due, seq + 1))
+        else:
+            first_due = self._due_first
+            for i, data in enumerate(datas):
+                seq += 1
+                w = set(waiting) if i else waiting
+                pending[seq] = Pending(data, w, now, rto, batch, conv_id, cls, messages[i].name, to, base, subject)
+                first_due.append((due, seq))
+        if self._rtx_timer is None or due < self._rtx_at:
+            self._arm_retransmit(due)
 
     def acked(self, src: str, seqs: Iterable[int]) -> None:
         """`src` acknowledged these seqs."""

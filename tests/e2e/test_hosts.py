@@ -44,6 +44,8 @@ class HostCell:
     def __init__(self, hosts: Hosts, base: Path) -> None:
         self.hosts = hosts
         self.base = base
+        # host -> the build installed there, a folder holding gwc/ (tests/e2e/test_upgrade.py); else this checkout
+        self.builds: dict[str, Path] = {}
         bus = private_bus(peer_timeout=1.0, heartbeat=0.2)
         cmm = {"id": "cmm_wc", "kind": "cmm", "serial": {"port": "sim", "timeout": 5.0}}
         machines = [
@@ -78,12 +80,15 @@ class HostCell:
             "GWC_VAR": str(self.var(host)),
             "GWC_HOST": host,
             "PYTHONUNBUFFERED": "1",
+            **({"PYTHONPATH": str(self.builds[host])} if host in self.builds else {}),
         }
 
     def run(self, host: str, *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
         """Run `gwc ARGS` on a host, as its operator would."""
         argv = self.hosts[host].argv([sys.executable, "-m", "gwc", *args])
-        return subprocess.run(argv, env=self.env(host), capture_output=True, text=True, timeout=timeout)
+        return subprocess.run(  # in the build's folder: `python -m` puts the working folder first on the path
+            argv, env=self.env(host), capture_output=True, text=True, timeout=timeout, cwd=self.builds.get(host)
+        )
 
     def gwc(self, host: str, *args: str, timeout: float = 90) -> str:
         """`gwc ARGS` on a host; fail the test on a non-zero exit."""

@@ -22,7 +22,6 @@ import datetime
 import json
 import os
 import subprocess
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -31,7 +30,7 @@ import pytest
 
 from gwc.netns import Hosts, unavailable
 from gwc.patroni import primary_url
-from tests.e2e.test_patroni import MEMBERS, MISSING, PASSWORD, PatroniCluster, issue_topology, sql_on
+from tests.e2e.test_patroni import MEMBERS, MISSING, PASSWORD, PatroniCluster, issue_topology, sql_on, start_on_hosts
 from tests.harness import wait_for
 
 pytestmark = [
@@ -191,18 +190,7 @@ def walk(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
                     raise
                 time.sleep(0.1)
 
-    cell.gwc("h1", "start", timeout=240)  # the schema, the cell key, the active servers
-    cell.copy_secrets()
-    cell.gwc("h2", "start", timeout=240)
-    cell.gwc("h3", "start", timeout=240)
-    for m in ("cmm_wc", "wc1", "wc2"):
-        t = threading.Thread(target=lambda m=m: cell.gwc("h3", "machine", "start", m))
-        t.start()
-        while t.is_alive():
-            for (no,) in q(f"select alarm_no from alarms where cleared_at is null and machine_id = '{m}' "
-                           "and alarm_id = 'HOME_CMM'"):  # fmt: skip
-                cell.gwc("h3", "alarm", "clear", str(no))
-            t.join(0.3)
+    start_on_hosts(cell, q)
     assert cluster.leader() == "h1"
     assert {h for (h,) in q("select host from module_leases")} == {"h1"}
     if os.environ.get("GWC_TEST_ETCD_LEADER", "h1") == "h1":

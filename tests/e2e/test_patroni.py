@@ -421,22 +421,33 @@ def issue_topology(
     assert not leftovers(tag), "test hosts left behind"
 
 
-def walk_h1_killed(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
-    def q(text: str) -> list[list[Any]]:
-        return sql_on(hosts, "h3", url, text)
-
-    cell.gwc("h1", "start", timeout=240)  # the schema, the cell key, the active servers
+def start_on_hosts(cell: Any, q: Callable[[str], list[list[Any]]]) -> None:
+    """`gwc start` host by host in issue_topology's cell (h1 first: the schema, the cell key and the
+    active servers; var/secrets/ copied; h2's standbys; h3's machines), then every machine started."""
+    cell.gwc("h1", "start", timeout=240)
     cell.copy_secrets()
     cell.gwc("h2", "start", timeout=240)
     cell.gwc("h3", "start", timeout=240)
     for m in ("cmm_wc", "wc1", "wc2"):
-        t = threading.Thread(target=lambda m=m: cell.gwc("h3", "machine", "start", m))
-        t.start()
-        while t.is_alive():
-            for (no,) in q(f"select alarm_no from alarms where cleared_at is null and machine_id = '{m}' "
-                           "and alarm_id = 'HOME_CMM'"):  # fmt: skip
-                cell.gwc("h3", "alarm", "clear", str(no))
-            t.join(0.3)
+        machine_start(cell, q, m)
+
+
+def machine_start(cell: Any, q: Callable[[str], list[list[Any]]], machine: str) -> None:
+    """`gwc machine start` on h3, pushing the CMM's start button (its HOME_CMM alarm cleared) when it asks."""
+    t = threading.Thread(target=lambda: cell.gwc("h3", "machine", "start", machine))
+    t.start()
+    while t.is_alive():
+        for (no,) in q(f"select alarm_no from alarms where cleared_at is null and machine_id = '{machine}' "
+                       "and alarm_id = 'HOME_CMM'"):  # fmt: skip
+            cell.gwc("h3", "alarm", "clear", str(no))
+        t.join(0.3)
+
+
+def walk_h1_killed(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
+    def q(text: str) -> list[list[Any]]:
+        return sql_on(hosts, "h3", url, text)
+
+    start_on_hosts(cell, q)
     assert cluster.leader() == "h1"
     assert {h for (h,) in q("select host from module_leases")} == {"h1"}
     made = json.loads(cell.gwc("h2", "order", "new", "--customer", "NJIT", "milled_pawn=4", "--json"))

@@ -150,3 +150,72 @@ def test_an_untracked_sender_of_an_older_version_is_answered_in_it() -> None:
         await wc.close(flush=0.1)
 
     asyncio.run(asyncio.wait_for(main(), 30))
+
+
+def test_a_broadcast_an_untracked_listener_must_hear_goes_in_the_older_version_it_last_sent(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A WC's Run_Complete names the lot whose run it was (heard_by), a lot the WC does not track: the
+    lot may have been quiet for the whole run, longer than peer_timeout, and the WC has moved up since;
+    the broadcast still goes out in the older version that lot last sent, and the lot hears it."""
+    if wire.MIN_VERSION == wire.VERSION:
+        pytest.skip("this build speaks one version")
+    cfg = private_cfg()
+    heard: list[int] = []
+
+    async def main() -> None:
+        wc = Bus("wc:wc1", cfg, logging.getLogger("gwc.test.wc"), ("PING",), MemoryTransport(cfg), ("hi.",))
+        lot = Bus("hi.1", cfg, logging.getLogger("gwc.test.lot"), ("PING",), MemoryTransport(cfg))
+        lot._members.highest = wire.MIN_VERSION
+        lot.speak(wire.MIN_VERSION)
+        decode = wire.decode
+
+        def spy(data: bytes) -> Envelope:  # what the lot reads, in which version
+            env = decode(data)
+            if env.kind == "msg" and env.src == "wc:wc1":
+                heard.append(env.version)
+            return env
+
+        await wc.sign_on()
+        await lot.sign_on()
+        try:
+            await until(lambda: "wc:wc1" in lot.peers(), "the lot to know the WC")
+            conv = await lot.start("PING", message("Ping", n=1, payload="x"), to="wc:wc1")
+            got = await wc.first_message(5)
+            assert got is not None and wc.speaking == wire.MIN_VERSION
+            conv.end()
+            got.end()
+            await until(lambda: wc.speaking == wire.VERSION, "the WC to move up once the lot went quiet", timeout=5)
+            monkeypatch.setattr(wire, "decode", spy)
+            news = await wc.start("PING", message("Ping", n=2, payload="run complete"), heard_by=("hi.1",))
+            told = await lot.first_message(5)
+            assert told is not None and told.first is not None
+            assert told.first.first.fields["n"] == 2
+            assert heard == [wire.MIN_VERSION], "the broadcast was not in the version the lot last sent"
+            assert wc.speaking == wire.VERSION, "one listener's version is the broadcast's, not the bus's"
+            news.end()
+            told.end()
+        finally:
+            await lot.close(flush=0.1)
+            await wc.close(flush=0.1)
+
+    asyncio.run(asyncio.wait_for(main(), 30))
+
+
+def test_the_monitor_shows_a_module_restarted_on_another_build_at_its_first_hello() -> None:
+    """A module restarted on a newer build signs on with a query in the oldest version it speaks, then
+    beats in the version the cell speaks: `gwc monitor --members` shows what it speaks now, though its
+    datagrams are in the same version as its predecessor's."""
+    from gwc.hi.monitor import Versions
+
+    shown: list[dict[str, object]] = []
+    versions = Versions("CELL", shown.append)
+    old = wire.VERSION - 1
+    hello = Envelope(kind="hello", src="msched", inc=1, fields={wire.SPEAKS: old}, version=old)
+    versions.heard(hello)
+    versions.heard(hello)  # a beat: nothing changed
+    assert [(r["member"], r["speaks"], r["wire"]) for r in shown] == [("msched", old, old)]
+    new = {wire.SPEAKS: wire.VERSION}
+    versions.heard(Envelope(kind="hello", src="msched", inc=2, fields=new, version=old, query=True))
+    versions.heard(Envelope(kind="hello", src="msched", inc=2, fields=new, version=old))
+    assert [(r["member"], r["speaks"], r["wire"]) for r in shown[1:]] == [("msched", wire.VERSION, old)]
