@@ -320,6 +320,10 @@ def test_lots_ride_out_a_switchover_and_the_primary_host_killed(patroni_cell: An
     cell.gwc("db", "switchover")
     wait_for(lambda: cluster.leader() not in (None, first), 60, "a new leader after the switchover", interval=0.5)
     wait_for(lambda: cluster.streaming() == 2, 90, "both replicas streaming again", interval=0.5)
+    # Until Patroni has confirmed a synchronous standby of the new primary, it promotes nobody if that
+    # primary dies (synchronous_mode: only a confirmed sync standby may): kill it only after.
+    sync = lambda: any(m["role"] == "sync_standby" for m in cluster.cluster())
+    wait_for(sync, 60, "a synchronous standby of the new primary", interval=0.5)
 
     # The primary's host killed whole while lots run: Patroni promotes the synchronous standby.
     wait_for(lambda: cell.lots_done(entities) or cell.sql(running), 60, "a run", interval=0.3)
