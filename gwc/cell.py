@@ -147,9 +147,11 @@ def spawn_process(
     extra_env: dict[str, str] | None = None,
     pass_fds: tuple[int, ...] = (),
     user: tuple[int, int] | None = None,
+    record: bool = True,
 ) -> subprocess.Popen[bytes]:
     """Start one module in a session of its own, with its pid file; output before its log opens goes to .out.
     `user`: (uid, gid) it runs as, with no other group (a lot script as the lot user: gwc.hostuser).
+    `record` False: no pid file yet (a lot script started ahead of its claim writes it when claimed).
 
     The caller is its parent: the agent keeps the Popen to reap it; a command that exits leaves it to init."""
     secure_var(cfg)
@@ -169,7 +171,8 @@ def spawn_process(
             group=user[1] if user else None,
             extra_groups=[] if user else None,
         )
-    write_pid_file(cfg, proc.name, child.pid, proc.argv)
+    if record:
+        write_pid_file(cfg, proc.name, child.pid, proc.argv)
     return child
 
 

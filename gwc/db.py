@@ -41,6 +41,7 @@ from gwc.budget import MAX_CONNECTIONS, plan
 from gwc.config import Config, HostSpec, shipped
 from gwc.errors import DatabaseError, DatabaseUnavailable
 from gwc.private import PG_OS_USER, open_lock, private_dir, secure_var, traversable_by
+from gwc.promotion import await_promotion, await_promotion_async, read_only_refusal
 from gwc.retry import Backoff
 
 T = TypeVar("T")
@@ -508,12 +509,18 @@ SLOW_MEMBER_S = 0.25  # s: how long a multi-host connect waits for a silent memb
 
 
 def connect(
-    cfg: Config, role: str | None = None, log: logging.Logger | None = None, attempts: int = 5
+    cfg: Config,
+    role: str | None = None,
+    log: logging.Logger | None = None,
+    attempts: int = 5,
+    promotion_wait: float = 0.0,
 ) -> psycopg.Connection[Any]:
     """Connect (autocommit off) as role gwc_<role>, retrying with backoff (thesis 3.2.2).
 
     Raises DatabaseUnavailable after the last try; DatabaseError at once if the role is unknown
-    (that is not transient: the schema has not been applied).
+    (that is not transient: the schema has not been applied). `promotion_wait` (s): how long a try
+    may watch the standbys of a database failing over for the one promoted (PROMOTION_POLL_S), for a
+    caller in a thread of its own that would try again anyway.
     """
     log = log or _log
     if role is not None and not _ROLE.match(role):
@@ -524,7 +531,7 @@ def connect(
     while True:
         attempt = backoff.tries + 1
         try:
-            conn = _connect_any(url, application_name=f"gwc_{role}" if role else "gwc")
+            conn = _connect_any(url, f"gwc_{role}" if role else "gwc", promotion_wait)
         except psycopg.OperationalError as e:
             error = e
             pause = backoff.next()
@@ -555,7 +562,7 @@ def connect(
     ) from error
 
 
-def _connect_any(url: str, application_name: str) -> psycopg.Connection[Any]:
+def _connect_any(url: str, application_name: str, promotion_wait: float = 0.0) -> psycopg.Connection[Any]:
     """psycopg.connect(url), but a multi-host URL's members are tried all at once, not in turn.
 
     libpq (and psycopg) try the members of `host=a,b,c` one after the other, each for up to
@@ -564,21 +571,23 @@ def _connect_any(url: str, application_name: str) -> psycopg.Connection[Any]:
     each member is tried in a thread of its own with the URL's options (target_session_attrs among
     them); the first that accepts wins and the others are closed. Once a member has refused and only
     silent ones are left, they are waited for at most SLOW_MEMBER_S: the caller's backoff tries again
-    soon rather than waiting out a dead host's timeout."""
+    soon rather than waiting out a dead host's timeout. With `promotion_wait`, a member that refused
+    for being a standby is watched until it is promoted (see PROMOTION_POLL_S), for that long."""
     given = conninfo_to_dict(url)
     options: dict[str, Any] = {"application_name": application_name, **TCP_WATCH}
     if "connect_timeout" not in given:
         options["connect_timeout"] = CONNECT_TIMEOUT_S
     attempts = conninfo_attempts({**given, **options})
-    if len(attempts) < 2:
+    if len(attempts) < 2 and promotion_wait <= 0:
         return psycopg.connect(url, autocommit=False, **options)
-    return _race(attempts)
+    return _race(attempts, promotion_wait)
 
 
-async def connect_async(cfg: Config, role: str) -> psycopg.AsyncConnection[Any]:
+async def connect_async(cfg: Config, role: str, promotion_wait: float = 0.0) -> psycopg.AsyncConnection[Any]:
     """One try at a connection as role gwc_<role> (autocommit), for an event loop that must run no
     thread: the host agent, which forks lot scripts. Every member of a multi-host URL at once, as
-    _connect_any; DatabaseUnavailable when none accepts, DatabaseError when the role cannot be taken."""
+    _connect_any (and, with `promotion_wait`, its standbys watched for the one promoted);
+    DatabaseUnavailable when none accepts, DatabaseError when the role cannot be taken."""
     if not _ROLE.match(role):
         raise DatabaseError(f"bad database role name {role!r}")
     url = database_url(cfg, role)
@@ -588,7 +597,26 @@ async def connect_async(cfg: Config, role: str) -> psycopg.AsyncConnection[Any]:
         options["connect_timeout"] = CONNECT_TIMEOUT_S
     attempts: list[dict[str, Any]] = await conninfo_attempts_async({**given, **options})
     loop = asyncio.get_running_loop()
-    pending = {asyncio.ensure_future(psycopg.AsyncConnection.connect(**a, autocommit=True)) for a in attempts}
+    watch_until = loop.time() + promotion_wait
+    watching = 0
+
+    async def one(params: dict[str, Any]) -> psycopg.AsyncConnection[Any]:
+        nonlocal watching
+        try:
+            return await psycopg.AsyncConnection.connect(**params, autocommit=True)
+        except psycopg.Error as e:
+            if promotion_wait <= 0 or not read_only_refusal(e):
+                raise
+            watching += 1
+            try:
+                promoted = await await_promotion_async(params, watch_until)
+            finally:
+                watching -= 1
+            if promoted is None:
+                raise
+            return promoted
+
+    pending = {asyncio.ensure_future(one(a)) for a in attempts}
     deadline = loop.time() + max(float(a.get("connect_timeout") or CONNECT_TIMEOUT_S) for a in attempts)
     errors: list[str] = []
     refused_at: float | None = None
@@ -596,6 +624,8 @@ async def connect_async(cfg: Config, role: str) -> psycopg.AsyncConnection[Any]:
     try:
         while pending and conn is None:
             until = deadline if refused_at is None else min(deadline, refused_at + SLOW_MEMBER_S)
+            if watching:
+                until = max(until, watch_until)
             if until <= loop.time():
                 break
             left = until - loop.time()
@@ -625,20 +655,35 @@ async def connect_async(cfg: Config, role: str) -> psycopg.AsyncConnection[Any]:
     return conn
 
 
-def _race(attempts: list[dict[str, Any]]) -> psycopg.Connection[Any]:
+def _race(attempts: list[dict[str, Any]], promotion_wait: float = 0.0) -> psycopg.Connection[Any]:
     """The first of the members' connections to succeed (see _connect_any); the others are closed."""
     done = threading.Condition()
     errors: list[str] = []
     won: list[psycopg.Connection[Any] | None] = []  # [conn] once one won, [None] once given up
+    watching = [0]  # members being watched for a promotion
+    start = time.monotonic()
+    watch_until = start + promotion_wait
 
     def one(params: dict[str, Any]) -> None:
         try:
             conn = psycopg.connect(**params, autocommit=False)
         except psycopg.Error as e:
-            with done:
-                errors.append(f"{params.get('host')}: {_one_line(e)}")
-                done.notify_all()
-            return
+            promoted = None
+            if promotion_wait > 0 and read_only_refusal(e):
+                with done:
+                    watching[0] += 1
+                    done.notify_all()
+                try:
+                    promoted = await_promotion(params, watch_until, lambda: bool(won))
+                finally:
+                    with done:
+                        watching[0] -= 1
+            if promoted is None:
+                with done:
+                    errors.append(f"{params.get('host')}: {_one_line(e)}")
+                    done.notify_all()
+                return
+            conn = promoted
         with done:
             if not won:
                 won.append(conn)
@@ -648,7 +693,6 @@ def _race(attempts: list[dict[str, Any]]) -> psycopg.Connection[Any]:
 
     for params in attempts:
         threading.Thread(target=one, args=(params,), name="gwc-db-connect", daemon=True).start()
-    start = time.monotonic()
     deadline = start + max(float(p.get("connect_timeout") or CONNECT_TIMEOUT_S) for p in attempts)
     refused_at: float | None = None
     with done:
@@ -657,6 +701,8 @@ def _race(attempts: list[dict[str, Any]]) -> psycopg.Connection[Any]:
             if errors and refused_at is None:
                 refused_at = now
             until = deadline if refused_at is None else min(deadline, refused_at + SLOW_MEMBER_S)
+            if watching[0]:
+                until = max(until, watch_until)
             if now >= until:
                 break
             done.wait(until - now)

@@ -81,6 +81,20 @@ async def beat_async(
     return Beat([int(e) for w, e in rows if w == "take"], [int(e) for w, e in rows if w == "lost"])
 
 
+async def others_async(conn: psycopg.AsyncConnection[Any], host: str, per_host: int) -> dict[str, list[int]]:
+    """Up to `per_host` of the entities each other host's agent runs or queues the scripts of, lowest
+    first: what this host's agent may start ahead should that host fall silent (gwc/agent/lot_hosts.py)."""
+    cur = await conn.execute(
+        "select host, entity_id from (select host, entity_id, row_number() over (partition by host order by "
+        "entity_id) as n from lot_script_hosts where host <> %s) s where n <= %s order by host, entity_id",
+        (host, per_host),
+    )
+    others: dict[str, list[int]] = {}
+    for h, e in await cur.fetchall():
+        others.setdefault(str(h), []).append(int(e))
+    return others
+
+
 class TravellerStore:
     """A lot script's traveller in LOT_TRAVELLERS (hosted cells): saved beside the file, read back by the
     script that takes the entity over. `reads` is the entity's LotReads (its query asks again while the
@@ -144,4 +158,4 @@ class TravellerStore:
         os._exit(EXIT_TAKEN_OVER)
 
 
-__all__ = ["BEAT_S", "EXIT_TAKEN_OVER", "Beat", "TravellerStore", "beat", "beat_async", "hosted", "ttl"]
+__all__ = ["BEAT_S", "EXIT_TAKEN_OVER", "Beat", "TravellerStore", "beat", "beat_async", "hosted", "others_async", "ttl"]

@@ -41,6 +41,7 @@ from gwc.ipc.names import Conv, Msg
 from gwc.lease import EXIT_DEPOSED, Deposed, Lease
 from gwc.log import cap_output, conversation, open_log
 from gwc.moduledb import ModuleDatabase
+from gwc.promotion import PROMOTION_WAIT_S
 from gwc.retry import Backoff, Deadline
 
 Handler = Callable[[Conversation], Awaitable[None]]
@@ -559,7 +560,8 @@ class LeaseHolding:
         m = self.module
         assert m.lease is not None
         m.log.info("redundant: waiting for the lease of %s", m.name)
-        conn = await m.lease.wait(lambda: db.connect(m.cfg, m.role, m.log, 1), notify_ready)
+        # Each try watches a database failing over for its promoted member (db.PROMOTION_POLL_S).
+        conn = await m.lease.wait(lambda: db.connect(m.cfg, m.role, m.log, 1, PROMOTION_WAIT_S), notify_ready)
         m.database.adopt(conn)
         try:
             m.on_connect(conn)

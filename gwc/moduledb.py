@@ -23,6 +23,7 @@ from gwc import db
 from gwc.config import Config
 from gwc.errors import DatabaseError, DatabaseUnavailable, GwcError
 from gwc.lease import Deposed
+from gwc.promotion import PROMOTION_WAIT_S
 from gwc.retry import Backoff, Deadline
 
 T = TypeVar("T")
@@ -131,7 +132,8 @@ class ModuleDatabase:
             try:
                 # In a thread: connecting to a server that is away (a TCP address that does not answer)
                 # may take up to connect_timeout, which the module's event loop must not wait for.
-                conn = await asyncio.to_thread(db.connect, self.cfg, self.role, self.log, 1)
+                # A database failing over: its standbys are watched for the one promoted (db.PROMOTION_POLL_S).
+                conn = await asyncio.to_thread(db.connect, self.cfg, self.role, self.log, 1, PROMOTION_WAIT_S)
             except DatabaseError as e:
                 self.why = str(e)
             else:

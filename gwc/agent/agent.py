@@ -61,6 +61,9 @@ from gwc.servers.common import Server
 OFF_BUS = ("me", "cmmsim")  # proven ready by staying alive; their WC proves the rest
 BLOCKED_SAY_S = 30.0  # s: how often the log says queued lot scripts wait for a place
 START_BOOST = 5  # a process starting is scheduled ahead of the cell (niceness this much lower) until ready
+# A lot script taken over from a dead host keeps it this long past ready: its resume (record read, leftovers
+# cleaned, machines given back) is what production waits for in a failover, while every module reconnects.
+TAKEOVER_BOOST_S = 3.0
 
 
 @dataclass(frozen=True)
@@ -315,13 +318,19 @@ class Agent(Server):
             why = str(e)
         else:
             if child.pid == pid and child.state == ProcessState.STARTING:
-                self._boost(pid, 0)
+                left = max(0.0, child.boost_until - time.monotonic())  # a takeover's boost lasts a while
+                asyncio.get_running_loop().call_later(left, self._unboost, child, pid)
                 child.change_state(ProcessState.RUNNING, how)
             return
         if child.pid == pid and child.state == ProcessState.STARTING:
             self.log.error("%s (pid %s): %s: killing it", child.name, pid, why)
             child.last_exit = why
             child.signal_group(signal.SIGKILL)
+
+    def _unboost(self, child: Child, pid: int | None) -> None:
+        """A start's boost ends (past TAKEOVER_BOOST_S for a takeover), if its process still runs."""
+        if child.pid == pid and child.state in LIVE:
+            self._boost(pid, 0)
 
     def _ready_by_pipe(self, child: Child) -> bool:
         """Whether the process proves itself ready through the pipe: one off the bus, and an instance
@@ -365,6 +374,31 @@ class Agent(Server):
             child = self.children.get(lot_proc(entity).name)
             pids[str(entity)] = child.pid if child is not None and child.state in LIVE else None
         return pids
+
+    def lot_places(self) -> int:
+        """Lot scripts the budget lets start now: its most at once, less those running or queued."""
+        return self.budget.running - self._lots_running() - len(self.queue.pending())
+
+    def adopt_lot(self, entity: int, process: Forked) -> bool:
+        """Make a lot script started ahead of its claim (gwc/agent/lot_hosts.py) the entity's, as _spawn
+        makes a new one: pid file, watched, STARTING until it is on the bus. False (the caller lets it
+        go) if the entity's script runs already, the budget is full, or the process is gone."""
+        proc = lot_proc(entity)
+        child = self.children.get(proc.name) or Child(proc, self.log)
+        if self._stopping or child.state in LIVE or self._lots_running() >= self.budget.running:
+            return False
+        old = self.bus.peers().get(child.name)
+        if not child.attach(process.pid, process, self._exited):
+            return False
+        self.children[proc.name] = child
+        write_pid_file(self.cfg, proc.name, process.pid, proc.argv)
+        child.fails = 0
+        self.queue.remove(entity)
+        self._boost(process.pid, START_BOOST)
+        child.boost_until = time.monotonic() + TAKEOVER_BOOST_S
+        child.change_state(ProcessState.STARTING, "taken over: started ahead")
+        child.ready = asyncio.get_running_loop().create_task(self._probe(child, old.inc if old else None))
+        return True
 
     def _lots_running(self) -> int:
         """Lot scripts holding a place: running, starting, or waiting to be restarted (BACKOFF)."""

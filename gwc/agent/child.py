@@ -47,6 +47,7 @@ class Child:
         self.last_exit = ""  # how the last process ended
         self.last_code: int | None = None  # its exit status (negative: the signal); None if unknown (adopted)
         self.ready: asyncio.Task[None] | None = None  # the readiness probe of the current process
+        self.boost_until = 0.0  # monotonic: its start's boost lasts past ready until then (a takeover)
         self.retry: asyncio.TimerHandle | None = None  # the BACKOFF timer
         self.changed = asyncio.Event()  # set at every state change (waiters clear it themselves)
         self._pidfd: int | None = None

@@ -9,7 +9,8 @@ code). What happened to the run is the database's: MACHINE_RUN_OUTCOME (the WC s
 Run_Complete), RESERVED_MACHINES and MACHINE_STATUS. So, for step n of the restarted script:
 
 * done before the restart, or its run's outcome stored by every machine since: not run again; the
-  Operation is rebuilt from the stored outcome and MACHINE_RUN_RESULT;
+  Operation is rebuilt from the stored outcome and MACHINE_RUN_RESULT (a run completed since is
+  settled, its machines given back, as soon as the new process has attached: `_settle_completed`);
 * bound and still reserved: the run is taken up where it is: waited for while Running (or in doubt,
   its machine Shutdown unheard: the ordinary rules for a run in doubt), started if set up, set up and
   started if not begun;
@@ -93,6 +94,33 @@ class Resumption:
                 self.facts.log.warning(
                     "%s was bound (run %s) after the dead script's last record: giving it back", machine_id, run
                 )
+                try:
+                    self.requests.unreserve(machine_id, within=self.facts.timeouts.cleanup)
+                except GwcError as e:
+                    self.facts.log.error("could not give %s back: %s", machine_id, e)
+        self._settle_completed()
+
+    def _settle_completed(self) -> None:
+        """(at open) A recorded run whose outcome every machine stored while no script ran is settled now,
+        before the script's own first steps (its reads for the operation's choices): its codes recorded,
+        its machines given back. Production may be waiting for them (a host lost: every machine held by
+        its dead scripts); the script replays the step as done when it comes to it (`point`)."""
+        for entry in self._replay or []:
+            if entry.get("codes") is not None:
+                continue
+            run, machines = int(entry["machine_run_id"]), list(entry["machines"])
+            codes = self.runs.run_outcomes(run, machines)
+            if len(codes) != len(machines):
+                continue
+            op_type = entry.get("op_type")
+            self.facts.log.warning("run %d of %s completed while the lot script was down: %s", run, op_type, codes)
+            entry["codes"] = codes
+            held = self.reads.query(
+                "SELECT machine_id FROM reserved_machines WHERE entity_id = %s AND machine_run_id = %s",
+                self.facts.entity_id,
+                run,
+            )
+            for (machine_id,) in held:
                 try:
                     self.requests.unreserve(machine_id, within=self.facts.timeouts.cleanup)
                 except GwcError as e:

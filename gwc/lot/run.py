@@ -99,14 +99,18 @@ class Forked:
         return code
 
 
-def exec_lot_script(cfg: Config, entity_id: int, user: LotUser) -> Forked:
+def exec_lot_script(cfg: Config, entity_id: int, user: LotUser, gate: int | None = None) -> Forked:
     """Start entity E's lot script as the lot user (gwc.hostuser): a fresh `python -m gwc.lot.run`, exec'd,
     holding nothing of the agent's (a fork would carry the module key in its memory), its uid and gid
     the lot user's and no other group. What it writes is made for it first: its log (0660, the lot
     user's group; moved aside past the cap, which the script cannot do in var/log) and its .out (opened
-    here); var/ passable, lot.key readable, var/lots writable (gwc.private.share_with_lot_user)."""
+    here); var/ passable, lot.key readable, var/lots writable (gwc.private.share_with_lot_user).
+
+    `gate`: the read end of a pipe the script waits on before it does anything (`--gate`), started
+    ahead of its claim (gwc/agent/lot_hosts.py): no pid file until the agent adopts it."""
     base = lot_proc(entity_id)
-    proc = Proc(base.kind, base.machine, command=(*base.command, "--var", str(cfg.var.resolve())))
+    gated = ("--gate", str(gate)) if gate is not None else ()
+    proc = Proc(base.kind, base.machine, command=(*base.command, "--var", str(cfg.var.resolve()), *gated))
     secure_var(cfg)
     log = cfg.log_dir / log_file_name(proc.name)
     with contextlib.suppress(FileNotFoundError):
@@ -114,7 +118,8 @@ def exec_lot_script(cfg: Config, entity_id: int, user: LotUser) -> Forked:
             log.replace(log.with_name(log.name + ".1"))
     make_lot_file(log, user.gid)
     env = {CELL_UID_ENV: f"{os.geteuid()}:{os.getegid()}"}
-    popen = spawn_process(cfg, proc, env, user=(user.uid, user.gid))
+    fds = (gate,) if gate is not None else ()
+    popen = spawn_process(cfg, proc, env, pass_fds=fds, user=(user.uid, user.gid), record=gate is None)
     return Forked(popen.pid, popen)
 
 
@@ -240,6 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m gwc.lot.run", description=__doc__.split("\n\n")[0])
     parser.add_argument("--entity", type=int, required=True, help="the operation entity (LOT_STATUS.entity_id)")
     parser.add_argument("--var", help="the cell's var/ (the agent names it: `gwc stop` knows its scripts by it)")
+    parser.add_argument("--gate", type=int, help="wait for 'g' on this descriptor first (EOF: exit, touching nothing)")
     args = parser.parse_args(argv)
     try:
         cfg = load_config()
@@ -248,7 +254,17 @@ def main(argv: list[str] | None = None) -> int:
     except GwcError as e:
         print(f"gwc.lot.run: {e}", file=sys.stderr)
         return e.exit_code
+    if args.gate is not None and not opened(args.gate):
+        return 0
     return run_entity(cfg, args.entity)
+
+
+def opened(gate: int) -> bool:
+    """A script started ahead of its claim (exec_lot_script's `gate`): interpreter up, imports done,
+    nothing touched. True once its agent claimed the entity and said go; False when the agent let it
+    go (the pipe closed: another host claimed it, or its own host came back)."""
+    with os.fdopen(gate, "rb", buffering=0) as pipe:
+        return pipe.read(1) == b"g"
 
 
 if __name__ == "__main__":

@@ -4,14 +4,16 @@ The issue's topology on network-namespace hosts (gwc/netns.py): h1 the active se
 the Patroni primary, h2 their standbys and the synchronous standby, h3 the machines and a replica,
 etcd on all three. Six pawns are ordered, three from h1 (their lot scripts run on h1) and three from h2.
 h1 is killed whole (every process in it, its cable cut) while they run, etcd's leader moved to h1
-first (the worst case): Patroni promotes h2, h2's standbys take every lease, a live host's agent
-takes h1's lot scripts over (sql/092_lot_hosts.sql) and they resume their entities from
-LOT_TRAVELLERS, as a script killed with -9 does. Every lot is exported, nothing is milled twice, no
-committed row is lost, `gwc check` is clean, and the time from the kill to the next machine bound is
-printed beside the issue's 10 s bar (docs/reliability.md has the trials).
+first (the worst case): Patroni promotes its synchronous standby (h2 or h3), h2's standbys take every
+lease, a live host's agent takes h1's lot scripts over (sql/092_lot_hosts.sql: started ahead while the
+database failed over, gwc/agent/lot_hosts.py) and they resume their entities from LOT_TRAVELLERS, as a
+script killed with -9 does. Every lot is exported, nothing is milled twice, no committed row is lost,
+`gwc check` is clean, and production resumes (the next machine bound, read from the new MSCHED's log)
+within the issue's 10 s of the kill; the failover's steps, read from the hosts' logs, are printed.
 
 About 1.5 minutes: `.venv/bin/python -m pytest -q -s -m soak tests/e2e/test_lot_hosts.py`
-(GWC_TEST_ETCD_LEADER=none leaves etcd's leader where it is; GWC_TEST_DCS="ttl,loop_wait,retry_timeout").
+(GWC_TEST_ETCD_LEADER=none leaves etcd's leader where it is; GWC_TEST_DCS="ttl,loop_wait,retry_timeout"
+and GWC_TEST_ETCD="heartbeat,election" try other timings).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import pytest
 
 from gwc.netns import Hosts, unavailable
 from gwc.patroni import primary_url
-from tests.e2e.test_patroni import MISSING, PASSWORD, PatroniCluster, issue_topology, sql_on, start_on_hosts
+from tests.e2e.test_patroni import MEMBERS, MISSING, PASSWORD, PatroniCluster, issue_topology, sql_on, start_on_hosts
 from tests.harness import wait_for
 
 pytestmark = [
@@ -38,22 +40,28 @@ pytestmark = [
     pytest.mark.skipif(MISSING is not None, reason=f"{MISSING} is not installed (bin/setup installs it)"),
 ]
 
-BAR_S = 10.0  # the issue's bar from the kill to production going on (its goal: 3 s)
-# What this test holds it to: the worst case it builds (etcd's leader dies with h1, and h1's lots hold
-# every machine, so production waits for their scripts to start again elsewhere) met the bar in 6 of 10
-# trials on the shared 2-core machine (docs/reliability.md); each trial prints whether it met it.
-HELD_S = 12.0
+BAR_S = 10.0  # the issue's bar from the kill to production going on (its goal: 3 s), held in the worst case
+# the test builds: etcd's leader dies with h1, and h1's lots may hold every machine, so that production
+# waits for their scripts to resume on a live host (docs/reliability.md has the trials).
 LOT_HOSTS_TTL = 4.0
 
 
 class QuickPatroni(PatroniCluster):
-    """Patroni's timing (GWC_TEST_DCS="ttl,loop_wait,retry_timeout" to try others; Patroni's rule:
-    ttl > loop_wait + 2 x retry_timeout)."""
+    """Patroni's and etcd's timing (GWC_TEST_DCS="ttl,loop_wait,retry_timeout" and
+    GWC_TEST_ETCD="heartbeat,election" in ms to try others). Patroni takes the three as whole seconds
+    (it int()s them: a loop_wait of 0.5 is 0, a loop that never sleeps); its rule against a leader that
+    cannot renew in time: loop_wait + 2 x retry_timeout <= ttl."""
 
-    ETCD_TIMING = ("--heartbeat-interval", "100", "--election-timeout", os.environ.get("GWC_TEST_ETCD_ELECTION", "500"))
+    ETCD_TIMING = tuple(
+        x
+        for flag, ms in zip(
+            ("--heartbeat-interval", "--election-timeout"), os.environ.get("GWC_TEST_ETCD", "50,250").split(",")
+        )
+        for x in (flag, ms)
+    )
     DCS = {
-        k: float(v) if "." in v else int(v)
-        for k, v in zip(("ttl", "loop_wait", "retry_timeout"), os.environ.get("GWC_TEST_DCS", "5,0.5,2").split(","))
+        k: int(v)
+        for k, v in zip(("ttl", "loop_wait", "retry_timeout"), os.environ.get("GWC_TEST_DCS", "5,1,2").split(","))
     }
 
 
@@ -98,6 +106,75 @@ def first_binding_after(log: Path, since: float) -> float | None:
         if at > since:
             return at
     return None
+
+
+def stamps(log: Path, needle: str, since: float) -> list[float]:
+    """When lines holding `needle` were written after `since` (wall clock): the cell's Figure 2 logs
+    ("| Date Y-m-d H:M:S.f |"), Patroni's and PostgreSQL's ("Y-m-d H:M:S,f" / ".f" first), etcd's zap
+    JSON ("ts":"...Z")."""
+    found = []
+    for line in log.read_text(errors="replace").splitlines() if log.exists() else []:
+        if needle not in line:
+            continue
+        if "| Date " in line:
+            at = datetime.datetime.strptime(line.split("| Date ", 1)[1][:23], "%Y-%m-%d %H:%M:%S.%f").timestamp()
+        elif '"ts":"' in line:
+            iso = line.split('"ts":"', 1)[1].split('"', 1)[0].replace("Z", "+00:00")
+            at = datetime.datetime.fromisoformat(iso).timestamp()
+        else:
+            try:
+                at = datetime.datetime.strptime(line[:23].replace(",", "."), "%Y-%m-%d %H:%M:%S.%f").timestamp()
+            except ValueError:
+                continue
+        if at > since:
+            found.append(at)
+    return found
+
+
+def timeline(cluster: PatroniCluster, cell: Any, entities: list[int], wall: float) -> list[tuple[str, float | None]]:
+    """A failover's steps read from the hosts' logs, in seconds after the kill (None: not seen)."""
+    pat = cluster.base
+
+    def first(*found: list[float]) -> float | None:
+        every = [t for f in found for t in f]
+        return min(every) - wall if every else None
+
+    def last(*found: list[float]) -> float | None:
+        every = [t for f in found for t in f]
+        return max(every) - wall if every else None
+
+    logs = [cell.var(h) / "log" for h in ("h2", "h3")]
+    new = next((h for h in ("h2", "h3") if stamps(pat / h / "patroni.log", "promoted self to leader", wall)), "h2")
+    patroni = pat / new / "patroni.log"
+    rest = first(stamps(patroni, "Request failed to h1", wall))
+    return [
+        ("etcd's new leader", first(*(stamps(pat / h / "etcd.log", "elected leader", wall) for h in ("h2", "h3")))),
+        (f"{new}'s Patroni asks h1's REST API (leader key gone)", None if rest is None else rest - 2.0),
+        ("... and gives up on it (2 s)", rest),
+        (f"{new} promoted (leader lock)", first(stamps(patroni, "promoted self to leader", wall))),
+        (f"{new} accepts connections", first(stamps(patroni, "ready to accept connections", wall))),
+        ("first lease taken", first(*(stamps(f, "active: took the lease", wall) for f in logs[0].glob("*.log")))),
+        ("MSCHED's lease", first(stamps(logs[0] / "msched.log", "active: took the lease", wall))),
+        ("last lease taken", last(*(stamps(f, "active: took the lease", wall) for f in logs[0].glob("*.log")))),
+        ("a WC back on the database", first(*(stamps(f, "database is back", wall) for f in logs[1].glob("wc-*.log")))),
+        (
+            "h1's scripts claimed",
+            first(*(stamps(d / f"agent-{d.parent.name}.log", "taking over the scripts", wall) for d in logs)),
+        ),
+        (
+            "first of them started",
+            first(*(stamps(d / f"lot-{e}.log", "lot script process for entity", wall) for d in logs for e in entities)),
+        ),
+        (
+            "last of them started",
+            last(*(stamps(d / f"lot-{e}.log", "lot script process for entity", wall) for d in logs for e in entities)),
+        ),
+        ("next machine bound", first(stamps(logs[0] / "msched.log", " bound: entity ", wall))),
+        (
+            "etcd elections in the walk",
+            float(sum(len(stamps(pat / h / "etcd.log", "became leader", 0)) for h in MEMBERS)),
+        ),
+    ]
 
 
 def walk(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
@@ -146,33 +223,35 @@ def walk(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
         return int(q("select greatest((select max(machine_run_id) from reserved_machines), "
                      "(select max(machine_run_id) from machine_run_outcome), 0)")[0][0])  # fmt: skip
 
-    def h1_recorded() -> bool:  # one of h1's scripts has an operation in its stored record
-        rows = q(f"select count(*) from lot_travellers where entity_id in ({on_h1}) "
-                 "and jsonb_array_length(coalesce(traveller->'operations', '[]')) > 0")  # fmt: skip
-        return int(rows[0][0]) > 0
-
-    def h1_at_work() -> list[int]:  # h1's entities whose scripts have work left
-        return [int(e) for (e,) in q(f"select entity_id from lot_status where entity_id in ({on_h1}) and state "
-                                     "not in ('exported', 'failed', 'completed', 'waiting_export')")]  # fmt: skip
-
-    def busy() -> bool:  # a run going on, and lots waiting for machines
-        return bool(q("select 1 from machine_status where status = 'Running'")) and bool(
-            q("select 1 from request_machines")
-        )
-
-    wait_for(lambda: done() or (h1_recorded() and busy() and len(h1_at_work()) >= 2), 120,
-             "a run, a queue, and an operation of h1's scripts recorded", interval=0.3)  # fmt: skip
     counts = "select (select count(*) from lot_status), (select count(*) from machine_run_outcome)"
-    committed = q(counts)[0]
-    before = last_binding()
+    # The moment to kill h1, read in one query so that the kill follows at once (a query here is a process
+    # started in a test host: a second under load, in which h1's lots may finish): a run going on, lots
+    # waiting for machines, an operation of h1's scripts recorded and at least two of them with work left.
+    moment = (
+        f"select (select count(*) from lot_travellers where entity_id in ({on_h1}) "
+        "and jsonb_array_length(coalesce(traveller->'operations', '[]')) > 0) > 0 "
+        "and exists (select 1 from machine_status where status = 'Running') "
+        "and exists (select 1 from request_machines), "
+        f"(select coalesce(array_agg(entity_id), '{{}}') from lot_status where entity_id in ({on_h1}) "
+        "and state not in ('exported', 'failed', 'completed', 'waiting_export')), "
+        "greatest((select max(machine_run_id) from reserved_machines), "
+        "(select max(machine_run_id) from machine_run_outcome), 0), "
+        "(select count(*) from lot_status), (select count(*) from machine_run_outcome)"
+    )
+
+    def ready() -> list[Any] | None:
+        busy, work, binding, lots, outcomes = q(moment)[0]
+        return [list(work), int(binding), [lots, outcomes]] if busy and len(work) >= 2 else None
+
+    found = wait_for(lambda: done() or ready(), 120, "a run, a queue, and two of h1's scripts at work", interval=0.3)
+    assert isinstance(found, list), "every lot finished before the moment to kill h1 came"
+    at_work, before, committed = found  # h1's entities with work left: their scripts die with h1
     wall = time.time()
     cluster.kill_host("h1")
     killed = time.monotonic()
     live_url = primary_url("postgres", PASSWORD, [(cluster.addr[h], 5432) for h in ("h2", "h3")], "gwc")
     wait_for(lambda: cluster.leader() not in (None, "h1"), 60, "a new primary", interval=0.1)
     promoted = time.monotonic() - killed
-    at_work = h1_at_work()  # h1's scripts are dead: these states cannot move until they are taken over
-    assert at_work, "h1's lots had no work left at the kill"
     wait_for(lambda: done() or last_binding() > before, 60, "the next machine bound", interval=0.1)
     polled = time.monotonic() - killed
     wait_for(
@@ -199,8 +278,11 @@ def walk(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
     assert bound is not None, "h2's MSCHED bound nothing after the kill"
     resumed = bound - wall
     print(
-        f"h1 killed (Patroni {cluster.DCS}): new primary after {promoted:.1f}s, next machine bound after "
+        f"h1 killed at {datetime.datetime.fromtimestamp(wall):%H:%M:%S.%f} (Patroni {cluster.DCS}, etcd "
+        f"{' '.join(cluster.ETCD_TIMING)}): new primary after {promoted:.1f}s, next machine bound after "
         f"{resumed:.2f}s (seen by the test after {polled:.1f}s), h1's lot scripts taken over after {taken:.1f}s"
     )
+    for what, at in timeline(cluster, cell, entities["h1"], wall):
+        print(f"  {'-' if at is None else f'{at:6.2f}'}  {what}")
     print(f"the issue's bar ({BAR_S:g}s): {'met' if resumed < BAR_S else 'NOT met'}")
-    assert resumed < HELD_S, f"production resumed {resumed:.1f}s after the kill (held to {HELD_S:g}s)"
+    assert resumed < BAR_S, f"production resumed {resumed:.1f}s after the kill (the issue's bar: {BAR_S:g}s)"
