@@ -306,11 +306,15 @@ def encode_parts(
         raise MessageError(f"{msg or kind} in {conv or '-'} cannot be encoded: {e}") from None
     data = b"".join(parts)
     if len(data) > MAX_DATAGRAM:
-        raise MessageError(
-            f"{msg or kind} in {conv or '-'} is {len(data)} bytes, over the bus limit of "
-            f"{MAX_DATAGRAM}: send large payloads (recipes, results) through the database, not the bus"
-        )
+        raise _oversize(msg or kind, conv, len(data))
     return data
+
+
+def _oversize(what: str, conv: str, size: int) -> MessageError:
+    return MessageError(
+        f"{what} in {conv or '-'} is {size} bytes, over the bus limit of "
+        f"{MAX_DATAGRAM}: send large payloads (recipes, results) through the database, not the bus"
+    )
 
 
 def encode_msg(
@@ -366,10 +370,7 @@ def encode_msg(
     except (TypeError, ValueError, RecursionError, KeyError, struct.error) as e:
         raise MessageError(f"{msg or 'msg'} in {conv or '-'} cannot be encoded: {e}") from None
     if len(data) > MAX_DATAGRAM:
-        raise MessageError(
-            f"{msg or 'msg'} in {conv or '-'} is {len(data)} bytes, over the bus limit of "
-            f"{MAX_DATAGRAM}: send large payloads (recipes, results) through the database, not the bus"
-        )
+        raise _oversize(msg or "msg", conv, len(data))
     return data
 
 

@@ -5,18 +5,16 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import random
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
-from gwc.config import BusConfig
-from gwc.ipc import keys
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.memory import MemoryTransport
 from gwc.ipc.rto import AckDelays
+from tests.unit import test_ipc_bus_rules as rules
 
 
 def test_a_quiet_peer_keeps_the_floor_and_a_late_one_gets_a_longer_timeout() -> None:
@@ -39,17 +37,8 @@ def test_a_quiet_peer_keeps_the_floor_and_a_late_one_gets_a_longer_timeout() -> 
 def test_a_peer_that_acknowledges_late_is_no_longer_sent_duplicates(tmp_path: Path) -> None:
     """b gathers its acks for 50 ms, longer than a's 20 ms ack_timeout: a retransmitted each msg at
     first; after a few measured delays it waits long enough, and sends each msg once (or nearly)."""
-    rnd = random.Random()
-    cfg = BusConfig(
-        group=f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
-        port=rnd.randrange(20000, 60000),
-        heartbeat=0.1,
-        peer_timeout=1.0,
-        key_file=str(tmp_path / "cell.key"),
-        lot_key_file=str(tmp_path / "lot.key"),
-        ack_timeout=0.02,
-    )
-    keys.new(cfg)
+    rules.KEYS_DIR = tmp_path
+    cfg = rules.private_cfg(ack_timeout=0.02)
 
     async def main() -> None:
         a = Bus("a", cfg, logging.getLogger("gwc.test.a"), (), MemoryTransport(cfg))
