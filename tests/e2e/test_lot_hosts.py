@@ -30,7 +30,17 @@ import pytest
 
 from gwc.netns import Hosts, unavailable
 from gwc.patroni import primary_url
-from tests.e2e.test_patroni import MEMBERS, MISSING, PASSWORD, PatroniCluster, issue_topology, sql_on, start_on_hosts
+from tests.e2e.test_patroni import (
+    MEMBERS,
+    MISSING,
+    PASSWORD,
+    PatroniCluster,
+    issue_topology,
+    lots_exported,
+    newest_binding,
+    sql_on,
+    start_on_hosts,
+)
 from tests.harness import wait_for
 
 pytestmark = [
@@ -211,17 +221,10 @@ def walk(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
     )
 
     def done() -> bool:
-        states = dict(q(f"select entity_id, state from lot_status where entity_id in ({ids})"))
-        assert "failed" not in states.values(), q("select entity_id, reason from lot_status where state = 'failed'")
-        if "waiting_import" in states.values():
-            cell.gwc("h2", "import", "--all")
-        if "waiting_export" in states.values():
-            cell.gwc("h2", "export", "--all")
-        return len(states) == len(every) and set(states.values()) == {"exported"}
+        return lots_exported(cell, q, every)
 
     def last_binding() -> int:
-        return int(q("select greatest((select max(machine_run_id) from reserved_machines), "
-                     "(select max(machine_run_id) from machine_run_outcome), 0)")[0][0])  # fmt: skip
+        return newest_binding(q)
 
     counts = "select (select count(*) from lot_status), (select count(*) from machine_run_outcome)"
     # The moment to kill h1, read in one query so that the kill follows at once (a query here is a process

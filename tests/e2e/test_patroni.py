@@ -447,6 +447,24 @@ def machine_start(cell: Any, q: Callable[[str], list[list[Any]]], machine: str) 
         t.join(0.3)
 
 
+def lots_exported(cell: Any, q: Callable[[str], list[list[Any]]], entities: list[int]) -> bool:
+    """Every one of `entities` exported (importing and exporting from h2 as they ask); none failed."""
+    ids = ",".join(map(str, entities))
+    states = dict(q(f"select entity_id, state from lot_status where entity_id in ({ids})"))
+    assert "failed" not in states.values(), q("select entity_id, reason from lot_status where state = 'failed'")
+    if "waiting_import" in states.values():
+        cell.gwc("h2", "import", "--all")
+    if "waiting_export" in states.values():
+        cell.gwc("h2", "export", "--all")
+    return len(states) == len(entities) and set(states.values()) == {"exported"}
+
+
+def newest_binding(q: Callable[[str], list[list[Any]]]) -> int:
+    """The newest machine_run_id bound (reserved now, or its run ended)."""
+    return int(q("select greatest((select max(machine_run_id) from reserved_machines), "
+                 "(select max(machine_run_id) from machine_run_outcome), 0)")[0][0])  # fmt: skip
+
+
 def walk_h1_killed(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -> None:
     def q(text: str) -> list[list[Any]]:
         return sql_on(hosts, "h3", url, text)
@@ -456,20 +474,12 @@ def walk_h1_killed(hosts: Hosts, cluster: PatroniCluster, cell: Any, url: str) -
     assert {h for (h,) in q("select host from module_leases")} == {"h1"}
     made = json.loads(cell.gwc("h2", "order", "new", "--customer", "NJIT", "milled_pawn=4", "--json"))
     entities = [e for lot in made["lots"] for e in lot["entities"]]
-    ids = ",".join(map(str, entities))
 
     def done() -> bool:
-        states = dict(q(f"select entity_id, state from lot_status where entity_id in ({ids})"))
-        assert "failed" not in states.values(), q("select entity_id, reason from lot_status where state = 'failed'")
-        if "waiting_import" in states.values():
-            cell.gwc("h2", "import", "--all")
-        if "waiting_export" in states.values():
-            cell.gwc("h2", "export", "--all")
-        return len(states) == len(entities) and set(states.values()) == {"exported"}
+        return lots_exported(cell, q, entities)
 
     def last_binding() -> int:
-        return int(q("select greatest((select max(machine_run_id) from reserved_machines), "
-                     "(select max(machine_run_id) from machine_run_outcome), 0)")[0][0])  # fmt: skip
+        return newest_binding(q)
 
     wait_for(lambda: done() or q("select 1 from machine_status where status = 'Running'"), 90, "a run", interval=0.3)
     counts = "select (select count(*) from lot_status), (select count(*) from machine_run_outcome)"
