@@ -64,25 +64,28 @@ end;
 $$;
 revoke all on function msched_analyze() from public;
 
--- msched_candidates(machines, up, per): MSCHED's scheduling pass (gwc/msched/store.py). For each of
--- the machines (null: all), the first `per` queued requests in the policy's order (request_machines
--- (machine_id, rank, seq)) whose every 'machine:op_type' slot is usable (the machine's status is in
--- `up`, it is not reserved and it accepts the op type), of live entities. The walk of the index
--- stops after `per` matches, so a freed machine costs a few index probes however long the queue.
--- The SET clauses make that walk the plan whatever the statistics say: with a queue grown faster
--- than autovacuum analyzes it, PostgreSQL sorted every request of each machine instead (105 ms for
--- 100 freed machines with 10,000 queued, against about 4).
--- PL/pgSQL and a generic plan, so that a session plans the query once: a LANGUAGE sql function with
--- SET clauses is planned at every call, which cost 0.55 ms of each 0.63 ms call, three calls a lot.
-drop function if exists msched_candidates(text[], text[], int);  -- its parameters were renamed
-create function msched_candidates(p_machines text[], p_up text[], p_per int)
+-- msched_walk(machines, up, per): the scheduling pass's index walk, the one both msched_pass
+-- (sql/096_sched_pass.sql, each of its rounds) and msched_candidates read. For each of the machines
+-- (null: all), the first `per` queued requests in the policy's order (request_machines (machine_id,
+-- rank, seq)) whose every 'machine:op_type' slot is usable (the machine's status is in `up`, it is
+-- not reserved and it accepts the op type), of live entities; each row names the machine it was
+-- found under (`found_on`, a request of two machines may be found under both) and how many that
+-- machine gave (`found`: fewer than `per` means its walk reached the end of its queue). The walk of
+-- the index stops after `per` matches, so a freed machine costs a few index probes however long the
+-- queue. The SET clauses make that walk the plan whatever the statistics say: with a queue grown
+-- faster than autovacuum analyzes it, PostgreSQL sorted every request of each machine instead (105
+-- ms for 100 freed machines with 10,000 queued, against about 4). PL/pgSQL and a generic plan, so
+-- that a session plans the query once: a LANGUAGE sql function with SET clauses is planned at every
+-- call, which cost 0.55 ms of each 0.63 ms call.
+create or replace function msched_walk(p_machines text[], p_up text[], p_per int)
 returns table (request_key bigint, entity_id bigint, op_type text, priority int, seq bigint,
-               requested_at timestamptz, slots text[])
+               requested_at timestamptz, slots text[], rank double precision, found_on text, found bigint)
 language plpgsql
 stable
 set enable_sort = off
 set enable_bitmapscan = off
 set enable_seqscan = off
+set jit = off
 set plan_cache_mode = force_generic_plan
 as $$
 #variable_conflict use_column
@@ -94,10 +97,12 @@ begin
         where s.status = any (p_up)
           and not exists (select 1 from reserved_machines r where r.machine_id = s.machine_id)
     )
-    select c.request_key, c.entity_id, c.op_type, c.priority, c.seq, c.requested_at, c.slots
-    from usable, unnest(coalesce(p_machines, array(select machine_id from me_config))) as t (machine_id)
+    select c.request_key, c.entity_id, c.op_type, c.priority, c.seq, c.requested_at, c.slots, c.rank,
+           t.machine_id, count(*) over (partition by t.i)
+    from usable, unnest(coalesce(p_machines, array(select machine_id from me_config)))
+         with ordinality as t (machine_id, i)
     cross join lateral (
-        select q.request_key, q.entity_id, q.op_type, q.priority, q.seq, q.requested_at, q.slots
+        select q.request_key, q.entity_id, q.op_type, q.priority, q.seq, q.requested_at, q.slots, q.rank
         from request_machines q
         where q.machine_id = t.machine_id
           and q.slots <@ usable.slots
@@ -106,4 +111,18 @@ begin
         limit p_per
     ) c;
 end
+$$;
+revoke all on function msched_walk(text[], text[], int) from public;
+
+-- msched_candidates(machines, up, per): one round of the pass's walk (msched_walk), for the store's
+-- Store.candidates() and tools; the scheduler itself runs msched_pass.
+drop function if exists msched_candidates(text[], text[], int);  -- its parameters were renamed
+create function msched_candidates(p_machines text[], p_up text[], p_per int)
+returns table (request_key bigint, entity_id bigint, op_type text, priority int, seq bigint,
+               requested_at timestamptz, slots text[])
+language sql
+stable
+as $$
+    select w.request_key, w.entity_id, w.op_type, w.priority, w.seq, w.requested_at, w.slots
+    from msched_walk(p_machines, p_up, p_per) w
 $$;

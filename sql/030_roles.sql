@@ -34,7 +34,8 @@ grant select on all tables in schema public
     to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot, gwc_opcua;
 grant execute on function get_new_max_value(text), get_new_max_values(text, int)
     to gwc_msched, gwc_ms, gwc_ls, gwc_cas, gwc_ers, gwc_sls, gwc_wc, gwc_hi, gwc_lot;
-grant execute on function msched_analyze(), msched_candidates(text[], text[], int) to gwc_msched;
+grant execute on function msched_analyze(), msched_walk(text[], text[], int), msched_candidates(text[], text[], int)
+    to gwc_msched;
 
 -- MSCHED: the request queue, the reservations, what machines accept now.
 grant insert, update, delete on request_machines, reserved_machines, accept_types, request_outcomes,

@@ -14,13 +14,16 @@
 -- `machines` (null: every machine), greedily in the policy's order (rank, seq) - the order the
 -- policy's rank_sql() stores with each request (gwc/msched/policy.py). Each round takes, per
 -- machine still to look at, the first `per` requests whose every 'machine:op_type' slot is usable
--- (as msched_candidates), binds greedily (a request whose machine an earlier one took, or whose
--- entity was served, is skipped), and repeats for the machines not taken while a round binds
--- something. Per request ended, the outcome MSCHED must tell (bound ACK_OK, an alternative of a
--- bound entity REQ_CANCEL, a held outcome of a bound entity REQ_CANCEL).
--- The SET clauses are msched_candidates' (the per-machine index walk whatever the statistics say),
--- and jit = off: the one sort of the candidates (rank, seq), priced by enable_sort = off at 10^10,
--- took the plan past jit_above_cost, and PostgreSQL JIT-compiled the query at each call (0.7 s).
+-- (msched_walk, sql/020_procedures.sql: the one walk), binds greedily (a request whose machine an
+-- earlier one took, or whose entity was served, is skipped), and repeats while a round binds
+-- something, for the machines not taken whose walk stopped at `per`: a machine that gave fewer
+-- reached the end of its queue, and nothing it did not give can become bindable within the pass
+-- (machines are only taken in it, and a served entity's requests leave the queue), so walking it
+-- again would only read its whole queue once more. Per request ended, the outcome MSCHED must tell
+-- (bound ACK_OK, an alternative of a bound entity REQ_CANCEL, a held outcome of a bound entity
+-- REQ_CANCEL). jit = off: the one sort of the candidates (rank, seq) is priced at 10^10 by
+-- msched_walk's enable_sort = off, which took the plan past jit_above_cost, and PostgreSQL
+-- JIT-compiled the query at each call (0.7 s).
 create or replace function msched_pass(p_machines text[], p_up text[], p_per int)
 returns table (request_key bigint, entity_id bigint, ack_code text, machines text[], machine_run_id bigint,
                note text, reply_to text, reply_conv text)
@@ -34,8 +37,8 @@ set plan_cache_mode = force_generic_plan
 as $$
 #variable_conflict use_column
 declare
-    v_full boolean := p_machines is null;
-    v_trig text[] := p_machines;
+    v_trig text[] := p_machines;  -- null: every machine (the first round only)
+    v_more text[];
     v_taken text[];
     v_ents bigint[];
     v_keys bigint[];
@@ -46,32 +49,19 @@ declare
     c record;
 begin
     loop
-        exit when not v_full and coalesce(cardinality(v_trig), 0) = 0;
-        v_taken := '{}'; v_ents := '{}'; v_keys := '{}'; v_mach := '{}'; v_midx := '{}'; n := 0;
+        exit when v_trig is not null and cardinality(v_trig) = 0;
+        v_taken := '{}'; v_ents := '{}'; v_keys := '{}'; v_mach := '{}'; v_midx := '{}'; v_more := '{}'; n := 0;
         for c in
-            with usable (slots) as materialized (
-                select coalesce(array_agg(s.machine_id || ':' || a.op_type), '{}')
-                from machine_status s join accept_types a on a.machine_id = s.machine_id
-                where s.status = any (p_up)
-                  and not exists (select 1 from reserved_machines r where r.machine_id = s.machine_id)
-            )
-            select x.request_key, x.entity_id,
+            select w.request_key, w.entity_id, w.found_on, w.found,
                    -- the request's machines, in the order it named them ('machine:op_type' slots)
-                   array(select left(u.s, -length(x.op_type) - 1) from unnest(x.slots) with ordinality u (s, i)
+                   array(select left(u.s, -length(w.op_type) - 1) from unnest(w.slots) with ordinality u (s, i)
                          order by u.i) as machines
-            from usable, unnest(case when v_full then array(select machine_id from me_config) else v_trig end)
-                 as t (machine_id)
-            cross join lateral (
-                select q.request_key, q.entity_id, q.op_type, q.slots, q.rank, q.seq
-                from request_machines q
-                where q.machine_id = t.machine_id
-                  and q.slots <@ usable.slots
-                  and exists (select 1 from live_entities l where l.entity_id = q.entity_id)
-                order by q.rank, q.seq
-                limit p_per
-            ) x
-            order by x.rank, x.seq
+            from msched_walk(v_trig, p_up, p_per) w
+            order by w.rank, w.seq
         loop
+            if c.found >= p_per then
+                v_more := v_more || c.found_on;  -- its walk stopped at `per`: it may have more
+            end if;
             continue when c.entity_id = any (v_ents);
             v_ms := c.machines;
             continue when v_ms && v_taken;
@@ -126,7 +116,7 @@ begin
             returning o.request_key, o.entity_id, o.ack_code, o.machines, o.machine_run_id, o.note, o.reply_to,
                       o.reply_conv)
         select * from ended union all select * from released;
-        v_trig := array(select unnest(v_trig) except select unnest(v_taken));
+        v_trig := array(select unnest(v_more) except select unnest(v_taken));
     end loop;
 end
 $$;
