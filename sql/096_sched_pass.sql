@@ -21,9 +21,10 @@
 -- (machines are only taken in it, and a served entity's requests leave the queue), so walking it
 -- again would only read its whole queue once more. Per request ended, the outcome MSCHED must tell
 -- (bound ACK_OK, an alternative of a bound entity REQ_CANCEL, a held outcome of a bound entity
--- REQ_CANCEL). jit = off: the one sort of the candidates (rank, seq) is priced at 10^10 by
--- msched_walk's enable_sort = off, which took the plan past jit_above_cost, and PostgreSQL
--- JIT-compiled the query at each call (0.7 s).
+-- REQ_CANCEL). The pass's own statements (the candidates in order, the binding) keep the walk's
+-- planner settings: the queue is read by its indexes whatever the statistics say. jit = off: the
+-- one sort of the candidates (rank, seq) is priced at 10^10 by enable_sort = off, which took the
+-- plan past jit_above_cost, and PostgreSQL JIT-compiled the query at each call (0.7 s).
 create or replace function msched_pass(p_machines text[], p_up text[], p_per int)
 returns table (request_key bigint, entity_id bigint, ack_code text, machines text[], machine_run_id bigint,
                note text, reply_to text, reply_conv text)
