@@ -9,6 +9,8 @@ import asyncio
 import dataclasses
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import psycopg
@@ -19,6 +21,7 @@ from psycopg.conninfo import conninfo_to_dict, make_conninfo
 from gwc import db, promotion
 from gwc.config import Config
 from gwc.errors import DatabaseUnavailable
+from gwc.retry import Deadline
 
 
 def read_only(url: str, on: bool) -> None:
@@ -39,21 +42,45 @@ def two_members(url: str) -> str:
     return make_conninfo(**{**params, "host": f"{host},{host}", "target_session_attrs": "read-write"})
 
 
-def test_a_refusal_for_read_only_is_told_apart_from_a_database_away(database_url: str) -> None:
-    read_only(database_url, True)
+@contextmanager
+def read_only_database(url: str) -> Iterator[None]:
+    """The test's database refusing read-write sessions while the block runs (and never after it)."""
+    read_only(url, True)
     try:
+        yield
+    finally:
+        read_only(url, False)
+
+
+def watched(url: str, application: str, members: int = 2) -> None:
+    """Wait until a connect that was refused watches each member for its promotion: its watch sessions
+    (application_name `application`) have asked pg_is_in_recovery()."""
+    deadline = Deadline(10)
+    with psycopg.connect(url, autocommit=True) as conn:
+        while True:
+            row = conn.execute(
+                "select count(*) from pg_stat_activity where datname = current_database() "
+                "and application_name = %s and query = 'select pg_is_in_recovery()'",
+                (application,),
+            ).fetchone()
+            if row is not None and row[0] >= members:
+                return
+            if deadline.expired:
+                raise AssertionError(f"the connect of {application} never watched its {members} members")
+            time.sleep(0.01)
+
+
+def test_a_refusal_for_read_only_is_told_apart_from_a_database_away(database_url: str) -> None:
+    with read_only_database(database_url):
         with pytest.raises(psycopg.OperationalError) as refused:
             psycopg.connect(two_members(database_url)).close()
         assert promotion.read_only_refusal(refused.value)
         assert not promotion.read_only_refusal(psycopg.OperationalError("connection refused"))
-    finally:
-        read_only(database_url, False)
 
 
 def test_a_waiting_connect_is_made_as_soon_as_a_member_takes_writes(database_url: str) -> None:
     url = two_members(database_url)
-    read_only(database_url, True)
-    try:
+    with read_only_database(database_url):
         started = time.monotonic()
         with pytest.raises(psycopg.OperationalError):  # no wait: refused at once, as before
             db._connect_any(url, "gwc_test")
@@ -61,7 +88,7 @@ def test_a_waiting_connect_is_made_as_soon_as_a_member_takes_writes(database_url
         made: list[Any] = []
         waiting = threading.Thread(target=lambda: made.append(db._connect_any(url, "gwc_test", promotion_wait=10.0)))
         waiting.start()
-        time.sleep(0.5)
+        watched(database_url, "gwc_test")
         promoted = time.monotonic()
         read_only(database_url, False)  # the "promotion"
         waiting.join(10)
@@ -73,20 +100,15 @@ def test_a_waiting_connect_is_made_as_soon_as_a_member_takes_writes(database_url
         finally:
             conn.close()
         assert took < 1.0, took  # a poll (PROMOTION_POLL_S) and a connect, not a caller's next try
-    finally:
-        read_only(database_url, False)
 
 
 def test_a_waiting_connect_gives_up_after_its_wait(database_url: str) -> None:
     url = two_members(database_url)
-    read_only(database_url, True)
-    try:
+    with read_only_database(database_url):
         started = time.monotonic()
         with pytest.raises(psycopg.OperationalError, match="read-only"):
             db._connect_any(url, "gwc_test", promotion_wait=0.6)
         assert 0.5 < time.monotonic() - started < 3.0
-    finally:
-        read_only(database_url, False)
 
 
 def test_the_agents_connect_waits_for_the_promotion_too(cell_config: Config, database_url: str) -> None:
@@ -94,7 +116,7 @@ def test_the_agents_connect_waits_for_the_promotion_too(cell_config: Config, dat
 
     async def walk() -> float:
         waiting = asyncio.ensure_future(db.connect_async(cfg, "agent", promotion_wait=10.0))
-        await asyncio.sleep(0.5)
+        await asyncio.to_thread(watched, database_url, "gwc_agent")
         assert not waiting.done()
         promoted = time.monotonic()
         await asyncio.to_thread(read_only, database_url, False)
@@ -107,10 +129,7 @@ def test_the_agents_connect_waits_for_the_promotion_too(cell_config: Config, dat
             await conn.close()
         return took
 
-    read_only(database_url, True)
-    try:
+    with read_only_database(database_url):
         with pytest.raises(DatabaseUnavailable):  # no wait: refused at once
             asyncio.run(db.connect_async(cfg, "agent"))
         assert asyncio.run(walk()) < 1.0
-    finally:
-        read_only(database_url, False)

@@ -17,11 +17,12 @@ import pytest
 
 from gwc.config import BusConfig
 from gwc.errors import MessageError
-from gwc.ipc import catalogue, keys, wire
+from gwc.ipc import catalogue, wire
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import message
 from gwc.ipc.conversation import Batch
 from gwc.ipc.memory import MemoryTransport
+from tests.unit import test_ipc_bus_rules as rules
 
 Pair = tuple[Bus, Bus, list[bytes], list[int]]
 
@@ -29,16 +30,8 @@ Pair = tuple[Bus, Bus, list[bytes], list[int]]
 def _run(tmp_path: Path, test: Callable[[Pair], Awaitable[None]]) -> None:
     """Buses a and b on a private in-memory bus; a's msgs are captured, not sent (fed to b by the test,
     in any order, any number of times); b's calls of the general path (Inbound.place) are counted."""
-    rnd = random.Random()
-    cfg = BusConfig(
-        group=f"239.255.{rnd.randrange(1, 255)}.{rnd.randrange(1, 255)}",
-        port=rnd.randrange(20000, 60000),
-        heartbeat=0.1,
-        ack_timeout=5.0,  # no retransmission of a's own while the test feeds them
-        key_file=str(tmp_path / "cell.key"),
-        lot_key_file=str(tmp_path / "lot.key"),
-    )
-    keys.new(cfg)
+    rules.KEYS_DIR = tmp_path  # private_cfg makes the bus keys there
+    cfg = rules.private_cfg(ack_timeout=5.0)  # no retransmission of a's own while the test feeds them
 
     async def main() -> None:
         a = Bus("a", cfg, logging.getLogger("gwc.test.a"), (), MemoryTransport(cfg))
@@ -46,8 +39,7 @@ def _run(tmp_path: Path, test: Callable[[Pair], Awaitable[None]]) -> None:
         await a.sign_on()
         await b.sign_on()
         try:
-            while "b" not in a.peers() or "a" not in b.peers():
-                await asyncio.sleep(0.01)
+            await rules.known(a, b)
             sent: list[bytes] = []
             send = a._transmit
             a._transmit = lambda data: sent.append(data) if _is_msg(data) else send(data)  # type: ignore[method-assign]

@@ -47,15 +47,13 @@ def test_a_peer_that_acknowledges_late_is_no_longer_sent_duplicates(tmp_path: Pa
         await b.sign_on()
         try:
             b.outbox.cfg = replace(cfg, ack_timeout=0.2)  # b flushes its acks a quarter of that later
-            while "b" not in a.peers() or "a" not in b.peers():
-                await asyncio.sleep(0.01)
+            await rules.known(a, b)
 
             async def one(n: int) -> None:
                 conv = await a.start("PING", message("Ping", n=n), to="b")
                 inc = await b.first_message(5)
                 assert inc is not None and inc.first.first.n == n
-                while a.outbox.pending:
-                    await asyncio.sleep(0.005)
+                await rules.until(lambda: not a.outbox.pending, f"b's ack of Ping {n}")
                 conv.end()
                 inc.end()
 
