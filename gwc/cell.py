@@ -39,6 +39,7 @@ from gwc.private import NotPrivate, not_the_cells, pid_info, secure_var, write_n
 from gwc.retry import Deadline
 
 GRACE = 5.0
+EXITING = 1.0  # s a process refused as not the cell's may take to finish exiting (gwc stop, stop_proc)
 REFUSED = "refused"  # how stop_proc's answer begins when a pid file named what is not the cell's
 UP_TIMEOUT = 20.0
 
@@ -353,19 +354,28 @@ def stop_proc(cfg: Config, name: str, grace: float = GRACE) -> str:
     how = "stopped"
     why = signal_cells(cfg, st.pid, signal.SIGTERM)
     if why is not None:
+        # Told to go before (stop_cell signals every lot script first), it may be exiting: past the
+        # release of its memory its command line and environment read empty, so it seems not the
+        # cell's. Gone within a moment is stopped; only a process still alive after it was refused.
+        gone = _gone_within(cfg, name, min(grace, EXITING))
         path.unlink(missing_ok=True)
-        return f"{REFUSED}: not signalled: {why} (pid file removed)"
-    deadline = Deadline(grace)
-    while not deadline.expired and read_pid(cfg, name).alive:
-        time.sleep(0.05)
-    if read_pid(cfg, name).alive:
+        return "stopped" if gone else f"{REFUSED}: not signalled: {why} (pid file removed)"
+    if not _gone_within(cfg, name, grace):
         how = "killed"
         signal_cells(cfg, st.pid, signal.SIGKILL)
-        deadline = Deadline(grace)
-        while not deadline.expired and read_pid(cfg, name).alive:
-            time.sleep(0.05)
+        _gone_within(cfg, name, grace)
     path.unlink(missing_ok=True)
     return how
+
+
+def _gone_within(cfg: Config, name: str, seconds: float) -> bool:
+    """Whether the process of pid file `name` is gone (or a zombie) within `seconds`."""
+    deadline = Deadline(seconds)
+    while read_pid(cfg, name).alive:
+        if deadline.expired:
+            return False
+        time.sleep(0.05)
+    return True
 
 
 def _wait_gone(cfg: Config, st: ProcStatus, grace: float = GRACE) -> str:

@@ -17,6 +17,7 @@ from gwc import cell, private
 from gwc.config import Config
 from gwc.private import NotPrivate
 from gwc.soak.private_config import write_config
+from tests.harness import wait_for
 
 NOBODY = 65534
 as_root = pytest.mark.skipif(os.geteuid() != 0, reason="makes files as another user")
@@ -40,6 +41,10 @@ def stranger() -> Iterator[subprocess.Popen[bytes]]:
 def plant_pid_file(cfg: Config, name: str, pid: int) -> None:
     ticks = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19])
     cell.pid_file(cfg, name).write_text(json.dumps({"pid": pid, "ticks": ticks, "since": "x", "argv": []}))
+
+
+def _state(pid: int) -> str:
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
 
 
 def test_var_and_var_run_are_made_the_cells_alone_and_an_old_1777_is_closed(cfg: Config) -> None:
@@ -109,6 +114,30 @@ def test_gwc_stop_signals_the_cells_own_process(cfg: Config) -> None:
     try:
         assert private.not_the_cells(cfg, child.pid) is None
         assert cell.stop_proc(cfg, "probe", grace=5) == "stopped"
+    finally:
+        child.kill()
+        child.wait()
+
+
+def test_a_process_that_exits_as_gwc_stop_looks_at_it_is_stopped_not_refused(
+    cfg: Config, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """stop_cell signals every lot script before stop_proc looks at each: one may turn zombie between
+    stop_proc's liveness check and not_the_cells, whose empty command line would read as not the cell's."""
+    proc = cell.Proc("probe", command=(sys.executable, "-c", "import time; time.sleep(60)"))
+    child = cell.spawn_process(cfg, proc)
+    looked = private.not_the_cells
+
+    def exits_meanwhile(c: Config, pid: int) -> str | None:
+        child.send_signal(9)
+        wait_for(lambda: _state(pid) == "Z", 5, "the probe to be a zombie")  # its parent, this test, reaps it later
+        return looked(c, pid)
+
+    monkeypatch.setattr(cell, "not_the_cells", exits_meanwhile)
+    try:
+        assert looked(cfg, child.pid) is None
+        assert cell.stop_proc(cfg, "probe", grace=5) == "stopped"
+        assert not cell.pid_file(cfg, "probe").exists()
     finally:
         child.kill()
         child.wait()
