@@ -138,7 +138,7 @@ def test_a_lot_script_starts_child_entities_and_waits_for_them(lot_cell: Any, tm
     import_export_all(cell, [parent, *kids], timeout=60)
 
     st, reason = state(cell, parent)
-    done = " ".join(rf"{k}=(waiting_export|exported)" for k in kids)
+    done = " ".join(rf"{k}=(completed|waiting_export|exported)" for k in kids)
     assert st == "exported" and re.fullmatch(f"PASS: children {done}", reason or ""), reason
     for k in kids:
         assert state(cell, k)[0] == "exported" and "PASS: milled on wc" in (state(cell, k)[1] or "")
