@@ -1,4 +1,4 @@
-"""A database failing over, seen from a connect (gwc/db.py's `promotion_wait`).
+"""A database failing over, seen from a connect (gwc/db/connect.py's `promotion_wait`).
 
 Under Patroni the live members refuse a read-write session while they are standbys, until one is
 promoted. A connect that may wait (a module reconnecting, a standby trying its lease, the agent's beat)

@@ -1,4 +1,4 @@
-"""A connect that may wait watches a database failing over for its promoted member (gwc/db.py,
+"""A connect that may wait watches a database failing over for its promoted member (gwc/db/connect.py,
 `promotion_wait`), on a real database: while every member refuses a read-write session (a standby's
 refusal, made here by the database's sessions being read-only), the connect holds a session on each and
 connects as soon as one takes writes again, instead of failing back to its caller's next try."""
@@ -20,6 +20,7 @@ from psycopg.conninfo import conninfo_to_dict, make_conninfo
 
 from gwc import db, promotion
 from gwc.config import Config
+from gwc.db.connect import connect_any
 from gwc.errors import DatabaseUnavailable
 from gwc.retry import Deadline
 
@@ -83,10 +84,10 @@ def test_a_waiting_connect_is_made_as_soon_as_a_member_takes_writes(database_url
     with read_only_database(database_url):
         started = time.monotonic()
         with pytest.raises(psycopg.OperationalError):  # no wait: refused at once, as before
-            db._connect_any(url, "gwc_test")
+            connect_any(url, "gwc_test")
         assert time.monotonic() - started < 1.0
         made: list[Any] = []
-        waiting = threading.Thread(target=lambda: made.append(db._connect_any(url, "gwc_test", promotion_wait=10.0)))
+        waiting = threading.Thread(target=lambda: made.append(connect_any(url, "gwc_test", promotion_wait=10.0)))
         waiting.start()
         watched(database_url, "gwc_test")
         promoted = time.monotonic()
@@ -107,7 +108,7 @@ def test_a_waiting_connect_gives_up_after_its_wait(database_url: str) -> None:
     with read_only_database(database_url):
         started = time.monotonic()
         with pytest.raises(psycopg.OperationalError, match="read-only"):
-            db._connect_any(url, "gwc_test", promotion_wait=0.6)
+            connect_any(url, "gwc_test", promotion_wait=0.6)
         assert 0.5 < time.monotonic() - started < 3.0
 
 

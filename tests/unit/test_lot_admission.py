@@ -14,6 +14,7 @@ import pytest
 
 from gwc import db
 from gwc.budget import MIN_RUNNING, OPERATOR_RESERVE, SUPERUSER_RESERVED, plan
+from gwc.db.schema import limit_lot_connections
 from gwc.errors import ConfigError, DatabaseUnavailable
 from gwc.lot.admission import LotQueue
 from gwc.lot.core import OVER_BUDGET, LotReads
@@ -100,7 +101,7 @@ def lot_limit(pg_cluster: PgCluster) -> Any:
     )
     assert plan(cfg).lots == 2
     with pg_cluster.admin() as conn, conn.cursor() as cur:
-        db._limit_lot_connections(cur, cfg, LOG)
+        limit_lot_connections(cur, cfg, LOG)
     yield cfg
     with pg_cluster.admin() as conn:
         conn.execute("alter role gwc_lot nologin connection limit -1")
