@@ -1,6 +1,6 @@
 """Conversation classes and message names as constants, so that a misspelt name fails at import
-(and in mypy and ruff), not in a conversation at run time. Generated from the catalogue (gwc/ipc/catalogue.py):
-do not edit; write it again with `python -m gwc.ipc.catalogue > gwc/ipc/names.py`.
+(and in mypy and ruff), not in a conversation at run time. Generated from the catalogue (gwc/ipc/catalogue.py)
+by gwc/ipc/namegen.py: do not edit; write it again with `python -m gwc.ipc.namegen > gwc/ipc/names.py`.
 tests/unit/test_ipc_catalogue.py fails when it and the catalogue differ.
 
 They are str enums: `Conv.MACH_REQ == "MACH_REQ"`, and they go on the wire as the thesis spells them.

@@ -10,7 +10,8 @@ import pytest
 from gwc.errors import MessageError
 from gwc.hi.monitor import render_catalogue
 from gwc.ipc import catalogue
-from gwc.ipc.catalogue import check, message, render_names
+from gwc.ipc.catalogue import check, message
+from gwc.ipc.namegen import render_names
 from gwc.ipc.names import Conv, Msg
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "conversations.md"
@@ -68,7 +69,7 @@ def test_names_py_is_generated_from_the_catalogue() -> None:
     """gwc/ipc/names.py (Conv, Msg) names exactly the catalogue's classes: regenerate it after a change."""
     names = Path(__file__).resolve().parents[2] / "gwc" / "ipc" / "names.py"
     assert names.read_text() == render_names(), (
-        "gwc/ipc/names.py is stale: python -m gwc.ipc.catalogue > gwc/ipc/names.py"
+        "gwc/ipc/names.py is stale: python -m gwc.ipc.namegen > gwc/ipc/names.py"
     )
 
 
