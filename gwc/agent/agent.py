@@ -29,7 +29,6 @@ import logging
 import os
 import signal
 import socket
-import sys
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, fields
@@ -44,7 +43,7 @@ from gwc.budget import plan
 from gwc.cell import cell_procs, hold_startup, lot_proc, pid_file, read_pid, spawn_process, write_pid_file
 from gwc.config import Config
 from gwc.errors import ConfigError, GwcError, ModuleError
-from gwc.hostuser import cell_user_name, clear_ambient, lot_user, lot_user_wanted_but_unusable
+from gwc.hostuser import clear_ambient, lot_user, lot_user_wanted_but_unusable
 from gwc.ipc import eventloop
 from gwc.ipc.bus import Bus
 from gwc.ipc.catalogue import Message, message
@@ -101,40 +100,6 @@ class Policy:
 def agent_name(host: str | None = None) -> str:
     """The agent's bus and log name: agent:<host>."""
     return module_name("agent", host or socket.gethostname().split(".")[0])
-
-
-def systemd_unit(cfg: Config) -> str:
-    """A unit for this host's agent (docs/deploying.md): the agent is supervised by systemd, the modules
-    by the agent; KillMode=process, so restarting the unit does not take the modules with it. It runs
-    as the cell's user with the few capabilities the agent keeps (gwc.hostuser: it starts lot scripts
-    as their user and stops them), none of which it passes on."""
-    env = {"GWC_CONFIG": cfg.path.resolve(), "GWC_VAR": cfg.var.resolve(), "GWC_HOST": cfg.host}
-    user = cell_user_name(cfg)
-    caps = "CAP_SETUID CAP_SETGID CAP_KILL CAP_SYS_NICE"
-    run_as = [f"User={user}", f"Group={user}", f"AmbientCapabilities={caps}"] if user and user != "root" else []
-    lines = [
-        "[Unit]",
-        f"Description=GWC cell {cfg.cell_name}: the agent of host {cfg.host or socket.gethostname()}",
-        "After=network-online.target",
-        "Wants=network-online.target",
-        "",
-        "[Service]",
-        "Type=simple",
-        *(f"Environment={k}={v}" for k, v in env.items() if v),
-        f"ExecStart={sys.executable} -m gwc agent",
-        *run_as,
-        f"CapabilityBoundingSet={caps}",
-        "NoNewPrivileges=yes",
-        "UMask=0027",
-        "ProtectSystem=full",
-        "Restart=always",
-        "RestartSec=2",
-        "KillMode=process",
-        "",
-        "[Install]",
-        "WantedBy=multi-user.target",
-    ]
-    return "\n".join(lines) + "\n"
 
 
 class Agent(Server):
@@ -697,4 +662,4 @@ def run_agent(cfg: Config, log: logging.Logger, host: str | None = None) -> int:
     return eventloop.run(Agent(cfg, log, host).run())
 
 
-__all__ = ["Agent", "Policy", "agent_name", "run_agent", "systemd_unit"]
+__all__ = ["Agent", "Policy", "agent_name", "run_agent"]

@@ -8,7 +8,8 @@ import click
 
 from gwc import cell, db
 from gwc.agent import control as agent_control
-from gwc.agent.agent import agent_name, run_agent, systemd_unit
+from gwc.agent.agent import agent_name, run_agent
+from gwc.agent.unit import systemd_unit
 from gwc.config import load_config
 from gwc.hi import context, json_option, table
 from gwc.hostuser import AGENT_CAPS, STOP_CAPS, become_cell_user

@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from gwc import db
-from gwc.agent.agent import systemd_unit
+from gwc.agent.unit import systemd_unit
 from gwc.cell import cell_procs
 from gwc.errors import ConfigError, DatabaseError
 from gwc.soak.private_config import write_config
