@@ -415,10 +415,11 @@ def stop_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = pri
     if agent_control.running(cfg):
         agent_control.call(cfg, "stop_lots", say=say)
     lots = [p.stem.replace("-", ":", 1) for p in sorted(cfg.run_dir.glob("lot-*.pid"))] if cfg.run_dir.exists() else []
+    told = set()
     for name in lots:
         st = read_pid(cfg, name)
-        if st.alive and st.pid is not None:
-            signal_cells(cfg, st.pid, signal.SIGTERM)  # what is not the cell's, stop_proc says below
+        if st.alive and st.pid is not None and signal_cells(cfg, st.pid, signal.SIGTERM) is None:
+            told.add(name)  # what is not the cell's, stop_proc says below
 
     def stopped(name: str, what: str) -> None:
         if what.startswith(REFUSED):  # a pid file that named what is not the cell's: said in the log too
@@ -426,7 +427,8 @@ def stop_cell(cfg: Config, log: logging.Logger, say: Callable[[str], None] = pri
         say(f"{name}: {what}")
 
     for name in lots:
-        stopped(name, stop_proc(cfg, name))
+        what = stop_proc(cfg, name)
+        stopped(name, "stopped" if what == "was dead" and name in told else what)  # it went when told
     if agent_control.running(cfg):  # the agent stops its modules in reverse order, then itself
         agent = read_pid(cfg, AGENT.name)
         agent_control.call(cfg, "stop", say=say, exit=True)
