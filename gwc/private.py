@@ -172,13 +172,14 @@ def not_the_cells(cfg: Config, pid: int) -> str | None:
 
 def _a_lot_script_of(cfg: Config, pid: int) -> str | None:
     """Why a process of the lot user is not one of this cell's lot scripts (None if it is): its command
-    line (readable by all) must be `... -m gwc.lot.run --entity E --var <this cell's var/>`."""
+    line (readable by all) must be `... -m gwc.lot.run --entity E --var <this cell's var/>`, or, forked by
+    the lot user's launcher (gwc/lot/launcher.py), the launcher's `... -m gwc.lot.launcher --var <var/>`."""
     try:
         argv = [a.decode(errors="replace") for a in Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")]
     except OSError as e:
         return f"pid {pid} cannot be looked at ({e.strerror})"
     if (
-        "gwc.lot.run" in argv
+        ("gwc.lot.run" in argv or "gwc.lot.launcher" in argv)  # exec'd, or forked by the lot user's launcher
         and "--var" in argv[:-1]
         and Path(argv[argv.index("--var") + 1]).resolve() == cfg.var.resolve()
     ):

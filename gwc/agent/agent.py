@@ -51,7 +51,8 @@ from gwc.ipc.names import Conv, Msg
 from gwc.lease import EXIT_DEPOSED
 from gwc.log import TRACE
 from gwc.lot.admission import LotQueue
-from gwc.lot.run import Forked, exec_lot_script, fork_lot_script
+from gwc.lot.launcher import LotLauncher
+from gwc.lot.run import Forked, fork_lot_script
 from gwc.module import ask, module_name
 from gwc.private import open_lock, secure_var
 from gwc.retry import Deadline
@@ -119,6 +120,9 @@ class Agent(Server):
         self._stop = asyncio.Event()
         self._stopping = False
         self.lot_user = lot_user(cfg)  # whom lot scripts run as: None, the agent's user (gwc.hostuser)
+        # Scripts of the lot user are forked by a launcher of its (gwc/lot/launcher.py), else exec'd.
+        self.launcher = LotLauncher(cfg, self.lot_user, log, self._waited) if self.lot_user else None
+        self.hosting: LotHosting | None = None
 
     async def ask(
         self,
@@ -153,16 +157,21 @@ class Agent(Server):
             self.log.info("lot scripts: %s", self.budget.describe())
             if self.lot_user is not None:
                 self.log.info("lot scripts run as user %s (uid %d)", self.lot_user.name, self.lot_user.uid)
+            if self.launcher is not None:
+                self.launcher.start()
             elif why := lot_user_wanted_but_unusable(self.cfg):
                 self.log.warning("lot scripts run as the cell's user (uid %d): %s", os.geteuid(), why)
             self._adopt()
             self.spawn(self._start_all_logged())
             if hosting.hosted(self.cfg):  # lot scripts outlive their host (gwc/agent/lot_hosts.py)
-                self.spawn(LotHosting(self).run())
+                self.hosting = LotHosting(self)
+                self.spawn(self.hosting.run())
             try:
                 await self._stop.wait()
             finally:
                 server.close()
+                if self.launcher is not None:
+                    self.launcher.close()
                 for t in list(self._tasks):
                     t.cancel()
                 await self.bus.close()
@@ -197,6 +206,11 @@ class Agent(Server):
         for tid in tids:
             with contextlib.suppress(OSError):
                 os.setpriority(os.PRIO_PROCESS, tid, nice)
+
+    def _waited(self) -> set[int]:
+        """The processes this agent waits for itself (its launcher's sweep leaves them be)."""
+        pids = {c.pid for c in self.children.values() if c.pid is not None}
+        return pids | (self.hosting.pids() if self.hosting is not None else set())
 
     def _adopt(self) -> None:
         """Modules (and lot scripts) an earlier agent started and left running are watched again, not
@@ -235,8 +249,8 @@ class Agent(Server):
             env = {READY_FD: str(ready_w)} if ready_w is not None else None
             fds = (ready_w,) if ready_w is not None else ()
             popen: Process
-            if child.proc.kind == "lot" and self.lot_user is not None:  # exec'd: a fork would hold our keys
-                popen = exec_lot_script(self.cfg, int(child.proc.machine or 0), self.lot_user)
+            if child.proc.kind == "lot" and self.launcher is not None:  # not our fork: it would hold our keys
+                popen = self.launcher.script(int(child.proc.machine or 0))
             elif child.proc.kind == "lot":  # a fork of the agent, which imported what a lot script needs
                 popen = fork_lot_script(self.cfg, int(child.proc.machine or 0))
             else:

@@ -97,6 +97,10 @@ class LotHosting:
         self.ahead: dict[int, Ahead] = {}  # entity -> its script started ahead
         self.going: list[Forked] = []  # scripts let go, to reap
 
+    def pids(self) -> set[int]:
+        """The scripts started ahead, and those let go not yet reaped: this beat waits for them."""
+        return {a.process.pid for a in self.ahead.values()} | {p.pid for p in self.going}
+
     def mine(self) -> list[int]:
         """Entities whose scripts this agent runs, restarts or queues."""
         live = (*LIVE, ProcessState.BACKOFF)

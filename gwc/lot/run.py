@@ -111,16 +111,22 @@ def exec_lot_script(cfg: Config, entity_id: int, user: LotUser, gate: int | None
     base = lot_proc(entity_id)
     gated = ("--gate", str(gate)) if gate is not None else ()
     proc = Proc(base.kind, base.machine, command=(*base.command, "--var", str(cfg.var.resolve()), *gated))
-    secure_var(cfg)
-    log = cfg.log_dir / log_file_name(proc.name)
-    with contextlib.suppress(FileNotFoundError):
-        if log.lstat().st_size >= MAX_LOG_BYTES:
-            log.replace(log.with_name(log.name + ".1"))
-    make_lot_file(log, user.gid)
+    make_lot_log(cfg, entity_id, user)
     env = {CELL_UID_ENV: f"{os.geteuid()}:{os.getegid()}"}
     fds = (gate,) if gate is not None else ()
     popen = spawn_process(cfg, proc, env, pass_fds=fds, user=(user.uid, user.gid), record=gate is None)
     return Forked(popen.pid, popen)
+
+
+def make_lot_log(cfg: Config, entity_id: int, user: LotUser) -> None:
+    """Make entity E's log for a script of the lot user (who may not make files in var/log): 0660 with
+    its group, moved aside first past the size cap (which the script cannot do)."""
+    secure_var(cfg)
+    log = cfg.log_dir / log_file_name(lot_proc(entity_id).name)
+    with contextlib.suppress(FileNotFoundError):
+        if log.lstat().st_size >= MAX_LOG_BYTES:
+            log.replace(log.with_name(log.name + ".1"))
+    make_lot_file(log, user.gid)
 
 
 def fork_lot_script(cfg: Config, entity_id: int) -> Forked:
@@ -137,7 +143,7 @@ def fork_lot_script(cfg: Config, entity_id: int) -> Forked:
     try:
         pid = os.fork()
         if pid == 0:
-            _forked(cfg, entity_id, out, inherited)
+            fork_child(cfg, entity_id, out, inherited)
     finally:
         os.close(out)
     write_pid_file(cfg, proc.name, pid, proc.argv)
@@ -163,7 +169,7 @@ def shed(inherited: dict[int, str]) -> None:
             os.close(fd)
 
 
-def _forked(cfg: Config, entity_id: int, out: int, inherited: dict[int, str]) -> NoReturn:
+def fork_child(cfg: Config, entity_id: int, out: int, inherited: dict[int, str]) -> NoReturn:
     """The forked child: shed what it inherited, run the entity, exit without returning into the parent's code."""
     code = 1
     try:

@@ -178,9 +178,12 @@ def test_the_cell_started_as_root_runs_every_long_lived_process_as_its_user(root
     cfg = root_cell.cfg
     gwc_user, lot_user = _users()  # type: ignore[misc]
     procs = cell_processes(cfg)
-    kinds = {"agent": 0, "modules": 0, "postgres": 0}
+    kinds = {"agent": 0, "modules": 0, "postgres": 0, "launcher": 0}
     agent = int(json.loads((cfg.run_dir / "agent.pid").read_text())["pid"])
     for pid, cmd in procs.items():
+        if "gwc.lot.launcher" in cmd:  # the lot user's, which forks the lot scripts: the other test's
+            kinds["launcher"] += 1
+            continue
         seen = ids(pid)
         assert seen["uids"] == {gwc_user.pw_uid}, f"{cmd} (pid {pid}) runs as {seen}"
         assert seen["gids"] == {gwc_user.pw_gid}, f"{cmd} (pid {pid}) runs as {seen}"
@@ -193,6 +196,7 @@ def test_the_cell_started_as_root_runs_every_long_lived_process_as_its_user(root
             kinds["postgres" if "postgres" in cmd else "modules"] += 1
     # the six servers and three machines' WC and ME (and the CMM simulator); the cluster's processes
     assert kinds["agent"] == 1 and kinds["modules"] >= len(SERVERS) + 7 and kinds["postgres"] >= 3, kinds
+    assert kinds["launcher"] == 1, kinds
     # var/ is the cell user's: private, passable by the lot user's group alone
     for path, mode, group in (
         (cfg.var, 0o710, lot_user.pw_gid),
@@ -243,17 +247,19 @@ def test_a_lot_script_runs_as_the_lot_user_with_the_lot_key_alone_and_makes_the_
     made = json.loads(ok("order", "new", "--customer", "NJIT", "alum_chess_set=1", "probe_set=1", "--json"))
     entities = [e for lot in made["lots"] for e in lot["entities"]]
     assert len(entities) == 2
-    # Each script, waiting for its import: exec'd by the agent as the lot user, no group but its own
+    # The lot user's launcher: exec'd by the agent as the lot user (its own command line: not a fork of
+    # the agent, it holds nothing of the agent's), no capability, no group but its own.
     agent = int(json.loads((cfg.run_dir / "agent.pid").read_text())["pid"])
+    launcher = wait_for(lambda: _launcher(cfg), 30, "the lot user's launcher")
+    assert_lot_users(launcher, lot_user)
+    assert _parent(launcher) == agent
+    # Each script, waiting for its import: forked by the launcher, the agent's child (its subreaper)
     for e in entities:
         pid = wait_for(lambda e=e: _script_pid(cfg, e), 30, f"lot:{e} running")
-        seen = ids(pid)
-        assert seen["uids"] == {lot_user.pw_uid} and seen["gids"] == {lot_user.pw_gid}, seen
-        assert seen["caps"] == 0 and seen["ambient"] == 0, seen
-        assert Path(f"/proc/{pid}/comm").read_text().strip() == "python", "exec'd, not a fork of the agent"
-        assert int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1]) == agent
-        groups = Path(f"/proc/{pid}/status").read_text().split("Groups:")[1].split("\n")[0].split()
-        assert groups in ([], [str(lot_user.pw_gid)]), groups
+        assert_lot_users(pid, lot_user)
+        assert Path(f"/proc/{pid}/comm").read_text().strip() == f"lot:{e}", "forked by the launcher"
+        assert "gwc.lot.launcher" in Path(f"/proc/{pid}/cmdline").read_text()
+        assert _parent(pid) == agent
 
     def operator() -> bool:  # imports each waiting entity, exports each finished one
         states = dict(_query(cfg, "SELECT entity_id, state FROM lot_status WHERE entity_id = ANY(%s)", entities))
@@ -287,20 +293,61 @@ def test_a_lot_script_runs_as_the_lot_user_with_the_lot_key_alone_and_makes_the_
     for e in entities:
         cpu = re.search(rf"lot:{e}: RUNNING -> STOPPED .*exited 0, (\d+) ms of CPU: its work is done", text)
         assert cpu, f"lot:{e} not logged as ended"
-        print(f"lot:{e} as {LOT_USER}, exec'd: {cpu.group(1)} ms of CPU")
+        print(f"lot:{e} as {LOT_USER}, forked by its launcher: {cpu.group(1)} ms of CPU")
+    # The launcher killed: a script is exec'd instead, a new launcher starts, and scripts fork from it.
+    os.kill(launcher, signal.SIGKILL)
+    made = json.loads(ok("order", "new", "--customer", "NJIT", "probe_set=1", "--json"))
+    (execd,) = [e for lot in made["lots"] for e in lot["entities"]]
+    pid = wait_for(lambda: _script_pid(cfg, execd), 30, f"lot:{execd} running")
+    assert_lot_users(pid, lot_user)
+    assert Path(f"/proc/{pid}/comm").read_text().strip() == "python", "exec'd while no launcher answers"
+    again = wait_for(lambda: _launcher(cfg) not in (None, launcher) and _launcher(cfg), 30, "a new launcher")
+    assert_lot_users(again, lot_user)
+    wait_for(lambda: text_of(cfg).count("lot launcher ready") >= 2, 30, "the new launcher ready")
     # With its agent killed, `gwc stop` as root still stops a waiting script of the lot user's (CAP_KILL;
     # known as this cell's by its command line), and nothing of the cell is left.
     made = json.loads(ok("order", "new", "--customer", "NJIT", "probe_set=1", "--json"))
     (waiting,) = [e for lot in made["lots"] for e in lot["entities"]]
     pid = wait_for(lambda: _script_pid(cfg, waiting), 30, f"lot:{waiting} running")
+    assert Path(f"/proc/{pid}/comm").read_text().strip() == f"lot:{waiting}", "forked by the new launcher"
     os.kill(agent, signal.SIGKILL)
     wait_for(lambda: not Path(f"/proc/{agent}").exists() or "Z" in Path(f"/proc/{agent}/stat").read_text(), 10)
     stopped = gwc(env, "stop", timeout=120)
     assert stopped.returncode == 0 and "refused" not in stopped.stdout, stopped.stdout + stopped.stderr
-    assert f"lot:{waiting}: stopped" in stopped.stdout or f"lot:{waiting}: killed" in stopped.stdout, stopped.stdout
+    for e in (execd, waiting):
+        assert f"lot:{e}: stopped" in stopped.stdout or f"lot:{e}: killed" in stopped.stdout, stopped.stdout
     # (killed: gone, or a zombie until whoever adopted it, with its agent dead, reaps it)
     wait_for(lambda: _gone(pid), 5, "the lot script to be gone after `gwc stop`")
     assert not cell_processes(cfg), cell_processes(cfg)
+
+
+def assert_lot_users(pid: int, lot_user: pwd.struct_passwd) -> None:
+    """The process is the lot user's alone: its uids and gids, no capability, no group but its own."""
+    seen = ids(pid)
+    assert seen["uids"] == {lot_user.pw_uid} and seen["gids"] == {lot_user.pw_gid}, seen
+    assert seen["caps"] == 0 and seen["ambient"] == 0, seen
+    groups = Path(f"/proc/{pid}/status").read_text().split("Groups:")[1].split("\n")[0].split()
+    assert groups in ([], [str(lot_user.pw_gid)]), groups
+
+
+def _parent(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
+def _launcher(cfg: Config) -> int | None:
+    """The pid of this cell's lot launcher (its command line names it and the cell's var/), if one runs."""
+    for d in Path("/proc").iterdir():
+        with contextlib.suppress(OSError):
+            argv = (d / "cmdline").read_bytes().split(b"\0")
+            ours = d.name.isdigit() and b"gwc.lot.launcher" in argv and str(cfg.var.resolve()).encode() in argv
+            if ours and (d / "comm").read_text().strip() == "lot-launcher":  # not a script it forked
+                return int(d.name)
+    return None
+
+
+def text_of(cfg: Config) -> str:
+    """The agent's log."""
+    return next(cfg.log_dir.glob("agent-*.log")).read_text()
 
 
 def _script_pid(cfg: Config, entity: int) -> int | None:
