@@ -53,6 +53,14 @@ LAUNCHER_COMM = b"lot-launcher"  # its name in /proc/PID/comm
 LAUNCHER = "launcher"  # its name: var/log/launcher.out takes what it prints before it could log
 
 
+def launcher_wanted(cfg: Config) -> bool:
+    """`[lots] launcher` (default true): scripts of the lot user forked by its launcher; false: each exec'd."""
+    wanted = cfg.raw.get("lots", {}).get("launcher", True)
+    if not isinstance(wanted, bool):
+        raise ConfigError(f"{cfg.path}: [lots] launcher = {wanted!r} is not true or false")
+    return wanted
+
+
 class LauncherError(GwcError):
     """The launcher did not start a script (not ready, gone, or it said why)."""
 
@@ -148,6 +156,9 @@ class LotLauncher:
     def start(self) -> None:
         """Become a subreaper and start a launcher (its imports take a moment: scripts are exec'd until it
         says it is ready). Without the subreaper the agent could not wait for what it forks: no launcher."""
+        if not launcher_wanted(self.cfg):  # (a bad value stops the agent's start, saying why)
+            self.log.info("no lot launcher ([lots] launcher = false): lot scripts are exec'd")
+            return
         if not self.subreaper:
             if ctypes.CDLL(None, use_errno=True).prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:
                 self.log.warning("no lot launcher: prctl(PR_SET_CHILD_SUBREAPER) failed: scripts are exec'd")

@@ -13,7 +13,11 @@ import sys
 import threading
 from pathlib import Path
 
-from gwc.lot.launcher import serve
+import pytest
+
+from gwc.errors import ConfigError
+from gwc.lot.launcher import launcher_wanted, serve
+from gwc.soak.private_config import write_config
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -96,3 +100,13 @@ print(json.dumps({"kept": kept, "swept": swept, "stray": stray, "gone": not os.p
 """
     )
     assert said["kept"] == [] and said["swept"] == [said["stray"]] and said["gone"], said
+
+
+def test_lots_launcher_is_on_unless_set_false_and_anything_else_is_refused(tmp_path: Path) -> None:
+    def cfg(lots: dict[str, object]) -> object:
+        return write_config(tmp_path / "etc" / "cell.toml", {"cell": {"var": str(tmp_path / "var")}, "lots": lots})
+
+    assert launcher_wanted(cfg({})) is True  # type: ignore[arg-type]
+    assert launcher_wanted(cfg({"launcher": False})) is False  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=r"\[lots\] launcher = 'no' is not true or false"):
+        launcher_wanted(cfg({"launcher": "no"}))  # type: ignore[arg-type]
