@@ -49,6 +49,7 @@ from gwc.check import check_cell
 from gwc.client.orders import decide
 from gwc.client.session import bench_context
 from gwc.errors import GwcError
+from gwc.hostuser import AGENT_CAPS, lot_group
 from gwc.ipc.codes import LotState
 from gwc.lot.entity import create_lot
 from gwc.lot.events import Phase
@@ -59,6 +60,7 @@ from gwc.soak.driver import PRODUCT, SCRIPT_ID, SCRIPT_PATH
 
 SLOW_RUN = 4.0  # seconds a run takes on the two machines of the death trials: long enough to die in
 LOT_TIMEOUT = 120.0  # one lot, order to export, on a loaded shared machine
+REAPED = re.compile(r"(lot:\d+): RUNNING -> STOPPED \(exited 0, (\d+) ms of CPU")  # the agent's log
 POLL = 0.01  # the operator's look at the lots, when lots per second are measured
 SOLO_POLL = 0.05  # ... when one lot's own cost is: the operator's reads must not load the cell it measures
 FINAL = (LotState.EXPORTED.value, LotState.FAILED.value)
@@ -131,6 +133,7 @@ class CellBench:
         idle_s: float = 60.0,
         at_once: int = 0,
         history: bool = True,
+        lots_cfg: dict[str, Any] | None = None,
     ) -> None:
         self.var = var.resolve()
         self.history = history
@@ -158,6 +161,7 @@ class CellBench:
             bus={"kernel_filter": kernel_filter},
             agent=True,
             record={"history": history},  # the production record written, or not ([record] history)
+            lots=lots_cfg,  # [lots]: the scripts' user, and whether its launcher forks them
         )
         self.conn: psycopg.Connection[Any] | None = None
         self.reads = 0  # the operator's reads of lot_status, to tell the cell's own commits from them
@@ -169,6 +173,12 @@ class CellBench:
                 + (f", 2 with runs of {SLOW_RUN:g} s for the death trials" if self.slow else "")
             )
             self.cell.start()
+            gid = lot_group(self.cell.cfg)
+            if gid is not None:  # scripts of a user of their own read their plans here and write their timings
+                soak = self.var / "soak"
+                soak.mkdir(exist_ok=True)
+                os.chown(soak, -1, gid)
+                soak.chmod(0o2770)  # what is made in it is the lot user's group's
             self.conn = db.connect(self.cell.cfg, role="hi", log=self.log)
             self.conn.autocommit = True
             self.conn.execute(
@@ -280,7 +290,18 @@ class CellBench:
             # where the time goes, counted: CPU per lot by process role while the lots ran, and commits
             "loaded_cpu_ms_per_lot": cpu,
             "db_commits_per_lot": round((commits1 - commits0) / self.m, 1),
+            "script_cpu_ms": summary(self._script_cpu(entities)),
         }
+
+    def _script_cpu(self, entities: list[int]) -> list[float]:
+        """Each lot script's whole CPU (ms), start-up included, as its agent logged it when it reaped it."""
+        wanted = {f"lot:{e}" for e in entities}
+        out = []
+        for log in self.cell.cfg.log_dir.glob("agent-*.log"):
+            for m in REAPED.finditer(log.read_text(errors="replace")):
+                if m.group(1) in wanted:
+                    out.append(float(m.group(2)))
+        return out
 
     def _timing_files(self, entities: list[int]) -> list[dict[str, Any]]:
         """What each lot's script left about its operation (gwc/lot/scripts/soak.py)."""
@@ -580,6 +601,18 @@ def _lot_script(pid: int, cmd: str) -> bool:
     default=0,
     help="Instead: N pairs of lot runs, history off then on (then on, off: the order alternates), side by side.",
 )
+@click.option(
+    "--lot-user",
+    default="",
+    help="Lot scripts run as this OS user ([lots] user; run the bench as root, --dir where that user can "
+    "reach): its launcher forks them, or, with --no-launcher, each is exec'd. Default: as the bench's user.",
+)
+@click.option(
+    "--launcher/--no-launcher",
+    default=True,
+    show_default=True,
+    help="With --lot-user: scripts forked by the lot user's launcher, or each exec'd ([lots] launcher).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 def command(
     machines: int,
@@ -593,6 +626,8 @@ def command(
     at_once: int,
     history: bool,
     compare: int,
+    lot_user: str,
+    launcher: bool,
     as_json: bool,
 ) -> None:
     """Run lots through a private cell of N dummy machines: lots/s, the cell's overhead per lot
@@ -601,7 +636,7 @@ def command(
     of its own."""
     if machines < 1 or lots < 1 or solo < 0 or deaths < 0 or freezes < 0:
         raise click.BadParameter("--machines and --lots must be at least 1, --solo and --deaths at least 0")
-    cfg, log = bench_context()
+    cfg, log = bench_context(caps=AGENT_CAPS if lot_user else ())  # its agent starts scripts as lot_user
     if compare > 0:
         from gwc.bench.history import compare_history
 
@@ -622,6 +657,7 @@ def command(
         idle_s,
         at_once,
         history,
+        {"user": lot_user, "launcher": launcher} if lot_user else None,
     )
     result = bench.run()
     if as_json:
@@ -641,6 +677,7 @@ def command(
         f"  per lot: {result['db_commits_per_lot']} database commits; CPU (ms) "
         + ", ".join(f"{k} {v}" for k, v in result["loaded_cpu_ms_per_lot"].items())
     )
+    click.echo(f"  a lot script's whole CPU, start-up included (ms): {brief(result['script_cpu_ms'])}")
     if "overhead_ms" in result:
         click.echo(
             f"overhead per lot, one lot at a time, request to unreserve (ms): {brief(result['overhead_ms'])} "

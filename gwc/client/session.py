@@ -52,10 +52,11 @@ def context(name: str = "hi", caps: tuple[int, ...] = (), drop: bool = True) -> 
     return cfg, open_log(name, cfg.log_dir, cfg.level_of(name))
 
 
-def bench_context(name: str = "bench") -> tuple[Config, logging.Logger]:
+def bench_context(name: str = "bench", caps: tuple[int, ...] = ()) -> tuple[Config, logging.Logger]:
     """context() for a benchmark or the soak (`name`): its private cell runs as whoever starts it, so it
-    becomes the cell's user only if that user can reach the folders it was given (drop=False)."""
-    return context(name, drop=False)
+    becomes the cell's user only if that user can reach the folders it was given (drop=False); keeping
+    `caps` (a bench whose cell runs its lot scripts as a user of their own keeps the agent's)."""
+    return context(name, caps, drop=False)
 
 
 def _folders_given() -> list[Path]:

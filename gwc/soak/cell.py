@@ -59,6 +59,7 @@ def config_doc(
     faults: dict[str, Any] | None = None,
     db_settings: dict[str, Any] | None = None,
     record: dict[str, Any] | None = None,
+    lots: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """cell.toml of a private cell; the same document with `faults` is the fault-injected variant."""
     database: dict[str, Any] = {"url": database_url or ""}
@@ -79,6 +80,7 @@ def config_doc(
         "module": [{"name": m} for m in SERVER_MODULES],
         "machine": machines,
         **({"record": record} if record else {}),
+        **({"lots": lots} if lots else {}),
     }
 
 
@@ -100,6 +102,7 @@ class PrivateCell:
         bus: dict[str, Any] | None = None,
         agent: bool = False,
         record: dict[str, Any] | None = None,
+        lots: dict[str, Any] | None = None,
     ) -> None:
         self.var = var.resolve()
         self.agent = agent
@@ -115,8 +118,12 @@ class PrivateCell:
             policy=policy,
             db_settings=db_settings,
             record=record,
+            lots=lots,
         )
         written = write_config(self.var / "etc" / "cell.toml", config_doc(bus=self._bus_cfg, **self._text_args))
+        if (lots or {}).get("user"):  # scripts of a user of their own read the configuration too
+            written.path.parent.chmod(0o711)
+            written.path.chmod(0o644)
         # Its own var/, whatever GWC_VAR says: that names the operator's cell, whose pid files this one's would
         # overwrite. Its processes are given GWC_VAR=var (env(), spawn()).
         self.cfg: Config = dataclasses.replace(written, var=self.var)

@@ -321,6 +321,36 @@ def test_a_lot_script_runs_as_the_lot_user_with_the_lot_key_alone_and_makes_the_
     assert not cell_processes(cfg), cell_processes(cfg)
 
 
+@pytest.mark.timeout(400)
+def test_bench_cell_runs_its_lot_scripts_as_the_lot_user_forked_by_its_launcher_or_execd() -> None:
+    """`gwc bench cell --lot-user gwc-lot` as root: its cell's agent starts the scripts as that user, forked
+    by the lot launcher, or each exec'd with `--no-launcher` ([lots] launcher = false); every lot done, and
+    each script's whole CPU reported as the agent reaped it."""
+    base = Path(tempfile.mkdtemp(prefix="gwc-bench-lots-", dir="/var/tmp"))
+    base.chmod(0o755)  # the lot user walks to the bench's cell
+    cell_user, _ = _users()  # type: ignore[misc]
+    os.chown(base, cell_user.pw_uid, cell_user.pw_gid)  # the bench, as root, runs as the cell's user
+    env = {k: v for k, v in os.environ.items() if k not in ("GWC_DATABASE_URL", "GWC_CONFIG")}
+    env["GWC_VAR"] = str(base / "var")
+    where = base / "bench"
+    try:
+        for flag, says in (("--launcher", "lot launcher ready"), ("--no-launcher", "no lot launcher")):
+            args = ["--machines", "1", "--lots", "4", "--solo", "0", "--deaths", "0", "--idle", "0"]
+            argv = [sys.executable, "-m", "gwc", "bench", "cell", *args, "--lot-user", LOT_USER, flag]
+            done = subprocess.run(
+                [*argv, "--dir", str(where), "--json"], env=env, capture_output=True, text=True, timeout=300
+            )
+            assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+            result = json.loads(done.stdout)
+            assert result["lots"] == 4 and result["failed"] == 0 and result["check_held"], result
+            assert result["script_cpu_ms"]["n"] == 4, result["script_cpu_ms"]
+            agent = next((where / "log").glob("agent-*.log")).read_text()
+            assert f"lot scripts run as user {LOT_USER}" in agent and says in agent, agent[-3000:]
+            assert not list((where / "run").glob("*.pid"))  # the bench stopped its cell
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+
+
 def assert_lot_users(pid: int, lot_user: pwd.struct_passwd) -> None:
     """The process is the lot user's alone: its uids and gids, no capability, no group but its own."""
     seen = ids(pid)
