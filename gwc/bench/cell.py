@@ -33,7 +33,6 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +43,7 @@ from gwc import db
 from gwc.agent import control as agent_control
 from gwc.bench import brief, cpu_s, reaped_cpu_s, summary
 from gwc.bench.heal import freeze_trials
+from gwc.bench.logs import bound_to, phases, script_cpu
 from gwc.cell import machine_procs
 from gwc.check import check_cell
 from gwc.client.orders import decide
@@ -52,7 +52,6 @@ from gwc.errors import GwcError
 from gwc.hostuser import AGENT_CAPS, lot_group
 from gwc.ipc.codes import LotState
 from gwc.lot.entity import create_lot
-from gwc.lot.events import Phase
 from gwc.lot.run import spawn_lot_script
 from gwc.retry import Deadline
 from gwc.soak.cell import PrivateCell
@@ -60,14 +59,12 @@ from gwc.soak.driver import PRODUCT, SCRIPT_ID, SCRIPT_PATH
 
 SLOW_RUN = 4.0  # seconds a run takes on the two machines of the death trials: long enough to die in
 LOT_TIMEOUT = 120.0  # one lot, order to export, on a loaded shared machine
-REAPED = re.compile(r"(lot:\d+): RUNNING -> STOPPED \(exited 0, (\d+) ms of CPU")  # the agent's log
 POLL = 0.01  # the operator's look at the lots, when lots per second are measured
 SOLO_POLL = 0.05  # ... when one lot's own cost is: the operator's reads must not load the cell it measures
 FINAL = (LotState.EXPORTED.value, LotState.FAILED.value)
 
 # The phases of an operation, in order: the named events the lot library emits (gwc/lot/events.py),
 # which the bench's lot script leaves in its timing file (gwc/lot/scripts/soak.py).
-PHASES = [p.value for p in Phase]
 FLOOR_S = 30.0  # the resting floor is measured for at most this long
 
 # A process that only wakes once a heartbeat on the cell's event loop, and prints the CPU its wake-ups took:
@@ -82,35 +79,6 @@ async def rest(beat, until):
     return time.process_time() - began
 print(run(rest(float(sys.argv[1]), time.monotonic() + float(sys.argv[2]))))
 """
-_STAMP = re.compile(r"\| Date (\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3}) \|.*?\| (?:Note|Warning|Error|Trace): (.*)$")
-
-
-def log_events(path: Path) -> list[tuple[float, str]]:
-    """(epoch seconds, message) of every entry of a Figure 2 log."""
-    out: list[tuple[float, str]] = []
-    try:
-        lines = path.read_text(errors="replace").splitlines()
-    except OSError:
-        return out
-    for line in lines:
-        m = _STAMP.search(line)
-        if m:
-            out.append((datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S.%f").timestamp(), m.group(2)))
-    return out
-
-
-def phases(events: list[list[Any]]) -> dict[str, float]:
-    """Seconds between the marks of a lot's (first) operation: queued->bound, bound->setup, ..., from
-    its named events ([phase, epoch seconds, machine] each)."""
-    marks: dict[str, float] = {}
-    for phase, at, _machine in events:
-        marks.setdefault(phase, at)
-    return {f"{a}->{b}": marks[b] - marks[a] for a, b in itertools.pairwise(PHASES) if a in marks and b in marks}
-
-
-def bound_to(events: list[list[Any]], machine: str, since: float) -> float | None:
-    """When the lot was given `machine` (the first machine of a reservation) at or after `since`."""
-    return next((at for phase, at, m in events if phase == Phase.BOUND and m == machine and at >= since), None)
 
 
 class CellBench:
@@ -290,18 +258,8 @@ class CellBench:
             # where the time goes, counted: CPU per lot by process role while the lots ran, and commits
             "loaded_cpu_ms_per_lot": cpu,
             "db_commits_per_lot": round((commits1 - commits0) / self.m, 1),
-            "script_cpu_ms": summary(self._script_cpu(entities)),
+            "script_cpu_ms": summary(script_cpu(self.cell.cfg.log_dir, entities)),
         }
-
-    def _script_cpu(self, entities: list[int]) -> list[float]:
-        """Each lot script's whole CPU (ms), start-up included, as its agent logged it when it reaped it."""
-        wanted = {f"lot:{e}" for e in entities}
-        out = []
-        for log in self.cell.cfg.log_dir.glob("agent-*.log"):
-            for m in REAPED.finditer(log.read_text(errors="replace")):
-                if m.group(1) in wanted:
-                    out.append(float(m.group(2)))
-        return out
 
     def _timing_files(self, entities: list[int]) -> list[dict[str, Any]]:
         """What each lot's script left about its operation (gwc/lot/scripts/soak.py)."""
@@ -506,6 +464,8 @@ class CellBench:
 
 def _role(cmd: str) -> str:
     """A process's role from its command line: the module of `gwc run X`, else what runs it."""
+    if "gwc.lot.launcher" in cmd:  # the lot user's launcher (its forks, the scripts, are lot scripts)
+        return "lot launcher"
     m = re.search(r"gwc (?:run (\S+)|(agent))", cmd)
     if m:
         return m.group(1) or m.group(2)
@@ -530,7 +490,8 @@ def wake_floor(processes: int, beat: float, seconds: float) -> float:
 
 
 def _lot_script(pid: int, cmd: str) -> bool:
-    """Whether process `pid` is a lot script: exec'd (`python -m gwc.lot.run`) or forked by the agent."""
+    """Whether process `pid` is a lot script: exec'd (`python -m gwc.lot.run`), or forked by the agent or
+    the lot launcher (named lot:E)."""
     try:
         return "gwc.lot.run" in cmd or Path(f"/proc/{pid}/comm").read_text().startswith("lot:")
     except OSError:

@@ -31,7 +31,7 @@ import click
 from asyncua import Client, Node, ua
 
 from gwc.bench import brief, summary
-from gwc.bench.cell import log_events
+from gwc.bench.logs import log_events
 from gwc.client.session import bench_context
 from gwc.config import load_config
 from gwc.errors import GwcError

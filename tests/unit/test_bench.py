@@ -14,7 +14,7 @@ from typing import Any
 import click
 import pytest
 
-from gwc.bench import cell, percentile, reaped_cpu_s
+from gwc.bench import logs, percentile, reaped_cpu_s
 from gwc.lot import events
 from gwc.lot.events import Phase
 
@@ -85,11 +85,11 @@ def test_the_cell_bench_times_phases_from_named_events_not_log_wording() -> None
         log.removeHandler(recorder)
     marks = recorder.as_list()
     assert [m[0] for m in marks] == [p.value for p in Phase]
-    timed = cell.phases(marks)
-    assert list(timed) == [f"{a}->{b}" for a, b in itertools.pairwise(cell.PHASES)]
+    timed = logs.phases(marks)
+    assert list(timed) == [f"{a}->{b}" for a, b in itertools.pairwise(logs.PHASES)]
     assert all(v > 0 for v in timed.values())
-    assert cell.bound_to(marks, "wc2", marks[0][1]) == marks[1][1]
-    assert cell.bound_to(marks, "wc1", 0) is None
+    assert logs.bound_to(marks, "wc2", marks[0][1]) == marks[1][1]
+    assert logs.bound_to(marks, "wc1", 0) is None
 
 
 def test_growth_sizes_pair_machines_with_lots_and_refuse_a_mismatch() -> None:
