@@ -5,6 +5,7 @@ cell's id counters (get_new_max_value)."""
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,9 @@ from gwc.db.connect import connect, one_line
 from gwc.errors import DatabaseError
 
 SQL_DIR = shipped("sql")
+SCHEMA_TRIES = 3  # applications of the schema, when one ends in a deadlock with the running cell's reads
+SCHEMA_PAUSE_S = 0.2  # s before the second try; twice that before the third
+UNDONE = (psycopg.errors.DeadlockDetected, psycopg.errors.SerializationFailure)  # the server undid it all
 
 _log = logging.getLogger("gwc.db")
 
@@ -32,29 +36,47 @@ def init_schema(cfg: Config, log: logging.Logger | None = None) -> None:
     One transaction under an advisory lock, so two processes initialising at once take turns and a
     failure leaves the database as it was. Machines in cell.toml that the seed does not know get a
     me_config row, a 'Shutdown' machine_status row and, by kind, the seed's recipes.
+
+    Applied while the cell runs (`gwc db start` after the database was lost), its DDL's locks may meet
+    a module's reads in a deadlock: the server undoes the whole transaction, and it is applied again
+    (SCHEMA_TRIES in all).
     """
     log = log or _log
     files = sql_files()
     if not files:
         raise DatabaseError(f"no schema files in {SQL_DIR}: the checkout is incomplete")
     with connect(cfg, log=log) as conn:
-        try:
-            with conn.transaction(), conn.cursor() as cur:
-                cur.execute("select pg_advisory_xact_lock(hashtext('gwc.init_schema'))")
-                for path in files:
-                    log.debug("applying %s", path.name)
-                    try:
-                        cur.execute(path.read_text())
-                    except psycopg.Error as e:
-                        raise DatabaseError(f"{path.name}: {one_line(e)}") from e
-                _register_machines(cur, cfg)
-                if cfg.database_host is not None:
-                    set_role_passwords(cur, cfg)
-                if cfg.embedded:
-                    limit_lot_connections(cur, cfg, log)
-        except psycopg.Error as e:
-            raise DatabaseError(f"applying the schema failed: {one_line(e)}") from e
+        for attempt in range(1, SCHEMA_TRIES + 1):
+            try:
+                _apply(conn, cfg, files, log)
+                break
+            except UNDONE as e:  # a deadlock, undone whole: nothing half applied
+                if attempt == SCHEMA_TRIES:
+                    raise DatabaseError(f"applying the schema failed {attempt} times: {one_line(e)}") from e
+                log.warning("applying the schema: %s: again (try %d of %d)", one_line(e), attempt + 1, SCHEMA_TRIES)
+                time.sleep(SCHEMA_PAUSE_S * attempt)
+            except psycopg.Error as e:
+                raise DatabaseError(f"applying the schema failed: {one_line(e)}") from e
     log.info("schema applied (%s)", ", ".join(p.name for p in files))
+
+
+def _apply(conn: psycopg.Connection[Any], cfg: Config, files: list[Path], log: logging.Logger) -> None:
+    """One try of init_schema: every file, the machines, the roles' passwords and the lots' limit."""
+    with conn.transaction(), conn.cursor() as cur:
+        cur.execute("select pg_advisory_xact_lock(hashtext('gwc.init_schema'))")
+        for path in files:
+            log.debug("applying %s", path.name)
+            try:
+                cur.execute(path.read_text())
+            except UNDONE:
+                raise  # init_schema tries again
+            except psycopg.Error as e:
+                raise DatabaseError(f"{path.name}: {one_line(e)}") from e
+        _register_machines(cur, cfg)
+        if cfg.database_host is not None:
+            set_role_passwords(cur, cfg)
+        if cfg.embedded:
+            limit_lot_connections(cur, cfg, log)
 
 
 def limit_lot_connections(cur: psycopg.Cursor[Any], cfg: Config, log: logging.Logger) -> None:

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import psycopg
+import pytest
 from psycopg import errors
 
 from gwc import db
 from gwc.config import Config
+from gwc.db import schema
+from gwc.errors import DatabaseError
 from gwc.ipc.codes import LotState, MachineStatus
 
 TABLES = {
@@ -222,3 +226,27 @@ def test_the_good_rows_next_to_the_bad_ones_are_accepted(db_conn: psycopg.Connec
     seqs = [r[0] for r in db_conn.execute("select seq from request_machines order by seq")]
     assert len(seqs) == 2 and seqs[0] < seqs[1]
     db_conn.commit()
+
+
+def test_a_schema_application_that_ends_in_a_deadlock_is_applied_again(
+    cell_config: Config, db_conn: psycopg.Connection[Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`gwc db start` while the cell runs: the DDL's locks may deadlock with a module's reads; the server
+    undoes the whole transaction, and init_schema applies it again. A sequence (which no rollback undoes)
+    makes the last file's first application fail as a deadlock would, the second pass."""
+    db_conn.execute("create sequence if not exists test_schema_tries")
+    db_conn.commit()
+    once = tmp_path / "999_deadlock_once.sql"
+    once.write_text(
+        "DO $$ BEGIN IF nextval('test_schema_tries') = 1 THEN "
+        "RAISE EXCEPTION 'deadlock detected (test)' USING ERRCODE = '40P01'; END IF; END $$;"
+    )
+    monkeypatch.setattr(schema, "sql_files", lambda: [*sorted(schema.SQL_DIR.glob("*.sql")), once])
+    monkeypatch.setattr(schema, "SCHEMA_PAUSE_S", 0.0)
+    db.init_schema(cell_config)
+    assert db_conn.execute("select last_value from test_schema_tries").fetchone()[0] == 2
+    db_conn.execute("alter sequence test_schema_tries restart")  # every try a deadlock now: refused, said so
+    db_conn.commit()
+    once.write_text("DO $$ BEGIN RAISE EXCEPTION 'deadlock detected (test)' USING ERRCODE = '40P01'; END $$;")
+    with pytest.raises(DatabaseError, match=r"failed 3 times: deadlock detected \(test\)"):
+        db.init_schema(cell_config)
