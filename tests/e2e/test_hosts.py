@@ -133,7 +133,9 @@ class HostCell:
 
 
 @pytest.fixture
-def host_cell() -> Iterator[HostCell]:
+def host_cell(tmp_path: Path) -> Iterator[HostCell]:
+    """Three hosts' cell; each host's log folder is kept in the test's tmp_path (pytest keeps the last
+    runs' tmp_paths), so that a failure can be read after the cell's folders are gone."""
     base = Path(tempfile.mkdtemp(prefix="gwc-h-", dir="/var/tmp"))
     base.chmod(0o755)  # the postgres OS user runs h1's cluster under it
     try:
@@ -147,6 +149,9 @@ def host_cell() -> Iterator[HostCell]:
                     with contextlib.suppress(subprocess.TimeoutExpired):
                         cell.run(h, "stop", timeout=60)
     finally:
+        for h in ("h1", "h2", "h3"):
+            with contextlib.suppress(OSError):
+                shutil.copytree(base / h / "log", tmp_path / h / "log", dirs_exist_ok=True)
         shutil.rmtree(base, ignore_errors=True)
     assert not leftovers(tag), "test hosts left behind"  # (another test's hosts may be up beside)
 
