@@ -157,10 +157,10 @@ class Agent(Server):
             self.log.info("lot scripts: %s", self.budget.describe())
             if self.lot_user is not None:
                 self.log.info("lot scripts run as user %s (uid %d)", self.lot_user.name, self.lot_user.uid)
-            if self.launcher is not None:
-                self.launcher.start()
             elif why := lot_user_wanted_but_unusable(self.cfg):
                 self.log.warning("lot scripts run as the cell's user (uid %d): %s", os.geteuid(), why)
+            if self.launcher is not None:
+                self.launcher.start()
             self._adopt()
             self.spawn(self._start_all_logged())
             if hosting.hosted(self.cfg):  # lot scripts outlive their host (gwc/agent/lot_hosts.py)

@@ -1,4 +1,4 @@
-"""The systemd unit of a host's agent (`gwc agent --unit`, docs/deploying.md)."""
+"""The systemd unit of a host's agent (`gwc agent --systemd-unit`, docs/deploying.md)."""
 
 from __future__ import annotations
 
